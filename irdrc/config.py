@@ -1,0 +1,66 @@
+"""Scenarios (``envs/*.yaml``) and Hydra wiring shared by the recipes.
+
+A scenario file holds the ``env`` keys of MODEL.md. It may start with ``defaults: [other]`` to take
+another scenario's values first and override some of them (``ref_impl.yaml`` does).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from omegaconf import DictConfig, OmegaConf
+
+ROOT = Path(__file__).resolve().parents[1]
+ENVS_DIR = ROOT / "envs"
+CONF_DIR = ROOT / "recipes" / "conf"
+
+
+def list_scenarios(envs_dir: Path = ENVS_DIR) -> list[str]:
+    """Names of the scenarios in ``envs/``."""
+    return sorted(p.stem for p in envs_dir.glob("*.yaml"))
+
+
+def load_scenario(name: str, envs_dir: Path = ENVS_DIR, _seen: tuple[str, ...] = ()) -> DictConfig:
+    """The ``env`` config of scenario ``name``, its ``defaults`` resolved.
+
+    Raises:
+        ValueError: unknown scenario, or a cycle in ``defaults``.
+    """
+    path = envs_dir / f"{name}.yaml"
+    if not path.is_file():
+        raise ValueError(
+            f"env={name!r} is not a scenario; available: {', '.join(list_scenarios(envs_dir))}"
+        )
+    if name in _seen:
+        raise ValueError(f"scenario defaults form a cycle: {' -> '.join((*_seen, name))}")
+    node = OmegaConf.load(path)
+    bases = node.pop("defaults", [])
+    merged = OmegaConf.create()
+    for base in bases:
+        if base == "_self_":
+            continue
+        merged = OmegaConf.merge(merged, load_scenario(str(base), envs_dir, (*_seen, name)))
+    return OmegaConf.merge(merged, node)
+
+
+def register_scenarios(envs_dir: Path = ENVS_DIR) -> None:
+    """Put every scenario into Hydra's ConfigStore as the config group ``env``.
+
+    The recipes call this before ``hydra.main`` so that ``env=ref_impl`` picks ``envs/ref_impl.yaml``.
+    """
+    from hydra.core.config_store import ConfigStore
+
+    cs = ConfigStore.instance()
+    for name in list_scenarios(envs_dir):
+        cs.store(group="env", name=name, node=load_scenario(name, envs_dir))
+
+
+def scenario_name(cfg: Any) -> str:
+    """The scenario a recipe ran: the Hydra choice of ``env`` when known, else ``custom``."""
+    try:
+        from hydra.core.hydra_config import HydraConfig
+
+        return str(HydraConfig.get().runtime.choices.get("env", "custom"))
+    except Exception:  # noqa: BLE001 - outside a Hydra app
+        return "custom"

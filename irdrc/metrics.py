@@ -1,0 +1,91 @@
+"""The Metrics record and its names (MODEL.md § Metrics), shared by logs, CSVs, tables and plots.
+
+Every metric is a ratio of sums over the steps evaluated — never a mean of per-episode ratios — so
+miss detection stays defined when an episode has no event.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, fields
+
+METRIC_NAMES = (
+    "avg_reward",
+    "episode_reward",
+    "throughput",
+    "link_capacity",
+    "miss_detection",
+    "radar_fraction",
+    "drop_rate",
+    "mean_queue",
+)
+
+DESCRIPTIONS = {
+    "avg_reward": "reward per step",
+    "episode_reward": "total reward per episode (avg_reward × horizon)",
+    "throughput": "packets sent per step (paper's definition; ≤ λ)",
+    "link_capacity": "Σ ν over comm steps / steps (what the ref impl plotted as throughput)",
+    "miss_detection": "missed events / all events",
+    "radar_fraction": "share of steps in radar mode",
+    "drop_rate": "packets lost to queue overflow per step",
+    "mean_queue": "mean queue length d at decision time",
+}
+
+
+@dataclass(frozen=True)
+class Metrics:
+    """Long-run or sampled performance of a policy; NaN where undefined (no event seen)."""
+
+    avg_reward: float
+    episode_reward: float
+    throughput: float
+    link_capacity: float
+    miss_detection: float
+    radar_fraction: float
+    drop_rate: float
+    mean_queue: float
+
+    def as_dict(self) -> dict[str, float]:
+        """Plain dict keyed by ``METRIC_NAMES``."""
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict[str, float]) -> Metrics:
+        """Inverse of ``as_dict`` (extra keys are ignored)."""
+        return cls(**{f.name: float(data[f.name]) for f in fields(cls)})
+
+
+def _fmt(x: float) -> str:
+    if x is None or (isinstance(x, float) and math.isnan(x)):
+        return "n/a"
+    return f"{x:.4g}" if abs(x) >= 1e-3 or x == 0 else f"{x:.2e}"
+
+
+def format_table(
+    rows: dict[str, Metrics | dict[str, float]],
+    names: tuple[str, ...] = METRIC_NAMES,
+    errors: dict[str, dict[str, float]] | None = None,
+) -> str:
+    """Side-by-side table: one row per method, one column per metric.
+
+    Args:
+        rows: method name → its metrics.
+        names: metric columns, in order.
+        errors: method name → metric → half-width of a confidence interval, shown as ``± x``.
+    """
+    header = ["method", *names]
+    body = []
+    for method, m in rows.items():
+        values = m.as_dict() if isinstance(m, Metrics) else m
+        cells = [method]
+        for n in names:
+            cell = _fmt(values.get(n, float("nan")))
+            err = (errors or {}).get(method, {}).get(n)
+            if err is not None and not math.isnan(err):
+                cell += f" ±{_fmt(err)}"
+            cells.append(cell)
+        body.append(cells)
+    widths = [max(len(r[i]) for r in [header, *body]) for i in range(len(header))]
+    line = lambda r: "  ".join(c.ljust(w) if i == 0 else c.rjust(w) for i, (c, w) in enumerate(zip(r, widths, strict=True)))  # noqa: E731
+    sep = "  ".join("-" * w for w in widths)
+    return "\n".join([line(header), sep, *(line(r) for r in body)])

@@ -1,0 +1,87 @@
+"""Policies with one interface: TensorDictModules that read the env's keys and write ``action``.
+
+Every policy here maps a tensordict of any batch shape to an int64 ``action`` of that shape
+(0 = communication, 1 = radar), so one ``evaluate()`` serves them all.
+"""
+
+from __future__ import annotations
+
+import torch
+from tensordict.nn import TensorDictModule
+from torch import nn
+
+
+class _Constant(nn.Module):
+    def __init__(self, action: int) -> None:
+        super().__init__()
+        self.action = int(action)
+
+    def forward(self, state: torch.Tensor) -> torch.Tensor:
+        return torch.full_like(state, self.action)
+
+
+class _RoundRobin(nn.Module):
+    def __init__(self, first: int) -> None:
+        super().__init__()
+        self.first = int(first)
+
+    def forward(self, step_count: torch.Tensor) -> torch.Tensor:
+        return (step_count.squeeze(-1) + self.first) % 2
+
+
+class _Random(nn.Module):
+    def __init__(self, p_radar: float, seed: int | None) -> None:
+        super().__init__()
+        self.p_radar = float(p_radar)
+        self.generator = torch.Generator()
+        self.generator.manual_seed(seed if seed is not None else int(torch.seed() % 2**62))
+
+    def forward(self, state: torch.Tensor) -> torch.Tensor:
+        u = torch.rand(state.shape, generator=self.generator).to(state.device)
+        return (u < self.p_radar).to(torch.int64)
+
+
+class _Table(nn.Module):
+    def __init__(self, actions: torch.Tensor) -> None:
+        super().__init__()
+        self.register_buffer("actions", torch.as_tensor(actions, dtype=torch.int64).clone())
+
+    def forward(self, state: torch.Tensor) -> torch.Tensor:
+        return self.actions[state]
+
+
+def always_comm() -> TensorDictModule:
+    """Communication mode every step."""
+    return TensorDictModule(_Constant(0), in_keys=["state"], out_keys=["action"])
+
+
+def always_radar() -> TensorDictModule:
+    """Radar mode every step."""
+    return TensorDictModule(_Constant(1), in_keys=["state"], out_keys=["action"])
+
+
+def round_robin(first: int = 0) -> TensorDictModule:
+    """The paper's round-robin baseline: modes alternate every step.
+
+    Args:
+        first: the mode at step 0 of each episode (0 comm, 1 radar); the action at step t is
+            (t + first) mod 2.
+    """
+    if first not in (0, 1):
+        raise ValueError(f"first={first!r} must be 0 (comm) or 1 (radar)")
+    return TensorDictModule(_RoundRobin(first), in_keys=["step_count"], out_keys=["action"])
+
+
+def uniform_random(p_radar: float = 0.5, seed: int | None = None) -> TensorDictModule:
+    """Radar with probability ``p_radar`` each step, from its own seeded generator."""
+    if not 0.0 <= p_radar <= 1.0:
+        raise ValueError(f"p_radar={p_radar!r} must be in [0, 1]")
+    return TensorDictModule(_Random(p_radar, seed), in_keys=["state"], out_keys=["action"])
+
+
+def table_policy(actions: torch.Tensor) -> TensorDictModule:
+    """Deterministic policy from a table of one action per state index (see ``irdrc.env``)."""
+    actions = torch.as_tensor(actions)
+    if actions.ndim != 1 or actions.numel() % 32 or not bool(((actions == 0) | (actions == 1)).all()):
+        raise ValueError("actions must be a 1-D table of 0/1 with (D + 1)·32 entries")
+    return TensorDictModule(_Table(actions), in_keys=["state"], out_keys=["action"])

@@ -15,6 +15,6 @@ __all__ = [
     "state_index",
 ]
 
-from irdrc.gym import register as _register_gym  # noqa: E402
+from irdrc.gym import register as _register_gym
 
 _register_gym()

@@ -62,5 +62,5 @@ def scenario_name(cfg: Any) -> str:
         from hydra.core.hydra_config import HydraConfig
 
         return str(HydraConfig.get().runtime.choices.get("env", "custom"))
-    except Exception:  # noqa: BLE001 - outside a Hydra app
+    except Exception:
         return "custom"

@@ -142,14 +142,20 @@ class Dynamics:
         # Observation of every state: [S, 6] float32.
         self.obs = decode_state(torch.arange(self.num_states)).to(torch.float32)
 
-        for name in ("event_prob", "next1", "factor_weights", "reward", "capacity", "arrival_cdf", "obs"):
+        for name in (
+            "event_prob",
+            "next1",
+            "factor_weights",
+            "reward",
+            "capacity",
+            "arrival_cdf",
+            "obs",
+        ):
             setattr(self, name, getattr(self, name).to(self.device))
 
     def reset_states(self, n: int, generator: torch.Generator) -> torch.Tensor:
         """n states drawn uniformly from all (D + 1)·32 (MODEL.md step 5)."""
-        return torch.randint(
-            0, self.num_states, (n,), generator=generator, device=self.device
-        )
+        return torch.randint(0, self.num_states, (n,), generator=generator, device=self.device)
 
     def step(
         self, state: torch.Tensor, action: torch.Tensor, generator: torch.Generator

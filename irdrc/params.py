@@ -178,20 +178,45 @@ class EnvParams:
 
     def __post_init__(self) -> None:
         set_ = object.__setattr__
-        set_(self, "queue_capacity", _check_number("env.queue_capacity", self.queue_capacity, 1, 10_000, integer=True))
+        set_(
+            self,
+            "queue_capacity",
+            _check_number("env.queue_capacity", self.queue_capacity, 1, 10_000, integer=True),
+        )
         # The exact model sums arrivals up to a tail bucket; rates above 1000 packets/step are not a
         # regime this model is meant for and would make that table huge.
-        set_(self, "arrival_rate", _check_number("env.arrival_rate", self.arrival_rate, 0.0, 1000.0))
-        set_(self, "packets_good", _check_number("env.packets_good", self.packets_good, 0, 10_000, integer=True))
-        set_(self, "packets_bad", _check_number("env.packets_bad", self.packets_bad, 0, 10_000, integer=True))
-        for name, cls in (("p0", EventProbs), ("p1", EventProbs), ("stay_good", StayProbs), ("stay_bad", StayProbs)):
+        set_(
+            self, "arrival_rate", _check_number("env.arrival_rate", self.arrival_rate, 0.0, 1000.0)
+        )
+        set_(
+            self,
+            "packets_good",
+            _check_number("env.packets_good", self.packets_good, 0, 10_000, integer=True),
+        )
+        set_(
+            self,
+            "packets_bad",
+            _check_number("env.packets_bad", self.packets_bad, 0, 10_000, integer=True),
+        )
+        for name, cls in (
+            ("p0", EventProbs),
+            ("p1", EventProbs),
+            ("stay_good", StayProbs),
+            ("stay_bad", StayProbs),
+        ):
             if not isinstance(getattr(self, name), cls):
                 raise ValueError(f"env.{name} must be a mapping of {cls.__name__} values")
         if self.event_model not in EVENT_MODELS:
-            raise ValueError(f"env.event_model={self.event_model!r} must be one of {', '.join(EVENT_MODELS)}")
+            raise ValueError(
+                f"env.event_model={self.event_model!r} must be one of {', '.join(EVENT_MODELS)}"
+            )
         if not isinstance(self.radar_reaction, bool):
             raise ValueError(f"env.radar_reaction={self.radar_reaction!r} must be true or false")
-        set_(self, "reaction_clear", _check_number("env.reaction_clear", self.reaction_clear, 0.0, 1.0))
+        set_(
+            self,
+            "reaction_clear",
+            _check_number("env.reaction_clear", self.reaction_clear, 0.0, 1.0),
+        )
         set_(self, "horizon", _check_number("env.horizon", self.horizon, 1, 10**9, integer=True))
 
     @property
@@ -232,7 +257,9 @@ class RewardParams:
     @classmethod
     def from_dict(cls, data: Any, *, strict: bool = True) -> RewardParams:
         """Build from a plain dict or an OmegaConf node holding the ``reward`` keys."""
-        return _from_mapping(cls, _fill(cls(), data) if not strict else data, "reward.", strict=True)
+        return _from_mapping(
+            cls, _fill(cls(), data) if not strict else data, "reward.", strict=True
+        )
 
 
 @dataclass(frozen=True)

@@ -82,6 +82,10 @@ def uniform_random(p_radar: float = 0.5, seed: int | None = None) -> TensorDictM
 def table_policy(actions: torch.Tensor) -> TensorDictModule:
     """Deterministic policy from a table of one action per state index (see ``irdrc.env``)."""
     actions = torch.as_tensor(actions)
-    if actions.ndim != 1 or actions.numel() % 32 or not bool(((actions == 0) | (actions == 1)).all()):
+    if (
+        actions.ndim != 1
+        or actions.numel() % 32
+        or not bool(((actions == 0) | (actions == 1)).all())
+    ):
         raise ValueError("actions must be a 1-D table of 0/1 with (D + 1)·32 entries")
     return TensorDictModule(_Table(actions), in_keys=["state"], out_keys=["action"])

@@ -1,7 +1,7 @@
 """Benchmark: env steps per second of DFRCEnv for several batch sizes (medians of repeated runs).
 
-    python recipes/bench_env.py                          # table + bench_env.csv in the run dir
-    python recipes/bench_env.py sizes=[1024,65536] threads=[1] repeats=3
+python recipes/bench_env.py                          # table + bench_env.csv in the run dir
+python recipes/bench_env.py sizes=[1024,65536] threads=[1] repeats=3
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """Demo: roll out the paper's baselines on a batch of envs and print MODEL.md's metrics.
 
-    python recipes/demo.py                       # paper scenario
-    python recipes/demo.py env=ref_impl reward.r4=50 num_envs=4096
+python recipes/demo.py                       # paper scenario
+python recipes/demo.py env=ref_impl reward.r4=50 num_envs=4096
 """
 
 from __future__ import annotations

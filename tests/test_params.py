@@ -1,0 +1,111 @@
+"""Parameters: defaults, config names, and validation messages naming the key."""
+
+from __future__ import annotations
+
+import pytest
+from omegaconf import OmegaConf
+
+from irdrc import EnvParams, Params, RewardParams
+from irdrc.config import list_scenarios, load_scenario
+from irdrc.params import as_dict
+
+
+def test_defaults_are_model_md():
+    p = Params()
+    e = p.env
+    assert (e.queue_capacity, e.arrival_rate, e.packets_good, e.packets_bad) == (10, 1.0, 4, 2)
+    assert e.p0.as_tuple() == (0.005,) * 4
+    assert e.p1.as_tuple() == (0.05, 0.046, 0.1, 0.05)
+    assert e.stay_good.as_tuple() == (0.9,) * 5 and e.stay_bad.as_tuple() == (0.1,) * 5
+    assert (e.event_model, e.radar_reaction, e.horizon) == ("noisy_or", True, 400)
+    assert (p.reward.r1, p.reward.r2, p.reward.r3, p.reward.r4) == (2, 1, 50, 5)
+    assert e.num_states == 352
+
+
+def test_round_trip_dict_and_omegaconf():
+    d = Params().to_dict()
+    assert Params.from_config(d) == Params()
+    assert Params.from_config(OmegaConf.create(d)) == Params()
+
+
+def test_overrides_nested_dotted_and_short():
+    a = Params.from_overrides({"env": {"p1": {"speed": 0.5}}, "reward": {"r4": 50}})
+    b = Params.from_overrides({"env.p1.speed": 0.5, "reward.r4": 50})
+    c = Params.from_overrides(p1={"speed": 0.5}, r4=50)
+    assert a == b == c
+    assert a.env.p1.speed == 0.5 and a.env.p1.road == 0.05 and a.reward.r4 == 50
+
+
+def test_scenario_files():
+    assert {"paper", "ref_impl"} <= set(list_scenarios())
+    paper = EnvParams.from_dict(load_scenario("paper"))
+    assert paper == EnvParams()
+    ref = as_dict(EnvParams.from_dict(load_scenario("ref_impl")))
+    expected = as_dict(EnvParams())
+    expected["p1"].update(speed=0.5, weather=0.05)
+    assert ref == expected
+    with pytest.raises(ValueError, match="not a scenario"):
+        load_scenario("nope")
+
+
+BAD = [
+    ("env.queue_capacity", 0),
+    ("env.queue_capacity", 2.5),
+    ("env.arrival_rate", -0.1),
+    ("env.arrival_rate", float("nan")),
+    ("env.packets_good", -1),
+    ("env.packets_bad", -1),
+    ("env.horizon", 0),
+    ("env.event_model", "max"),
+    ("env.radar_reaction", "yes"),
+    ("env.reaction_clear", 1.2),
+    ("reward.r1", -1.0),
+    ("reward.r2", "two"),
+    ("reward.r3", float("inf")),
+    ("reward.r4", True),
+    *[
+        (f"env.{g}.{f}", v)
+        for g in ("p0", "p1")
+        for f in ("road", "weather", "speed", "object")
+        for v in (-0.01, 1.01)
+    ],
+    *[
+        (f"env.{g}.{f}", 1.5)
+        for g in ("stay_good", "stay_bad")
+        for f in ("channel", "road", "weather", "speed", "object")
+    ],
+]
+
+
+@pytest.mark.parametrize(("key", "value"), BAD)
+def test_invalid_value_names_key(key, value):
+    with pytest.raises(ValueError) as err:
+        Params.from_overrides({key: value})
+    msg = str(err.value)
+    assert key in msg and repr(value) in msg
+
+
+def test_unknown_and_missing_keys():
+    with pytest.raises(ValueError, match=r"env\.p1\.sped"):
+        Params.from_overrides({"env.p1.sped": 0.2})
+    with pytest.raises(ValueError, match=r"env\.bogus"):
+        Params.from_overrides({"env.bogus": 1})
+    with pytest.raises(ValueError, match=r"reward\.r5"):
+        Params.from_overrides({"reward.r5": 1})
+    full = Params().to_dict()
+    del full["env"]["p1"]["road"]
+    with pytest.raises(ValueError, match=r"missing key\(s\) env\.p1\.road"):
+        Params.from_config(full)
+    full = Params().to_dict()
+    del full["reward"]["r3"]
+    with pytest.raises(ValueError, match=r"missing key\(s\) reward\.r3"):
+        Params.from_config(full)
+    with pytest.raises(ValueError, match="missing key"):
+        Params.from_config({"env": Params().to_dict()["env"]})
+    with pytest.raises(ValueError, match=r"env\.p0 must be a mapping"):
+        Params.from_overrides({"env.p0": 0.1})
+
+
+def test_frozen():
+    with pytest.raises(AttributeError):
+        RewardParams().r1 = 3.0  # type: ignore[misc]

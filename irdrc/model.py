@@ -1,0 +1,159 @@
+"""The exact model of MODEL.md: P[a, s, s′], R[a, s] and per-step expectations, in float64.
+
+Built from the same ``Params`` as the simulator but written independently of its step code (per-factor
+2×2 chains combined by Kronecker products, the queue summed over Poisson arrivals exactly), so that
+comparing the two can catch a bug in either. State indexing is the one of ``irdrc.env``:
+s = d·32 + c·16 + r·8 + w·4 + v·2 + m.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+from irdrc.params import Params
+
+
+@dataclass(frozen=True)
+class ExactModel:
+    """Transition and expectation tensors of the MDP (float64, S = (D + 1)·32 states).
+
+    Attributes:
+        params: the parameters it was built from.
+        P: [2, S, S] transition probabilities P[a, s, s′].
+        R: [2, S] expected reward of action a in state s.
+        event: [S] probability of an unexpected event during a step from s (either action).
+        sent, dropped, capacity: [2, S] expected packets sent, dropped, and link capacity ν.
+        queue: [S] queue length d of each state.
+    """
+
+    params: Params
+    P: torch.Tensor
+    R: torch.Tensor
+    event: torch.Tensor
+    sent: torch.Tensor
+    dropped: torch.Tensor
+    capacity: torch.Tensor
+    queue: torch.Tensor
+
+    @property
+    def num_states(self) -> int:
+        """S = (D + 1)·32."""
+        return self.P.shape[-1]
+
+    @property
+    def missed(self) -> torch.Tensor:
+        """[2, S] expected missed events: the event probability in comm mode, 0 in radar mode."""
+        return torch.stack([self.event, torch.zeros_like(self.event)])
+
+
+def _poisson_pmf(rate: float, k: int) -> float:
+    if rate == 0.0:
+        return 1.0 if k == 0 else 0.0
+    return math.exp(k * math.log(rate) - rate - math.lgamma(k + 1))
+
+
+def _factor_chain(stay_good: float, stay_bad: float) -> torch.Tensor:
+    """2×2 transition matrix of one factor: rows current condition, columns next."""
+    return torch.tensor(
+        [[stay_good, 1.0 - stay_good], [1.0 - stay_bad, stay_bad]], dtype=torch.float64
+    )
+
+
+def _factor_transitions(params: Params) -> torch.Tensor:
+    """[2, 32, 32]: P(factors′ | a, factors) over the 5 Markov factors (c, r, w, v, m)."""
+    env = params.env
+    chains = [
+        _factor_chain(g, h)
+        for g, h in zip(env.stay_good.as_tuple(), env.stay_bad.as_tuple(), strict=True)
+    ]
+    # Kronecker product in (c, r, w, v, m) order gives index c·16 + r·8 + w·4 + v·2 + m.
+    base = chains[0]
+    for ch in chains[1:]:
+        base = torch.kron(base, ch)
+    radar = base.clone()
+    if env.radar_reaction:
+        # a = 1 and m = 1: v′ = 0 surely, m′ = 0 w.p. reaction_clear; c, r, w follow their chains.
+        crw = torch.kron(torch.kron(chains[0], chains[1]), chains[2])  # [8, 8]
+        clear = env.reaction_clear
+        vm_next = torch.tensor([clear, 1.0 - clear, 0.0, 0.0], dtype=torch.float64)  # (v′, m′)
+        for f in range(32):
+            if f & 1:  # m = 1
+                radar[f] = torch.kron(crw[f >> 2], vm_next)
+    return torch.stack([base, radar])
+
+
+def build_model(params: Params) -> ExactModel:
+    """The exact MDP of ``params`` (see ``ExactModel``)."""
+    env, rw = params.env, params.reward
+    D = env.queue_capacity
+    S = (D + 1) * 32
+    s = torch.arange(S)
+    d = s // 32
+    c = (s // 16) % 2
+    rwvm = [(s // 8) % 2, (s // 4) % 2, (s // 2) % 2, s % 2]
+    b = sum(x.to(torch.float64) for x in rwvm)
+
+    # Event probability of each state.
+    p0, p1 = env.p0.as_tuple(), env.p1.as_tuple()
+    per = [torch.where(x == 1, p1[i], p0[i]).to(torch.float64) for i, x in enumerate(rwvm)]
+    if env.event_model == "noisy_or":
+        event = 1.0 - math.prod(1.0 - p for p in per)
+    else:
+        event = torch.clamp(sum(per), max=1.0)
+
+    # Reward, eq. (3), in expectation over the event.
+    comm_ok = torch.where(c == 0, rw.r1, rw.r2).to(torch.float64)
+    R = torch.stack([(1.0 - event) * comm_ok - event * rw.r3, event * rw.r4 * (b + 1.0)])
+
+    # Queue: for each (a, d, c) the distribution of d′ and expected sent / dropped, summed over
+    # A = 0 … K−1 exactly plus a tail bucket A ≥ K, where K = D + max ν + 1 makes every tail
+    # outcome identical (sent = ν, d′ = D) except the drop, whose tail expectation is exact:
+    # E[A; A ≥ K] = λ·P(A ≥ K − 1).
+    lam = env.arrival_rate
+    nu_max = max(env.packets_good, env.packets_bad)
+    K = D + nu_max + 1
+    pmf = [_poisson_pmf(lam, k) for k in range(K)]
+    tail = max(0.0, 1.0 - sum(pmf))  # P(A ≥ K)
+    tail_prev = max(0.0, 1.0 - sum(pmf[: K - 1]))  # P(A ≥ K − 1)
+    q_next = torch.zeros(2, 2, D + 1, D + 1, dtype=torch.float64)  # [a, c, d, d′]
+    q_sent = torch.zeros(2, 2, D + 1, dtype=torch.float64)
+    q_drop = torch.zeros(2, 2, D + 1, dtype=torch.float64)
+    nus = torch.zeros(2, 2, dtype=torch.float64)
+    for a in (0, 1):
+        for ch in (0, 1):
+            nu = 0 if a == 1 else (env.packets_good if ch == 0 else env.packets_bad)
+            nus[a, ch] = nu
+            for dd in range(D + 1):
+                for k, pk in enumerate(pmf):
+                    rest = max(0, dd + k - nu)
+                    dn = min(D, rest)
+                    q_next[a, ch, dd, dn] += pk
+                    q_sent[a, ch, dd] += pk * min(dd + k, nu)
+                    q_drop[a, ch, dd] += pk * (rest - dn)
+                q_next[a, ch, dd, D] += tail
+                q_sent[a, ch, dd] += tail * nu
+                q_drop[a, ch, dd] += (dd - nu - D) * tail + lam * tail_prev
+
+    F = _factor_transitions(params)  # [a, f, f′]
+    f = s % 32
+    P = torch.zeros(2, S, S, dtype=torch.float64)
+    for a in (0, 1):
+        # P[a, (d, f), (d′, f′)] = Q[a, c(f), d, d′] · F[a, f, f′]
+        qa = q_next[a][c, d]  # [S, D + 1]
+        P[a] = (qa[:, :, None] * F[a][f][:, None, :]).reshape(S, S)
+    sent = torch.stack([q_sent[a][c, d] for a in (0, 1)])
+    dropped = torch.stack([q_drop[a][c, d] for a in (0, 1)])
+    capacity = torch.stack([nus[a][c] for a in (0, 1)])
+    return ExactModel(
+        params=params,
+        P=P,
+        R=R,
+        event=event,
+        sent=sent,
+        dropped=dropped,
+        capacity=capacity,
+        queue=d.to(torch.float64),
+    )

@@ -55,7 +55,7 @@ def value_iteration(
         raise ValueError("tol must be > 0 and max_iter >= 1")
     V = torch.zeros(model.num_states, dtype=torch.float64)
     residual = float("inf")
-    for it in range(1, max_iter + 1):
+    for it in range(1, max_iter + 1):  # noqa: B007 - reported after the loop
         Q = model.R + gamma * model.P @ V
         V_new = Q.max(0).values
         residual = float((V_new - V).abs().max())

@@ -1,0 +1,170 @@
+"""The exact model and solvers, and the simulator checked against them."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from irdrc import DFRCEnv, Params, policies
+from irdrc.evaluate import evaluate
+from irdrc.metrics import METRIC_NAMES
+from irdrc.model import ExactModel, build_model
+from irdrc.solve import (
+    as_schedule,
+    episodic_metrics,
+    policy_evaluation,
+    stationary_distribution,
+    stationary_metrics,
+    value_iteration,
+)
+
+SCENARIOS = {
+    "paper": {},
+    "sum_no_reaction": {"env.event_model": "sum", "env.radar_reaction": False, "env.p1.speed": 0.6},
+    "busy_queue": {"env.arrival_rate": 2.5, "env.queue_capacity": 4, "env.packets_bad": 1},
+}
+
+
+@pytest.fixture(scope="module")
+def paper():
+    return build_model(Params())
+
+
+def tiny_model(P, R) -> ExactModel:
+    z = torch.zeros(P.shape[-1], dtype=torch.float64)
+    return ExactModel(Params(), P, R, z, 0 * R, 0 * R, 0 * R, z)
+
+
+def test_value_iteration_on_hand_solved_mdp():
+    # State 0: stay (+1) or move to 1 (+0); state 1: stay (+2) or move to 0 (+0). γ = 0.9.
+    # V(1) = 2/(1 − 0.9) = 20; in state 0, staying is worth 10, moving 0.9·20 = 18 → move.
+    P = torch.tensor([[[1.0, 0.0], [0.0, 1.0]], [[0.0, 1.0], [1.0, 0.0]]], dtype=torch.float64)
+    R = torch.tensor([[1.0, 2.0], [0.0, 0.0]], dtype=torch.float64)
+    sol = value_iteration(tiny_model(P, R), gamma=0.9)
+    assert sol.policy.tolist() == [1, 0]
+    assert torch.allclose(sol.values, torch.tensor([18.0, 20.0], dtype=torch.float64), atol=1e-9)
+    with pytest.raises(RuntimeError, match="did not converge"):
+        value_iteration(tiny_model(P, R), gamma=0.9, max_iter=3)
+    with pytest.raises(ValueError, match="gamma"):
+        value_iteration(tiny_model(P, R), gamma=1.0)
+
+
+@pytest.mark.parametrize("name", list(SCENARIOS))
+def test_rows_sum_to_one(name):
+    m = build_model(Params.from_overrides(SCENARIOS[name]))
+    assert torch.allclose(m.P.sum(-1), torch.ones_like(m.P[..., 0]), atol=1e-12)
+    assert bool((m.P >= 0).all())
+
+
+def test_optimal_beats_every_baseline_exactly(paper):
+    sol = value_iteration(paper)
+    best = stationary_metrics(paper, sol.policy).avg_reward
+    for name in ("round_robin", "always_comm", "always_radar", "random"):
+        assert best > stationary_metrics(paper, name).avg_reward + 0.1
+        # and in discounted value from every state, for stationary baselines
+        if name != "round_robin":
+            assert bool((sol.values >= policy_evaluation(paper, name) - 1e-9).all())
+
+
+def test_stationary_distribution_and_schedules(paper):
+    mu = stationary_distribution(paper.P[0])
+    assert torch.allclose(mu @ paper.P[0], mu, atol=1e-12) and abs(float(mu.sum()) - 1) < 1e-12
+    assert len(as_schedule("round_robin", 352)) == 2
+    with pytest.raises(ValueError, match="shape"):
+        as_schedule(torch.zeros(5, dtype=torch.long), 352)
+    # with the default chains each factor is bad w.p. 0.1 every step: P(c = 1) = 0.1 under
+    # always-comm (no radar reaction), exactly
+    c1 = mu.view(11, 2, 16)[:, 1].sum()
+    assert abs(float(c1) - 0.1) < 1e-12
+
+
+def test_episodic_differs_from_stationary(paper):
+    # resets start from a uniform queue (mean 5): the episodic mean queue is visibly higher
+    stat = stationary_metrics(paper, "always_comm")
+    epi = episodic_metrics(paper, "always_comm")
+    assert epi.mean_queue > stat.mean_queue + 0.02
+    assert episodic_metrics(paper, "always_comm", horizon=100_000).mean_queue == pytest.approx(
+        stat.mean_queue, abs=1e-3
+    )
+
+
+@pytest.mark.parametrize("name", list(SCENARIOS))
+def test_simulator_matches_model_chi2(name):
+    """One step from every (state, action), K times each: χ² on next states, 5σ on rewards."""
+    params = Params.from_overrides(SCENARIOS[name])
+    m = build_model(params)
+    S, K = m.num_states, 1500
+    states = torch.arange(S).repeat(2).repeat_interleave(K)
+    actions = torch.arange(2).repeat_interleave(S).repeat_interleave(K)
+    env = DFRCEnv(params, batch_size=[states.numel()], seed=7)
+    from tensordict import TensorDict
+
+    td = TensorDict(
+        {
+            "state": states,
+            "action": actions,
+            "step_count": torch.zeros(states.numel(), 1, dtype=torch.long),
+        },
+        batch_size=[states.numel()],
+    )
+    nxt = env.step(td)["next"]
+    rows = actions * S + states
+    counts = torch.zeros(2 * S, S, dtype=torch.float64)
+    counts.index_put_(
+        (rows, nxt["state"]), torch.ones(rows.numel(), dtype=torch.float64), accumulate=True
+    )
+    expected = m.P.reshape(2 * S, S) * K
+    # Pearson χ² over cells with expected count ≥ 5, each row's remaining cells lumped into one
+    # (kept when its expectation is ≥ 5 too). Under the model the statistic has mean dof and sd
+    # √(2·dof); 5 sd above the mean is the bound.
+    big = expected >= 5
+    stat = float((((counts - expected) ** 2 / expected.clamp(min=1e-300)) * big).sum())
+    dof = int(big.sum()) - 2 * S
+    rest_e = (expected * ~big).sum(1)
+    rest_o = (counts * ~big).sum(1)
+    keep = rest_e >= 5
+    stat += float(((rest_o - rest_e) ** 2 / rest_e.clamp(min=1e-300))[keep].sum())
+    dof += int(keep.sum())
+    assert stat < dof + 5 * math.sqrt(2 * dof), (stat, dof)
+    # cells the model calls impossible are never visited
+    assert float(counts[expected == 0].sum()) == 0.0
+    # mean reward, sent, dropped, capacity per (action, state) within 5 standard errors
+    for key, exact in (
+        ("reward", m.R),
+        ("sent", m.sent),
+        ("dropped", m.dropped),
+        ("capacity", m.capacity),
+    ):
+        x = nxt[key].double().reshape(-1)
+        sums = torch.zeros(2 * S, dtype=torch.float64).index_add_(0, rows, x)
+        sq = torch.zeros(2 * S, dtype=torch.float64).index_add_(0, rows, x * x)
+        mean = sums / K
+        se = torch.sqrt((sq / K - mean**2).clamp(min=0) / (K - 1))
+        mu = exact.reshape(-1)
+        if key != "reward":
+            # Rare counts (drops with μ ~ 1e-6) give all-zero samples and a sample se of 0. For an
+            # integer X ≥ 0, E[X²] ≥ E[X], so Var X ≥ μ − μ²: a floor on the true se.
+            se = torch.maximum(se, torch.sqrt((mu - mu**2).clamp(min=0) / K))
+        # the 1e-6 admits float32 rounding of rewards where every sample agreed
+        bad = (mean - mu).abs() > 5 * se + 1e-6
+        assert not bool(bad.any()), (key, mean[bad].tolist(), mu[bad].tolist())
+
+
+@pytest.mark.parametrize("which", ["optimal", "round_robin"])
+def test_sampled_episodes_match_exact_episodic(paper, which):
+    if which == "optimal":
+        policy = value_iteration(paper).policy
+        module, exact = policies.table_policy(policy), episodic_metrics(paper, policy)
+    else:
+        module, exact = policies.round_robin(), episodic_metrics(paper, "round_robin")
+    env = DFRCEnv(Params(), batch_size=[2048], seed=11)
+    ev = evaluate(module, env)
+    for name in METRIC_NAMES:
+        got, want, ci = getattr(ev.metrics, name), getattr(exact, name), ev.ci95[name]
+        if ci == 0 or math.isnan(ci):
+            assert got == pytest.approx(want, abs=1e-9), name
+        else:
+            # ci95 is 1.96 standard errors; 5 standard errors is the bound
+            assert abs(got - want) <= 5 / 1.96 * ci, (name, got, want, ci)

@@ -56,11 +56,18 @@ def register_scenarios(envs_dir: Path = ENVS_DIR) -> None:
         cs.store(group="env", name=name, node=load_scenario(name, envs_dir))
 
 
-def scenario_name(cfg: Any) -> str:
-    """The scenario a recipe ran: the Hydra choice of ``env`` when known, else ``custom``."""
+def scenario_name(cfg: Any = None) -> str:
+    """The scenario a recipe ran: the Hydra choice of ``env``, plus any ``env.*`` / ``reward.*``
+    command-line overrides in brackets (``paper[env.p1.speed=0.5,reward.r4=50]``); ``custom``
+    outside a Hydra app."""
     try:
         from hydra.core.hydra_config import HydraConfig
 
-        return str(HydraConfig.get().runtime.choices.get("env", "custom"))
+        hc = HydraConfig.get()
     except Exception:
         return "custom"
+    name = str(hc.runtime.choices.get("env", "custom"))
+    extra = [
+        o for o in hc.overrides.task if o.split("=")[0].lstrip("+~").startswith(("env.", "reward."))
+    ]
+    return f"{name}[{','.join(extra)}]" if extra else name

@@ -30,7 +30,7 @@ def test_demo_prints_metrics(tmp_path):
         f"hydra.run.dir={tmp_path}",
     )
     assert out.returncode == 0, out.stderr
-    assert "scenario=ref_impl p1.speed=0.5 r4=50.0" in out.stdout
+    assert "scenario=ref_impl[reward.r4=50] p1.speed=0.5 r4=50.0" in out.stdout
     for name in ("round_robin", "always_radar", "miss_detection", "throughput", "link_capacity"):
         assert name in out.stdout
     # round-robin is radar exactly half the time
@@ -58,3 +58,70 @@ def test_bench_env_writes_csv(tmp_path):
     rows = list(csv.DictReader((tmp_path / "bench_env.csv").open()))
     assert len(rows) == 2 * 3
     assert all(float(r["median_steps_per_s"]) > 0 for r in rows)
+
+
+def _check_summary(path: Path, method: str) -> dict:
+    import json
+
+    s = json.loads((path / "summary.json").read_text())
+    assert set(s) >= {
+        "method",
+        "scenario",
+        "seed",
+        "env_steps",
+        "wall_seconds",
+        "metrics",
+        "optimal",
+        "optimality_ratio",
+    }
+    keys = {
+        "avg_reward",
+        "episode_reward",
+        "throughput",
+        "link_capacity",
+        "miss_detection",
+        "radar_fraction",
+        "drop_rate",
+    }
+    assert keys <= set(s["metrics"]) and keys <= set(s["optimal"])
+    assert s["method"] == method
+    rows = list(csv.DictReader((path / "policy.csv").open()))
+    assert list(rows[0]) == ["d", "c", "r", "w", "v", "m", "action"] and len(rows) == 352
+    assert {r["action"] for r in rows} <= {"0", "1"}
+    return s
+
+
+def test_solve_recipe(tmp_path):
+    out = run_recipe(
+        "solve.py", "mc_episodes=32", "num_envs=32", "env.p1.speed=1.0", f"hydra.run.dir={tmp_path}"
+    )
+    assert out.returncode == 0, out.stderr
+    assert "optimal (stationary)" in out.stdout and "round_robin (episodic)" in out.stdout
+    s = _check_summary(tmp_path, "optimal")
+    assert s["optimality_ratio"] == 1.0
+    assert s["scenario"] == "paper[env.p1.speed=1.0]"
+
+
+def test_qlearning_recipe(tmp_path):
+    out = run_recipe(
+        "qlearning.py",
+        "algo.episodes=4",
+        "algo.eval_every_episodes=2",
+        "num_learners=2",
+        "mc_episodes=8",
+        "num_envs=8",
+        "progress=false",
+        "seed=3",
+        "reward.r4=50",
+        f"hydra.run.dir={tmp_path}",
+    )
+    assert out.returncode == 0, out.stderr
+    s = _check_summary(tmp_path, "qlearning")
+    assert s["seed"] == 3 and s["env_steps"] == 4 * 400 and len(s["learners"]) == 2
+    hist = list(csv.DictReader((tmp_path / "metrics.csv").open()))
+    assert [int(r["env_steps"]) for r in hist] == [0, 800, 1600]
+
+
+def test_qlearning_recipe_rejects_bad_algo_key(tmp_path):
+    out = run_recipe("qlearning.py", "+algo.bogus=1", f"hydra.run.dir={tmp_path}")
+    assert out.returncode != 0 and "algo.bogus" in out.stderr

@@ -1,0 +1,118 @@
+"""Policies, evaluation aggregation, and vectorised tabular Q-learning."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict
+
+import pytest
+import torch
+from omegaconf import OmegaConf
+
+from irdrc import DFRCEnv, Params, policies
+from irdrc.config import CONF_DIR
+from irdrc.evaluate import evaluate, ratio_ci
+from irdrc.model import build_model
+from irdrc.qlearning import DEFAULT, PAPER, ExactScorer, QLearningConfig, steps_to_ratio, train
+
+
+def test_round_robin_alternates_from_each_reset():
+    env = DFRCEnv(Params.from_overrides(horizon=5), batch_size=[3], seed=0)
+    td = env.rollout(10, policies.round_robin(), break_when_any_done=False)
+    assert td["action"][0].tolist() == [0, 1, 0, 1, 0, 0, 1, 0, 1, 0]
+    td = env.rollout(4, policies.round_robin(first=1), break_when_any_done=False)
+    assert td["action"][0].tolist() == [1, 0, 1, 0]
+
+
+def test_table_and_constant_policies():
+    env = DFRCEnv(Params(), batch_size=[64], seed=0)
+    table = torch.randint(0, 2, (352,), generator=torch.Generator().manual_seed(1))
+    td = env.rollout(20, policies.table_policy(table))
+    assert torch.equal(td["action"], table[td["state"]])
+    assert not bool(env.rollout(5, policies.always_comm())["action"].any())
+    assert bool(env.rollout(5, policies.always_radar())["action"].all())
+    with pytest.raises(ValueError):
+        policies.table_policy(torch.full((352,), 2))
+
+
+def test_random_policy_rate():
+    env = DFRCEnv(Params(), batch_size=[4000], seed=0)
+    a = env.rollout(10, policies.uniform_random(p_radar=0.3, seed=1))["action"].double()
+    # 40 000 Bernoulli(0.3) draws: sd of the mean is 0.0023; 5 sd = 0.0115
+    assert abs(a.mean().item() - 0.3) < 0.0115
+
+
+def test_ratio_ci_is_ratio_of_sums():
+    # per-episode (missed, events): a ratio of sums, not a mean of ratios (episode 3 has no event)
+    missed = torch.tensor([1.0, 3.0, 0.0, 2.0])
+    events = torch.tensor([2.0, 4.0, 0.0, 2.0])
+    r, ci = ratio_ci(missed, events)
+    assert r == pytest.approx(6 / 8)
+    assert ci > 0
+    assert math.isnan(ratio_ci(missed, torch.zeros(4))[0])
+
+
+def test_evaluate_counts_and_ci_coverage():
+    env = DFRCEnv(Params.from_overrides(horizon=50), batch_size=[100], seed=3)
+    ev = evaluate(policies.round_robin(), env, episodes=250)
+    assert ev.episodes == 300 and ev.steps == 300 * 50  # rounded up to whole batches
+    assert ev.metrics.radar_fraction == 0.5 and ev.ci95["radar_fraction"] == 0
+    assert ev.metrics.episode_reward == pytest.approx(50 * ev.metrics.avg_reward)
+
+
+def test_config_validation():
+    with pytest.raises(ValueError, match=r"algo\.gamma"):
+        QLearningConfig(gamma=1.0)
+    with pytest.raises(ValueError, match=r"algo\.alpha_schedule"):
+        QLearningConfig(alpha_schedule="linear")
+    with pytest.raises(ValueError, match=r"algo\.bogus"):
+        QLearningConfig.from_dict({"bogus": 1})
+    assert PAPER.epsilon(0) == PAPER.epsilon(2000) == 0.1
+    cfg = QLearningConfig(epsilon_start=1.0, epsilon_end=0.0, epsilon_decay_episodes=10)
+    assert cfg.epsilon(5) == pytest.approx(0.5) and cfg.epsilon(10) == 0.0
+
+
+@pytest.mark.parametrize(("name", "profile"), [("qlearning", DEFAULT), ("qlearning_paper", PAPER)])
+def test_yaml_profiles_match_code(name, profile):
+    node = OmegaConf.to_container(OmegaConf.load(CONF_DIR / "algo" / f"{name}.yaml"))
+    assert QLearningConfig.from_dict(node) == profile, asdict(profile)
+
+
+def test_learners_are_independent_and_reproducible():
+    p = Params()
+    cfg = QLearningConfig(episodes=3, eval_every_episodes=1)
+    scorer = ExactScorer(build_model(p), cfg.gamma)
+    a = train(p, cfg, num_learners=3, seed=0, scorer=scorer)
+    b = train(p, cfg, num_learners=3, seed=0, scorer=scorer)
+    assert torch.equal(a.q, b.q)
+    assert not torch.equal(a.q[0], a.q[1])
+    assert len(a.history) == 4 and a.history[-1]["env_steps"] == 3 * 400
+    assert a.episode_rewards.shape == (3, 3)
+
+
+def test_q_update_is_the_tabular_rule():
+    # One learner, one step per episode (horizon 1), constant α: after one update from Q = 0 the
+    # visited entry is α · r exactly (max over a zero next row is 0), and nothing else moved.
+    p = Params.from_overrides(horizon=1)
+    cfg = QLearningConfig(episodes=1, alpha=0.5, alpha_schedule="constant", eval_every_episodes=1)
+    res = train(p, cfg, num_learners=1, seed=5)
+    nz = res.q.flatten().nonzero().flatten()
+    assert nz.numel() <= 1
+    if nz.numel():
+        r = float(res.episode_rewards[0, 0])
+        assert float(res.q.flatten()[nz[0]]) == pytest.approx(0.5 * r)
+
+
+def test_steps_to_ratio():
+    hist = [
+        {"env_steps": 0, "optimality_ratio": [0.2]},
+        {"env_steps": 400, "optimality_ratio": [0.99]},
+    ]
+    assert steps_to_ratio(hist, 0, 0.95) == 400 and steps_to_ratio(hist, 0, 0.995) is None
+
+
+@pytest.mark.slow
+def test_default_profile_reaches_98_percent():
+    res = train(Params(), DEFAULT, num_learners=3, seed=0)
+    final = res.history[-1]["optimality_ratio"]
+    assert min(final) >= 0.98, final

@@ -125,3 +125,22 @@ def test_qlearning_recipe(tmp_path):
 def test_qlearning_recipe_rejects_bad_algo_key(tmp_path):
     out = run_recipe("qlearning.py", "+algo.bogus=1", f"hydra.run.dir={tmp_path}")
     assert out.returncode != 0 and "algo.bogus" in out.stderr
+
+
+def test_cli_lists_and_dispatches(tmp_path):
+    listing = subprocess.run(
+        [sys.executable, "-m", "irdrc.cli"], capture_output=True, text=True, cwd=ROOT
+    )
+    assert listing.returncode == 0 and "solve" in listing.stdout and "ref_impl" in listing.stdout
+    bad = subprocess.run(
+        [sys.executable, "-m", "irdrc.cli", "nope"], capture_output=True, text=True, cwd=ROOT
+    )
+    assert bad.returncode == 2 and "unknown recipe" in bad.stderr
+    run = subprocess.run(
+        [sys.executable, "-m", "irdrc.cli", "solve", "mc_episodes=0", f"hydra.run.dir={tmp_path}"],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+    )
+    assert run.returncode == 0, run.stderr
+    assert (tmp_path / "summary.json").is_file()

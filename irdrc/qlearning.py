@@ -19,9 +19,9 @@ from typing import Any
 import torch
 
 from irdrc.env import DFRCEnv
-from irdrc.model import ExactModel, build_model
+from irdrc.model import build_model
 from irdrc.params import Params
-from irdrc.solve import stationary_metrics, value_iteration
+from irdrc.solve import ExactScorer
 
 
 @dataclass(frozen=True)
@@ -130,27 +130,6 @@ class QLearningResult:
     history: list[dict[str, Any]] = field(default_factory=list)
     optimal_avg_reward: float = float("nan")
     wall_seconds: float = 0.0
-
-
-class ExactScorer:
-    """Exact stationary metrics of greedy tables, cached (learners often revisit the same table)."""
-
-    def __init__(self, model: ExactModel, gamma: float) -> None:
-        self.model = model
-        self.optimal = value_iteration(model, gamma=gamma)
-        self.optimal_metrics = stationary_metrics(model, self.optimal.policy)
-        self._cache: dict[bytes, Any] = {}
-
-    def metrics(self, table: torch.Tensor):
-        """Exact stationary ``Metrics`` of the deterministic policy ``table`` ([S] actions)."""
-        key = table.to(torch.uint8).cpu().numpy().tobytes()
-        if key not in self._cache:
-            self._cache[key] = stationary_metrics(self.model, table.cpu())
-        return self._cache[key]
-
-    def ratio(self, table: torch.Tensor) -> float:
-        """Average reward of ``table`` over the optimal average reward (both stationary)."""
-        return self.metrics(table).avg_reward / self.optimal_metrics.avg_reward
 
 
 def train(

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 
@@ -206,3 +207,24 @@ def episodic_metrics(model: ExactModel, policy, horizon: int | None = None) -> M
     because every episode starts from a uniform state (e.g. a mean queue of D/2).
     """
     return metrics_from_occupancy(model, episodic_occupancy(model, policy, horizon))
+
+
+class ExactScorer:
+    """Exact stationary metrics of greedy tables, cached (learners often revisit the same table)."""
+
+    def __init__(self, model: ExactModel, gamma: float) -> None:
+        self.model = model
+        self.optimal = value_iteration(model, gamma=gamma)
+        self.optimal_metrics = stationary_metrics(model, self.optimal.policy)
+        self._cache: dict[bytes, Any] = {}
+
+    def metrics(self, table: torch.Tensor):
+        """Exact stationary ``Metrics`` of the deterministic policy ``table`` ([S] actions)."""
+        key = table.to(torch.uint8).cpu().numpy().tobytes()
+        if key not in self._cache:
+            self._cache[key] = stationary_metrics(self.model, table.cpu())
+        return self._cache[key]
+
+    def ratio(self, table: torch.Tensor) -> float:
+        """Average reward of ``table`` over the optimal average reward (both stationary)."""
+        return self.metrics(table).avg_reward / self.optimal_metrics.avg_reward

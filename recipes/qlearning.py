@@ -22,9 +22,9 @@ from irdrc.evaluate import evaluate
 from irdrc.metrics import format_table
 from irdrc.model import build_model
 from irdrc.policies import table_policy
-from irdrc.qlearning import ExactScorer, QLearningConfig, steps_to_ratio, train
+from irdrc.qlearning import QLearningConfig, steps_to_ratio, train
 from irdrc.results import summary_dict, write_policy_csv, write_rows_csv, write_summary
-from irdrc.solve import stationary_metrics
+from irdrc.solve import ExactScorer, stationary_metrics
 
 register_scenarios()
 

@@ -13,7 +13,8 @@ from irdrc import DFRCEnv, Params, policies
 from irdrc.config import CONF_DIR
 from irdrc.evaluate import evaluate, ratio_ci
 from irdrc.model import build_model
-from irdrc.qlearning import DEFAULT, PAPER, ExactScorer, QLearningConfig, steps_to_ratio, train
+from irdrc.qlearning import DEFAULT, PAPER, QLearningConfig, steps_to_ratio, train
+from irdrc.solve import ExactScorer
 
 
 def test_round_robin_alternates_from_each_reset():

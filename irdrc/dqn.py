@@ -1,0 +1,436 @@
+"""DQN from TorchRL parts: builders, and the one training loop every recipe and sweep calls.
+
+Components are built in a fixed order (model → exploration → buffer → loss → target updater →
+optimiser → collector), then ``train`` runs: collect, extend, anneal ε and β, update, evaluate the
+greedy network *exactly* on all states on a schedule.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field, fields
+from typing import Any
+
+import torch
+from tensordict import TensorDict
+from tensordict.nn import TensorDictSequential
+from torch import nn
+from torchrl.collectors import Collector
+from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+from torchrl.data.replay_buffers.samplers import RandomSampler
+from torchrl.modules import MLP, EGreedyModule, QValueActor
+from torchrl.objectives import DQNLoss, HardUpdate, SoftUpdate
+
+from irdrc.env import DFRCEnv
+from irdrc.model import build_model
+from irdrc.params import Params
+from irdrc.replay import make_prioritized_sampler
+from irdrc.solve import ExactScorer
+
+ACTIVATIONS = {"relu": nn.ReLU, "tanh": nn.Tanh, "elu": nn.ELU, "gelu": nn.GELU, "silu": nn.SiLU}
+
+
+@dataclass(frozen=True)
+class DQNConfig:
+    """Hyperparameters of DQN (config group ``algo``); every key names its unit.
+
+    Attributes:
+        num_envs: envs stepped together by the collector (one batched ``DFRCEnv``).
+        frames_per_batch: env steps per collected batch (a multiple of ``num_envs``).
+        total_frames: env steps of the whole run.
+        init_random_frames: env steps with uniformly random actions before learning starts.
+        buffer_size: replay capacity, in transitions.
+        batch_size: transitions per gradient update.
+        updates_per_batch: gradient updates after each collected batch.
+        lr: Adam learning rate at the start …
+        lr_end: … annealed linearly to this over ``total_frames`` (equal to ``lr``: constant).
+        max_grad_norm: gradient clipping (0 = off).
+        gamma: discount γ.
+        loss_function: ``l2`` (default; ``smooth_l1`` clips the rare −r3 penalty), ``l1``,
+            ``smooth_l1``.
+        double_dqn: use the online network to pick the next action (van Hasselt et al.).
+        eps_start, eps_end, eps_anneal_frames: ε-greedy, annealed linearly over env steps.
+        target_update: ``soft`` (Polyak, rate ``tau`` per update) or ``hard`` (copy every
+            ``target_update_every_updates`` updates).
+        prioritized: proportional prioritised replay with exponent ``alpha`` and importance
+            exponent annealed from ``beta_start`` to 1 over ``total_frames``.
+        sampler: ``auto`` (TorchRL's when its extension loads, else ours), ``torchrl``, ``torch``.
+    """
+
+    num_envs: int = 8
+    frames_per_batch: int = 32
+    total_frames: int = 20_000
+    init_random_frames: int = 512
+    buffer_size: int = 20_000
+    batch_size: int = 256
+    updates_per_batch: int = 4
+    lr: float = 5e-4
+    lr_end: float = 1e-5
+    max_grad_norm: float = 10.0
+    gamma: float = 0.99
+    loss_function: str = "l2"
+    double_dqn: bool = True
+    eps_start: float = 1.0
+    eps_end: float = 0.05
+    eps_anneal_frames: int = 4_000
+    target_update: str = "soft"
+    tau: float = 0.01
+    target_update_every_updates: int = 500
+    prioritized: bool = True
+    alpha: float = 0.6
+    beta_start: float = 1.0
+    sampler: str = "auto"
+    name: str = field(default="dqn", compare=False)
+
+    def __post_init__(self) -> None:
+        def need(key: str, ok: bool, allowed: str) -> None:
+            if not ok:
+                raise ValueError(f"algo.{key}={getattr(self, key)!r} must be {allowed}")
+
+        for key in ("num_envs", "frames_per_batch", "total_frames", "buffer_size", "batch_size"):
+            need(
+                key,
+                isinstance(getattr(self, key), int) and getattr(self, key) >= 1,
+                "an integer >= 1",
+            )
+        for key in ("init_random_frames", "updates_per_batch", "eps_anneal_frames"):
+            need(
+                key,
+                isinstance(getattr(self, key), int) and getattr(self, key) >= 0,
+                "an integer >= 0",
+            )
+        need("target_update_every_updates", self.target_update_every_updates >= 1, ">= 1")
+        need("lr", 0 < self.lr < 1, "in (0, 1)")
+        need("lr_end", 0 <= self.lr_end < 1, "in [0, 1)")
+        need("max_grad_norm", self.max_grad_norm >= 0, ">= 0")
+        need("gamma", 0 <= self.gamma < 1, "in [0, 1)")
+        need(
+            "loss_function", self.loss_function in ("l2", "l1", "smooth_l1"), "l2, l1 or smooth_l1"
+        )
+        for key in ("eps_start", "eps_end", "tau", "beta_start"):
+            need(key, 0 <= getattr(self, key) <= 1, "in [0, 1]")
+        need("alpha", self.alpha >= 0, ">= 0")
+        need("target_update", self.target_update in ("soft", "hard"), "soft or hard")
+        need("sampler", self.sampler in ("auto", "torchrl", "torch"), "auto, torchrl or torch")
+        # Combinations, named by their keys.
+        if self.frames_per_batch % self.num_envs:
+            raise ValueError(
+                f"algo.frames_per_batch={self.frames_per_batch} must be a multiple of "
+                f"algo.num_envs={self.num_envs}"
+            )
+        if self.init_random_frames >= self.total_frames:
+            raise ValueError(
+                f"algo.init_random_frames={self.init_random_frames} must be < "
+                f"algo.total_frames={self.total_frames} (no learning would happen)"
+            )
+        if self.buffer_size < self.batch_size:
+            raise ValueError(
+                f"algo.buffer_size={self.buffer_size} must be >= algo.batch_size={self.batch_size}"
+            )
+        if self.frames_per_batch > self.total_frames:
+            raise ValueError(
+                f"algo.frames_per_batch={self.frames_per_batch} must be <= "
+                f"algo.total_frames={self.total_frames}"
+            )
+
+    @classmethod
+    def from_dict(cls, data: Any) -> DQNConfig:
+        """From a mapping (e.g. the ``algo`` config node); unknown keys are rejected."""
+        from irdrc.params import _to_plain
+
+        data = dict(_to_plain(data))
+        names = {f.name for f in fields(cls)}
+        extra = sorted(set(data) - names)
+        if extra:
+            raise ValueError(
+                f"unknown key(s) {', '.join('algo.' + k for k in extra)}; "
+                f"allowed: {', '.join('algo.' + n for n in sorted(names))}"
+            )
+        return cls(**data)
+
+
+@dataclass(frozen=True)
+class NetworkConfig:
+    """Q-network shape (config group ``network``): hidden layer sizes and activation."""
+
+    hidden: tuple[int, ...] = (64, 64)
+    activation: str = "relu"
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "hidden", tuple(self.hidden))
+        if not self.hidden or any(not isinstance(h, int) or h < 1 for h in self.hidden):
+            raise ValueError(
+                f"network.hidden={list(self.hidden)!r} must be a non-empty list of integers >= 1"
+            )
+        if self.activation not in ACTIVATIONS:
+            raise ValueError(
+                f"network.activation={self.activation!r} must be one of {', '.join(ACTIVATIONS)}"
+            )
+
+    @classmethod
+    def from_dict(cls, data: Any) -> NetworkConfig:
+        """From a mapping with ``hidden`` and ``activation`` (``name`` is ignored)."""
+        from irdrc.params import _to_plain
+
+        data = {k: v for k, v in dict(_to_plain(data)).items() if k != "name"}
+        extra = sorted(set(data) - {"hidden", "activation"})
+        if extra:
+            raise ValueError(f"unknown key(s) {', '.join('network.' + k for k in extra)}")
+        return cls(**data)
+
+
+class _Scale(nn.Module):
+    """Divides observations by their upper bounds, so every input lies in [0, 1]."""
+
+    def __init__(self, high: torch.Tensor) -> None:
+        super().__init__()
+        self.register_buffer("inv", 1.0 / high.clamp(min=1.0))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return x * self.inv
+
+
+def make_qnet(env: DFRCEnv, net: NetworkConfig) -> QValueActor:
+    """Q-value actor sized from the env's specs: observation dim in, one Q-value per action out."""
+    obs_spec = env.observation_spec["observation"]
+    n_actions = env.action_spec_unbatched.space.n
+    high = obs_spec.space.high.reshape(-1, obs_spec.shape[-1])[0].to(torch.float32)
+    mlp = MLP(
+        in_features=obs_spec.shape[-1],
+        out_features=n_actions,
+        num_cells=list(net.hidden),
+        activation_class=ACTIVATIONS[net.activation],
+        device=env.device,
+    )
+    module = nn.Sequential(_Scale(high.to(env.device)), mlp)
+    return QValueActor(module=module, in_keys=["observation"], spec=env.action_spec_unbatched)
+
+
+def make_exploration(env: DFRCEnv, cfg: DQNConfig) -> EGreedyModule:
+    """ε-greedy, linear from ``eps_start`` to ``eps_end`` over ``eps_anneal_frames`` env steps."""
+    return EGreedyModule(
+        spec=env.action_spec_unbatched,
+        eps_init=cfg.eps_start,
+        eps_end=cfg.eps_end,
+        annealing_num_steps=max(1, cfg.eps_anneal_frames),
+    )
+
+
+def make_buffer(cfg: DQNConfig):
+    """Replay buffer: prioritised (see ``irdrc.replay``) or uniform. Returns (buffer, sampler)."""
+    if cfg.prioritized:
+        sampler = make_prioritized_sampler(
+            cfg.buffer_size, cfg.alpha, cfg.beta_start, prefer=cfg.sampler
+        )
+    else:
+        sampler = RandomSampler()
+    rb = TensorDictReplayBuffer(
+        storage=LazyTensorStorage(cfg.buffer_size), sampler=sampler, batch_size=cfg.batch_size
+    )
+    return rb, sampler
+
+
+def make_loss(qnet: QValueActor, env: DFRCEnv, cfg: DQNConfig) -> DQNLoss:
+    """DQNLoss with a target network, the chosen distance and γ."""
+    loss = DQNLoss(
+        qnet,
+        loss_function=cfg.loss_function,
+        delay_value=True,
+        double_dqn=cfg.double_dqn,
+        action_space=env.action_spec_unbatched,
+    )
+    loss.make_value_estimator(gamma=cfg.gamma)
+    return loss
+
+
+def make_target_updater(loss: DQNLoss, cfg: DQNConfig):
+    """Soft (Polyak, ``tau``) or hard (every ``target_update_every_updates``) target updates."""
+    if cfg.target_update == "soft":
+        return SoftUpdate(loss, tau=cfg.tau)
+    return HardUpdate(loss, value_network_update_interval=cfg.target_update_every_updates)
+
+
+@dataclass
+class DQNRun:
+    """Everything ``train`` built and learned (kept so a caller can save or inspect it)."""
+
+    qnet: QValueActor
+    loss: DQNLoss
+    optimizer: torch.optim.Optimizer
+    exploration: EGreedyModule
+    sampler_name: str
+    frames: int = 0
+    updates: int = 0
+    wall_seconds: float = 0.0
+    history: list[dict[str, Any]] = field(default_factory=list)
+    scorer: ExactScorer | None = None
+
+
+def greedy_table(qnet: QValueActor, env: DFRCEnv) -> torch.Tensor:
+    """The greedy action of the Q-network in every state ([S], ties → comm)."""
+    with torch.no_grad():
+        obs = env.dynamics.obs
+        td = qnet(TensorDict({"observation": obs}, batch_size=[obs.shape[0]], device=obs.device))
+        return td["action"].reshape(-1).long().cpu()
+
+
+def train(
+    params: Params,
+    cfg: DQNConfig,
+    net: NetworkConfig,
+    *,
+    seed: int = 0,
+    device: str = "cpu",
+    eval_every_frames: int = 1_000,
+    on_eval: Callable[[dict[str, Any]], None] | None = None,
+    on_batch: Callable[[dict[str, Any]], None] | None = None,
+    state: dict[str, Any] | None = None,
+    scorer: ExactScorer | None = None,
+) -> DQNRun:
+    """Train DQN on the batched env and evaluate the greedy network exactly on a schedule.
+
+    Args:
+        params: the model.
+        cfg: DQN hyperparameters.
+        net: Q-network shape.
+        seed: seeds torch, the env and the collector.
+        device: torch device.
+        eval_every_frames: exact evaluation every this many env steps (and at the end).
+        on_eval: called with each evaluation record (``env_steps``, ``wall_seconds``,
+            ``updates``, ``optimality_ratio`` and every exact metric).
+        on_batch: called after each batch with ``env_steps``, ``epsilon``, ``loss``, ``beta``.
+        state: a checkpoint (see ``checkpoint_state``) to resume from.
+        scorer: exact evaluator (built from ``params`` if omitted).
+    """
+    if eval_every_frames < 1:
+        raise ValueError(f"eval.every_frames={eval_every_frames!r} must be >= 1")
+    torch.manual_seed(seed)
+    env = DFRCEnv(params, batch_size=[cfg.num_envs], device=device, seed=seed)
+    scorer = scorer or ExactScorer(build_model(params), cfg.gamma)
+
+    qnet = make_qnet(env, net)
+    exploration = make_exploration(env, cfg)
+    policy = TensorDictSequential(qnet, exploration)
+    rb, sampler = make_buffer(cfg)
+    loss = make_loss(qnet, env, cfg)
+    target = make_target_updater(loss, cfg)
+    optimizer = torch.optim.Adam(loss.parameters(), lr=cfg.lr)
+    run = DQNRun(qnet, loss, optimizer, exploration, type(sampler).__name__, scorer=scorer)
+
+    start_frames = 0
+    if state is not None:
+        loss.load_state_dict(state["loss"])
+        optimizer.load_state_dict(state["optimizer"])
+        start_frames, run.updates = int(state["frames"]), int(state["updates"])
+        exploration.step(start_frames)
+        run.history = list(state.get("history", []))
+    remaining = cfg.total_frames - start_frames
+    if remaining <= 0:
+        raise ValueError(
+            f"nothing to resume: the checkpoint is at {start_frames} ≥ algo.total_frames"
+        )
+    # A resumed run has no buffer: it refills with its own policy and learns from batch_size on.
+    random_frames = 0 if state is not None else cfg.init_random_frames
+    learn_from = (
+        cfg.batch_size if state is not None else max(cfg.batch_size, cfg.init_random_frames)
+    )
+    collector = Collector(
+        env,
+        policy,
+        frames_per_batch=cfg.frames_per_batch,
+        total_frames=remaining,
+        init_random_frames=random_frames,
+        device=device,
+        auto_register_policy_transforms=False,
+    )
+    collector.set_seed(seed + start_frames)
+
+    t0 = time.perf_counter() - (float(state["wall_seconds"]) if state is not None else 0.0)
+    frames = start_frames
+    next_eval = (frames // eval_every_frames + 1) * eval_every_frames
+
+    def evaluate_now() -> None:
+        table = greedy_table(qnet, env)
+        m = scorer.metrics(table)
+        entry = {
+            "env_steps": frames,
+            "wall_seconds": time.perf_counter() - t0,
+            "updates": run.updates,
+            "optimality_ratio": m.avg_reward / scorer.optimal_metrics.avg_reward,
+            **m.as_dict(),
+        }
+        run.history.append(entry)
+        if on_eval is not None:
+            on_eval(entry)
+
+    if state is None:
+        evaluate_now()
+    last_loss = math.nan
+    for data in collector:
+        data = data.reshape(-1)
+        rb.extend(data)
+        frames += data.numel()
+        exploration.step(data.numel())
+        for group in optimizer.param_groups:
+            group["lr"] = cfg.lr + (cfg.lr_end - cfg.lr) * min(1.0, frames / cfg.total_frames)
+        if cfg.prioritized:
+            sampler.beta = cfg.beta_start + (1.0 - cfg.beta_start) * min(
+                1.0, frames / cfg.total_frames
+            )
+        if len(rb) >= learn_from:
+            for _ in range(cfg.updates_per_batch):
+                sample = rb.sample()
+                out = loss(sample)
+                optimizer.zero_grad(set_to_none=True)
+                out["loss"].backward()
+                if cfg.max_grad_norm > 0:
+                    nn.utils.clip_grad_norm_(loss.parameters(), cfg.max_grad_norm)
+                optimizer.step()
+                target.step()
+                run.updates += 1
+                if cfg.prioritized:
+                    # DQNLoss writes the squared TD error; proportional PER uses |δ|.
+                    rb.update_priority(
+                        sample["index"], sample["td_error"].detach().sqrt().reshape(-1)
+                    )
+                last_loss = float(out["loss"].detach())
+        if on_batch is not None:
+            on_batch(
+                {
+                    "env_steps": frames,
+                    "epsilon": float(exploration.eps),
+                    "loss": last_loss,
+                    "beta": getattr(sampler, "beta", math.nan),
+                    "buffer": len(rb),
+                }
+            )
+        if frames >= next_eval or frames >= cfg.total_frames:
+            evaluate_now()
+            next_eval = (frames // eval_every_frames + 1) * eval_every_frames
+    collector.shutdown()
+    run.frames = frames
+    run.wall_seconds = time.perf_counter() - t0
+    return run
+
+
+def checkpoint_state(run: DQNRun, config: dict[str, Any]) -> dict[str, Any]:
+    """A ``weights_only``-loadable checkpoint: network, target, optimiser, step counters, config.
+
+    The replay buffer is not saved; a resumed run refills it.
+    """
+    return {
+        "loss": run.loss.state_dict(),
+        "optimizer": run.optimizer.state_dict(),
+        "frames": run.frames,
+        "updates": run.updates,
+        "wall_seconds": run.wall_seconds,
+        "history": run.history,
+        "config": config,
+    }
+
+
+def load_checkpoint(path) -> dict[str, Any]:
+    """Load a checkpoint written by ``checkpoint_state`` (``torch.load(weights_only=True)``)."""
+    return torch.load(path, map_location="cpu", weights_only=True)

@@ -1,0 +1,190 @@
+"""Prioritised replay that works on every install.
+
+TorchRL's ``PrioritizedSampler`` needs the compiled extension ``torchrl._torchrl`` (its segment
+trees); published wheels do not load it against every torch build (then it raises
+``SumSegmentTreeFp32 is not available``). ``TorchPrioritizedSampler`` implements TorchRL's public
+``Sampler`` interface in pure torch with the same formulas, and ``make_prioritized_sampler`` picks
+TorchRL's sampler when the extension loads and ours otherwise.
+
+Formulas (Schaul et al., 2016, proportional variant): item i with raw priority pᵢ is sampled with
+probability P(i) = (pᵢ + ε)^α / Σⱼ (pⱼ + ε)^α; its importance weight is wᵢ = (N·P(i))^(−β) divided by
+the largest weight in the buffer, i.e. ((pᵢ + ε)^α / minⱼ (pⱼ + ε)^α)^(−β). New items get the largest
+raw priority seen so far, so each is likely to be replayed soon after it arrives.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import torch
+from torchrl.data.replay_buffers.samplers import Sampler
+
+
+def torchrl_segment_trees_available() -> bool:
+    """Whether TorchRL's compiled segment trees (and so its PrioritizedSampler) work here."""
+    try:
+        from torchrl.data.replay_buffers.samplers import PrioritizedSampler
+
+        PrioritizedSampler(max_capacity=2, alpha=0.6, beta=0.4)._init()
+        return True
+    except Exception:
+        return False
+
+
+class TorchPrioritizedSampler(Sampler):
+    """Proportional prioritised sampling in pure torch (see the module docstring for the formulas).
+
+    Sampling is O(N) in the number of stored items (one ``torch.multinomial`` over the priorities),
+    which at the buffer sizes of this problem (≤ 10⁶) costs less than a network update.
+
+    Args:
+        max_capacity: size of the storage it indexes.
+        alpha: priority exponent α ≥ 0 (0 = uniform).
+        beta: importance-sampling exponent β ≥ 0; anneal it by setting ``sampler.beta``.
+        eps: added to every raw priority so that none is zero.
+    """
+
+    def __init__(self, max_capacity: int, alpha: float, beta: float, eps: float = 1e-8) -> None:
+        if max_capacity < 1:
+            raise ValueError(f"max_capacity={max_capacity!r} must be >= 1")
+        if alpha < 0 or beta < 0:
+            raise ValueError(f"alpha={alpha!r} and beta={beta!r} must be >= 0")
+        if eps <= 0:
+            raise ValueError(f"eps={eps!r} must be > 0")
+        self._max_capacity = int(max_capacity)
+        self._alpha = float(alpha)
+        self._beta = float(beta)
+        self._eps = float(eps)
+        self._empty()
+
+    # -- parameters -------------------------------------------------------------------------
+    @property
+    def alpha(self) -> float:
+        """Priority exponent α."""
+        return self._alpha
+
+    @alpha.setter
+    def alpha(self, value: float) -> None:
+        if value < 0:
+            raise ValueError(f"alpha={value!r} must be >= 0")
+        self._alpha = float(value)
+
+    @property
+    def beta(self) -> float:
+        """Importance-sampling exponent β."""
+        return self._beta
+
+    @beta.setter
+    def beta(self, value: float) -> None:
+        if value < 0:
+            raise ValueError(f"beta={value!r} must be >= 0")
+        self._beta = float(value)
+
+    @property
+    def max_size(self) -> int:
+        """Capacity of the indexed storage."""
+        return self._max_capacity
+
+    @property
+    def default_priority(self) -> float:
+        """Raw priority given to new items: the largest seen so far (1.0 at first)."""
+        return self._max_priority
+
+    # -- Sampler interface ------------------------------------------------------------------
+    def _empty(self) -> None:
+        self._raw = torch.zeros(self._max_capacity, dtype=torch.float64)
+        self._max_priority = 1.0
+
+    def _weights(self, n: int) -> torch.Tensor:
+        return (self._raw[:n] + self._eps) ** self._alpha
+
+    def sample(self, storage, batch_size: int) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        """``batch_size`` indices drawn with replacement, and their normalised importance weights."""
+        n = len(storage)
+        if n == 0:
+            raise RuntimeError("cannot sample from an empty replay buffer")
+        w = self._weights(n)
+        index = torch.multinomial(w, batch_size, replacement=True, generator=self._rng)
+        weight = (w[index] / w.min()) ** (-self._beta)
+        return index, {"priority_weight": weight.to(torch.float32)}
+
+    def update_priority(
+        self, index: int | torch.Tensor, priority: float | torch.Tensor, *, storage=None
+    ) -> None:
+        """Set the raw priority of ``index`` (non-negative; NaN is rejected)."""
+        index = torch.as_tensor(index, dtype=torch.long).reshape(-1)
+        priority = torch.as_tensor(priority, dtype=torch.float64).detach().cpu().reshape(-1)
+        if priority.numel() == 1 and index.numel() > 1:
+            priority = priority.expand(index.numel())
+        if priority.numel() != index.numel():
+            raise ValueError(f"{index.numel()} indices but {priority.numel()} priorities")
+        if bool(torch.isnan(priority).any()) or bool((priority < 0).any()):
+            raise ValueError("priorities must be non-negative numbers")
+        if index.numel() == 0:
+            return
+        self._raw[index.cpu()] = priority
+        self._max_priority = max(self._max_priority, float(priority.max()))
+
+    def mark_update(self, index: int | torch.Tensor, *, storage=None) -> None:
+        """Called by the buffer for newly written items: give them the largest priority."""
+        self.update_priority(index, self.default_priority)
+
+    def state_dict(self) -> dict[str, Any]:
+        """Priorities and parameters."""
+        return {
+            "raw": self._raw.clone(),
+            "max_priority": self._max_priority,
+            "alpha": self._alpha,
+            "beta": self._beta,
+            "eps": self._eps,
+        }
+
+    def load_state_dict(self, state_dict: dict[str, Any]) -> None:
+        """Inverse of ``state_dict``."""
+        raw = torch.as_tensor(state_dict["raw"], dtype=torch.float64)
+        if raw.numel() != self._max_capacity:
+            raise ValueError(
+                f"state has {raw.numel()} priorities, sampler holds {self._max_capacity}"
+            )
+        self._raw = raw.clone()
+        self._max_priority = float(state_dict["max_priority"])
+        self._alpha, self._beta = float(state_dict["alpha"]), float(state_dict["beta"])
+        self._eps = float(state_dict["eps"])
+
+    def dumps(self, path) -> None:
+        """Save to ``path/sampler.pt``."""
+        path = Path(path)
+        path.mkdir(parents=True, exist_ok=True)
+        torch.save(self.state_dict(), path / "sampler.pt")
+
+    def loads(self, path) -> None:
+        """Load from ``path/sampler.pt``."""
+        self.load_state_dict(torch.load(Path(path) / "sampler.pt", weights_only=True))
+
+    def __repr__(self) -> str:
+        return (
+            f"{type(self).__name__}(max_capacity={self._max_capacity}, alpha={self._alpha}, "
+            f"beta={self._beta}, eps={self._eps})"
+        )
+
+
+def make_prioritized_sampler(
+    max_capacity: int, alpha: float, beta: float, eps: float = 1e-8, prefer: str = "auto"
+) -> Sampler:
+    """TorchRL's ``PrioritizedSampler`` when its extension loads, else ``TorchPrioritizedSampler``.
+
+    Args:
+        prefer: ``auto`` (as above), ``torchrl`` (fail if unavailable) or ``torch`` (always ours).
+    """
+    if prefer not in ("auto", "torchrl", "torch"):
+        raise ValueError(f"prefer={prefer!r} must be auto, torchrl or torch")
+    if prefer != "torch" and torchrl_segment_trees_available():
+        from torchrl.data.replay_buffers.samplers import PrioritizedSampler
+
+        return PrioritizedSampler(max_capacity=max_capacity, alpha=alpha, beta=beta, eps=eps)
+    if prefer == "torchrl":
+        raise RuntimeError(
+            "TorchRL's PrioritizedSampler is not available (torchrl._torchrl does not load)"
+        )
+    return TorchPrioritizedSampler(max_capacity, alpha, beta, eps)

@@ -1,0 +1,160 @@
+"""DQN: config validation, builders, the recipe end to end, checkpoint/resume, W&B offline."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from irdrc import DFRCEnv, Params
+from irdrc.dqn import DQNConfig, NetworkConfig, greedy_table, make_qnet, train
+from irdrc.tracking import resolve_wandb_mode
+
+ROOT = Path(__file__).resolve().parents[1]
+TINY = [
+    "algo.total_frames=640",
+    "algo.init_random_frames=128",
+    "algo.buffer_size=640",
+    "algo.batch_size=32",
+    "eval.every_frames=320",
+    "eval.mc_episodes=8",
+    "eval.mc_num_envs=8",
+    "compare.qlearning_paper=false",
+    "progress=false",
+    "logger=none",
+]
+
+
+def run_dqn(tmp_path, *overrides, env=None, timeout=300):
+    return subprocess.run(
+        [
+            sys.executable,
+            str(ROOT / "recipes" / "dqn.py"),
+            *TINY,
+            *overrides,
+            f"hydra.run.dir={tmp_path}",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        cwd=ROOT,
+        env=env,
+    )
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "keys"),
+    [
+        (
+            {"init_random_frames": 20_000, "total_frames": 20_000},
+            ["algo.init_random_frames", "algo.total_frames"],
+        ),
+        ({"buffer_size": 64, "batch_size": 128}, ["algo.buffer_size", "algo.batch_size"]),
+        ({"frames_per_batch": 30, "num_envs": 8}, ["algo.frames_per_batch", "algo.num_envs"]),
+        ({"loss_function": "huber"}, ["algo.loss_function"]),
+        ({"gamma": 1.0}, ["algo.gamma"]),
+        ({"tau": 2.0}, ["algo.tau"]),
+    ],
+)
+def test_invalid_config_names_keys(kwargs, keys):
+    with pytest.raises(ValueError) as err:
+        DQNConfig(**kwargs)
+    assert all(k in str(err.value) for k in keys)
+
+
+def test_unknown_keys_and_network():
+    with pytest.raises(ValueError, match=r"algo\.bogus"):
+        DQNConfig.from_dict({"bogus": 1})
+    with pytest.raises(ValueError, match=r"network\.hidden"):
+        NetworkConfig(hidden=[0])
+    with pytest.raises(ValueError, match=r"network\.activation"):
+        NetworkConfig(activation="sigmoidish")
+
+
+def test_qnet_sized_from_specs_and_greedy_table():
+    env = DFRCEnv(Params.from_overrides(queue_capacity=5), batch_size=[4])
+    qnet = make_qnet(env, NetworkConfig(hidden=(16,)))
+    td = qnet(env.reset())
+    assert td["action_value"].shape == (4, 2)
+    table = greedy_table(qnet, env)
+    assert table.shape == (6 * 32,) and set(table.unique().tolist()) <= {0, 1}
+
+
+def test_train_function_counts_and_history():
+    cfg = DQNConfig(
+        total_frames=320, init_random_frames=64, buffer_size=320, batch_size=16, updates_per_batch=2
+    )
+    run = train(Params(), cfg, NetworkConfig(hidden=(16, 16)), seed=0, eval_every_frames=160)
+    assert run.frames == 320
+    # learning starts at 64 frames: batches of 32 from frame 64 on → (320 − 32)/32 = 9 batches × 2
+    assert run.updates == 18
+    assert [e["env_steps"] for e in run.history] == [0, 160, 320]
+    assert all(-2 < e["optimality_ratio"] <= 1.0 + 1e-9 for e in run.history)
+
+
+def test_recipe_end_to_end_and_resume(tmp_path):
+    first = run_dqn(tmp_path / "a", "reward.r4=50", "network=small")
+    assert first.returncode == 0, first.stderr
+    out = tmp_path / "a"
+    for name in ("summary.json", "policy.csv", "metrics.csv", "config.yaml", "checkpoint.pt"):
+        assert (out / name).is_file(), name
+    s = json.loads((out / "summary.json").read_text())
+    assert s["method"] == "dqn" and s["env_steps"] == 640 and s["scenario"] == "paper[reward.r4=50]"
+    assert "optimal (exact)" in first.stdout and "round_robin (exact)" in first.stdout
+    ckpt = torch.load(out / "checkpoint.pt", weights_only=True)
+    assert ckpt["frames"] == 640 and ckpt["config"]["network"]["hidden"] == [32, 32]
+    # resume: the step count continues from the checkpoint to the new total
+    second = run_dqn(
+        tmp_path / "b",
+        "reward.r4=50",
+        "network=small",
+        f"resume={out / 'checkpoint.pt'}",
+        "algo.total_frames=960",
+    )
+    assert second.returncode == 0, second.stderr
+    s2 = json.loads((tmp_path / "b" / "summary.json").read_text())
+    assert s2["env_steps"] == 960 and s2["updates"] > s["updates"]
+    steps = [
+        int(r.split(",")[0]) for r in (tmp_path / "b" / "metrics.csv").read_text().splitlines()[1:]
+    ]
+    assert steps[:3] == [0, 320, 640] and steps[-1] == 960
+
+
+def test_recipe_rejects_bad_config(tmp_path):
+    bad = run_dqn(tmp_path, "algo.buffer_size=16")
+    assert bad.returncode != 0 and "algo.buffer_size=16" in bad.stderr
+
+
+def test_wandb_offline_without_network_or_key(tmp_path):
+    env = {k: v for k, v in os.environ.items() if not k.startswith("WANDB")}
+    env["HOME"] = str(tmp_path)  # no ~/.netrc credentials
+    env["WANDB_DIR"] = str(tmp_path)
+    r = run_dqn(tmp_path / "run", "logger=wandb", env=env, timeout=240)
+    assert r.returncode == 0, r.stderr
+    runs = list((tmp_path / "run" / "logs" / "wandb").glob("offline-run-*"))
+    assert runs, list((tmp_path / "run").rglob("*"))[:20]
+
+
+def test_wandb_mode_resolution(monkeypatch, tmp_path):
+    monkeypatch.delenv("WANDB_API_KEY", raising=False)
+    monkeypatch.setenv("HOME", str(tmp_path))
+    assert resolve_wandb_mode("auto") == "offline"
+    with pytest.raises(ValueError, match=r"logger\.mode=online"):
+        resolve_wandb_mode("online")
+    monkeypatch.setenv("WANDB_API_KEY", "x" * 40)
+    assert resolve_wandb_mode("auto") == "online"
+    with pytest.raises(ValueError, match=r"logger\.mode"):
+        resolve_wandb_mode("sometimes")
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_default_profile_reaches_99_percent(seed):
+    run = train(Params(), DQNConfig(), NetworkConfig(), seed=seed, eval_every_frames=1000)
+    best = max(e["optimality_ratio"] for e in run.history)
+    assert best >= 0.99, [round(e["optimality_ratio"], 3) for e in run.history]

@@ -1,0 +1,92 @@
+"""The pure-torch prioritised sampler against PER's formulas, and end to end in a TorchRL buffer."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from tensordict import TensorDict
+from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+
+from irdrc.replay import TorchPrioritizedSampler, make_prioritized_sampler
+
+
+def buffer(n=10, alpha=0.7, beta=0.5, batch=64):
+    s = TorchPrioritizedSampler(100, alpha=alpha, beta=beta)
+    rb = TensorDictReplayBuffer(storage=LazyTensorStorage(100), sampler=s, batch_size=batch)
+    rb.extend(TensorDict({"x": torch.arange(float(n))}, [n]))
+    return rb, s
+
+
+def test_sampling_frequencies_follow_priorities():
+    rb, s = buffer(n=4, alpha=0.7)
+    raw = torch.tensor([1.0, 2.0, 4.0, 0.5])
+    rb.update_priority(torch.arange(4), raw)
+    rb._sampler._rng = torch.Generator().manual_seed(0)
+    n = 200_000
+    idx, _ = s.sample(rb.storage, n)
+    freq = torch.bincount(idx, minlength=4).double() / n
+    p = (raw.double() + 1e-8) ** 0.7
+    p /= p.sum()
+    # binomial 5σ per item
+    assert bool(((freq - p).abs() <= 5 * torch.sqrt(p * (1 - p) / n)).all()), (freq, p)
+
+
+def test_importance_weights_formula():
+    rb, s = buffer(n=3, alpha=0.5, beta=0.6)
+    raw = torch.tensor([1.0, 9.0, 4.0])
+    rb.update_priority(torch.arange(3), raw)
+    idx, info = s.sample(rb.storage, 50)
+    w = (raw.double() + 1e-8) ** 0.5
+    P = w / w.sum()
+    expected = (3 * P[idx]) ** -0.6 / ((3 * P) ** -0.6).max()
+    assert torch.allclose(info["priority_weight"].double(), expected, rtol=1e-5)
+    assert float(info["priority_weight"].max()) <= 1.0 + 1e-6
+
+
+def test_new_items_get_max_priority_and_updates_by_index():
+    rb, s = buffer(n=5)
+    assert torch.equal(s._raw[:5], torch.ones(5, dtype=torch.float64))
+    rb.update_priority(torch.tensor([1, 3]), torch.tensor([7.0, 0.25]))
+    rb.extend(TensorDict({"x": torch.tensor([10.0, 11.0])}, [2]))
+    assert s._raw[:7].tolist() == [1, 7, 1, 0.25, 1, 7, 7]
+    with pytest.raises(ValueError):
+        rb.update_priority(torch.tensor([0]), torch.tensor([float("nan")]))
+
+
+def test_buffer_end_to_end_and_beta_annealing():
+    rb, s = buffer(n=10)
+    sample = rb.sample()
+    keys = set(sample.keys())
+    assert sample.shape == (64,) and {"priority_weight", "index"} <= keys
+    assert torch.equal(sample["x"], sample["index"].float())  # the index points at the data
+    # a zero-priority item is (almost) never drawn; a dominant one mostly is
+    rb.update_priority(torch.arange(10), torch.tensor([0.0] * 9 + [100.0]))
+    s.alpha = 1.0
+    draws = torch.cat([rb.sample()["index"] for _ in range(20)])
+    assert (draws == 9).double().mean() > 0.99
+    s.beta = 1.0
+    assert s.beta == 1.0
+    with pytest.raises(ValueError):
+        s.beta = -1
+
+
+def test_state_dict_round_trip(tmp_path):
+    rb, s = buffer(n=6)
+    rb.update_priority(torch.arange(6), torch.arange(6.0))
+    s2 = TorchPrioritizedSampler(100, alpha=0.1, beta=0.1)
+    s.dumps(tmp_path)
+    s2.loads(tmp_path)
+    assert torch.equal(s2._raw, s._raw) and s2.alpha == s.alpha and s2.default_priority == 5.0
+
+
+def test_factory_choice():
+    assert isinstance(
+        make_prioritized_sampler(10, 0.6, 0.4, prefer="torch"), TorchPrioritizedSampler
+    )
+    s = make_prioritized_sampler(10, 0.6, 0.4)
+    assert type(s).__name__ in ("PrioritizedSampler", "TorchPrioritizedSampler")
+    with pytest.raises(ValueError):
+        make_prioritized_sampler(10, 0.6, 0.4, prefer="gpu")
+    assert math.isclose(s.beta, 0.4)

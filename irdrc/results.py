@@ -17,17 +17,6 @@ from irdrc.env import decode_state
 from irdrc.metrics import Metrics
 from irdrc.model import ExactModel
 
-SUMMARY_METRICS = (
-    "avg_reward",
-    "episode_reward",
-    "throughput",
-    "link_capacity",
-    "miss_detection",
-    "radar_fraction",
-    "drop_rate",
-    "mean_queue",
-)
-
 
 def _clean(x: float) -> float | None:
     return None if x is None or (isinstance(x, float) and math.isnan(x)) else float(x)

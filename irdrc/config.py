@@ -71,3 +71,25 @@ def scenario_name(cfg: Any = None) -> str:
         o for o in hc.overrides.task if o.split("=")[0].lstrip("+~").startswith(("env.", "reward."))
     ]
     return f"{name}[{','.join(extra)}]" if extra else name
+
+
+def compose(config_name: str, overrides: list[str] | None = None) -> DictConfig:
+    """Compose ``recipes/conf/<config_name>.yaml`` with command-line style ``overrides``.
+
+    Works inside or outside a running Hydra app (the global Hydra state is restored afterwards).
+    """
+    from hydra import compose as hydra_compose
+    from hydra import initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    register_scenarios()
+    gh = GlobalHydra.instance()
+    saved = gh.hydra if gh.is_initialized() else None
+    gh.clear()
+    try:
+        with initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
+            return hydra_compose(config_name=config_name, overrides=list(overrides or []))
+    finally:
+        gh.clear()
+        if saved is not None:
+            gh.initialize(saved)

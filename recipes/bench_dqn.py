@@ -14,13 +14,11 @@ from pathlib import Path
 
 import hydra
 import torch
-from hydra import compose, initialize_config_dir
-from hydra.core.global_hydra import GlobalHydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
 from irdrc import Params
-from irdrc.config import CONF_DIR, register_scenarios
+from irdrc.config import CONF_DIR, compose, register_scenarios
 from irdrc.dqn import DQNConfig, NetworkConfig, train
 from irdrc.model import build_model
 from irdrc.results import write_rows_csv
@@ -31,16 +29,7 @@ register_scenarios()
 
 def profile_config(name: str, overrides: list[str]) -> tuple[DQNConfig, NetworkConfig]:
     """The algo and network configs of ``recipes/dqn.py algo=<name>``."""
-    gh = GlobalHydra.instance()
-    saved = gh.hydra if gh.is_initialized() else None
-    gh.clear()
-    try:
-        with initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
-            cfg = compose(config_name="dqn", overrides=[f"algo={name}", *overrides])
-    finally:
-        gh.clear()
-        if saved is not None:
-            gh.initialize(saved)
+    cfg = compose("dqn", [f"algo={name}", *overrides])
     return DQNConfig.from_dict(cfg.algo), NetworkConfig.from_dict(cfg.network)
 
 

@@ -1,0 +1,321 @@
+"""Sweeps on Ray Tune: a grid of config overrides, each point one run of ``irdrc.runs``.
+
+The driver composes every grid point's config itself (so workers need the ``irdrc`` package only,
+not the recipes' YAML files), runs the points as Tune trials, and receives each trial's
+``summary.json`` and ``metrics.csv`` through Tune's reporting. Per-point results are kept under
+``<out>/trials/<point id>/``; ``resume`` reruns only points that are not DONE; ``summary.csv`` joins the
+results against the expected grid, so a missing trial shows up as a row.
+"""
+
+from __future__ import annotations
+
+import csv
+import hashlib
+import io
+import itertools
+import json
+import logging
+import os
+import tempfile
+import time
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+from omegaconf import DictConfig, ListConfig, OmegaConf
+
+from irdrc.config import compose
+from irdrc.results import atomic_write_text
+
+METHODS = ("dqn", "qlearning", "solve")
+# Settings a sweep gives every trial before the user's base overrides (which may change them).
+TRIAL_DEFAULTS = {
+    "dqn": ["progress=false", "compare.qlearning_paper=false", "logger=none"],
+    "qlearning": ["progress=false"],
+    "solve": [],
+}
+STATUSES = ("DONE", "ERROR", "INCOMPLETE")
+
+
+def _plain(node: Any) -> Any:
+    if isinstance(node, DictConfig | ListConfig):
+        return OmegaConf.to_container(node, resolve=True)
+    return node
+
+
+def format_value(value: Any) -> str:
+    """A value as Hydra's override grammar reads it back (lists as ``[a,b]``, None as ``null``)."""
+    if value is None:
+        return "null"
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, list | tuple):
+        return "[" + ",".join(format_value(v) for v in value) + "]"
+    return str(value)
+
+
+def parse_grid(grid: Any) -> list[dict[str, Any]]:
+    """All points of a grid ``{key: [values…]}`` (the cartesian product, in key order).
+
+    Raises:
+        ValueError: empty or malformed grid (not a mapping, a key without values, a value that is
+            not a non-empty list, a duplicate value).
+    """
+    grid = _plain(grid)
+    if grid is None or (isinstance(grid, Mapping) and not grid):
+        raise ValueError(
+            "sweep.grid is empty: give it as sweep.grid='{seed: [0,1,2], reward.r4: [5,50]}'"
+        )
+    if not isinstance(grid, Mapping):
+        raise ValueError(f"sweep.grid={grid!r} must be a mapping of override key → list of values")
+    for key, values in grid.items():
+        if not isinstance(key, str) or not key or "=" in key:
+            raise ValueError(f"sweep.grid key {key!r} must be a config key such as env.p1.speed")
+        if not isinstance(values, list) or not values:
+            raise ValueError(f"sweep.grid.{key}={values!r} must be a non-empty list of values")
+        if len({format_value(v) for v in values}) != len(values):
+            raise ValueError(f"sweep.grid.{key}={values!r} repeats a value")
+    keys = list(grid)
+    return [
+        dict(zip(keys, combo, strict=True)) for combo in itertools.product(*(grid[k] for k in keys))
+    ]
+
+
+def point_overrides(point: Mapping[str, Any]) -> list[str]:
+    """A grid point as override strings."""
+    return [f"{k}={format_value(v)}" for k, v in point.items()]
+
+
+def point_id(point: Mapping[str, Any]) -> str:
+    """Stable id of a grid point: readable prefix + hash of its overrides (order-independent)."""
+    ov = sorted(point_overrides(point))
+    digest = hashlib.sha1("|".join(ov).encode()).hexdigest()[:10]
+    readable = "_".join(o.split(".")[-1] for o in ov)
+    safe = "".join(c if c.isalnum() or c in "=_.-" else "-" for c in readable)[:60]
+    return f"{safe}__{digest}"
+
+
+def scenario_of(overrides: list[str]) -> str:
+    """Scenario name as the recipes write it: the env choice plus env./reward. overrides."""
+    env = next((o.split("=", 1)[1] for o in overrides if o.startswith("env=")), "paper")
+    extra = [o for o in overrides if o.split("=")[0].lstrip("+~").startswith(("env.", "reward."))]
+    return f"{env}[{','.join(extra)}]" if extra else env
+
+
+def _matches(point_ov: list[str], fail_on: list[str]) -> bool:
+    return bool(fail_on) and set(fail_on) <= set(point_ov)
+
+
+def trial(config: dict[str, Any]) -> None:
+    """One Tune trial: run the method on the composed config and report its results."""
+    config = config["point"]
+    import torch
+    from ray import tune
+
+    from irdrc.runs import RUNNERS
+
+    torch.set_num_threads(1)
+    if config.get("fail"):
+        raise RuntimeError(f"injected failure (sweep.fail_on) in {config['point_id']}")
+    try:
+        out = Path(tune.get_context().get_trial_dir())
+    except Exception:
+        out = Path(tempfile.mkdtemp(prefix="irdrc-trial-"))
+    out = out / "run"
+    cfg = OmegaConf.create(config["cfg"])
+    summary = RUNNERS[config["method"]](cfg, out, config["scenario"])
+    metrics_csv = (out / "metrics.csv").read_text() if (out / "metrics.csv").is_file() else ""
+    tune.report(
+        {
+            "optimality_ratio": summary.get("optimality_ratio"),
+            "summary_json": json.dumps(summary),
+            "metrics_csv": metrics_csv,
+        }
+    )
+
+
+def _ray_init(address: str, num_cpus: int | None) -> None:
+    import ray
+
+    os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
+    os.environ.setdefault("RAY_DEDUP_LOGS", "0")
+    os.environ.setdefault("RAY_AIR_NEW_OUTPUT", "0")
+    kwargs: dict[str, Any] = {
+        "include_dashboard": False,
+        "log_to_driver": False,
+        "logging_level": logging.WARNING,
+        "ignore_reinit_error": True,
+    }
+    if address == "local":
+        ray.init(num_cpus=num_cpus, **kwargs)
+    else:
+        ray.init(address=address, **kwargs)
+
+
+def _read_status(trial_dir: Path) -> dict[str, Any] | None:
+    path = trial_dir / "status.json"
+    return json.loads(path.read_text()) if path.is_file() else None
+
+
+def run_sweep(cfg: DictConfig, out: Path) -> int:
+    """Run the sweep described by ``cfg`` (``recipes/conf/sweep.yaml``) into ``out``.
+
+    Returns:
+        0 if every grid point is DONE, 1 otherwise.
+    """
+    method = str(cfg.method)
+    if method not in METHODS:
+        raise ValueError(f"method={method!r} must be one of {', '.join(METHODS)}")
+    points = parse_grid(cfg.sweep.grid)
+    base = [str(o) for o in (cfg.sweep.base or [])]
+    fail_on = [str(o) for o in (cfg.sweep.fail_on or [])]
+    if int(cfg.cpus_per_trial) < 1 or int(cfg.max_failures) < 0:
+        raise ValueError("cpus_per_trial must be >= 1 and max_failures >= 0")
+    out = Path(out).resolve()
+    trials_dir = out / "trials"
+    # Compose every point on the driver: a bad key or value fails here, before Ray starts.
+    planned = []
+    for point in points:
+        ov = point_overrides(point)
+        overrides = [*TRIAL_DEFAULTS[method], *base, *ov]
+        composed = compose(method, overrides)
+        planned.append(
+            {
+                "point_id": point_id(point),
+                "point": point,
+                "overrides": ov,
+                "method": method,
+                "cfg": OmegaConf.to_container(composed, resolve=True),
+                "scenario": scenario_of([*base, *ov]),
+                "fail": _matches(ov, fail_on),
+            }
+        )
+    todo = [
+        p
+        for p in planned
+        if not (
+            cfg.resume and (_read_status(trials_dir / p["point_id"]) or {}).get("status") == "DONE"
+        )
+    ]
+    total = len(planned)
+    print(
+        f"sweep: method={method}, {total} grid points, {len(todo)} to run"
+        + (" (resume)" if cfg.resume else ""),
+        flush=True,
+    )
+    if todo:
+        _run_tune(cfg, out, todo, total - len(todo), total, trials_dir)
+    code = write_summary_csv(out / "summary.csv", planned, trials_dir)
+    return code
+
+
+def _run_tune(
+    cfg: DictConfig, out: Path, todo: list[dict], already: int, total: int, trials_dir: Path
+) -> None:
+    import ray
+    from ray import tune
+
+    t0 = time.perf_counter()
+    done = {"n": already}
+
+    class Progress(tune.Callback):
+        def _line(self, trial, status: str, extra: str = "") -> None:
+            done["n"] += 1
+            elapsed = time.perf_counter() - t0
+            ran = done["n"] - already
+            eta = elapsed / ran * (total - done["n"]) if ran else float("nan")
+            ov = " ".join(trial.config["point"]["overrides"])
+            print(
+                f"[{done['n']}/{total}] {ov} → {status}{extra}  (elapsed {elapsed:.0f} s, ETA {eta:.0f} s)",
+                flush=True,
+            )
+
+        def on_trial_complete(self, iteration, trials, trial, **info) -> None:
+            ratio = (trial.last_result or {}).get("optimality_ratio")
+            self._line(
+                trial, "DONE", f", optimality ratio {ratio:.4f}" if ratio is not None else ""
+            )
+
+        def on_trial_error(self, iteration, trials, trial, **info) -> None:
+            self._line(trial, "ERROR")
+
+    _ray_init(str(cfg.ray.address), cfg.ray.num_cpus)
+    try:
+        storage = (
+            Path(str(cfg.storage_path)).expanduser().resolve() if cfg.storage_path else out / "ray"
+        )
+        tuner = tune.Tuner(
+            tune.with_resources(trial, {"cpu": int(cfg.cpus_per_trial)}),
+            param_space={"point": tune.grid_search(todo)},
+            run_config=tune.RunConfig(
+                name=f"sweep-{int(time.time())}",
+                storage_path=str(storage),
+                failure_config=tune.FailureConfig(max_failures=int(cfg.max_failures)),
+                verbose=0,
+                callbacks=[Progress()],
+            ),
+        )
+        results = tuner.fit()
+        for result in results:
+            p = result.config["point"]
+            tdir = trials_dir / p["point_id"]
+            tdir.mkdir(parents=True, exist_ok=True)
+            metrics = result.metrics or {}
+            if result.error is None and "summary_json" in metrics:
+                atomic_write_text(tdir / "summary.json", metrics["summary_json"] + "\n")
+                atomic_write_text(tdir / "metrics.csv", metrics.get("metrics_csv", ""))
+                status = {"status": "DONE"}
+            else:
+                status = {"status": "ERROR", "error": str(result.error).strip().splitlines()[-1:]}
+            atomic_write_text(
+                tdir / "status.json", json.dumps({**status, "overrides": p["overrides"]}) + "\n"
+            )
+    finally:
+        ray.shutdown()
+
+
+def write_summary_csv(path: Path, planned: list[dict], trials_dir: Path) -> int:
+    """``summary.csv``: one row per expected grid point (overrides, status, final metrics).
+
+    Returns 0 if every point is DONE, else 1.
+    """
+    keys = list(planned[0]["point"]) if planned else []
+    rows, metric_names = [], []
+    for p in planned:
+        tdir = trials_dir / p["point_id"]
+        st = _read_status(tdir) or {"status": "INCOMPLETE"}
+        row: dict[str, Any] = {k: format_value(p["point"][k]) for k in keys}
+        row["status"] = st["status"]
+        row["point_id"] = p["point_id"]
+        if st["status"] == "DONE" and (tdir / "summary.json").is_file():
+            s = json.loads((tdir / "summary.json").read_text())
+            row["optimality_ratio"] = s.get("optimality_ratio")
+            row["env_steps"] = s.get("env_steps")
+            row["wall_seconds"] = s.get("wall_seconds")
+            for k, v in (s.get("metrics") or {}).items():
+                row[k] = v
+                if k not in metric_names:
+                    metric_names.append(k)
+        rows.append(row)
+    fields = [
+        *keys,
+        "status",
+        "point_id",
+        "optimality_ratio",
+        "env_steps",
+        "wall_seconds",
+        *metric_names,
+    ]
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=fields, restval="")
+    w.writeheader()
+    w.writerows(rows)
+    atomic_write_text(path, buf.getvalue())
+    counts = {s: sum(r["status"] == s for r in rows) for s in STATUSES}
+    print(
+        f"\n{len(rows)} grid points: "
+        + ", ".join(f"{n} {s}" for s, n in counts.items())
+        + f"; wrote {path}",
+        flush=True,
+    )
+    return 0 if counts["DONE"] == len(rows) else 1

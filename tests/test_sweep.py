@@ -1,0 +1,161 @@
+"""Sweeps: grid parsing and validation, and real Ray Tune runs inside a loopback-only namespace."""
+
+from __future__ import annotations
+
+import csv
+import shlex
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from irdrc.sweep import format_value, parse_grid, point_id, point_overrides, scenario_of
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _unshare_works() -> bool:
+    if shutil.which("unshare") is None:
+        return False
+    return subprocess.run(["unshare", "-n", "true"], capture_output=True).returncode == 0
+
+
+needs_ray_netns = pytest.mark.skipif(
+    not _unshare_works(),
+    reason="`unshare -n` is unavailable: Ray may only start in a loopback-only namespace",
+)
+
+
+def sweep(tmp_path: Path, *overrides: str, timeout: int = 400) -> subprocess.CompletedProcess:
+    """Run recipes/sweep.py inside `unshare -n` (Ray must not reach beyond loopback)."""
+    pytest.importorskip("ray")
+    cmd = shlex.join(
+        [
+            sys.executable,
+            str(ROOT / "recipes" / "sweep.py"),
+            *overrides,
+            "ray.num_cpus=2",
+            f"hydra.run.dir={tmp_path}",
+        ]
+    )
+    return subprocess.run(
+        ["unshare", "-n", "sh", "-c", f"ip link set lo up; exec {cmd}"],
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        cwd=ROOT,
+    )
+
+
+def rows(path: Path) -> list[dict]:
+    return list(csv.DictReader(path.open()))
+
+
+def test_parse_grid_product_and_ids():
+    pts = parse_grid({"env.p1.speed": [0.1, 0.5], "seed": [0, 1, 2]})
+    assert len(pts) == 6 and pts[0] == {"env.p1.speed": 0.1, "seed": 0}
+    assert point_overrides(pts[-1]) == ["env.p1.speed=0.5", "seed=2"]
+    assert len({point_id(p) for p in pts}) == 6
+    assert point_id({"a": 1, "b": 2}) == point_id({"b": 2, "a": 1})
+    assert (
+        format_value([1, "x"]) == "[1,x]"
+        and format_value(None) == "null"
+        and format_value(True) == "true"
+    )
+    assert scenario_of(["env=ref_impl", "reward.r4=50", "seed=1"]) == "ref_impl[reward.r4=50]"
+
+
+@pytest.mark.parametrize(
+    ("grid", "match"),
+    [
+        (None, "empty"),
+        ({}, "empty"),
+        ({"seed": []}, "non-empty list"),
+        ({"seed": 3}, "non-empty list"),
+        ("seed", "mapping"),
+        ({"seed": [1, 1]}, "repeats"),
+        ({"a=b": [1]}, "config key"),
+    ],
+)
+def test_parse_grid_rejects(grid, match):
+    with pytest.raises(ValueError, match=match):
+        parse_grid(grid)
+
+
+def test_recipe_rejects_bad_grid_before_starting_ray(tmp_path):
+    # validation happens before Ray starts, so no namespace is needed here
+    for grid, msg in (
+        ("sweep.grid={}", "sweep.grid is empty"),
+        ("sweep.grid={seed: 3}", "sweep.grid.seed=3"),
+    ):
+        r = subprocess.run(
+            [sys.executable, str(ROOT / "recipes" / "sweep.py"), grid, f"hydra.run.dir={tmp_path}"],
+            capture_output=True,
+            text=True,
+            timeout=120,
+            cwd=ROOT,
+        )
+        assert r.returncode != 0 and msg in r.stderr, r.stderr[-2000:]
+    r = subprocess.run(
+        [
+            sys.executable,
+            str(ROOT / "recipes" / "sweep.py"),
+            "sweep.grid={env.p1.sped: [0.1]}",
+            f"hydra.run.dir={tmp_path}",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=ROOT,
+    )
+    assert r.returncode != 0 and "sped" in r.stderr
+
+
+TINY_DQN = "sweep.base=['algo.total_frames=640','algo.init_random_frames=128','algo.buffer_size=640','algo.batch_size=32','eval.every_frames=320','eval.mc_episodes=0']"
+
+
+@needs_ray_netns
+def test_dqn_grid_2x2(tmp_path):
+    r = sweep(tmp_path, "method=dqn", "sweep.grid={reward.r4: [5,50], seed: [0,1]}", TINY_DQN)
+    assert r.returncode == 0, (r.stdout[-3000:], r.stderr[-3000:])
+    table = rows(tmp_path / "summary.csv")
+    assert [(t["reward.r4"], t["seed"], t["status"]) for t in table] == [
+        ("5", "0", "DONE"),
+        ("5", "1", "DONE"),
+        ("50", "0", "DONE"),
+        ("50", "1", "DONE"),
+    ]
+    assert all(
+        float(t["optimality_ratio"]) <= 1.0 + 1e-9 and int(t["env_steps"]) == 640 for t in table
+    )
+    for t in table:
+        d = tmp_path / "trials" / t["point_id"]
+        assert (d / "summary.json").is_file() and (d / "metrics.csv").read_text().startswith(
+            "env_steps"
+        )
+    assert r.stdout.count("→ DONE") == 4 and "ETA" in r.stdout
+
+
+@needs_ray_netns
+def test_crash_marks_error_and_resume_reruns_only_it(tmp_path):
+    grid = "sweep.grid={reward.r4: [5,50], seed: [0,1]}"
+    base = "sweep.base=['mc_episodes=0']"
+    r = sweep(tmp_path, "method=solve", grid, base, "sweep.fail_on=['seed=1','reward.r4=50']")
+    assert r.returncode != 0
+    status = {(t["reward.r4"], t["seed"]): t["status"] for t in rows(tmp_path / "summary.csv")}
+    assert status == {
+        ("5", "0"): "DONE",
+        ("5", "1"): "DONE",
+        ("50", "0"): "DONE",
+        ("50", "1"): "ERROR",
+    }
+    done_files = {p: p.stat().st_mtime_ns for p in (tmp_path / "trials").glob("*/summary.json")}
+    assert len(done_files) == 3
+    # the crash removed: resume runs only the point that did not finish
+    r2 = sweep(tmp_path, "method=solve", grid, base, "resume=true")
+    assert r2.returncode == 0, (r2.stdout[-3000:], r2.stderr[-3000:])
+    assert "4 grid points, 1 to run (resume)" in r2.stdout and r2.stdout.count("→ DONE") == 1
+    assert {t["status"] for t in rows(tmp_path / "summary.csv")} == {"DONE"}
+    assert {p: p.stat().st_mtime_ns for p in done_files} == done_files  # untouched

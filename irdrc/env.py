@@ -15,6 +15,7 @@ kernels whatever the batch size.
 from __future__ import annotations
 
 import math
+import os
 from dataclasses import dataclass
 
 import torch
@@ -33,6 +34,11 @@ INFO_KEYS = ("event", "missed", "sent", "dropped", "capacity")
 # Bit of each Markov factor in the state index, in MARKOV_FACTORS order (c, r, w, v, m).
 FACTOR_BITS = (4, 3, 2, 1, 0)
 NUM_FACTOR_CONFIGS = 32
+
+
+def fresh_seed() -> int:
+    """A seed from OS entropy (leaves torch's global generator alone, unlike ``torch.seed()``)."""
+    return int.from_bytes(os.urandom(8), "little") % 2**62
 
 
 def state_index(d, c, r, w, v, m):
@@ -251,7 +257,7 @@ class DFRCEnv(EnvBase):
         self._n = batch_size.numel()
         self.rng = torch.Generator(device=self.device)
         self._make_specs()
-        self.set_seed(seed if seed is not None else int(torch.seed() % 2**62))
+        self.set_seed(seed if seed is not None else fresh_seed())
 
     def _make_specs(self) -> None:
         env = self.params.env
@@ -289,7 +295,7 @@ class DFRCEnv(EnvBase):
 
     def _set_seed(self, seed: int | None) -> None:
         if seed is None:
-            seed = int(torch.seed() % 2**62)
+            seed = fresh_seed()
         self.rng.manual_seed(int(seed))
 
     def _out(

@@ -10,6 +10,8 @@ import torch
 from tensordict.nn import TensorDictModule
 from torch import nn
 
+from irdrc.env import fresh_seed
+
 
 class _Constant(nn.Module):
     def __init__(self, action: int) -> None:
@@ -34,7 +36,7 @@ class _Random(nn.Module):
         super().__init__()
         self.p_radar = float(p_radar)
         self.generator = torch.Generator()
-        self.generator.manual_seed(seed if seed is not None else int(torch.seed() % 2**62))
+        self.generator.manual_seed(seed if seed is not None else fresh_seed())
 
     def forward(self, state: torch.Tensor) -> torch.Tensor:
         u = torch.rand(state.shape, generator=self.generator).to(state.device)

@@ -164,3 +164,14 @@ def test_reset_info_is_zero():
 def test_cuda_device():
     env = DFRCEnv(Params(), batch_size=[64], device="cuda", seed=0)
     check_env_specs(env, seed=0)
+
+
+def test_unseeded_env_leaves_global_rng_alone():
+    from irdrc import policies
+
+    torch.manual_seed(123)
+    expected = torch.rand(3)
+    torch.manual_seed(123)
+    DFRCEnv(Params(), batch_size=[2]).set_seed(None)
+    policies.uniform_random()
+    assert torch.equal(torch.rand(3), expected)

@@ -20,17 +20,6 @@ METRIC_NAMES = (
     "mean_queue",
 )
 
-DESCRIPTIONS = {
-    "avg_reward": "reward per step",
-    "episode_reward": "total reward per episode (avg_reward × horizon)",
-    "throughput": "packets sent per step (paper's definition; ≤ λ)",
-    "link_capacity": "Σ ν over comm steps / steps (what the ref impl plotted as throughput)",
-    "miss_detection": "missed events / all events",
-    "radar_fraction": "share of steps in radar mode",
-    "drop_rate": "packets lost to queue overflow per step",
-    "mean_queue": "mean queue length d at decision time",
-}
-
 
 @dataclass(frozen=True)
 class Metrics:

@@ -88,6 +88,9 @@ def _check_summary(path: Path, method: str) -> dict:
     rows = list(csv.DictReader((path / "policy.csv").open()))
     assert list(rows[0]) == ["d", "c", "r", "w", "v", "m", "action"] and len(rows) == 352
     assert {r["action"] for r in rows} <= {"0", "1"}
+    from irdrc.results import read_policy_csv
+
+    assert read_policy_csv(path / "policy.csv").tolist() == [int(r["action"]) for r in rows]
     return s
 
 

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import math
 import os
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import torch
@@ -107,43 +108,46 @@ class Dynamics:
     """MODEL.md's step on flat integer state tensors, driven by a ``torch.Generator``.
 
     Shared by ``DFRCEnv`` and the gymnasium wrapper, so both have the very same dynamics.
+
+    Given a sequence of ``Params`` instead of one, the tables of every scenario are stacked and a
+    ``group`` tensor passed to ``step`` picks each row's scenario: one batch then steps several
+    scenarios at once (e.g. every p^v_1 value of a sweep). The scenarios must share the queue capacity
+    (hence the state space); horizons are the caller's business.
     """
 
-    def __init__(self, params: Params, device: torch.device | str = "cpu") -> None:
-        self.params = params
+    def __init__(
+        self, params: Params | Sequence[Params], device: torch.device | str = "cpu"
+    ) -> None:
+        scenarios = [params] if isinstance(params, Params) else list(params)
+        if not scenarios:
+            raise ValueError("Dynamics needs at least one Params")
+        caps = {p.env.queue_capacity for p in scenarios}
+        if len(caps) > 1:
+            raise ValueError(
+                f"scenarios stepped together must share env.queue_capacity; got {sorted(caps)}"
+            )
+        self.scenarios = scenarios
+        self.params = scenarios[0]
+        self.num_groups = len(scenarios)
         self.device = torch.device(device)
-        env, rw = params.env, params.reward
-        self.num_states = env.num_states
-        self.queue_capacity = env.queue_capacity
-        f = torch.arange(NUM_FACTOR_CONFIGS)
-        bits = torch.stack([(f >> b) & 1 for b in FACTOR_BITS], dim=-1)  # [32, 5]: c r w v m
-
-        # P(event | f & 15).
-        self.event_prob = event_probability(params)
-
-        # P(factor′ = 1 | action, factors): [2, 32, 5], flattened on (action·32 + f).
-        g = torch.tensor(env.stay_good.as_tuple(), dtype=torch.float64)
-        h = torch.tensor(env.stay_bad.as_tuple(), dtype=torch.float64)
-        next1 = torch.where(bits == 1, h, 1.0 - g)
-        next1 = torch.stack([next1, next1.clone()])
-        if env.radar_reaction:
-            react = bits[:, 4] == 1  # radar with an object nearby
-            next1[1, react, 3] = 0.0  # v′ = 0
-            next1[1, react, 4] = 1.0 - env.reaction_clear  # m′ = 0 w.p. reaction_clear
-        self.next1 = next1.reshape(2 * NUM_FACTOR_CONFIGS, 5)
+        self.num_states = self.params.env.num_states
+        self.queue_capacity = self.params.env.queue_capacity
+        tables = [_scenario_tables(p) for p in scenarios]
+        # Flat tables, one block per scenario; ``step`` offsets indices by group · block size.
+        self.event_prob = torch.cat([t["event_prob"] for t in tables])
+        self.next1 = torch.cat([t["next1"] for t in tables])
+        self.reward = torch.cat([t["reward"] for t in tables])
+        self.capacity = torch.cat([t["capacity"] for t in tables])
         self.factor_weights = torch.tensor([1 << b for b in FACTOR_BITS])
-
-        # Reward of eq. (3): [a, event, f] flattened on (a·64 + event·32 + f).
-        b = bits[:, 1:].sum(-1).to(torch.float64)
-        reward = torch.zeros(2, 2, NUM_FACTOR_CONFIGS, dtype=torch.float64)
-        reward[0, 0] = torch.where(bits[:, 0] == 0, rw.r1, rw.r2)
-        reward[0, 1] = -rw.r3
-        reward[1, 1] = rw.r4 * (b + 1.0)
-        self.reward = reward.reshape(-1).to(torch.float32)
-
-        # Link capacity ν: [a, c] flattened on (a·2 + c).
-        self.capacity = torch.tensor([env.packets_good, env.packets_bad, 0, 0])
-        self.arrival_cdf = poisson_cdf(env.arrival_rate)
+        cdfs = [t["arrival_cdf"] for t in tables]
+        self._shared_arrivals = all(torch.equal(c, cdfs[0]) for c in cdfs)
+        width = max(len(c) for c in cdfs)
+        # Padded with 1s, so a row's inverse CDF never goes past its own last entry.
+        self.arrival_cdf = torch.stack(
+            [torch.cat([c, torch.ones(width - len(c), dtype=torch.float64)]) for c in cdfs]
+        )
+        if self._shared_arrivals:
+            self.arrival_cdf = self.arrival_cdf[0]
 
         # Observation of every state: [S, 6] float32.
         self.obs = decode_state(torch.arange(self.num_states)).to(torch.float32)
@@ -164,22 +168,42 @@ class Dynamics:
         return torch.randint(0, self.num_states, (n,), generator=generator, device=self.device)
 
     def step(
-        self, state: torch.Tensor, action: torch.Tensor, generator: torch.Generator
+        self,
+        state: torch.Tensor,
+        action: torch.Tensor,
+        generator: torch.Generator,
+        group: torch.Tensor | None = None,
     ) -> StepResult:
-        """One step of MODEL.md from flat int64 ``state`` and ``action`` (0 comm, 1 radar)."""
+        """One step of MODEL.md from flat int64 ``state`` and ``action`` (0 comm, 1 radar).
+
+        ``group`` (int64, like ``state``) is each row's scenario index when several were given;
+        None means scenario 0 for every row.
+        """
         n = state.shape[0]
         # 7 uniforms per env in one call: event, arrivals, then the 5 factor chains. float64 so the
         # Poisson tail is sampled down to ~1e-16 (see ``poisson_cdf``).
         u = torch.rand(n, 7, generator=generator, device=self.device, dtype=torch.float64)
         f = state & 31
-        event = u[:, 0] < self.event_prob[f & 15]
-        af = action * NUM_FACTOR_CONFIGS + f
+        ev_idx, af, rw_idx = f & 15, action * NUM_FACTOR_CONFIGS + f, action * 64 + f
+        cap_idx = action * 2 + (f >> 4)
+        if group is not None:
+            ev_idx = ev_idx + group * 16
+            af = af + group * (2 * NUM_FACTOR_CONFIGS)
+            rw_idx = rw_idx + group * 128
+            cap_idx = cap_idx + group * 4
+        event = u[:, 0] < self.event_prob[ev_idx]
         nxt = u[:, 2:] < self.next1[af]
         f_next = (nxt * self.factor_weights).sum(-1)
-        arrivals = torch.searchsorted(self.arrival_cdf, u[:, 1].contiguous(), right=True)
-        capacity = self.capacity[action * 2 + (f >> 4)]
+        if group is None or self._shared_arrivals:
+            cdf = self.arrival_cdf if self._shared_arrivals else self.arrival_cdf[0]
+            arrivals = torch.searchsorted(cdf, u[:, 1].contiguous(), right=True)
+        else:
+            arrivals = torch.searchsorted(
+                self.arrival_cdf[group], u[:, 1:2].contiguous(), right=True
+            ).squeeze(-1)
+        capacity = self.capacity[cap_idx]
         sent, d_next, dropped = queue_update(state >> 5, arrivals, capacity, self.queue_capacity)
-        reward = self.reward[action * 64 + event * 32 + f]
+        reward = self.reward[rw_idx + event * 32]
         return StepResult(
             state=d_next * 32 + f_next,
             reward=reward,
@@ -190,6 +214,38 @@ class Dynamics:
             capacity=capacity,
             arrivals=arrivals,
         )
+
+
+def _scenario_tables(params: Params) -> dict[str, torch.Tensor]:
+    """The flat look-up tables of one scenario (see ``Dynamics.step`` for their indexing)."""
+    env, rw = params.env, params.reward
+    f = torch.arange(NUM_FACTOR_CONFIGS)
+    bits = torch.stack([(f >> b) & 1 for b in FACTOR_BITS], dim=-1)  # [32, 5]: c r w v m
+
+    # P(factor′ = 1 | action, factors): [2, 32, 5], flattened on (action·32 + f).
+    g = torch.tensor(env.stay_good.as_tuple(), dtype=torch.float64)
+    h = torch.tensor(env.stay_bad.as_tuple(), dtype=torch.float64)
+    next1 = torch.where(bits == 1, h, 1.0 - g)
+    next1 = torch.stack([next1, next1.clone()])
+    if env.radar_reaction:
+        react = bits[:, 4] == 1  # radar with an object nearby
+        next1[1, react, 3] = 0.0  # v′ = 0
+        next1[1, react, 4] = 1.0 - env.reaction_clear  # m′ = 0 w.p. reaction_clear
+
+    # Reward of eq. (3): [a, event, f] flattened on (a·64 + event·32 + f).
+    b = bits[:, 1:].sum(-1).to(torch.float64)
+    reward = torch.zeros(2, 2, NUM_FACTOR_CONFIGS, dtype=torch.float64)
+    reward[0, 0] = torch.where(bits[:, 0] == 0, rw.r1, rw.r2)
+    reward[0, 1] = -rw.r3
+    reward[1, 1] = rw.r4 * (b + 1.0)
+    return {
+        "event_prob": event_probability(params),  # P(event | f & 15)
+        "next1": next1.reshape(2 * NUM_FACTOR_CONFIGS, 5),
+        "reward": reward.reshape(-1).to(torch.float32),
+        # Link capacity ν: [a, c] flattened on (a·2 + c).
+        "capacity": torch.tensor([env.packets_good, env.packets_bad, 0, 0]),
+        "arrival_cdf": poisson_cdf(env.arrival_rate),
+    }
 
 
 def queue_update(

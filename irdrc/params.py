@@ -309,6 +309,25 @@ class Params:
             _deep_set(target, parts[-1], _to_plain(value))
         return cls.from_config(merged, strict=False)
 
+    def with_overrides(self, overrides: Mapping[str, Any]) -> Params:
+        """A copy with dotted-key overrides applied (``{"env.p1.speed": 0.5, "reward.r4": 50}``).
+
+        Keys follow ``from_overrides`` (a bare ``r4`` or ``p1.speed`` is accepted); values are
+        validated as in ``from_config``.
+        """
+        merged = self.to_dict()
+        for key, value in overrides.items():
+            parts = str(key).split(".")
+            if parts[0] not in ("env", "reward"):
+                parts = ["reward" if parts[0] in ("r1", "r2", "r3", "r4") else "env", *parts]
+            target = merged
+            for p in parts[:-1]:
+                target = target.setdefault(p, {})
+                if not isinstance(target, dict):
+                    raise ValueError(f"override {key!r} does not name a config key")
+            _deep_set(target, parts[-1], _to_plain(value))
+        return Params.from_config(merged)
+
     def to_dict(self) -> dict[str, Any]:
         """Plain nested dict with the config names (round-trips through ``from_config``)."""
         return {"env": as_dict(self.env), "reward": as_dict(self.reward)}

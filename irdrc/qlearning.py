@@ -2,8 +2,9 @@
 
 Row n of the batch is learner n: its own table, its own ε-greedy actions, its own trajectory. All
 rows share episode boundaries (every episode is ``env.horizon`` steps from a uniform reset), so the
-loop steps ``DFRCEnv.dynamics`` directly — the same step code as the env, without the per-step
-tensordict overhead that dominates at small batch sizes.
+loop steps ``irdrc.env.Dynamics`` directly — the same step code as the env, without the per-step
+tensordict overhead that dominates at small batch sizes. Given several scenarios (e.g. every p^v_1
+value of a figure), the batch holds ``num_learners`` rows per scenario and trains them all at once.
 
 Two profiles: ``PAPER`` (the reference profile of MODEL.md: α = 0.01, ε = 0.1 fixed, γ = 0.99,
 2 500 episodes) and ``DEFAULT`` (ours: visit-count step sizes and a decaying ε; see below).
@@ -12,13 +13,13 @@ Two profiles: ``PAPER`` (the reference profile of MODEL.md: α = 0.01, ε = 0.1 
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, fields, replace
 from typing import Any
 
 import torch
 
-from irdrc.env import DFRCEnv
+from irdrc.env import Dynamics
 from irdrc.model import build_model
 from irdrc.params import Params
 from irdrc.solve import ExactScorer
@@ -114,14 +115,19 @@ DEFAULT = QLearningConfig()
 class QLearningResult:
     """Outcome of ``train``.
 
+    Rows are scenario-major: row n is learner ``n % num_learners`` of scenario
+    ``n // num_learners`` (``group[n]``).
+
     Attributes:
         q: [N, S, 2] final Q-tables.
         greedy: [N, S] greedy actions (ties → comm).
         episode_rewards: [episodes, N] total reward of each training episode.
         history: one dict per evaluation: ``episode``, ``env_steps`` (per learner),
-            ``wall_seconds``, ``avg_reward`` and ``optimality_ratio`` (lists over learners).
-        optimal_avg_reward: stationary average reward of the optimal policy.
+            ``wall_seconds``, ``avg_reward`` and ``optimality_ratio`` (lists over rows).
+        optimal_avg_reward: stationary average reward of the optimal policy (scenario 0).
         wall_seconds: training time.
+        group: [N] scenario index of each row.
+        optimal_avg_rewards: optimal average reward of each scenario.
     """
 
     q: torch.Tensor
@@ -130,55 +136,79 @@ class QLearningResult:
     history: list[dict[str, Any]] = field(default_factory=list)
     optimal_avg_reward: float = float("nan")
     wall_seconds: float = 0.0
+    group: list[int] = field(default_factory=list)
+    optimal_avg_rewards: list[float] = field(default_factory=list)
 
 
 def train(
-    params: Params,
+    params: Params | Sequence[Params],
     cfg: QLearningConfig = DEFAULT,
     num_learners: int = 1,
     seed: int = 0,
     device: str = "cpu",
-    scorer: ExactScorer | None = None,
+    scorer: ExactScorer | Sequence[ExactScorer] | None = None,
     on_eval: Callable[[dict[str, Any]], None] | None = None,
 ) -> QLearningResult:
-    """Train ``num_learners`` independent tabular Q-learners on one batched env.
+    """Train ``num_learners`` independent tabular Q-learners per scenario on one batched step.
 
     Args:
-        params: the model.
+        params: the model, or several scenarios trained together (same queue capacity and horizon).
         cfg: hyperparameters (``PAPER`` or ``DEFAULT`` or your own).
-        num_learners: batch size N; learner n is seeded through the shared generators, so a run
-            is reproducible for a given (seed, N).
-        seed: seed of the env and of the exploration generator.
+        num_learners: learners per scenario; the batch has ``num_learners × scenarios`` rows, all
+            drawing from the shared generators, so a run is reproducible for given (seed, scenarios,
+            num_learners).
+        seed: seed of the dynamics and of the exploration generator.
         device: torch device.
-        scorer: exact evaluator (built from ``params`` if omitted).
+        scorer: exact evaluator per scenario (built from ``params`` if omitted).
         on_eval: called with each history entry (progress reporting, logging).
     """
     if num_learners < 1:
         raise ValueError(f"num_learners={num_learners!r} must be >= 1")
-    env = DFRCEnv(params, batch_size=[num_learners], device=device, seed=seed)
-    dyn = env.dynamics
-    S, N, T = env.num_states, num_learners, params.env.horizon
-    scorer = scorer or ExactScorer(build_model(params), cfg.gamma)
+    scenarios = [params] if isinstance(params, Params) else list(params)
+    horizons = {p.env.horizon for p in scenarios}
+    if len(horizons) > 1:
+        raise ValueError(
+            f"scenarios trained together must share env.horizon; got {sorted(horizons)}"
+        )
+    dyn = Dynamics(scenarios, device)
+    G = len(scenarios)
+    if scorer is None:
+        scorers = [ExactScorer(build_model(p), cfg.gamma) for p in scenarios]
+    elif isinstance(scorer, ExactScorer):
+        scorers = [scorer]
+    else:
+        scorers = list(scorer)
+    if len(scorers) != G:
+        raise ValueError(f"{len(scorers)} scorers for {G} scenarios")
+    S, L, T = dyn.num_states, num_learners, scenarios[0].env.horizon
+    N = G * L
+    group_of = [n // L for n in range(N)]
+    group = torch.tensor(group_of, dtype=torch.int64, device=device) if G > 1 else None
+    rng = torch.Generator(device=device)
+    rng.manual_seed(seed)  # the dynamics' stream
     gen = torch.Generator(device=device)
-    gen.manual_seed(seed + 7919)  # exploration stream, distinct from the env's
+    gen.manual_seed(seed + 7919)  # exploration stream, distinct from the dynamics'
 
     q = torch.full((N * S * 2,), float(cfg.init_q), dtype=torch.float32, device=device)
     visits = torch.zeros(N * S * 2, dtype=torch.float32, device=device)
     row = torch.arange(N, device=device) * (S * 2)
     ep_rewards = torch.zeros(cfg.episodes, N, dtype=torch.float64)
-    result = QLearningResult(q=q, greedy=q, episode_rewards=ep_rewards)
-    result.optimal_avg_reward = scorer.optimal_metrics.avg_reward
+    result = QLearningResult(q=q, greedy=q, episode_rewards=ep_rewards, group=group_of)
+    result.optimal_avg_rewards = [sc.optimal_metrics.avg_reward for sc in scorers]
+    result.optimal_avg_reward = result.optimal_avg_rewards[0]
     t0 = time.perf_counter()
 
     def evaluate(episode: int) -> None:
-        greedy = q.view(N, S, 2).argmax(-1)
-        per = [scorer.metrics(greedy[n]) for n in range(N)]
+        greedy = q.view(N, S, 2).argmax(-1).cpu()
+        per = [scorers[group_of[n]].metrics(greedy[n]) for n in range(N)]
         entry = {
             "episode": episode,
             "env_steps": episode * T,
             "wall_seconds": time.perf_counter() - t0,
             "avg_reward": [m.avg_reward for m in per],
-            "optimality_ratio": [m.avg_reward / result.optimal_avg_reward for m in per],
+            "optimality_ratio": [
+                m.avg_reward / result.optimal_avg_rewards[group_of[n]] for n, m in enumerate(per)
+            ],
         }
         result.history.append(entry)
         if on_eval is not None:
@@ -187,14 +217,14 @@ def train(
     evaluate(0)
     for episode in range(cfg.episodes):
         eps = cfg.epsilon(episode)
-        state = dyn.reset_states(N, env.rng)
+        state = dyn.reset_states(N, rng)
         total = torch.zeros(N, dtype=torch.float64, device=device)
         for _ in range(T):
             base = row + state * 2
             qs = torch.stack([q[base], q[base + 1]], -1)
             u = torch.rand(N, 2, generator=gen, device=device)
             action = torch.where(u[:, 0] < eps, (u[:, 1] < 0.5).long(), qs.argmax(-1))
-            res = dyn.step(state, action, env.rng)
+            res = dyn.step(state, action, rng, group)
             nbase = row + res.state * 2
             target = res.reward + cfg.gamma * torch.maximum(q[nbase], q[nbase + 1])
             idx = base + action

@@ -50,6 +50,7 @@ from irdrc.solve import (
     stationary_metrics,
     value_iteration,
 )
+from irdrc.sweep import parse_grid, point_overrides  # the same grid grammar as sweep.grid
 from irdrc.tracking import log_scalars, make_logger
 
 
@@ -123,18 +124,41 @@ def run_solve(cfg: DictConfig, out: Path, scenario: str | None = None) -> dict[s
     return summary
 
 
+def _batch_points(cfg: DictConfig) -> list[dict[str, Any]]:
+    """The scenario points of ``batch_grid`` (one point, no overrides, when it is unset)."""
+    grid = cfg.get("batch_grid")
+    if grid is None:
+        return [{}]
+    points = parse_grid(grid)
+    for point in points:
+        for key in point:
+            if not key.startswith(("env.", "reward.")):
+                raise ValueError(
+                    f"batch_grid key {key!r} must be an env. or reward. key (one batch varies "
+                    "the scenario; vary algo settings with a sweep)"
+                )
+    return points
+
+
 def run_qlearning(cfg: DictConfig, out: Path, scenario: str | None = None) -> dict[str, Any]:
-    """Train, print the comparison table, write summary.json, policy.csv and metrics.csv."""
+    """Train, print the comparison table, write summary.json, policy.csv, metrics.csv,
+    learners.csv and episode_rewards.csv.
+
+    With ``batch_grid`` set, every point of the grid is a scenario with ``num_learners`` learners
+    of its own, all trained in one vectorised batch.
+    """
     torch.set_num_threads(1)
-    params = Params.from_config(cfg)
+    base = Params.from_config(cfg)
     algo = QLearningConfig.from_dict(cfg.algo)
     if cfg.num_learners < 1 or cfg.mc_episodes < 0 or cfg.num_envs < 1:
         raise ValueError("num_learners and num_envs must be >= 1, mc_episodes >= 0")
+    points = _batch_points(cfg)
+    scenarios = [base.with_overrides(p) for p in points]
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     scenario = scenario or scenario_name(cfg)
-    model = build_model(params)
-    scorer = ExactScorer(model, algo.gamma)
+    models = [build_model(p) for p in scenarios]
+    scorers = [ExactScorer(m, algo.gamma) for m in models]
     bar = tqdm(total=algo.episodes, unit="ep", disable=not cfg.progress, dynamic_ncols=True)
 
     def on_eval(entry: dict) -> None:
@@ -143,44 +167,65 @@ def run_qlearning(cfg: DictConfig, out: Path, scenario: str | None = None) -> di
         bar.set_postfix(ratio=f"{statistics.median(r):.4f}", min=f"{min(r):.4f}")
 
     res = ql.train(
-        params, algo, cfg.num_learners, cfg.seed, cfg.device, scorer=scorer, on_eval=on_eval
+        scenarios, algo, cfg.num_learners, cfg.seed, cfg.device, scorer=scorers, on_eval=on_eval
     )
     bar.close()
 
     n_learn = cfg.num_learners
-    learners = [
-        {
-            "learner": n,
-            "final_ratio": res.history[-1]["optimality_ratio"][n],
-            "env_steps_to_95": steps_to_ratio(res.history, n, 0.95),
-            "env_steps_to_99": steps_to_ratio(res.history, n, 0.99),
-        }
-        for n in range(n_learn)
-    ]
-    greedy = res.greedy[0].cpu()
-    learned = scorer.metrics(greedy)
-    opt = scorer.optimal_metrics
-    rows = {
-        f"{algo_name(cfg)} (exact)": learned,
-        "optimal (exact)": opt,
-        "round_robin (exact)": stationary_metrics(model, "round_robin"),
-    }
-    errs = {}
-    if cfg.mc_episodes:
-        env = DFRCEnv(params, batch_size=[cfg.num_envs], seed=cfg.seed + 1)
-        ev = evaluate(table_policy(greedy), env, episodes=cfg.mc_episodes)
-        rows[f"{algo_name(cfg)} (Monte-Carlo, episodic)"] = ev.metrics
-        errs[f"{algo_name(cfg)} (Monte-Carlo, episodic)"] = ev.ci95
-    env_steps = algo.episodes * params.env.horizon
-    print(f"\nscenario={scenario} algo={algo_name(cfg)} seed={cfg.seed} learners={n_learn}")
-    print(f"{env_steps} env steps per learner in {res.wall_seconds:.1f} s\n")
-    print(format_table(rows, errors=errs))
-    print("\nlearner  final ratio  env steps to 95 %  to 99 %")
-    for row in learners:
-        print(
-            f"{row['learner']:>7}  {row['final_ratio']:>11.4f}  {row['env_steps_to_95']!s:>17}  "
-            f"{row['env_steps_to_99']!s:>7}"
+    n_rows = n_learn * len(scenarios)
+    learners = []
+    for n in range(n_rows):
+        g = res.group[n]
+        final = scorers[g].metrics(res.greedy[n].cpu())
+        learners.append(
+            {
+                **points[g],
+                "learner": n % n_learn,
+                "row": n,
+                "final_ratio": res.history[-1]["optimality_ratio"][n],
+                "env_steps_to_95": steps_to_ratio(res.history, n, 0.95),
+                "env_steps_to_99": steps_to_ratio(res.history, n, 0.99),
+                **{k: _finite(v) for k, v in final.as_dict().items()},
+            }
         )
+    greedy = res.greedy[0].cpu()
+    learned = scorers[0].metrics(greedy)
+    opt = scorers[0].optimal_metrics
+    model = models[0]
+    env_steps = algo.episodes * base.env.horizon
+    print(
+        f"\nscenario={scenario} algo={algo_name(cfg)} seed={cfg.seed} learners={n_learn}"
+        + (f" × {len(scenarios)} scenarios (batch_grid)" if len(scenarios) > 1 else "")
+    )
+    print(f"{env_steps} env steps per learner in {res.wall_seconds:.1f} s\n")
+    if len(scenarios) == 1:
+        rows = {
+            f"{algo_name(cfg)} (exact)": learned,
+            "optimal (exact)": opt,
+            "round_robin (exact)": stationary_metrics(model, "round_robin"),
+        }
+        errs = {}
+        if cfg.mc_episodes:
+            env = DFRCEnv(base, batch_size=[cfg.num_envs], seed=cfg.seed + 1)
+            ev = evaluate(table_policy(greedy), env, episodes=cfg.mc_episodes)
+            rows[f"{algo_name(cfg)} (Monte-Carlo, episodic)"] = ev.metrics
+            errs[f"{algo_name(cfg)} (Monte-Carlo, episodic)"] = ev.ci95
+        print(format_table(rows, errors=errs))
+        print("\nlearner  final ratio  env steps to 95 %  to 99 %")
+        for row in learners:
+            print(
+                f"{row['learner']:>7}  {row['final_ratio']:>11.4f}  {row['env_steps_to_95']!s:>17}  "
+                f"{row['env_steps_to_99']!s:>7}"
+            )
+    else:
+        print("scenario                        optimum avg reward  final ratio (median, min)")
+        for g, point in enumerate(points):
+            mine = [r["final_ratio"] for r in learners if res.group[r["row"]] == g]
+            label = " ".join(point_overrides(point))
+            print(
+                f"{label:<32}{scorers[g].optimal_metrics.avg_reward:>18.4f}  "
+                f"{statistics.median(mine):.4f}, {min(mine):.4f}"
+            )
 
     for th in ("95", "99"):
         got = [r[f"env_steps_to_{th}"] for r in learners]
@@ -188,6 +233,15 @@ def run_qlearning(cfg: DictConfig, out: Path, scenario: str | None = None) -> di
         med = statistics.median(hit) if len(hit) == len(got) else None
         print(f"to {th} %: {len(hit)}/{len(got)} learners; median env steps {med}")
 
+    extra: dict[str, Any] = {"learners": [_summary_row(r) for r in learners]}
+    if len(scenarios) > 1:
+        extra["batch_grid"] = [
+            {
+                "overrides": point_overrides(point),
+                "optimal": {k: _finite(v) for k, v in scorers[g].optimal_metrics.as_dict().items()},
+            }
+            for g, point in enumerate(points)
+        ]
     summary = summary_dict(
         method=algo_name(cfg),
         scenario=scenario,
@@ -196,10 +250,11 @@ def run_qlearning(cfg: DictConfig, out: Path, scenario: str | None = None) -> di
         wall_seconds=res.wall_seconds,
         metrics=learned,
         optimal=opt,
-        learners=learners,
+        **extra,
     )
     write_summary(out / "summary.json", summary)
     write_policy_csv(out / "policy.csv", greedy)
+    write_rows_csv(out / "learners.csv", learners)
     write_rows_csv(
         out / "metrics.csv",
         [
@@ -207,8 +262,8 @@ def run_qlearning(cfg: DictConfig, out: Path, scenario: str | None = None) -> di
                 "episode": e["episode"],
                 "env_steps": e["env_steps"],
                 "wall_seconds": round(e["wall_seconds"], 4),
-                **{f"optimality_ratio_{n}": e["optimality_ratio"][n] for n in range(n_learn)},
-                **{f"avg_reward_{n}": e["avg_reward"][n] for n in range(n_learn)},
+                **{f"optimality_ratio_{n}": e["optimality_ratio"][n] for n in range(n_rows)},
+                **{f"avg_reward_{n}": e["avg_reward"][n] for n in range(n_rows)},
             }
             for e in res.history
         ],
@@ -216,12 +271,25 @@ def run_qlearning(cfg: DictConfig, out: Path, scenario: str | None = None) -> di
     write_rows_csv(
         out / "episode_rewards.csv",
         [
-            {"episode": i + 1, **{f"reward_{n}": float(r[n]) for n in range(n_learn)}}
+            {"episode": i + 1, **{f"reward_{n}": float(r[n]) for n in range(n_rows)}}
             for i, r in enumerate(res.episode_rewards)
         ],
     )
-    print(f"\nwrote summary.json, policy.csv, metrics.csv, episode_rewards.csv to {out}")
+    print(
+        f"\nwrote summary.json, policy.csv, learners.csv, metrics.csv, episode_rewards.csv to {out}"
+    )
     return summary
+
+
+def _finite(value: float) -> float | None:
+    return value if isinstance(value, float) and math.isfinite(value) else None
+
+
+def _summary_row(row: dict[str, Any]) -> dict[str, Any]:
+    keys = ("learner", "row", "final_ratio", "env_steps_to_95", "env_steps_to_99")
+    return {k: row[k] for k in keys} | {
+        k: v for k, v in row.items() if k.startswith(("env.", "reward."))
+    }
 
 
 def algo_name(cfg: DictConfig) -> str:

@@ -9,6 +9,7 @@ results against the expected grid, so a missing trial shows up as a row.
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import hashlib
 import io
@@ -18,6 +19,7 @@ import logging
 import os
 import tempfile
 import time
+import traceback
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -86,10 +88,13 @@ def point_overrides(point: Mapping[str, Any]) -> list[str]:
     return [f"{k}={format_value(v)}" for k, v in point.items()]
 
 
-def point_id(point: Mapping[str, Any]) -> str:
-    """Stable id of a grid point: readable prefix + hash of its overrides (order-independent)."""
+def point_id(point: Mapping[str, Any], method: str = "", base: list[str] | tuple = ()) -> str:
+    """Stable id of a grid point: readable prefix + hash of its overrides (order-independent),
+    of the method and of the base overrides (so two sweeps of one grid with different bases, or
+    methods, never share a trial directory)."""
     ov = sorted(point_overrides(point))
-    digest = hashlib.sha1("|".join(ov).encode()).hexdigest()[:10]
+    key = "|".join(ov) + (f"||{method}||" + "|".join(base) if method or base else "")
+    digest = hashlib.sha1(key.encode()).hexdigest()[:10]
     readable = "_".join(o.split(".")[-1] for o in ov)
     safe = "".join(c if c.isalnum() or c in "=_.-" else "-" for c in readable)[:60]
     return f"{safe}__{digest}"
@@ -112,26 +117,33 @@ def trial(config: dict[str, Any]) -> None:
     import torch
     from ray import tune
 
-    from irdrc.runs import RUNNERS
-
     torch.set_num_threads(1)
-    if config.get("fail"):
-        raise RuntimeError(f"injected failure (sweep.fail_on) in {config['point_id']}")
     try:
         out = Path(tune.get_context().get_trial_dir())
     except Exception:
         out = Path(tempfile.mkdtemp(prefix="irdrc-trial-"))
     out = out / "run"
+    tune.report(run_point(config, out))
+
+
+# The run files a trial sends back to the driver (through Tune's reporting, so a cluster needs no
+# shared file system); checkpoints and logs stay in the trial's own directory.
+RESULT_FILES = ("metrics.csv", "policy.csv", "learners.csv", "episode_rewards.csv")
+
+
+def run_point(config: dict[str, Any], out: Path) -> dict[str, Any]:
+    """Run one planned point into ``out``; return what a trial reports (summary and run files)."""
+    from irdrc.runs import RUNNERS
+
+    if config.get("fail"):
+        raise RuntimeError(f"injected failure (sweep.fail_on) in {config['point_id']}")
     cfg = OmegaConf.create(config["cfg"])
     summary = RUNNERS[config["method"]](cfg, out, config["scenario"])
-    metrics_csv = (out / "metrics.csv").read_text() if (out / "metrics.csv").is_file() else ""
-    tune.report(
-        {
-            "optimality_ratio": summary.get("optimality_ratio"),
-            "summary_json": json.dumps(summary),
-            "metrics_csv": metrics_csv,
-        }
-    )
+    return {
+        "optimality_ratio": summary.get("optimality_ratio"),
+        "summary_json": json.dumps(summary),
+        "files": {n: (out / n).read_text() for n in RESULT_FILES if (out / n).is_file()},
+    }
 
 
 def _ray_init(address: str, num_cpus: int | None) -> None:
@@ -157,6 +169,78 @@ def _read_status(trial_dir: Path) -> dict[str, Any] | None:
     return json.loads(path.read_text()) if path.is_file() else None
 
 
+def plan(
+    method: str, points: list[dict[str, Any]], base: list[str], fail_on: list[str] = ()
+) -> list[dict[str, Any]]:
+    """Compose every point's config on the driver (a bad key or value fails here, before Ray starts).
+
+    Returns one record per point: ``point_id``, ``point``, ``overrides``, ``method``, ``base``, the
+    composed ``cfg`` (plain), ``scenario`` and ``fail``. Plans of several methods may be
+    concatenated and executed together.
+    """
+    if method not in METHODS:
+        raise ValueError(f"method={method!r} must be one of {', '.join(METHODS)}")
+    base = [str(o) for o in base]
+    planned = []
+    for point in points:
+        ov = point_overrides(point)
+        composed = compose(method, [*TRIAL_DEFAULTS[method], *base, *ov])
+        planned.append(
+            {
+                "point_id": point_id(point, method, base),
+                "point": point,
+                "overrides": ov,
+                "method": method,
+                "base": base,
+                "cfg": OmegaConf.to_container(composed, resolve=True),
+                "scenario": scenario_of([*base, *ov]),
+                "fail": _matches(ov, [str(o) for o in fail_on]),
+            }
+        )
+    return planned
+
+
+def execute(cfg: DictConfig, planned: list[dict[str, Any]], out: Path) -> int:
+    """Run the planned points (``plan``) with the sweep options of ``cfg``; write ``summary.csv``.
+
+    ``cfg`` holds the options of ``recipes/conf/sweep.yaml``: ``resume``, ``executor``,
+    ``cpus_per_trial``, ``max_failures``, ``storage_path`` and ``ray``. Results land in
+    ``<out>/trials/<point id>/``.
+
+    Returns:
+        0 if every point is DONE, 1 otherwise.
+    """
+    executor = str(cfg.get("executor", "ray"))
+    if executor not in ("ray", "local"):
+        raise ValueError(f"executor={executor!r} must be ray or local")
+    if int(cfg.cpus_per_trial) < 1 or int(cfg.max_failures) < 0:
+        raise ValueError("cpus_per_trial must be >= 1 and max_failures >= 0")
+    ids = [p["point_id"] for p in planned]
+    if len(set(ids)) != len(ids):
+        raise ValueError("two planned points share an id (the same method, base and overrides)")
+    out = Path(out).resolve()
+    trials_dir = out / "trials"
+    todo = [
+        p
+        for p in planned
+        if not (
+            cfg.resume and (_read_status(trials_dir / p["point_id"]) or {}).get("status") == "DONE"
+        )
+    ]
+    total = len(planned)
+    methods = ", ".join(sorted({p["method"] for p in planned}))
+    print(
+        f"sweep: method={methods}, {total} grid points, {len(todo)} to run"
+        + (" (resume)" if cfg.resume else ""),
+        flush=True,
+    )
+    if todo and executor == "ray":
+        _run_tune(cfg, out, todo, total - len(todo), total, trials_dir)
+    elif todo:
+        _run_local(todo, total - len(todo), total, trials_dir)
+    return write_summary_csv(out / "summary.csv", planned, trials_dir)
+
+
 def run_sweep(cfg: DictConfig, out: Path) -> int:
     """Run the sweep described by ``cfg`` (``recipes/conf/sweep.yaml``) into ``out``.
 
@@ -167,46 +251,59 @@ def run_sweep(cfg: DictConfig, out: Path) -> int:
     if method not in METHODS:
         raise ValueError(f"method={method!r} must be one of {', '.join(METHODS)}")
     points = parse_grid(cfg.sweep.grid)
-    base = [str(o) for o in (cfg.sweep.base or [])]
-    fail_on = [str(o) for o in (cfg.sweep.fail_on or [])]
-    if int(cfg.cpus_per_trial) < 1 or int(cfg.max_failures) < 0:
-        raise ValueError("cpus_per_trial must be >= 1 and max_failures >= 0")
-    out = Path(out).resolve()
-    trials_dir = out / "trials"
-    # Compose every point on the driver: a bad key or value fails here, before Ray starts.
-    planned = []
-    for point in points:
-        ov = point_overrides(point)
-        overrides = [*TRIAL_DEFAULTS[method], *base, *ov]
-        composed = compose(method, overrides)
-        planned.append(
-            {
-                "point_id": point_id(point),
-                "point": point,
-                "overrides": ov,
-                "method": method,
-                "cfg": OmegaConf.to_container(composed, resolve=True),
-                "scenario": scenario_of([*base, *ov]),
-                "fail": _matches(ov, fail_on),
-            }
-        )
-    todo = [
-        p
-        for p in planned
-        if not (
-            cfg.resume and (_read_status(trials_dir / p["point_id"]) or {}).get("status") == "DONE"
-        )
-    ]
-    total = len(planned)
-    print(
-        f"sweep: method={method}, {total} grid points, {len(todo)} to run"
-        + (" (resume)" if cfg.resume else ""),
-        flush=True,
+    planned = plan(method, points, list(cfg.sweep.base or []), list(cfg.sweep.fail_on or []))
+    return execute(cfg, planned, out)
+
+
+def _record(tdir: Path, p: dict[str, Any], result: dict[str, Any] | None, error: Any) -> None:
+    """Write a finished point's files and status into its trial directory."""
+    tdir.mkdir(parents=True, exist_ok=True)
+    if error is None and result and "summary_json" in result:
+        atomic_write_text(tdir / "summary.json", result["summary_json"] + "\n")
+        for name, text in (result.get("files") or {}).items():
+            atomic_write_text(tdir / name, text)
+        status = {"status": "DONE"}
+    else:
+        status = {"status": "ERROR", "error": str(error).strip().splitlines()[-1:]}
+    atomic_write_text(
+        tdir / "status.json", json.dumps({**status, "overrides": p["overrides"]}) + "\n"
     )
-    if todo:
-        _run_tune(cfg, out, todo, total - len(todo), total, trials_dir)
-    code = write_summary_csv(out / "summary.csv", planned, trials_dir)
-    return code
+
+
+def _progress_line(done: int, total: int, already: int, t0: float, p: dict, tail: str) -> None:
+    elapsed = time.perf_counter() - t0
+    ran = done - already
+    eta = elapsed / ran * (total - done) if ran else float("nan")
+    label = " ".join([*p["base"], *p["overrides"]]) if p.get("base") else " ".join(p["overrides"])
+    print(
+        f"[{done}/{total}] {label} → {tail}  (elapsed {elapsed:.0f} s, ETA {eta:.0f} s)", flush=True
+    )
+
+
+def _run_local(todo: list[dict], already: int, total: int, trials_dir: Path) -> None:
+    """Run the points one after another in this process (no Ray): same files, same statuses."""
+    import torch
+
+    torch.set_num_threads(1)
+    t0 = time.perf_counter()
+    for i, p in enumerate(todo):
+        tdir = trials_dir / p["point_id"]
+        tdir.mkdir(parents=True, exist_ok=True)
+        # The run's own printout goes to the trial's log, as a Ray trial's does.
+        with (
+            (tdir / "run.log").open("w") as log,
+            contextlib.redirect_stdout(log),
+            tempfile.TemporaryDirectory(prefix="irdrc-trial-") as tmp,
+        ):
+            try:
+                result, error = run_point(p, Path(tmp) / "run"), None
+            except Exception as exc:  # a crashed point is an ERROR row, as under Ray
+                result, error = None, f"{type(exc).__name__}: {exc}"
+                print(traceback.format_exc())
+        _record(tdir, p, result, error)
+        ratio = (result or {}).get("optimality_ratio")
+        tail = "ERROR" if error else "DONE" + (f", optimality ratio {ratio:.4f}" if ratio else "")
+        _progress_line(already + i + 1, total, already, t0, p, tail)
 
 
 def _run_tune(
@@ -221,14 +318,7 @@ def _run_tune(
     class Progress(tune.Callback):
         def _line(self, trial, status: str, extra: str = "") -> None:
             done["n"] += 1
-            elapsed = time.perf_counter() - t0
-            ran = done["n"] - already
-            eta = elapsed / ran * (total - done["n"]) if ran else float("nan")
-            ov = " ".join(trial.config["point"]["overrides"])
-            print(
-                f"[{done['n']}/{total}] {ov} → {status}{extra}  (elapsed {elapsed:.0f} s, ETA {eta:.0f} s)",
-                flush=True,
-            )
+            _progress_line(done["n"], total, already, t0, trial.config["point"], status + extra)
 
         def on_trial_complete(self, iteration, trials, trial, **info) -> None:
             ratio = (trial.last_result or {}).get("optimality_ratio")
@@ -258,18 +348,7 @@ def _run_tune(
         results = tuner.fit()
         for result in results:
             p = result.config["point"]
-            tdir = trials_dir / p["point_id"]
-            tdir.mkdir(parents=True, exist_ok=True)
-            metrics = result.metrics or {}
-            if result.error is None and "summary_json" in metrics:
-                atomic_write_text(tdir / "summary.json", metrics["summary_json"] + "\n")
-                atomic_write_text(tdir / "metrics.csv", metrics.get("metrics_csv", ""))
-                status = {"status": "DONE"}
-            else:
-                status = {"status": "ERROR", "error": str(result.error).strip().splitlines()[-1:]}
-            atomic_write_text(
-                tdir / "status.json", json.dumps({**status, "overrides": p["overrides"]}) + "\n"
-            )
+            _record(trials_dir / p["point_id"], p, result.metrics, result.error)
     finally:
         ray.shutdown()
 
@@ -279,12 +358,18 @@ def write_summary_csv(path: Path, planned: list[dict], trials_dir: Path) -> int:
 
     Returns 0 if every point is DONE, else 1.
     """
-    keys = list(planned[0]["point"]) if planned else []
+    keys = list(dict.fromkeys(k for p in planned for k in p["point"]))
+    # Plans of several methods or bases (e.g. a figure's) name them in two leading columns.
+    mixed = len({(p["method"], tuple(p.get("base", ()))) for p in planned}) > 1
+    lead = ["method", "base"] if mixed else []
     rows, metric_names = [], []
     for p in planned:
         tdir = trials_dir / p["point_id"]
         st = _read_status(tdir) or {"status": "INCOMPLETE"}
-        row: dict[str, Any] = {k: format_value(p["point"][k]) for k in keys}
+        row: dict[str, Any] = (
+            {"method": p["method"], "base": " ".join(p.get("base", ()))} if mixed else {}
+        )
+        row.update({k: format_value(p["point"][k]) for k in keys if k in p["point"]})
         row["status"] = st["status"]
         row["point_id"] = p["point_id"]
         if st["status"] == "DONE" and (tdir / "summary.json").is_file():
@@ -298,6 +383,7 @@ def write_summary_csv(path: Path, planned: list[dict], trials_dir: Path) -> int:
                     metric_names.append(k)
         rows.append(row)
     fields = [
+        *lead,
         *keys,
         "status",
         "point_id",

@@ -159,3 +159,55 @@ def test_crash_marks_error_and_resume_reruns_only_it(tmp_path):
     assert "4 grid points, 1 to run (resume)" in r2.stdout and r2.stdout.count("→ DONE") == 1
     assert {t["status"] for t in rows(tmp_path / "summary.csv")} == {"DONE"}
     assert {p: p.stat().st_mtime_ns for p in done_files} == done_files  # untouched
+
+
+def test_local_executor_crash_resume_and_mixed_plans(tmp_path):
+    """executor=local: same files and statuses as under Ray, without Ray (so no namespace)."""
+    grid = "sweep.grid={reward.r4: [5,50]}"
+    base = "sweep.base=['mc_episodes=0']"
+
+    def run(*extra):
+        return subprocess.run(
+            [
+                sys.executable,
+                str(ROOT / "recipes" / "sweep.py"),
+                "method=solve",
+                "executor=local",
+                grid,
+                base,
+                *extra,
+                f"hydra.run.dir={tmp_path}",
+            ],
+            capture_output=True,
+            text=True,
+            timeout=300,
+            cwd=ROOT,
+        )
+
+    r = run("sweep.fail_on=['reward.r4=50']")
+    assert r.returncode == 1, r.stderr[-2000:]
+    assert {t["reward.r4"]: t["status"] for t in rows(tmp_path / "summary.csv")} == {
+        "5": "DONE",
+        "50": "ERROR",
+    }
+    (done,) = [t for t in rows(tmp_path / "summary.csv") if t["status"] == "DONE"]
+    assert abs(float(done["optimality_ratio"]) - 1.0) < 1e-12  # the optimum scored against itself
+    assert (
+        "injected failure"
+        in (
+            tmp_path / "trials" / rows(tmp_path / "summary.csv")[1]["point_id"] / "run.log"
+        ).read_text()
+    )
+    r = run("resume=true")
+    assert r.returncode == 0 and "2 grid points, 1 to run (resume)" in r.stdout, r.stdout[-2000:]
+
+
+def test_point_ids_separate_methods_and_bases():
+    from irdrc.sweep import plan
+
+    a = plan("solve", [{"seed": 0}], ["mc_episodes=0"])
+    b = plan("solve", [{"seed": 0}], ["mc_episodes=0", "reward.r4=50"])
+    c = plan("qlearning", [{"seed": 0}], ["mc_episodes=0"])
+    ids = {x[0]["point_id"] for x in (a, b, c)}
+    assert len(ids) == 3 and all(i.startswith("seed=0__") for i in ids)
+    assert b[0]["cfg"]["reward"]["r4"] == 50 and c[0]["cfg"]["algo"]["name"] == "qlearning"

@@ -14,7 +14,7 @@ from dataclasses import dataclass, field, fields
 from typing import Any
 
 import torch
-from tensordict import TensorDict
+from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictSequential
 from torch import nn
 from torchrl.collectors import Collector
@@ -266,6 +266,7 @@ class DQNRun:
     wall_seconds: float = 0.0
     history: list[dict[str, Any]] = field(default_factory=list)
     scorer: ExactScorer | None = None
+    episode_rewards: list[dict[str, Any]] = field(default_factory=list)
 
 
 def greedy_table(qnet: QValueActor, env: DFRCEnv) -> torch.Tensor:
@@ -326,6 +327,7 @@ def train(
         start_frames, run.updates = int(state["frames"]), int(state["updates"])
         exploration.step(start_frames)
         run.history = list(state.get("history", []))
+        run.episode_rewards = list(state.get("episode_rewards", []))
     remaining = cfg.total_frames - start_frames
     if remaining <= 0:
         raise ValueError(
@@ -368,7 +370,9 @@ def train(
     if state is None:
         evaluate_now()
     last_loss = math.nan
+    ep_total = torch.zeros(cfg.num_envs, dtype=torch.float64)
     for data in collector:
+        _track_episodes(data, ep_total, frames, run.episode_rewards)
         data = data.reshape(-1)
         rb.extend(data)
         frames += data.numel()
@@ -415,6 +419,28 @@ def train(
     return run
 
 
+def _track_episodes(
+    data: TensorDictBase, total: torch.Tensor, frames: int, out: list[dict[str, Any]]
+) -> None:
+    """Add each training episode that ends in ``data`` ([num_envs, T] from the collector) to
+    ``out`` (``episode``, ``env_steps`` at its end, total ``reward``); ``total`` carries the running
+    sums of unfinished episodes across batches."""
+    reward = data["next", "reward"].reshape(total.shape[0], -1).double().cpu()
+    done = data["next", "done"].reshape(total.shape[0], -1).cpu()
+    steps = reward.shape[1]
+    for t in range(steps):
+        total += reward[:, t]
+        for e in done[:, t].nonzero().flatten().tolist():
+            out.append(
+                {
+                    "episode": len(out) + 1,
+                    "env_steps": frames + (t + 1) * total.shape[0],
+                    "reward": float(total[e]),
+                }
+            )
+            total[e] = 0.0
+
+
 def checkpoint_state(run: DQNRun, config: dict[str, Any]) -> dict[str, Any]:
     """A ``weights_only``-loadable checkpoint: network, target, optimiser, step counters, config.
 
@@ -427,6 +453,7 @@ def checkpoint_state(run: DQNRun, config: dict[str, Any]) -> dict[str, Any]:
         "updates": run.updates,
         "wall_seconds": run.wall_seconds,
         "history": run.history,
+        "episode_rewards": run.episode_rewards,
         "config": config,
     }
 

@@ -382,6 +382,7 @@ def run_dqn(cfg: DictConfig, out: Path, scenario: str | None = None) -> dict[str
     config_plain = OmegaConf.to_container(cfg, resolve=True)
     torch.save(checkpoint_state(run, config_plain), out / "checkpoint.pt")
     write_rows_csv(out / "metrics.csv", run.history)
+    write_rows_csv(out / "episode_rewards.csv", run.episode_rewards)
 
     env = DFRCEnv(params, batch_size=[int(cfg.eval.mc_num_envs)], seed=int(cfg.seed) + 1)
     table = greedy_table(run.qnet, env)
@@ -430,7 +431,10 @@ def run_dqn(cfg: DictConfig, out: Path, scenario: str | None = None) -> dict[str
         f"{cfg.eval.every_frames})\n"
     )
     print(format_table(rows, errors=errs))
-    print(f"\nwrote summary.json, policy.csv, metrics.csv, config.yaml, checkpoint.pt to {out}")
+    print(
+        "\nwrote summary.json, policy.csv, metrics.csv, episode_rewards.csv, config.yaml, "
+        f"checkpoint.pt to {out}"
+    )
 
     return summary
 

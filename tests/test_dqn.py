@@ -95,13 +95,45 @@ def test_train_function_counts_and_history():
     assert run.updates == 18
     assert [e["env_steps"] for e in run.history] == [0, 160, 320]
     assert all(-2 < e["optimality_ratio"] <= 1.0 + 1e-9 for e in run.history)
+    # no 400-step episode ends within 320 steps of 8 envs
+    assert run.episode_rewards == []
+
+
+def test_training_episode_rewards_tracked_across_batches():
+    """Episodes that straddle collector batches are summed whole, each env on its own."""
+    from tensordict import TensorDict
+
+    from irdrc.dqn import _track_episodes
+
+    def batch(rewards, dones):
+        r = torch.tensor(rewards, dtype=torch.float32)[..., None]
+        d = torch.tensor(dones)[..., None]
+        return TensorDict({"next": {"reward": r, "done": d}}, batch_size=r.shape[:2])
+
+    total, out = torch.zeros(2, dtype=torch.float64), []
+    # env 0 ends an episode at its 2nd step; env 1 runs on into the next batch
+    _track_episodes(batch([[1, 2, 4], [10, 20, 40]], [[0, 1, 0], [0, 0, 0]]), total, 0, out)
+    _track_episodes(batch([[8, 16, 0], [80, 0, 0]], [[0, 1, 0], [1, 0, 0]]), total, 6, out)
+    assert out == [
+        {"episode": 1, "env_steps": 4, "reward": 3.0},
+        {"episode": 2, "env_steps": 8, "reward": 150.0},
+        {"episode": 3, "env_steps": 10, "reward": 28.0},
+    ]
+    assert total.tolist() == [0.0, 0.0]
 
 
 def test_recipe_end_to_end_and_resume(tmp_path):
     first = run_dqn(tmp_path / "a", "reward.r4=50", "network=small")
     assert first.returncode == 0, first.stderr
     out = tmp_path / "a"
-    for name in ("summary.json", "policy.csv", "metrics.csv", "config.yaml", "checkpoint.pt"):
+    for name in (
+        "summary.json",
+        "policy.csv",
+        "metrics.csv",
+        "episode_rewards.csv",
+        "config.yaml",
+        "checkpoint.pt",
+    ):
         assert (out / name).is_file(), name
     s = json.loads((out / "summary.json").read_text())
     assert s["method"] == "dqn" and s["env_steps"] == 640 and s["scenario"] == "paper[reward.r4=50]"

@@ -73,6 +73,19 @@ def scenario_name(cfg: Any = None) -> str:
     return f"{name}[{','.join(extra)}]" if extra else name
 
 
+def scenario_overrides() -> list[str]:
+    """The running Hydra app's scenario as overrides: its ``env`` and ``reward`` choices plus any
+    ``env.*`` / ``reward.*`` command-line overrides (what a recipe passes on to the runs it plans)."""
+    from hydra.core.hydra_config import HydraConfig
+
+    hc = HydraConfig.get()
+    out = [f"{g}={hc.runtime.choices[g]}" for g in ("env", "reward") if hc.runtime.choices.get(g)]
+    out += [
+        o for o in hc.overrides.task if o.split("=")[0].lstrip("+~").startswith(("env.", "reward."))
+    ]
+    return out
+
+
 def compose(config_name: str, overrides: list[str] | None = None) -> DictConfig:
     """Compose ``recipes/conf/<config_name>.yaml`` with command-line style ``overrides``.
 

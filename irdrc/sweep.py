@@ -337,6 +337,8 @@ def _run_tune(
         tuner = tune.Tuner(
             tune.with_resources(trial, {"cpu": int(cfg.cpus_per_trial)}),
             param_space={"point": tune.grid_search(todo)},
+            # A worker process runs trial after trial: no process start and imports per trial.
+            tune_config=tune.TuneConfig(reuse_actors=True),
             run_config=tune.RunConfig(
                 name=f"sweep-{int(time.time())}",
                 storage_path=str(storage),

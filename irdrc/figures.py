@@ -1,0 +1,110 @@
+"""Data behind the figures: means and confidence bands over seeds, learning curves, exact references.
+
+``recipes/figure2.py`` and ``recipes/tradeoff.py`` gather their runs' files with these helpers and hand
+plain rows to ``irdrc.plots`` (drawing) and ``irdrc.claims`` (verdicts).
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import statistics
+from collections.abc import Iterable, Sequence
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from irdrc.env import Dynamics
+from irdrc.params import Params
+
+# Two-sided 95 % quantiles of Student's t for 1 … 30 degrees of freedom (beyond: the normal's).
+_T975 = (
+    12.706, 4.303, 3.182, 2.776, 2.571, 2.447, 2.365, 2.306, 2.262, 2.228,
+    2.201, 2.179, 2.160, 2.145, 2.131, 2.120, 2.110, 2.101, 2.093, 2.086,
+    2.080, 2.074, 2.069, 2.064, 2.060, 2.056, 2.052, 2.048, 2.045, 2.042,
+)  # fmt: skip
+
+
+def t975(dof: int) -> float:
+    """The 97.5 % quantile of Student's t with ``dof`` degrees of freedom (≥ 1)."""
+    if dof < 1:
+        raise ValueError(f"dof={dof} must be >= 1")
+    return _T975[dof - 1] if dof <= len(_T975) else 1.959964
+
+
+def mean_ci(values: Iterable[float]) -> dict[str, float]:
+    """Mean of independent replicates and its 95 % t-interval (``lo`` = ``hi`` = mean for one).
+
+    NaNs (undefined values, e.g. miss detection of a policy that sees no event) are dropped.
+    """
+    xs = [float(v) for v in values if v is not None and not math.isnan(float(v))]
+    if not xs:
+        return {"mean": math.nan, "lo": math.nan, "hi": math.nan, "n": 0}
+    m = statistics.fmean(xs)
+    if len(xs) == 1:
+        return {"mean": m, "lo": m, "hi": m, "n": 1}
+    half = t975(len(xs) - 1) * statistics.stdev(xs) / math.sqrt(len(xs))
+    return {"mean": m, "lo": m - half, "hi": m + half, "n": len(xs)}
+
+
+def read_csv(path: Path) -> list[dict[str, str]]:
+    """Rows of a CSV file as dicts of strings."""
+    with Path(path).open(newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def same_value(a: Any, b: Any) -> bool:
+    """Whether two config values read from different places (floats, CSV strings) are equal."""
+    try:
+        return math.isclose(float(a), float(b), rel_tol=1e-9, abs_tol=1e-12)
+    except (TypeError, ValueError):
+        return str(a) == str(b)
+
+
+def band_rows(series: str, xs: Sequence[float], per_seed: Sequence[Sequence[float]]) -> list[dict]:
+    """Rows ``series, x, mean, lo, hi, n`` of curves given per seed on the same ``xs``."""
+    rows = []
+    for i, x in enumerate(xs):
+        stats = mean_ci(curve[i] for curve in per_seed if i < len(curve))
+        rows.append({"series": series, "x": x, **stats})
+    return rows
+
+
+def first_reaching(rows: Sequence[dict], threshold: float) -> float | None:
+    """The first ``x`` whose ``mean`` is ≥ ``threshold`` (rows in increasing x), else None."""
+    return next((r["x"] for r in rows if r["mean"] >= threshold), None)
+
+
+def moving_average(values: Sequence[float], window: int) -> list[float]:
+    """Trailing moving average (shorter windows at the start)."""
+    if window < 1:
+        raise ValueError(f"window={window} must be >= 1")
+    out, acc = [], 0.0
+    for i, v in enumerate(values):
+        acc += v
+        if i >= window:
+            acc -= values[i - window]
+        out.append(acc / min(i + 1, window))
+    return out
+
+
+def round_robin_episodes(params: Params, seeds: Sequence[int], episodes: int) -> list[list[float]]:
+    """Total reward of ``episodes`` simulated round-robin episodes for each seed.
+
+    Round-robin communicates first after each reset and alternates every step (as
+    ``irdrc.policies.round_robin``); each seed is its own generator.
+    """
+    dyn = Dynamics(params)
+    out = []
+    for seed in seeds:
+        gen = torch.Generator().manual_seed(int(seed))
+        state = dyn.reset_states(episodes, gen)
+        total = torch.zeros(episodes, dtype=torch.float64)
+        for t in range(params.env.horizon):
+            action = torch.full((episodes,), t % 2, dtype=torch.int64)
+            res = dyn.step(state, action, gen)
+            total += res.reward
+            state = res.state
+        out.append(total.tolist())
+    return out

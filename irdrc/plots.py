@@ -1,0 +1,189 @@
+"""The figures, drawn from the rows the recipes also write as CSV (``irdrc.figures.band_rows`` format:
+``series, x, mean, lo, hi, n``). Matplotlib with the Agg backend: no display needed."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+
+STYLE = {
+    "dqn": {"color": "tab:blue", "label": "DQN (ours)"},
+    "dqn_paper": {"color": "tab:cyan", "label": "DQN (paper profile)"},
+    "qlearning": {"color": "tab:orange", "label": "Q-learning (ours)"},
+    "qlearning_paper": {"color": "tab:brown", "label": "Q-learning (paper profile)"},
+    "round_robin": {"color": "tab:gray", "label": "round-robin"},
+    "optimal": {"color": "black", "label": "exact optimum", "linestyle": "--"},
+}
+DPI = 80
+
+
+def _style(series: str) -> dict:
+    return STYLE.get(series, {"label": series})
+
+
+def _series(rows: Sequence[Mapping]) -> dict[str, list[Mapping]]:
+    out: dict[str, list[Mapping]] = {}
+    for r in rows:
+        out.setdefault(str(r["series"]), []).append(r)
+    return out
+
+
+def _draw_bands(ax, rows: Sequence[Mapping], marker: str | None = None) -> None:
+    for name, rs in _series(rows).items():
+        st = _style(name)
+        xs = [float(r["x"]) for r in rs]
+        ax.plot(
+            xs,
+            [float(r["mean"]) for r in rs],
+            color=st.get("color"),
+            linestyle=st.get("linestyle", "-"),
+            marker=marker,
+            markersize=4,
+            label=st["label"],
+        )
+        lo = [float(r["lo"]) for r in rs]
+        hi = [float(r["hi"]) for r in rs]
+        if any(not math.isclose(a, b) for a, b in zip(lo, hi, strict=True)):
+            ax.fill_between(xs, lo, hi, color=st.get("color"), alpha=0.2, linewidth=0)
+
+
+def _hline(ax, y: float, series: str, label: str | None = None) -> None:
+    st = _style(series)
+    ax.axhline(
+        y,
+        color=st.get("color"),
+        linestyle=st.get("linestyle", ":"),
+        linewidth=1.2,
+        label=label or st["label"],
+    )
+
+
+def plot_panel_a(
+    greedy: Sequence[Mapping],
+    training: Sequence[Mapping],
+    optimum: float,
+    optimum_training: float,
+    round_robin: float,
+    marks: Mapping[str, float | None],
+    path: Path,
+    *,
+    p1_speed: float,
+    seeds: int,
+    window: int,
+    horizon: int = 400,
+) -> None:
+    """Panel (a): total reward per episode vs training episode, two views side by side.
+
+    Left: the greedy policy after each training episode, evaluated exactly (horizon × its long-run
+    reward per step), with markers where the mean first reaches 95 % of the optimum. Right: the
+    training episodes themselves (behaviour policy, exploration included — what the paper plots),
+    smoothed, with simulated round-robin episodes.
+    """
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.6), sharey=False)
+    ax = axes[0]
+    _draw_bands(ax, greedy)
+    _hline(ax, optimum, "optimal")
+    _hline(ax, round_robin, "round_robin", "round-robin (exact)")
+    ax.axhline(0.95 * optimum, color="black", linewidth=0.6, alpha=0.4)
+    for name, x in marks.items():
+        if x is not None:
+            ax.plot([x], [0.95 * optimum], marker="v", color=_style(name).get("color"), ms=9)
+    ax.set_title(f"(a) greedy policy, exact — p$^v_1$ = {p1_speed:g}, {seeds} seeds, 95 % band")
+    ax.set_xlabel(f"training episode ({horizon} steps)")
+    ax.set_ylabel("total reward per episode")
+    ax.legend(fontsize=8, loc="lower right")
+    ax.grid(alpha=0.3)
+
+    ax = axes[1]
+    _draw_bands(ax, training)
+    _hline(ax, optimum_training, "optimal", "exact optimum (episode from uniform reset)")
+    ax.set_title(f"(a′) training episodes, moving average of {window} — as the paper plots")
+    ax.set_xlabel(f"training episode ({horizon} steps)")
+    ax.set_ylabel("total reward per episode")
+    ax.legend(fontsize=8, loc="lower right")
+    ax.grid(alpha=0.3)
+    ymin = min(round_robin, min((float(r["lo"]) for r in training), default=round_robin))
+    for a in axes:
+        a.set_ylim(bottom=max(a.get_ylim()[0], ymin - 0.1 * abs(optimum)))
+    fig.tight_layout()
+    fig.savefig(path, dpi=DPI)
+    plt.close(fig)
+
+
+def plot_p_sweep(
+    panels: Sequence[tuple[str, str, Sequence[Mapping]]], path: Path, *, seeds: int, title: str
+) -> None:
+    """One panel per (title, y label, rows) against p^v_1 (rows' ``x``), side by side."""
+    fig, axes = plt.subplots(1, len(panels), figsize=(6 * len(panels), 4.4), squeeze=False)
+    for ax, (sub, ylabel, rows) in zip(axes[0], panels, strict=True):
+        _draw_bands(ax, rows, marker="o")
+        ax.set_title(sub)
+        ax.set_xlabel("p$^v_1$: event probability at high speed")
+        ax.set_ylabel(ylabel)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.suptitle(
+        f"{title} — learned: final greedy policies, exact; mean and 95 % band over {seeds} seeds"
+    )
+    fig.tight_layout()
+    fig.savefig(path, dpi=DPI)
+    plt.close(fig)
+
+
+def plot_tradeoff(
+    rows: Sequence[Mapping], learned: Sequence[Mapping], path: Path, *, target: float | None
+) -> None:
+    """Miss detection vs throughput and vs link capacity of the optimal policy as r4 varies.
+
+    ``rows``: ``series`` (one curve per scenario), ``r4``, ``miss_detection``, ``throughput``,
+    ``link_capacity``; ``learned``: the same keys plus ``lo``/``hi`` bounds of miss detection.
+    """
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.6))
+    for ax, metric, xlabel in (
+        (axes[0], "throughput", "throughput (packets sent per step)"),
+        (axes[1], "link_capacity", "link capacity used (packets per step)"),
+    ):
+        for name, rs in _series(rows).items():
+            xs = [float(r[metric]) for r in rs]
+            ys = [float(r["miss_detection"]) for r in rs]
+            (line,) = ax.plot(xs, ys, marker="o", label=f"optimum, {name}")
+            for r, x, y in zip(rs, xs, ys, strict=True):
+                ax.annotate(f"r4={float(r['r4']):g}", (x, y), fontsize=7, xytext=(4, 4),
+                            textcoords="offset points", color=line.get_color())  # fmt: skip
+        for r in learned:
+            ax.errorbar(
+                [float(r[metric])],
+                [float(r["miss_detection"])],
+                yerr=[
+                    [float(r["miss_detection"]) - float(r["lo"])],
+                    [float(r["hi"]) - float(r["miss_detection"])],
+                ],
+                fmt="s",
+                color="tab:blue",
+                capsize=3,
+                label=None,
+            )
+            ax.annotate(f"DQN r4={float(r['r4']):g}", (float(r[metric]), float(r["miss_detection"])),
+                        fontsize=7, xytext=(4, -10), textcoords="offset points", color="tab:blue")  # fmt: skip
+        if target is not None:
+            ax.axhline(target, color="tab:red", linestyle=":", label=f"target miss = {target:g}")
+        ax.set_xlabel(xlabel)
+        ax.set_ylabel("miss detection probability")
+        ax.grid(alpha=0.3)
+        handles, labels = ax.get_legend_handles_labels()
+        if learned:
+            handles.append(plt.Line2D([], [], marker="s", color="tab:blue", linestyle=""))
+            labels.append("DQN (ours), final greedy, 95 % band")
+        ax.legend(handles, labels, fontsize=8)
+    fig.suptitle(
+        "Radar vs communication: the optimal policy's trade-off as the detection reward r4 varies"
+    )
+    fig.tight_layout()
+    fig.savefig(path, dpi=DPI)
+    plt.close(fig)

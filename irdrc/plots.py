@@ -103,7 +103,7 @@ def plot_panel_a(
     ax = axes[1]
     _draw_bands(ax, training)
     _hline(ax, optimum_training, "optimal", "exact optimum (episode from uniform reset)")
-    ax.set_title(f"(a′) training episodes, moving average of {window} — as the paper plots")
+    ax.set_title(f"(a′) training episodes as the paper plots them (mean of {window})")
     ax.set_xlabel(f"training episode ({horizon} steps)")
     ax.set_ylabel("total reward per episode")
     ax.legend(fontsize=8, loc="lower right")
@@ -111,6 +111,10 @@ def plot_panel_a(
     ymin = min(round_robin, min((float(r["lo"]) for r in training), default=round_robin))
     for a in axes:
         a.set_ylim(bottom=max(a.get_ylim()[0], ymin - 0.1 * abs(optimum)))
+        # Runs differ in length by 50× (DQN vs Q-learning's paper profile): log-scaled episodes,
+        # linear below 10 so that episode 0 (the untrained policy) stays on the axis.
+        a.set_xscale("symlog", linthresh=10)
+        a.set_xlim(left=0)
     fig.tight_layout()
     fig.savefig(path, dpi=DPI)
     plt.close(fig)

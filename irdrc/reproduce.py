@@ -89,9 +89,7 @@ def plan_figure2(
     """Every training run of the figure, as sweep-engine plans tagged with their learner."""
     seeds, ps, curve_p, methods = _check_figure2(cfg)
     planned: list[dict[str, Any]] = []
-    # Q-learning first: its paper-profile batch is the longest single run, so it should start early.
-    order = sorted(methods, key=lambda m: cfg.learners[m].method != "qlearning")
-    for name in order:
+    for name in methods:
         spec = cfg.learners[name]
         values = set()
         if "a" in spec.panels:
@@ -122,7 +120,18 @@ def plan_figure2(
         for r in runs:
             r["learner"] = name
         planned.extend(runs)
+    # Longest runs first, so that no long run starts last while the other workers idle.
+    planned.sort(key=_cost, reverse=True)
     return planned, seeds, ps, curve_p
+
+
+def _cost(p: dict[str, Any]) -> float:
+    """Relative cost of a planned run: Q-learning batches (per-step cost grows with the batch) first,
+    then DQN runs by collector batches (each carries its updates and fixed overhead)."""
+    algo = p["cfg"]["algo"]
+    if p["method"] == "qlearning":
+        return 1e12 + algo["episodes"]
+    return algo["total_frames"] / algo["frames_per_batch"] * max(1, algo["updates_per_batch"])
 
 
 @dataclass
@@ -364,6 +373,7 @@ def run_figure2(cfg: DictConfig, out: Path, scenario: list[str] | None = None) -
         "methods": methods,
         "scenario": scenario,
         "training_runs": len(planned),
+        "resumed": bool(cfg.resume),  # wall times then cover only what this invocation ran
         "wall_seconds_training": t_train,
         "wall_seconds": wall,
         "optimum_episode_reward": opt_ep,

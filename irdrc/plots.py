@@ -141,43 +141,56 @@ def plot_p_sweep(
 
 
 def plot_tradeoff(
-    rows: Sequence[Mapping], learned: Sequence[Mapping], path: Path, *, target: float | None
+    rows: Sequence[Mapping],
+    learned: Sequence[Mapping],
+    path: Path,
+    *,
+    target: float | None,
+    scan: Sequence[Mapping] = (),
 ) -> None:
-    """Miss detection vs throughput and vs link capacity of the optimal policy as r4 varies.
+    """The optimal policy's miss detection against r4, throughput and link capacity.
 
     ``rows``: ``series`` (one curve per scenario), ``r4``, ``miss_detection``, ``throughput``,
-    ``link_capacity``; ``learned``: the same keys plus ``lo``/``hi`` bounds of miss detection.
+    ``link_capacity``; ``learned``: the same keys plus ``lo``/``hi`` bounds of miss detection;
+    ``scan``: extra (denser) exact points drawn in the r4 panel.
     """
-    fig, axes = plt.subplots(1, 2, figsize=(12, 4.6))
+    fig, axes = plt.subplots(1, 3, figsize=(16, 4.6))
+    colors = {}
+    ax = axes[0]
+    for name, rs in _series(rows).items():
+        pts = sorted([*rs, *[r for r in scan if r["series"] == name]], key=lambda r: float(r["r4"]))
+        (line,) = ax.plot(
+            [float(r["r4"]) for r in pts],
+            [float(r["miss_detection"]) for r in pts],
+            marker=".",
+            label=f"optimum, {name}",
+        )
+        colors[name] = line.get_color()
+    for r in learned:
+        _learned_point(ax, r, "r4")
+    ax.set_xscale("log")
+    ax.set_xlabel("r4: detection reward (× (b + 1))")
     for ax, metric, xlabel in (
-        (axes[0], "throughput", "throughput (packets sent per step)"),
-        (axes[1], "link_capacity", "link capacity used (packets per step)"),
+        (axes[1], "throughput", "throughput (packets sent per step)"),
+        (axes[2], "link_capacity", "link capacity used (packets per step)"),
     ):
         for name, rs in _series(rows).items():
             xs = [float(r[metric]) for r in rs]
             ys = [float(r["miss_detection"]) for r in rs]
-            (line,) = ax.plot(xs, ys, marker="o", label=f"optimum, {name}")
+            ax.plot(xs, ys, marker="o", color=colors[name], label=f"optimum, {name}")
+            # one label per distinct point: several r4 values often share the same policy
+            labels: dict[tuple[float, float], list[str]] = {}
             for r, x, y in zip(rs, xs, ys, strict=True):
-                ax.annotate(f"r4={float(r['r4']):g}", (x, y), fontsize=7, xytext=(4, 4),
-                            textcoords="offset points", color=line.get_color())  # fmt: skip
+                labels.setdefault((round(x, 4), round(y, 4)), []).append(f"{float(r['r4']):g}")
+            for (x, y), names in labels.items():
+                ax.annotate("r4=" + ", ".join(names), (x, y), fontsize=7, xytext=(4, 4),
+                            textcoords="offset points", color=colors[name])  # fmt: skip
         for r in learned:
-            ax.errorbar(
-                [float(r[metric])],
-                [float(r["miss_detection"])],
-                yerr=[
-                    [float(r["miss_detection"]) - float(r["lo"])],
-                    [float(r["hi"]) - float(r["miss_detection"])],
-                ],
-                fmt="s",
-                color="tab:blue",
-                capsize=3,
-                label=None,
-            )
-            ax.annotate(f"DQN r4={float(r['r4']):g}", (float(r[metric]), float(r["miss_detection"])),
-                        fontsize=7, xytext=(4, -10), textcoords="offset points", color="tab:blue")  # fmt: skip
+            _learned_point(ax, r, metric)
+        ax.set_xlabel(xlabel)
+    for ax in axes:
         if target is not None:
             ax.axhline(target, color="tab:red", linestyle=":", label=f"target miss = {target:g}")
-        ax.set_xlabel(xlabel)
         ax.set_ylabel("miss detection probability")
         ax.grid(alpha=0.3)
         handles, labels = ax.get_legend_handles_labels()
@@ -185,9 +198,21 @@ def plot_tradeoff(
             handles.append(plt.Line2D([], [], marker="s", color="tab:blue", linestyle=""))
             labels.append("DQN (ours), final greedy, 95 % band")
         ax.legend(handles, labels, fontsize=8)
-    fig.suptitle(
-        "Radar vs communication: the optimal policy's trade-off as the detection reward r4 varies"
-    )
+    fig.suptitle("Radar vs communication: the exact optimum as the detection reward r4 varies")
     fig.tight_layout()
     fig.savefig(path, dpi=DPI)
     plt.close(fig)
+
+
+def _learned_point(ax, r: Mapping, xkey: str) -> None:
+    y = float(r["miss_detection"])
+    ax.errorbar(
+        [float(r[xkey])],
+        [y],
+        yerr=[[y - float(r["lo"])], [float(r["hi"]) - y]],
+        fmt="s",
+        color="tab:blue",
+        capsize=3,
+    )
+    ax.annotate(f"DQN r4={float(r['r4']):g}", (float(r[xkey]), y), fontsize=7, xytext=(4, -10),
+                textcoords="offset points", color="tab:blue")  # fmt: skip

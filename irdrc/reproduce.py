@@ -486,35 +486,68 @@ def run_tradeoff(cfg: DictConfig, out: Path, scenario: list[str] | None = None) 
         )
 
     found: dict[str, Any] = {}
+    scan_rows: list[dict] = []
     if target is not None:
         lo, hi, res = float(cfg.search.lo), float(cfg.search.hi), float(cfg.search.resolution)
         for p in ps:
             params = ref_params(base, p)
-            r4, calls = smallest_r4(lambda r, pp=params: optimal_at(pp, r)[1].miss_detection, float(target), lo, hi, res)  # fmt: skip
-            entry: dict[str, Any] = {"r4": r4, "solver_calls": calls}
+            metrics_at: dict[float, Metrics] = {}
+
+            def miss_of(r: float, params: Params = params, memo: dict = metrics_at) -> float:
+                if r not in memo:
+                    memo[r] = optimal_at(params, r)[1]
+                return memo[r].miss_detection
+
+            r4, calls = smallest_r4(miss_of, float(target), lo, hi, res)
+            entry: dict[str, Any] = {"r4": r4, "bisection_r4": r4, "solver_calls": calls}
+            if r4 is not None and cfg.search.verify:
+                # Bisection assumes miss detection never rises with r4; it can (see
+                # docs/REPRODUCTION.md), so every grid point below the answer is solved too.
+                grid = [round(lo + k * res, 10) for k in range(round((r4 - lo) / res))]
+                below = [r for r in grid if miss_of(r) <= float(target)]
+                entry["verified"] = not below
+                if below:
+                    entry["r4"] = r4 = below[0]
+                scan_rows += [
+                    {"series": f"p1.speed={p:g}", "p1_speed": p, "r4": r, **metrics_at[r].as_dict()}
+                    for r in sorted(metrics_at)
+                ]
             if r4 is not None:
-                _, m = optimal_at(params, r4)
-                entry["metrics"] = m.as_dict()
-                if r4 - res >= lo:
-                    entry["miss_at_lower_neighbour"] = optimal_at(params, r4 - res)[
-                        1
-                    ].miss_detection
+                entry["metrics"] = (
+                    metrics_at[r4].as_dict()
+                    if r4 in metrics_at
+                    else optimal_at(params, r4)[1].as_dict()
+                )
+                if r4 - res >= lo - 1e-9:
+                    entry["miss_at_lower_neighbour"] = miss_of(round(r4 - res, 10))
             found[f"{p:g}"] = entry
             if r4 is None:
                 print(
                     f"\np1.speed={p:g}: no r4 in [{lo:g}, {hi:g}] meets miss detection ≤ {target}"
                 )
-            else:
-                print(
-                    f"\np1.speed={p:g}: smallest r4 meeting miss detection ≤ {target}: {r4:g} "
-                    f"(grid step {res:g}, {calls} exact solves); there miss {entry['metrics']['miss_detection']:.4f}, "
-                    f"throughput {entry['metrics']['throughput']:.4f}, link capacity {entry['metrics']['link_capacity']:.4f}"
-                    + (
-                        f"; at r4 = {r4 - res:g} miss {entry['miss_at_lower_neighbour']:.4f}"
-                        if "miss_at_lower_neighbour" in entry
-                        else ""
-                    )
+                continue
+            print(
+                f"\np1.speed={p:g}: smallest r4 meeting miss detection ≤ {target}: {r4:g} "
+                f"(grid step {res:g}; bisection: {calls} exact solves"
+                + (
+                    ", confirmed by solving every grid point below it)"
+                    if entry.get("verified")
+                    else f"; it answered {entry['bisection_r4']:g}, but miss detection is not "
+                    "monotone in r4 here and the scan below it found this one)"
+                    if "verified" in entry
+                    else ")"
                 )
+                + f"; there miss {entry['metrics']['miss_detection']:.4f}, "
+                f"throughput {entry['metrics']['throughput']:.4f}, "
+                f"link capacity {entry['metrics']['link_capacity']:.4f}"
+                + (
+                    f"; at r4 = {r4 - res:g} miss {entry['miss_at_lower_neighbour']:.4f}"
+                    if "miss_at_lower_neighbour" in entry
+                    else ""
+                )
+            )
+        if scan_rows:
+            write_rows_csv(out / "r4_scan.csv", scan_rows)
 
     learned_rows: list[dict] = []
     dqn_r4 = [float(r) for r in (_plain(cfg.dqn.r4) or [])]
@@ -552,7 +585,7 @@ def run_tradeoff(cfg: DictConfig, out: Path, scenario: list[str] | None = None) 
                     f"  r4={r['r4']:g}: miss {r['miss_detection']:.4f} [{r['lo']:.4f}, {r['hi']:.4f}], "
                     f"throughput {r['throughput']:.4f}, link capacity {r['link_capacity']:.4f}"
                 )
-    plots.plot_tradeoff(rows, learned_rows, out / "tradeoff.png", target=None if target is None else float(target))  # fmt: skip
+    plots.plot_tradeoff(rows, learned_rows, out / "tradeoff.png", target=None if target is None else float(target), scan=scan_rows)  # fmt: skip
     summary = {"r4": r4s, "p1_speed": ps, "target_miss": target, "smallest_r4": found, "wall_seconds": time.perf_counter() - t0}  # fmt: skip
     atomic_write_text(out / "summary.json", json.dumps(summary, indent=2) + "\n")
     print(

@@ -1,0 +1,24 @@
+#!/usr/bin/env bash
+# Regenerates docs/figures/ and the generated blocks of docs/REPRODUCTION.md: runs recipes/figure2.py
+# and recipes/tradeoff.py with their defaults (extra arguments go to figure2.py) into
+# outputs/reproduction/, then writes the report. Both recipes start Ray; where `unshare -n` works
+# they run in a loopback-only network namespace.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+bash ci/setup.sh sweep
+out=${IRDRC_REPRODUCTION_DIR:-outputs/reproduction}
+rm -rf "$out"
+py=.venv/bin/python
+netns() {
+  if unshare -n true 2>/dev/null; then
+    unshare -n sh -c 'ip link set lo up; exec "$@"' sh "$@"
+  else
+    "$@"
+  fi
+}
+netns "$py" recipes/figure2.py hydra.run.dir="$out/figure2" "$@"
+netns "$py" recipes/tradeoff.py hydra.run.dir="$out/tradeoff"
+cmd="bash ci/reproduce.sh${*:+ $*}"
+"$py" -c "import sys; from irdrc.reproduce import write_report; write_report(sys.argv[1], sys.argv[2], 'docs', sys.argv[3])" \
+  "$out/figure2" "$out/tradeoff" "$cmd"
+echo "[reproduce] wrote docs/REPRODUCTION.md and docs/figures/ from $out"

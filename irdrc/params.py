@@ -23,7 +23,7 @@ MARKOV_FACTORS = ("channel", *EVENT_FACTORS)
 EVENT_MODELS = ("noisy_or", "sum")
 
 
-def _to_plain(node: Any) -> Any:
+def to_plain(node: Any) -> Any:
     """Turn an OmegaConf node (or anything mapping-like) into plain Python containers."""
     try:
         from omegaconf import DictConfig, ListConfig, OmegaConf
@@ -33,8 +33,11 @@ def _to_plain(node: Any) -> Any:
     except ImportError:  # pragma: no cover - omegaconf is a dependency
         pass
     if isinstance(node, Mapping):
-        return {k: _to_plain(v) for k, v in node.items()}
+        return {k: to_plain(v) for k, v in node.items()}
     return node
+
+
+_to_plain = to_plain
 
 
 def _check_number(key: str, value: Any, lo: float, hi: float, *, integer: bool = False) -> Any:
@@ -297,16 +300,7 @@ class Params:
         by name (``{"r4": 50}``).
         """
         merged: dict[str, Any] = {"env": {}, "reward": {}}
-        for key, value in {**(overrides or {}), **kwargs}.items():
-            parts = str(key).split(".")
-            if parts[0] not in ("env", "reward"):
-                parts = ["reward" if parts[0] in ("r1", "r2", "r3", "r4") else "env", *parts]
-            target = merged
-            for p in parts[:-1]:
-                target = target.setdefault(p, {})
-                if not isinstance(target, dict):
-                    raise ValueError(f"override {key!r} conflicts with another override")
-            _deep_set(target, parts[-1], _to_plain(value))
+        _apply_overrides(merged, {**(overrides or {}), **kwargs})
         return cls.from_config(merged, strict=False)
 
     def with_overrides(self, overrides: Mapping[str, Any]) -> Params:
@@ -316,21 +310,27 @@ class Params:
         validated as in ``from_config``.
         """
         merged = self.to_dict()
-        for key, value in overrides.items():
-            parts = str(key).split(".")
-            if parts[0] not in ("env", "reward"):
-                parts = ["reward" if parts[0] in ("r1", "r2", "r3", "r4") else "env", *parts]
-            target = merged
-            for p in parts[:-1]:
-                target = target.setdefault(p, {})
-                if not isinstance(target, dict):
-                    raise ValueError(f"override {key!r} does not name a config key")
-            _deep_set(target, parts[-1], _to_plain(value))
+        _apply_overrides(merged, overrides)
         return Params.from_config(merged)
 
     def to_dict(self) -> dict[str, Any]:
         """Plain nested dict with the config names (round-trips through ``from_config``)."""
         return {"env": as_dict(self.env), "reward": as_dict(self.reward)}
+
+
+def _apply_overrides(merged: dict[str, Any], overrides: Mapping[str, Any]) -> None:
+    """Set dotted or nested overrides into ``merged`` ({"env": …, "reward": …}); a key without
+    its section prefix is an env key, except the reward weights r1 … r4."""
+    for key, value in overrides.items():
+        parts = str(key).split(".")
+        if parts[0] not in ("env", "reward"):
+            parts = ["reward" if parts[0] in ("r1", "r2", "r3", "r4") else "env", *parts]
+        target = merged
+        for p in parts[:-1]:
+            target = target.setdefault(p, {})
+            if not isinstance(target, dict):
+                raise ValueError(f"override {key!r} conflicts with another key")
+        _deep_set(target, parts[-1], _to_plain(value))
 
 
 def _deep_set(target: dict, key: str, value: Any) -> None:

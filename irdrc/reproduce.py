@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
 from irdrc import claims as cl
 from irdrc import plots
@@ -33,9 +33,9 @@ from irdrc.figures import (
 )
 from irdrc.metrics import Metrics
 from irdrc.model import build_model
-from irdrc.params import Params
+from irdrc.params import Params, to_plain
 from irdrc.results import atomic_write_text, write_rows_csv
-from irdrc.solve import episodic_metrics, stationary_metrics, value_iteration
+from irdrc.solve import ExactScorer, episodic_metrics, stationary_metrics, value_iteration
 from irdrc.sweep import execute, format_value, parse_grid, plan
 
 GAMMA = 0.99
@@ -44,12 +44,8 @@ PANELS = ("a", "bcd")
 LEARNER_METHODS = ("dqn", "qlearning")
 
 
-def _plain(node: Any) -> Any:
-    return OmegaConf.to_container(node, resolve=True) if OmegaConf.is_config(node) else node
-
-
 def _check_figure2(cfg: DictConfig) -> tuple[list[int], list[float], float, list[str]]:
-    seeds = _plain(cfg.seeds)
+    seeds = to_plain(cfg.seeds)
     if isinstance(seeds, int):
         seeds = list(range(seeds))
     if (
@@ -59,14 +55,14 @@ def _check_figure2(cfg: DictConfig) -> tuple[list[int], list[float], float, list
         or len(set(seeds)) != len(seeds)
     ):
         raise ValueError(f"seeds={seeds!r} must be a non-empty list of distinct integers >= 0")
-    ps = _plain(cfg.p1_speed)
+    ps = to_plain(cfg.p1_speed)
     if not isinstance(ps, list) or not ps:
         raise ValueError(f"p1_speed={ps!r} must be a non-empty list of probabilities")
     for p in [*ps, cfg.curve_p1_speed]:
         if not isinstance(p, int | float) or not 0.0 <= float(p) <= 1.0:
             raise ValueError(f"p1_speed value {p!r} must be a probability in [0, 1]")
     ps = sorted({float(p) for p in ps})
-    methods = [str(m) for m in _plain(cfg.methods)]
+    methods = [str(m) for m in to_plain(cfg.methods)]
     if not methods:
         raise ValueError("methods is empty: name at least one of the learners")
     for m in methods:
@@ -146,10 +142,10 @@ class Reference:
 def exact_reference(params: Params) -> Reference:
     """Optimal (value iteration at γ = 0.99) and round-robin metrics, exactly."""
     model = build_model(params)
-    policy = value_iteration(model, gamma=GAMMA).policy
+    scorer = ExactScorer(model, GAMMA)
     return Reference(
-        optimal=stationary_metrics(model, policy),
-        optimal_episodic=episodic_metrics(model, policy),
+        optimal=scorer.optimal_metrics,
+        optimal_episodic=episodic_metrics(model, scorer.optimal.policy),
         round_robin=stationary_metrics(model, "round_robin"),
     )
 
@@ -232,7 +228,7 @@ def run_figure2(cfg: DictConfig, out: Path, scenario: list[str] | None = None) -
     horizon = base_params.env.horizon
     window = int(cfg.smooth_episodes)
     print(
-        f"figure2: {len(planned)} training runs for {', '.join(_plain(cfg.methods))}; "
+        f"figure2: {len(planned)} training runs for {', '.join(to_plain(cfg.methods))}; "
         f"{len(seeds)} seeds; p^v_1 ∈ {ps}; panel (a) at p^v_1 = {curve_p}",
         flush=True,
     )
@@ -254,7 +250,7 @@ def run_figure2(cfg: DictConfig, out: Path, scenario: list[str] | None = None) -
     # Panel (a).
     greedy_rows, training_rows, marks, finals, to95 = [], [], {}, {}, {}
     max_episode = 0.0
-    methods = [str(m) for m in _plain(cfg.methods)]
+    methods = [str(m) for m in to_plain(cfg.methods)]
     for name in methods:
         spec = cfg.learners[name]
         if "a" not in spec.panels:
@@ -346,7 +342,7 @@ def run_figure2(cfg: DictConfig, out: Path, scenario: list[str] | None = None) -
 
     # Claims.
     r4_miss, r4_thr = {}, {}
-    for r4 in _plain(cfg.claim3_r4):
+    for r4 in to_plain(cfg.claim3_r4):
         ref = exact_reference(ref_params(base_params, curve_p).with_overrides({"reward.r4": r4}))
         r4_miss[float(r4)] = ref.optimal.miss_detection
         r4_thr[float(r4)] = ref.optimal.throughput
@@ -454,8 +450,8 @@ def run_tradeoff(cfg: DictConfig, out: Path, scenario: list[str] | None = None) 
     t0 = time.perf_counter()
     out = Path(out).resolve()
     out.mkdir(parents=True, exist_ok=True)
-    r4s = sorted({float(r) for r in _plain(cfg.r4)})
-    ps = [float(p) for p in _plain(cfg.p1_speed)]
+    r4s = sorted({float(r) for r in to_plain(cfg.r4)})
+    ps = [float(p) for p in to_plain(cfg.p1_speed)]
     if not r4s or any(r <= 0 for r in r4s) or not ps:
         raise ValueError("r4 must be a non-empty list of positive values; p1_speed non-empty")
     target = cfg.target_miss
@@ -550,10 +546,10 @@ def run_tradeoff(cfg: DictConfig, out: Path, scenario: list[str] | None = None) 
             write_rows_csv(out / "r4_scan.csv", scan_rows)
 
     learned_rows: list[dict] = []
-    dqn_r4 = [float(r) for r in (_plain(cfg.dqn.r4) or [])]
+    dqn_r4 = [float(r) for r in (to_plain(cfg.dqn.r4) or [])]
     code = 0
     if dqn_r4:
-        seeds = [int(s) for s in _plain(cfg.dqn.seeds)]
+        seeds = [int(s) for s in to_plain(cfg.dqn.seeds)]
         p = ps[0]
         base_ov = [*(scenario or []), *[str(o) for o in cfg.dqn.overrides], "eval.mc_episodes=0", f"env.p1.speed={p}"]  # fmt: skip
         planned = plan("dqn", parse_grid({"reward.r4": dqn_r4, "seed": seeds}), base_ov)

@@ -24,9 +24,10 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from omegaconf import DictConfig, ListConfig, OmegaConf
+from omegaconf import DictConfig, OmegaConf
 
 from irdrc.config import compose
+from irdrc.params import to_plain
 from irdrc.results import atomic_write_text
 
 METHODS = ("dqn", "qlearning", "solve")
@@ -37,12 +38,6 @@ TRIAL_DEFAULTS = {
     "solve": [],
 }
 STATUSES = ("DONE", "ERROR", "INCOMPLETE")
-
-
-def _plain(node: Any) -> Any:
-    if isinstance(node, DictConfig | ListConfig):
-        return OmegaConf.to_container(node, resolve=True)
-    return node
 
 
 def format_value(value: Any) -> str:
@@ -63,7 +58,7 @@ def parse_grid(grid: Any) -> list[dict[str, Any]]:
         ValueError: empty or malformed grid (not a mapping, a key without values, a value that is
             not a non-empty list, a duplicate value).
     """
-    grid = _plain(grid)
+    grid = to_plain(grid)
     if grid is None or (isinstance(grid, Mapping) and not grid):
         raise ValueError(
             "sweep.grid is empty: give it as sweep.grid='{seed: [0,1,2], reward.r4: [5,50]}'"

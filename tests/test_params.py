@@ -109,3 +109,14 @@ def test_unknown_and_missing_keys():
 def test_frozen():
     with pytest.raises(AttributeError):
         RewardParams().r1 = 3.0  # type: ignore[misc]
+
+
+def test_with_overrides_keeps_the_rest_and_validates():
+    base = Params.from_overrides({"env.p1.road": 0.2, "r1": 3})
+    p = base.with_overrides({"env.p1.speed": 0.5, "r4": 50})
+    assert (p.env.p1.speed, p.reward.r4) == (0.5, 50) and (p.env.p1.road, p.reward.r1) == (0.2, 3)
+    assert base.env.p1.speed == 0.1  # frozen: the original is untouched
+    with pytest.raises(ValueError, match=r"env\.p1\.sped"):
+        base.with_overrides({"env.p1.sped": 0.5})
+    with pytest.raises(ValueError, match=r"env\.p1\.speed=1\.5"):
+        base.with_overrides({"p1.speed": 1.5})

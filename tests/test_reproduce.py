@@ -216,14 +216,39 @@ def _check_figure(out: Path) -> None:
     assert any(r["claim"].startswith("3.") and r["verdict"] == cl.HOLDS for r in claims)
 
 
-def test_figure2_end_to_end_tiny_local(tmp_path):
-    r = _run("figure2.py", tmp_path, *TINY_FIGURE, "executor=local")
+@pytest.fixture(scope="module")
+def tiny_figure(tmp_path_factory) -> tuple[Path, subprocess.CompletedProcess]:
+    out = tmp_path_factory.mktemp("figure2")
+    return out, _run("figure2.py", out, *TINY_FIGURE, "executor=local")
+
+
+@pytest.fixture(scope="module")
+def tiny_tradeoff(tmp_path_factory) -> tuple[Path, subprocess.CompletedProcess]:
+    out = tmp_path_factory.mktemp("tradeoff")
+    return out, _run(
+        "tradeoff.py",
+        out,
+        "r4=[5,50]",
+        "p1_speed=[0.1]",
+        "search.resolution=1",
+        "search.lo=1",
+        "search.hi=100",
+        "dqn.r4=[5]",
+        "dqn.seeds=[0,1]",
+        "dqn.overrides=['algo=dqn','algo.total_frames=320','algo.init_random_frames=64','algo.batch_size=16','eval.every_frames=320']",
+        "executor=local",
+    )
+
+
+def test_figure2_end_to_end_tiny_local(tiny_figure):
+    out, r = tiny_figure
     assert r.returncode == 0, (r.stdout[-3000:], r.stderr[-3000:])
     assert "| claim | subject | measured | verdict |" in r.stdout and "Wall time" in r.stdout
-    _check_figure(tmp_path)
+    _check_figure(out)
     # resume: every run is DONE, nothing retrains, the figure is rebuilt
-    r = _run("figure2.py", tmp_path, *TINY_FIGURE, "executor=local", "resume=true")
+    r = _run("figure2.py", out, *TINY_FIGURE, "executor=local", "resume=true")
     assert r.returncode == 0 and "8 grid points, 0 to run (resume)" in r.stdout, r.stdout[-2000:]
+    assert json.loads((out / "summary.json").read_text())["resumed"] is True
 
 
 def test_figure2_rejects_bad_settings(tmp_path):
@@ -252,26 +277,41 @@ def test_figure2_end_to_end_tiny_on_ray(tmp_path):
     _check_figure(tmp_path)
 
 
-def test_tradeoff_end_to_end_tiny(tmp_path):
-    r = _run(
-        "tradeoff.py",
-        tmp_path,
-        "r4=[5,50]",
-        "p1_speed=[0.1]",
-        "search.resolution=1",
-        "search.lo=1",
-        "search.hi=100",
-        "dqn.r4=[5]",
-        "dqn.seeds=[0,1]",
-        "dqn.overrides=['algo=dqn','algo.total_frames=320','algo.init_random_frames=64','algo.batch_size=16','eval.every_frames=320']",
-        "executor=local",
-    )
+def test_tradeoff_end_to_end_tiny(tiny_tradeoff):
+    out, r = tiny_tradeoff
     assert r.returncode == 0, (r.stdout[-3000:], r.stderr[-3000:])
-    for name in ("tradeoff.csv", "tradeoff.png", "tradeoff_dqn.csv", "summary.json"):
-        assert (tmp_path / name).is_file(), name
-    rows = {float(x["r4"]): x for x in csv.DictReader((tmp_path / "tradeoff.csv").open())}
+    for name in ("tradeoff.csv", "tradeoff.png", "tradeoff_dqn.csv", "r4_scan.csv", "summary.json"):
+        assert (out / name).is_file(), name
+    rows = {float(x["r4"]): x for x in csv.DictReader((out / "tradeoff.csv").open())}
     assert float(rows[5.0]["miss_detection"]) == pytest.approx(0.289, abs=1e-3)
-    s = json.loads((tmp_path / "summary.json").read_text())
+    s = json.loads((out / "summary.json").read_text())
     found = s["smallest_r4"]["0.1"]
     assert found["metrics"]["miss_detection"] <= 0.05 < found["miss_at_lower_neighbour"]
+    assert found["verified"] is True and found["r4"] == found["bisection_r4"]
     assert "smallest r4 meeting miss detection ≤ 0.05" in r.stdout
+
+
+def test_report_fills_every_generated_block(tiny_figure, tiny_tradeoff, tmp_path):
+    """ci/reproduce.sh's last step: figures copied, every generated block of the report filled."""
+    from irdrc.reproduce import FIGURES, write_report
+
+    fig, tr = tiny_figure[0], tiny_tradeoff[0]
+    if json.loads((fig / "summary.json").read_text()).get("resumed"):
+        # the figure test resumed this run; a resumed run is refused (its wall time is partial)
+        with pytest.raises(ValueError, match="resumed"):
+            write_report(fig, tr, tmp_path, "cmd")
+        data = json.loads((fig / "summary.json").read_text())
+        data["resumed"] = False
+        (fig / "summary.json").write_text(json.dumps(data))
+    template = (ROOT / "docs" / "REPRODUCTION.md").read_text()
+    (tmp_path / "REPRODUCTION.md").write_text(template)
+    write_report(fig, tr, tmp_path, "bash ci/reproduce.sh seeds=[0,1]")
+    text = (tmp_path / "REPRODUCTION.md").read_text()
+    for name in (*FIGURES, "tradeoff.png"):
+        assert (tmp_path / "figures" / name).stat().st_size > 0
+    assert "bash ci/reproduce.sh seeds=[0,1]" in text and "8 training runs" in text
+    assert (fig / "claims.md").read_text().strip() in text
+    assert "smallest r4 with miss detection ≤ 0.05" in text and "DQN (ours)" in text
+    # writing twice replaces the blocks instead of appending to them
+    write_report(fig, tr, tmp_path, "bash ci/reproduce.sh seeds=[0,1]")
+    assert (tmp_path / "REPRODUCTION.md").read_text() == text

@@ -18,8 +18,12 @@ from irdrc.metrics import Metrics
 from irdrc.model import ExactModel
 
 
-def _clean(x: float) -> float | None:
+def clean_number(x: float | None) -> float | None:
+    """A number for JSON/CSV: NaN (an undefined metric) becomes None."""
     return None if x is None or (isinstance(x, float) and math.isnan(x)) else float(x)
+
+
+_clean = clean_number
 
 
 def atomic_write_text(path: Path, text: str) -> None:

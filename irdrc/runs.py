@@ -38,6 +38,7 @@ from irdrc.policies import table_policy
 from irdrc.qlearning import QLearningConfig, steps_to_ratio
 from irdrc.results import (
     atomic_write_text,
+    clean_number,
     policy_table,
     summary_dict,
     write_policy_csv,
@@ -185,7 +186,7 @@ def run_qlearning(cfg: DictConfig, out: Path, scenario: str | None = None) -> di
                 "final_ratio": res.history[-1]["optimality_ratio"][n],
                 "env_steps_to_95": steps_to_ratio(res.history, n, 0.95),
                 "env_steps_to_99": steps_to_ratio(res.history, n, 0.99),
-                **{k: _finite(v) for k, v in final.as_dict().items()},
+                **{k: clean_number(v) for k, v in final.as_dict().items()},
             }
         )
     greedy = res.greedy[0].cpu()
@@ -238,7 +239,9 @@ def run_qlearning(cfg: DictConfig, out: Path, scenario: str | None = None) -> di
         extra["batch_grid"] = [
             {
                 "overrides": point_overrides(point),
-                "optimal": {k: _finite(v) for k, v in scorers[g].optimal_metrics.as_dict().items()},
+                "optimal": {
+                    k: clean_number(v) for k, v in scorers[g].optimal_metrics.as_dict().items()
+                },
             }
             for g, point in enumerate(points)
         ]
@@ -279,10 +282,6 @@ def run_qlearning(cfg: DictConfig, out: Path, scenario: str | None = None) -> di
         f"\nwrote summary.json, policy.csv, learners.csv, metrics.csv, episode_rewards.csv to {out}"
     )
     return summary
-
-
-def _finite(value: float) -> float | None:
-    return value if isinstance(value, float) and math.isfinite(value) else None
 
 
 def _summary_row(row: dict[str, Any]) -> dict[str, Any]:

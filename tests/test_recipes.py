@@ -3,9 +3,12 @@
 from __future__ import annotations
 
 import csv
+import json
 import subprocess
 import sys
 from pathlib import Path
+
+import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -123,6 +126,32 @@ def test_qlearning_recipe(tmp_path):
     assert s["seed"] == 3 and s["env_steps"] == 4 * 400 and len(s["learners"]) == 2
     hist = list(csv.DictReader((tmp_path / "metrics.csv").open()))
     assert [int(r["env_steps"]) for r in hist] == [0, 800, 1600]
+
+
+def test_qlearning_recipe_batch_grid(tmp_path):
+    out = run_recipe(
+        "qlearning.py",
+        "algo.episodes=2",
+        "num_learners=2",
+        "mc_episodes=0",
+        "progress=false",
+        "batch_grid={env.p1.speed: [0.1,1.0], reward.r4: [5,50]}",
+        f"hydra.run.dir={tmp_path}",
+    )
+    assert out.returncode == 0, out.stderr
+    rows = list(csv.DictReader((tmp_path / "learners.csv").open()))
+    # 4 scenarios × 2 learners, scenario-major, each row scored against its own scenario
+    assert [(r["env.p1.speed"], r["reward.r4"], r["learner"]) for r in rows[:3]] == [
+        ("0.1", "5", "0"),
+        ("0.1", "5", "1"),
+        ("0.1", "50", "0"),
+    ]
+    assert len(rows) == 8 and all(float(r["final_ratio"]) <= 1 + 1e-9 for r in rows)
+    s = json.loads((tmp_path / "summary.json").read_text())
+    optima = [g["optimal"]["avg_reward"] for g in s["batch_grid"]]
+    assert optima[0] == pytest.approx(0.8985, abs=1e-4) and len(set(optima)) == 4
+    bad = run_recipe("qlearning.py", "batch_grid={algo.alpha: [0.1]}", f"hydra.run.dir={tmp_path}")
+    assert bad.returncode != 0 and "must be an env. or reward. key" in bad.stderr
 
 
 def test_qlearning_recipe_rejects_bad_algo_key(tmp_path):

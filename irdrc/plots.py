@@ -183,8 +183,14 @@ def plot_tradeoff(
             for r, x, y in zip(rs, xs, ys, strict=True):
                 labels.setdefault((round(x, 4), round(y, 4)), []).append(f"{float(r['r4']):g}")
             for (x, y), names in labels.items():
-                ax.annotate("r4=" + ", ".join(names), (x, y), fontsize=7, xytext=(4, 4),
-                            textcoords="offset points", color=colors[name])  # fmt: skip
+                ax.annotate(
+                    "r4=" + ", ".join(names),
+                    (x, y),
+                    fontsize=7,
+                    xytext=(4, 4),
+                    textcoords="offset points",
+                    color=colors[name],
+                )
         for r in learned:
             _learned_point(ax, r, metric)
         ax.set_xlabel(xlabel)
@@ -214,5 +220,11 @@ def _learned_point(ax, r: Mapping, xkey: str) -> None:
         color="tab:blue",
         capsize=3,
     )
-    ax.annotate(f"DQN r4={float(r['r4']):g}", (float(r[xkey]), y), fontsize=7, xytext=(4, -10),
-                textcoords="offset points", color="tab:blue")  # fmt: skip
+    ax.annotate(
+        f"DQN r4={float(r['r4']):g}",
+        (float(r[xkey]), y),
+        fontsize=7,
+        xytext=(4, -10),
+        textcoords="offset points",
+        color="tab:blue",
+    )

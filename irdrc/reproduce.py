@@ -205,9 +205,15 @@ def _num(v: Any) -> float:
     return math.nan if v in (None, "") else float(v)
 
 
-def _exact_rows(series: str, xs: Sequence[float], values: Sequence[float]) -> list[dict]:
-    # n = 0 marks an exact value (no replicates, no band)
-    return [{"series": series, "x": x, "mean": v, "lo": v, "hi": v, "n": 0} for x, v in zip(xs, values, strict=True)]  # fmt: skip
+def _exact_rows(
+    series: str | Sequence[str], xs: Sequence[float], values: Sequence[float]
+) -> list[dict]:
+    """Band rows of exact values (no replicates: ``lo`` = ``hi`` = ``mean``, ``n`` = 0)."""
+    names = [series] * len(xs) if isinstance(series, str) else list(series)
+    return [
+        {"series": name, "x": x, "mean": v, "lo": v, "hi": v, "n": 0}
+        for name, x, v in zip(names, xs, values, strict=True)
+    ]
 
 
 def run_figure2(cfg: DictConfig, out: Path, scenario: list[str] | None = None) -> int:
@@ -242,7 +248,7 @@ def run_figure2(cfg: DictConfig, out: Path, scenario: list[str] | None = None) -
         return code
     trials = out / "trials"
 
-    refs = {p: exact_reference(base_params.with_overrides({"env.p1.speed": p})) for p in sorted({*ps, curve_p})}  # fmt: skip
+    refs = {p: exact_reference(ref_params(base_params, p)) for p in sorted({*ps, curve_p})}
     ref_a = refs[curve_p]
     opt_ep = ref_a.optimal.avg_reward * horizon
     rr_ep = ref_a.round_robin.avg_reward * horizon
@@ -264,15 +270,21 @@ def run_figure2(cfg: DictConfig, out: Path, scenario: list[str] | None = None) -
         finals[name] = rows[-1]["mean"]
         max_episode = max(max_episode, xs[-1] if xs else 0.0, txs[-1] if txs else 0.0)
     n_rr = max(int(max_episode), window)
-    rr_sim = [moving_average(c, window) for c in round_robin_episodes(ref_params(base_params, curve_p), seeds, n_rr)]  # fmt: skip
+    rr_sim = [
+        moving_average(c, window)
+        for c in round_robin_episodes(ref_params(base_params, curve_p), seeds, n_rr)
+    ]
     training_rows += band_rows("round_robin", list(range(1, n_rr + 1)), rr_sim)
     panel_a = [{"view": "greedy_exact", **r} for r in greedy_rows]
     panel_a += [{"view": "training_smoothed", **r} for r in training_rows]
     panel_a += [
-        {"view": "reference", "series": "optimal", "x": math.nan, "mean": opt_ep, "lo": opt_ep, "hi": opt_ep, "n": 0},
-        {"view": "reference", "series": "optimal_episodic", "x": math.nan, "mean": ref_a.optimal_episodic.episode_reward, "lo": math.nan, "hi": math.nan, "n": 0},
-        {"view": "reference", "series": "round_robin", "x": math.nan, "mean": rr_ep, "lo": rr_ep, "hi": rr_ep, "n": 0},
-    ]  # fmt: skip
+        {"view": "reference", **row}
+        for row in _exact_rows(
+            ["optimal", "optimal_episodic", "round_robin"],
+            [math.nan] * 3,
+            [opt_ep, ref_a.optimal_episodic.episode_reward, rr_ep],
+        )
+    ]
     write_rows_csv(out / "panel_a.csv", panel_a)
     plots.plot_panel_a(
         greedy_rows,
@@ -326,19 +338,33 @@ def run_figure2(cfg: DictConfig, out: Path, scenario: list[str] | None = None) -
     )
     plots.plot_p_sweep(
         [
-            ("(c) throughput: packets sent (paper's definition, ≤ λ = 1)", "packets per step", metric_rows["throughput"]),
-            ("(c′) link capacity used (what the reference code plotted)", "packets per step", metric_rows["link_capacity"]),
+            (
+                "(c) throughput: packets sent (paper's definition, ≤ λ = 1)",
+                "packets per step",
+                metric_rows["throughput"],
+            ),
+            (
+                "(c′) link capacity used (what the reference code plotted)",
+                "packets per step",
+                metric_rows["link_capacity"],
+            ),
         ],
         out / "panel_c.png",
         seeds=n,
         title="Fig. 2(c)",
-    )  # fmt: skip
+    )
     plots.plot_p_sweep(
-        [("(d) miss detection probability", "missed events / events", metric_rows["miss_detection"])],
+        [
+            (
+                "(d) miss detection probability",
+                "missed events / events",
+                metric_rows["miss_detection"],
+            )
+        ],
         out / "panel_d.png",
         seeds=n,
         title="Fig. 2(d)",
-    )  # fmt: skip
+    )
 
     # Claims.
     r4_miss, r4_thr = {}, {}
@@ -551,16 +577,23 @@ def run_tradeoff(cfg: DictConfig, out: Path, scenario: list[str] | None = None) 
     if dqn_r4:
         seeds = [int(s) for s in to_plain(cfg.dqn.seeds)]
         p = ps[0]
-        base_ov = [*(scenario or []), *[str(o) for o in cfg.dqn.overrides], "eval.mc_episodes=0", f"env.p1.speed={p}"]  # fmt: skip
+        base_ov = [
+            *(scenario or []),
+            *[str(o) for o in cfg.dqn.overrides],
+            "eval.mc_episodes=0",
+            f"env.p1.speed={p}",
+        ]
         planned = plan("dqn", parse_grid({"reward.r4": dqn_r4, "seed": seeds}), base_ov)
         code = execute(cfg, planned, out)
         if code == 0:
             for r4 in dqn_r4:
                 fin = [
-                    json.loads((out / "trials" / pl["point_id"] / "summary.json").read_text())["metrics"]
+                    json.loads((out / "trials" / pl["point_id"] / "summary.json").read_text())[
+                        "metrics"
+                    ]
                     for pl in planned
                     if same_value(pl["point"]["reward.r4"], r4)
-                ]  # fmt: skip
+                ]
                 miss = mean_ci(_num(f["miss_detection"]) for f in fin)
                 learned_rows.append(
                     {
@@ -581,8 +614,20 @@ def run_tradeoff(cfg: DictConfig, out: Path, scenario: list[str] | None = None) 
                     f"  r4={r['r4']:g}: miss {r['miss_detection']:.4f} [{r['lo']:.4f}, {r['hi']:.4f}], "
                     f"throughput {r['throughput']:.4f}, link capacity {r['link_capacity']:.4f}"
                 )
-    plots.plot_tradeoff(rows, learned_rows, out / "tradeoff.png", target=None if target is None else float(target), scan=scan_rows)  # fmt: skip
-    summary = {"r4": r4s, "p1_speed": ps, "target_miss": target, "smallest_r4": found, "wall_seconds": time.perf_counter() - t0}  # fmt: skip
+    plots.plot_tradeoff(
+        rows,
+        learned_rows,
+        out / "tradeoff.png",
+        target=None if target is None else float(target),
+        scan=scan_rows,
+    )
+    summary = {
+        "r4": r4s,
+        "p1_speed": ps,
+        "target_miss": target,
+        "smallest_r4": found,
+        "wall_seconds": time.perf_counter() - t0,
+    }
     atomic_write_text(out / "summary.json", json.dumps(summary, indent=2) + "\n")
     print(
         f"\nwrote tradeoff.csv, tradeoff.png, summary.json to {out} ({summary['wall_seconds']:.0f} s)"

@@ -369,9 +369,8 @@ def run_figure2(cfg: DictConfig, out: Path, scenario: list[str] | None = None) -
     # Claims.
     r4_miss, r4_thr = {}, {}
     for r4 in to_plain(cfg.claim3_r4):
-        ref = exact_reference(ref_params(base_params, curve_p).with_overrides({"reward.r4": r4}))
-        r4_miss[float(r4)] = ref.optimal.miss_detection
-        r4_thr[float(r4)] = ref.optimal.throughput
+        _, m = optimal_at(ref_params(base_params, curve_p), float(r4))
+        r4_miss[float(r4)], r4_thr[float(r4)] = m.miss_detection, m.throughput
     numbers = cl.FigureNumbers(
         optimum_episode=opt_ep,
         round_robin_episode=rr_ep,

@@ -97,15 +97,19 @@ def build_model(params: Params) -> ExactModel:
     b = sum(x.to(torch.float64) for x in rwvm)
 
     # Event probability of each state.
-    p0, p1 = env.p0.as_tuple(), env.p1.as_tuple()
-    per = [torch.where(x == 1, p1[i], p0[i]).to(torch.float64) for i, x in enumerate(rwvm)]
+    # Every table is float64 from the parameters on: a Python float given to ``torch.where`` would
+    # become a float32 scalar tensor and round the probabilities (e.g. 0.5212 → 0.5212000111).
+    p0 = torch.tensor(env.p0.as_tuple(), dtype=torch.float64)
+    p1 = torch.tensor(env.p1.as_tuple(), dtype=torch.float64)
+    per = [torch.where(x == 1, p1[i], p0[i]) for i, x in enumerate(rwvm)]
     if env.event_model == "noisy_or":
         event = 1.0 - math.prod(1.0 - p for p in per)
     else:
         event = torch.clamp(sum(per), max=1.0)
 
     # Reward, eq. (3), in expectation over the event.
-    comm_ok = torch.where(c == 0, rw.r1, rw.r2).to(torch.float64)
+    r12 = torch.tensor([rw.r1, rw.r2], dtype=torch.float64)
+    comm_ok = r12[c]
     R = torch.stack([(1.0 - event) * comm_ok - event * rw.r3, event * rw.r4 * (b + 1.0)])
 
     # Queue: for each (a, d, c) the distribution of d′ and expected sent / dropped, summed over

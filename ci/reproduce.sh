@@ -19,6 +19,6 @@ netns() {
 netns "$py" recipes/figure2.py hydra.run.dir="$out/figure2" "$@"
 netns "$py" recipes/tradeoff.py hydra.run.dir="$out/tradeoff"
 cmd="bash ci/reproduce.sh${*:+ $*}"
-"$py" -c "import sys; from irdrc.reproduce import write_report; write_report(sys.argv[1], sys.argv[2], 'docs', sys.argv[3])" \
+"$py" -c "import sys; from irdrc.paper.report import write_report; write_report(sys.argv[1], sys.argv[2], 'docs', sys.argv[3])" \
   "$out/figure2" "$out/tradeoff" "$cmd"
 echo "[reproduce] wrote docs/REPRODUCTION.md and docs/figures/ from $out"

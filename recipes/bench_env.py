@@ -16,8 +16,9 @@ import torch
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
-from irdrc import DFRCEnv, Params
-from irdrc.config import CONF_DIR, register_scenarios
+from irdrc.core.env import DFRCEnv
+from irdrc.core.params import Params
+from irdrc.experiments.config import CONF_DIR, register_scenarios
 
 MODES = ("dynamics", "step", "rollout")
 

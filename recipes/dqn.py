@@ -9,23 +9,10 @@ python recipes/dqn.py resume=outputs/…/checkpoint.pt algo.total_frames=40000
 
 from __future__ import annotations
 
-from pathlib import Path
+from irdrc.experiments.app import recipe
+from irdrc.experiments.runs import run_dqn
 
-import hydra
-from hydra.core.hydra_config import HydraConfig
-from omegaconf import DictConfig
-
-from irdrc.config import CONF_DIR, register_scenarios
-from irdrc.runs import run_dqn
-
-register_scenarios()
-
-
-@hydra.main(config_path=str(CONF_DIR), config_name="dqn", version_base=None)
-def main(cfg: DictConfig) -> None:
-    """Run ``irdrc.runs.run_dqn`` into the Hydra run directory."""
-    run_dqn(cfg, Path(HydraConfig.get().runtime.output_dir))
-
+main = recipe("dqn", run_dqn)
 
 if __name__ == "__main__":
     main()

@@ -12,26 +12,10 @@ network start it inside a loopback-only namespace: ``unshare -n sh -c 'ip link s
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
+from irdrc.experiments.app import recipe
+from irdrc.paper.figure2 import run_figure2
 
-import hydra
-from hydra.core.hydra_config import HydraConfig
-from omegaconf import DictConfig
-
-from irdrc.config import CONF_DIR, register_scenarios, scenario_overrides
-from irdrc.reproduce import run_figure2
-
-register_scenarios()
-
-
-@hydra.main(config_path=str(CONF_DIR), config_name="figure2", version_base=None)
-def main(cfg: DictConfig) -> None:
-    """Run ``irdrc.reproduce.run_figure2`` into the Hydra run directory."""
-    code = run_figure2(cfg, Path(HydraConfig.get().runtime.output_dir), scenario_overrides())
-    if code:
-        sys.exit(code)
-
+main = recipe("figure2", run_figure2, scenario_overrides=True)
 
 if __name__ == "__main__":
     main()

@@ -11,26 +11,10 @@ On machines without outside network, start it inside a loopback-only namespace:
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
+from irdrc.experiments.app import recipe
+from irdrc.experiments.sweep import run_sweep
 
-import hydra
-from hydra.core.hydra_config import HydraConfig
-from omegaconf import DictConfig
-
-from irdrc.config import CONF_DIR, register_scenarios
-from irdrc.sweep import run_sweep
-
-register_scenarios()
-
-
-@hydra.main(config_path=str(CONF_DIR), config_name="sweep", version_base=None)
-def main(cfg: DictConfig) -> None:
-    """Run the sweep; the exit status is non-zero if any grid point is not DONE."""
-    code = run_sweep(cfg, Path(HydraConfig.get().runtime.output_dir))
-    if code:
-        sys.exit(code)  # Hydra's wrapper drops return values, so exit from inside the task
-
+main = recipe("sweep", run_sweep)
 
 if __name__ == "__main__":
     main()

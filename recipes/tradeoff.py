@@ -9,26 +9,10 @@ DQN runs (``dqn.r4``) go through the sweep engine like any sweep (Ray: see recip
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
+from irdrc.experiments.app import recipe
+from irdrc.paper.tradeoff import run_tradeoff
 
-import hydra
-from hydra.core.hydra_config import HydraConfig
-from omegaconf import DictConfig
-
-from irdrc.config import CONF_DIR, register_scenarios, scenario_overrides
-from irdrc.reproduce import run_tradeoff
-
-register_scenarios()
-
-
-@hydra.main(config_path=str(CONF_DIR), config_name="tradeoff", version_base=None)
-def main(cfg: DictConfig) -> None:
-    """Run ``irdrc.reproduce.run_tradeoff`` into the Hydra run directory."""
-    code = run_tradeoff(cfg, Path(HydraConfig.get().runtime.output_dir), scenario_overrides())
-    if code:
-        sys.exit(code)
-
+main = recipe("tradeoff", run_tradeoff, scenario_overrides=True)
 
 if __name__ == "__main__":
     main()

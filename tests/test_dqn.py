@@ -12,8 +12,8 @@ import pytest
 import torch
 
 from irdrc import DFRCEnv, Params
-from irdrc.dqn import DQNConfig, NetworkConfig, greedy_table, make_qnet, train
-from irdrc.tracking import resolve_wandb_mode
+from irdrc.agents.dqn import DQNConfig, NetworkConfig, greedy_table, make_qnet, train
+from irdrc.experiments.tracking import resolve_wandb_mode
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = [
@@ -87,10 +87,15 @@ def test_qnet_sized_from_specs_and_greedy_table():
 
 def test_train_function_counts_and_history():
     cfg = DQNConfig(
-        total_frames=320, init_random_frames=64, buffer_size=320, batch_size=16, updates_per_batch=2
+        total_frames=320,
+        init_random_frames=64,
+        buffer_size=320,
+        batch_size=16,
+        updates_per_batch=2,
+        network=NetworkConfig(hidden=(16, 16)),
     )
-    run = train(Params(), cfg, NetworkConfig(hidden=(16, 16)), seed=0, eval_every_frames=160)
-    assert run.frames == 320
+    run = train(Params(), cfg, seed=0, eval_every_frames=160)
+    assert run.env_steps == 320 and run.greedy.shape == (1, 352) and run.state["frames"] == 320
     # learning starts at 64 frames: batches of 32 from frame 64 on → (320 − 32)/32 = 9 batches × 2
     assert run.updates == 18
     assert [e["env_steps"] for e in run.history] == [0, 160, 320]
@@ -103,7 +108,7 @@ def test_training_episode_rewards_tracked_across_batches():
     """Episodes that straddle collector batches are summed whole, each env on its own."""
     from tensordict import TensorDict
 
-    from irdrc.dqn import _track_episodes
+    from irdrc.agents.dqn import _track_episodes
 
     def batch(rewards, dones):
         r = torch.tensor(rewards, dtype=torch.float32)[..., None]
@@ -115,9 +120,9 @@ def test_training_episode_rewards_tracked_across_batches():
     _track_episodes(batch([[1, 2, 4], [10, 20, 40]], [[0, 1, 0], [0, 0, 0]]), total, 0, out)
     _track_episodes(batch([[8, 16, 0], [80, 0, 0]], [[0, 1, 0], [1, 0, 0]]), total, 6, out)
     assert out == [
-        {"episode": 1, "env_steps": 4, "reward": 3.0},
-        {"episode": 2, "env_steps": 8, "reward": 150.0},
-        {"episode": 3, "env_steps": 10, "reward": 28.0},
+        {"learner": 0, "episode": 1, "env_steps": 4, "reward": 3.0},
+        {"learner": 0, "episode": 2, "env_steps": 8, "reward": 150.0},
+        {"learner": 0, "episode": 3, "env_steps": 10, "reward": 28.0},
     ]
     assert total.tolist() == [0.0, 0.0]
 
@@ -152,7 +157,7 @@ def test_recipe_end_to_end_and_resume(tmp_path):
     s2 = json.loads((tmp_path / "b" / "summary.json").read_text())
     assert s2["env_steps"] == 960 and s2["updates"] > s["updates"]
     steps = [
-        int(r.split(",")[0]) for r in (tmp_path / "b" / "metrics.csv").read_text().splitlines()[1:]
+        int(r.split(",")[1]) for r in (tmp_path / "b" / "metrics.csv").read_text().splitlines()[1:]
     ]
     assert steps[:3] == [0, 320, 640] and steps[-1] == 960
 
@@ -187,6 +192,6 @@ def test_wandb_mode_resolution(monkeypatch, tmp_path):
 @pytest.mark.slow
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_default_profile_reaches_99_percent(seed):
-    run = train(Params(), DQNConfig(), NetworkConfig(), seed=seed, eval_every_frames=1000)
+    run = train(Params(), DQNConfig(), seed=seed, eval_every_frames=1000)
     best = max(e["optimality_ratio"] for e in run.history)
     assert best >= 0.99, [round(e["optimality_ratio"], 3) for e in run.history]

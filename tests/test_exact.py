@@ -8,10 +8,10 @@ import pytest
 import torch
 
 from irdrc import DFRCEnv, Params, policies
-from irdrc.evaluate import evaluate
-from irdrc.metrics import METRIC_NAMES
-from irdrc.model import ExactModel, build_model
-from irdrc.solve import (
+from irdrc.core.evaluate import evaluate
+from irdrc.core.metrics import METRIC_NAMES
+from irdrc.core.model import ExactModel, build_model
+from irdrc.core.solve import (
     as_schedule,
     episodic_metrics,
     policy_evaluation,

@@ -10,11 +10,12 @@ import torch
 from omegaconf import OmegaConf
 
 from irdrc import DFRCEnv, Params, policies
-from irdrc.config import CONF_DIR
-from irdrc.evaluate import evaluate, ratio_ci
-from irdrc.model import build_model
-from irdrc.qlearning import DEFAULT, PAPER, QLearningConfig, steps_to_ratio, train
-from irdrc.solve import ExactScorer
+from irdrc.agents.base import PROGRESS_FIELDS
+from irdrc.agents.qlearning import DEFAULT, PAPER, QLearningConfig, train
+from irdrc.core.evaluate import evaluate, ratio_ci
+from irdrc.core.model import build_model
+from irdrc.core.solve import ExactScorer
+from irdrc.experiments.config import CONF_DIR
 
 
 def test_round_robin_alternates_from_each_reset():
@@ -75,47 +76,54 @@ def test_config_validation():
 
 @pytest.mark.parametrize(("name", "profile"), [("qlearning", DEFAULT), ("qlearning_paper", PAPER)])
 def test_yaml_profiles_match_code(name, profile):
-    node = OmegaConf.to_container(OmegaConf.load(CONF_DIR / "algo" / f"{name}.yaml"))
+    node = OmegaConf.to_container(OmegaConf.load(CONF_DIR / "algo" / f"{name}.yaml"))["algo"]
     assert QLearningConfig.from_dict(node) == profile, asdict(profile)
 
 
 def test_learners_are_independent_and_reproducible():
     p = Params()
-    cfg = QLearningConfig(episodes=3, eval_every_episodes=1)
+    cfg = QLearningConfig(episodes=3)
     scorer = ExactScorer(build_model(p), cfg.gamma)
-    a = train(p, cfg, num_learners=3, seed=0, scorer=scorer)
-    b = train(p, cfg, num_learners=3, seed=0, scorer=scorer)
+    a = train(p, cfg, num_learners=3, seed=0, scorers=scorer, eval_every_frames=400)
+    b = train(p, cfg, num_learners=3, seed=0, scorers=scorer, eval_every_frames=400)
     assert torch.equal(a.q, b.q)
     assert not torch.equal(a.q[0], a.q[1])
-    assert len(a.history) == 4 and a.history[-1]["env_steps"] == 3 * 400
-    assert a.episode_rewards.shape == (3, 3)
+    # 4 evaluations (0, 400, 800, 1200 env steps) of each of the 3 learners, one schema
+    assert len(a.history) == 12 and [r["env_steps"] for r in a.curve(2)] == [0, 400, 800, 1200]
+    assert set(a.history[0]) == set(PROGRESS_FIELDS)
+    assert len(a.episode_rewards) == 9 and a.episode_rewards[-1]["episode"] == 3
 
 
 def test_q_update_is_the_tabular_rule():
     # One learner, one step per episode (horizon 1), constant α: after one update from Q = 0 the
     # visited entry is α · r exactly (max over a zero next row is 0), and nothing else moved.
     p = Params.from_overrides(horizon=1)
-    cfg = QLearningConfig(episodes=1, alpha=0.5, alpha_schedule="constant", eval_every_episodes=1)
+    cfg = QLearningConfig(episodes=1, alpha=0.5, alpha_schedule="constant")
     res = train(p, cfg, num_learners=1, seed=5)
     nz = res.q.flatten().nonzero().flatten()
     assert nz.numel() <= 1
     if nz.numel():
-        r = float(res.episode_rewards[0, 0])
+        r = res.episode_rewards[0]["reward"]
         assert float(res.q.flatten()[nz[0]]) == pytest.approx(0.5 * r)
 
 
-def test_steps_to_ratio():
-    hist = [
-        {"env_steps": 0, "optimality_ratio": [0.2]},
-        {"env_steps": 400, "optimality_ratio": [0.99]},
+def test_first_reaching():
+    from irdrc.agents.base import RunRecord
+
+    rec = RunRecord(method="x", greedy=torch.zeros(1, 352, dtype=torch.long))
+    rec.history = [
+        {"learner": 0, "env_steps": 0, "optimality_ratio": 0.2},
+        {"learner": 0, "env_steps": 400, "optimality_ratio": 0.99},
+        {"learner": 1, "env_steps": 0, "optimality_ratio": 0.999},
     ]
-    assert steps_to_ratio(hist, 0, 0.95) == 400 and steps_to_ratio(hist, 0, 0.995) is None
+    assert rec.first_reaching(0.95) == 400 and rec.first_reaching(0.995) is None
+    assert rec.first_reaching(0.995, learner=1) == 0
 
 
 @pytest.mark.slow
 def test_default_profile_reaches_98_percent():
     res = train(Params(), DEFAULT, num_learners=3, seed=0)
-    final = res.history[-1]["optimality_ratio"]
+    final = [res.curve(n)[-1]["optimality_ratio"] for n in range(3)]
     assert min(final) >= 0.98, final
 
 
@@ -134,7 +142,7 @@ def test_scenarios_trained_in_one_batch_learn_their_own_optimum():
     for n in range(4):
         own = scorers[res.group[n]]
         assert own.ratio(res.greedy[n]) >= 0.9, n
-        assert res.history[-1]["optimality_ratio"][n] == pytest.approx(own.ratio(res.greedy[n]))
+        assert res.curve(n)[-1]["optimality_ratio"] == pytest.approx(own.ratio(res.greedy[n]))
     assert scorers[1].ratio(scorers[0].optimal.policy) < 0.7
     assert scorers[0].ratio(scorers[1].optimal.policy) < 0
     with pytest.raises(ValueError, match="horizon"):

@@ -6,8 +6,8 @@ import pytest
 from omegaconf import OmegaConf
 
 from irdrc import EnvParams, Params, RewardParams
-from irdrc.config import list_scenarios, load_scenario
-from irdrc.params import as_dict
+from irdrc.core.params import as_dict
+from irdrc.experiments.config import list_scenarios, load_scenario
 
 
 def test_defaults_are_model_md():

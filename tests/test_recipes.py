@@ -90,8 +90,9 @@ def _check_summary(path: Path, method: str) -> dict:
     assert s["method"] == method
     rows = list(csv.DictReader((path / "policy.csv").open()))
     assert list(rows[0]) == ["d", "c", "r", "w", "v", "m", "action"] and len(rows) == 352
+    assert set(s["table"]) >= {"optimal (exact)"} or s["method"] == "optimal"
     assert {r["action"] for r in rows} <= {"0", "1"}
-    from irdrc.results import read_policy_csv
+    from irdrc.experiments.results import read_policy_csv
 
     assert read_policy_csv(path / "policy.csv").tolist() == [int(r["action"]) for r in rows]
     return s
@@ -112,7 +113,7 @@ def test_qlearning_recipe(tmp_path):
     out = run_recipe(
         "qlearning.py",
         "algo.episodes=4",
-        "algo.eval_every_episodes=2",
+        "eval.every_frames=800",
         "num_learners=2",
         "mc_episodes=8",
         "num_envs=8",
@@ -125,7 +126,21 @@ def test_qlearning_recipe(tmp_path):
     s = _check_summary(tmp_path, "qlearning")
     assert s["seed"] == 3 and s["env_steps"] == 4 * 400 and len(s["learners"]) == 2
     hist = list(csv.DictReader((tmp_path / "metrics.csv").open()))
-    assert [int(r["env_steps"]) for r in hist] == [0, 800, 1600]
+    assert [int(r["env_steps"]) for r in hist if r["learner"] == "0"] == [0, 800, 1600]
+    assert list(hist[0])[:6] == [
+        "learner",
+        "env_steps",
+        "episodes",
+        "wall_seconds",
+        "updates",
+        "optimality_ratio",
+    ]
+    assert set(s["table"]) == {
+        "qlearning (exact)",
+        "qlearning (Monte-Carlo, episodic)",
+        "optimal (exact)",
+        "round_robin (exact)",
+    }
 
 
 def test_qlearning_recipe_batch_grid(tmp_path):
@@ -141,7 +156,7 @@ def test_qlearning_recipe_batch_grid(tmp_path):
     assert out.returncode == 0, out.stderr
     rows = list(csv.DictReader((tmp_path / "learners.csv").open()))
     # 4 scenarios × 2 learners, scenario-major, each row scored against its own scenario
-    assert [(r["env.p1.speed"], r["reward.r4"], r["learner"]) for r in rows[:3]] == [
+    assert [(r["env.p1.speed"], r["reward.r4"], r["replicate"]) for r in rows[:3]] == [
         ("0.1", "5", "0"),
         ("0.1", "5", "1"),
         ("0.1", "50", "0"),
@@ -161,15 +176,25 @@ def test_qlearning_recipe_rejects_bad_algo_key(tmp_path):
 
 def test_cli_lists_and_dispatches(tmp_path):
     listing = subprocess.run(
-        [sys.executable, "-m", "irdrc.cli"], capture_output=True, text=True, cwd=ROOT
+        [sys.executable, "-m", "irdrc"], capture_output=True, text=True, cwd=ROOT
     )
     assert listing.returncode == 0 and "solve" in listing.stdout and "ref_impl" in listing.stdout
     bad = subprocess.run(
-        [sys.executable, "-m", "irdrc.cli", "nope"], capture_output=True, text=True, cwd=ROOT
+        [sys.executable, "-m", "irdrc", "nope"],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
     )
     assert bad.returncode == 2 and "unknown recipe" in bad.stderr
     run = subprocess.run(
-        [sys.executable, "-m", "irdrc.cli", "solve", "mc_episodes=0", f"hydra.run.dir={tmp_path}"],
+        [
+            sys.executable,
+            "-m",
+            "irdrc",
+            "solve",
+            "mc_episodes=0",
+            f"hydra.run.dir={tmp_path}",
+        ],
         capture_output=True,
         text=True,
         cwd=ROOT,

@@ -9,7 +9,7 @@ import torch
 from tensordict import TensorDict
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 
-from irdrc.replay import TorchPrioritizedSampler, make_prioritized_sampler
+from irdrc.agents.replay import TorchPrioritizedSampler, make_prioritized_sampler
 
 
 def buffer(n=10, alpha=0.7, beta=0.5, batch=64):

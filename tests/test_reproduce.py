@@ -14,9 +14,10 @@ from pathlib import Path
 import pytest
 
 from irdrc import Params
-from irdrc import claims as cl
-from irdrc.figures import band_rows, first_reaching, mean_ci, moving_average, t975
-from irdrc.reproduce import optimal_at, smallest_r4
+from irdrc.core.metrics import first_reaching
+from irdrc.paper import claims as cl
+from irdrc.paper.figures import band_rows, mean_ci, moving_average, t975
+from irdrc.paper.tradeoff import optimal_at, smallest_r4
 
 ROOT = Path(__file__).resolve().parents[1]
 P = [0.1, 0.4, 0.7, 1.0]
@@ -137,8 +138,9 @@ def test_statistics_helpers():
     assert mean_ci([float("nan"), 2.0])["n"] == 1 and mean_ci([])["n"] == 0
     assert moving_average([1, 2, 3, 4], 2) == [1.0, 1.5, 2.5, 3.5]
     rows = band_rows("x", [0, 10, 20], [[0, 5, 9], [0, 7, 11]])
-    assert [r["mean"] for r in rows] == [0, 6, 10] and first_reaching(rows, 6) == 10
-    assert first_reaching(rows, 11) is None
+    assert [r["mean"] for r in rows] == [0, 6, 10]
+    assert first_reaching(rows, 6, value="mean", at="x") == 10
+    assert first_reaching(rows, 11, value="mean", at="x") is None
 
 
 def test_bisection_on_a_step_function():
@@ -157,10 +159,10 @@ def test_bisection_on_a_step_function():
 def test_bisection_on_the_exact_solver_meets_the_target_and_its_neighbour_does_not():
     """Paper scenario: the smallest integer r4 whose optimal policy misses ≤ 5 % of events."""
     params = Params()
-    r4, _ = smallest_r4(lambda r: optimal_at(params, r)[1].miss_detection, 0.05, 1, 200, 1)
+    r4, _ = smallest_r4(lambda r: optimal_at(params, r, 0.99)[1].miss_detection, 0.05, 1, 200, 1)
     assert r4 is not None and 5 < r4 <= 50  # r4 = 5 misses 0.289; r4 = 50 is radar everywhere
-    assert optimal_at(params, r4)[1].miss_detection <= 0.05
-    assert optimal_at(params, r4 - 1)[1].miss_detection > 0.05
+    assert optimal_at(params, r4, 0.99)[1].miss_detection <= 0.05
+    assert optimal_at(params, r4 - 1, 0.99)[1].miss_detection > 0.05
 
 
 def _run(
@@ -176,11 +178,10 @@ TINY_FIGURE = [
     "seeds=[0,1]",
     "p1_speed=[0.1,1.0]",
     "env.horizon=100",
-    "dqn_eval_every_frames=400",
-    "learners.dqn.overrides=['algo=dqn','algo.total_frames=800','algo.init_random_frames=128','algo.batch_size=32']",
+    "learners.dqn.overrides=['algo=dqn','eval.every_frames=400','algo.total_frames=800','algo.init_random_frames=128','algo.batch_size=32']",
     "learners.dqn_paper.overrides=['algo=dqn_paper','algo.total_frames=400']",
-    "learners.qlearning.overrides=['algo=qlearning','algo.episodes=4','algo.eval_every_episodes=2']",
-    "learners.qlearning_paper.overrides=['algo=qlearning_paper','algo.episodes=4','algo.eval_every_episodes=2']",
+    "learners.qlearning.overrides=['algo=qlearning','algo.episodes=4','eval.every_frames=200']",
+    "learners.qlearning_paper.overrides=['algo=qlearning_paper','algo.episodes=4','eval.every_frames=200']",
 ]
 FIGURE_FILES = [
     *(f"panel_{p}.{ext}" for p in "abcd" for ext in ("png", "csv")),
@@ -293,7 +294,7 @@ def test_tradeoff_end_to_end_tiny(tiny_tradeoff):
 
 def test_report_fills_every_generated_block(tiny_figure, tiny_tradeoff, tmp_path):
     """ci/reproduce.sh's last step: figures copied, every generated block of the report filled."""
-    from irdrc.reproduce import FIGURES, write_report
+    from irdrc.paper.report import FIGURES, write_report
 
     fig, tr = tiny_figure[0], tiny_tradeoff[0]
     if json.loads((fig / "summary.json").read_text()).get("resumed"):

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from irdrc.sweep import format_value, parse_grid, point_id, point_overrides, scenario_of
+from irdrc.experiments.grid import format_value, parse_grid, point_id, point_overrides, scenario_of
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -133,7 +133,7 @@ def test_dqn_grid_2x2(tmp_path):
     for t in table:
         d = tmp_path / "trials" / t["point_id"]
         assert (d / "summary.json").is_file() and (d / "metrics.csv").read_text().startswith(
-            "env_steps"
+            "learner,env_steps"
         )
     assert r.stdout.count("→ DONE") == 4 and "ETA" in r.stdout
 
@@ -203,7 +203,7 @@ def test_local_executor_crash_resume_and_mixed_plans(tmp_path):
 
 
 def test_point_ids_separate_methods_and_bases():
-    from irdrc.sweep import plan
+    from irdrc.experiments.sweep import plan
 
     a = plan("solve", [{"seed": 0}], ["mc_episodes=0"])
     b = plan("solve", [{"seed": 0}], ["mc_episodes=0", "reward.r4=50"])

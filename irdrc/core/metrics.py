@@ -7,7 +7,9 @@ miss detection stays defined when an episode has no event.
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable, Mapping
 from dataclasses import asdict, dataclass, fields
+from typing import Any
 
 METRIC_NAMES = (
     "avg_reward",
@@ -40,8 +42,13 @@ class Metrics:
 
     @classmethod
     def from_dict(cls, data: dict[str, float]) -> Metrics:
-        """Inverse of ``as_dict`` (extra keys are ignored)."""
-        return cls(**{f.name: float(data[f.name]) for f in fields(cls)})
+        """Inverse of ``as_dict`` (extra keys are ignored; None, an undefined metric, is NaN)."""
+        return cls(
+            **{
+                f.name: math.nan if data[f.name] is None else float(data[f.name])
+                for f in fields(cls)
+            }
+        )
 
 
 def _fmt(x: float) -> str:
@@ -84,3 +91,18 @@ def format_table(
 
     sep = "  ".join("-" * w for w in widths)
     return "\n".join([line(header), sep, *(line(r) for r in body)])
+
+
+def first_reaching(
+    rows: Iterable[Mapping[str, Any]],
+    threshold: float,
+    *,
+    value: str = "optimality_ratio",
+    at: str = "env_steps",
+) -> Any:
+    """``row[at]`` of the first row (in order) whose ``row[value]`` is ≥ ``threshold``; None if none.
+
+    The one definition of "first reached" for learning curves (env steps to 99 % of the optimum)
+    and for bands over seeds (``value="mean", at="x"``).
+    """
+    return next((r[at] for r in rows if r[value] is not None and r[value] >= threshold), None)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import subprocess
 import sys
 
-from irdrc.config import ROOT, list_scenarios
+from irdrc.experiments.config import ROOT, list_scenarios
 
 
 def recipes() -> list[str]:

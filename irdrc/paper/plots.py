@@ -1,4 +1,4 @@
-"""The figures, drawn from the rows the recipes also write as CSV (``irdrc.figures.band_rows`` format:
+"""The figures, drawn from the rows the recipes also write as CSV (``irdrc.paper.figures.band_rows`` format:
 ``series, x, mean, lo, hi, n``). Matplotlib with the Agg backend: no display needed."""
 
 from __future__ import annotations

@@ -188,7 +188,50 @@ def check_claims(n: FigureNumbers) -> list[Verdict]:
     if not pairs:
         out.append(Verdict(c1c, "-", "needs a DQN and a Q-learning profile", UNTESTED))
 
-    # Claim 2 — panels (b)–(d).
+    out += _claim2(n)
+
+    # Claim 3 — r4.
+    c3 = "3. raising r4 (e.g. to 50 or 100) lowers miss detection"
+    if len(n.r4_miss) >= 2:
+        r4s = sorted(n.r4_miss)
+        base = r4s[0]
+        higher = r4s[1:]
+        ok = all(n.r4_miss[r] < n.r4_miss[base] for r in higher)
+        measured = ", ".join(
+            f"r4={r:g}: miss {n.r4_miss[r]:.3f}"
+            + (f" (throughput {n.r4_throughput[r]:.3f})" if r in n.r4_throughput else "")
+            for r in r4s
+        )
+        out.append(Verdict(c3, "optimal", measured, _v(ok)))
+    else:
+        out.append(Verdict(c3, "optimal", "needs ≥ 2 r4 values", UNTESTED))
+    return out
+
+
+def _ep(x: float | None) -> str:
+    return "never" if x is None else f"{x:g}"
+
+
+def format_claims(verdicts: Sequence[Verdict]) -> str:
+    """The claims table as Markdown."""
+    lines = ["| claim | subject | measured | verdict |", "|---|---|---|---|"]
+    for v in verdicts:
+        cells = [v.claim, v.subject, v.measured, f"**{v.verdict}**"]
+        lines.append("| " + " | ".join(c.replace("|", "/") for c in cells) + " |")
+    return "\n".join(lines)
+
+
+def summarize(verdicts: Sequence[Verdict]) -> Mapping[str, int]:
+    """Counts of each verdict."""
+    out = {HOLDS: 0, FAILS: 0, UNTESTED: 0}
+    for v in verdicts:
+        out[v.verdict] += 1
+    return out
+
+
+def _claim2(n: FigureNumbers) -> list[Verdict]:
+    """Claim 2 — panels (b)–(d)."""
+    out: list[Verdict] = []
     p = n.p1_speed
     subjects = [k for k in n.sweep if k != "round_robin"]
     rr_sweep = n.sweep.get("round_robin", {})
@@ -230,41 +273,4 @@ def check_claims(n: FigureNumbers) -> list[Verdict]:
                     _v(MISS_RANGE[0] <= lo and hi <= MISS_RANGE[1]),
                 )
             )
-
-    # Claim 3 — r4.
-    c3 = "3. raising r4 (e.g. to 50 or 100) lowers miss detection"
-    if len(n.r4_miss) >= 2:
-        r4s = sorted(n.r4_miss)
-        base = r4s[0]
-        higher = r4s[1:]
-        ok = all(n.r4_miss[r] < n.r4_miss[base] for r in higher)
-        measured = ", ".join(
-            f"r4={r:g}: miss {n.r4_miss[r]:.3f}"
-            + (f" (throughput {n.r4_throughput[r]:.3f})" if r in n.r4_throughput else "")
-            for r in r4s
-        )
-        out.append(Verdict(c3, "optimal", measured, _v(ok)))
-    else:
-        out.append(Verdict(c3, "optimal", "needs ≥ 2 r4 values", UNTESTED))
-    return out
-
-
-def _ep(x: float | None) -> str:
-    return "never" if x is None else f"{x:g}"
-
-
-def format_claims(verdicts: Sequence[Verdict]) -> str:
-    """The claims table as Markdown."""
-    lines = ["| claim | subject | measured | verdict |", "|---|---|---|---|"]
-    for v in verdicts:
-        cells = [v.claim, v.subject, v.measured, f"**{v.verdict}**"]
-        lines.append("| " + " | ".join(c.replace("|", "/") for c in cells) + " |")
-    return "\n".join(lines)
-
-
-def summarize(verdicts: Sequence[Verdict]) -> Mapping[str, int]:
-    """Counts of each verdict."""
-    out = {HOLDS: 0, FAILS: 0, UNTESTED: 0}
-    for v in verdicts:
-        out[v.verdict] += 1
     return out

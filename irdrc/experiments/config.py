@@ -11,7 +11,9 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
-ROOT = Path(__file__).resolve().parents[1]
+from irdrc.experiments.grid import is_scenario_key, override_key
+
+ROOT = Path(__file__).resolve().parents[2]
 ENVS_DIR = ROOT / "envs"
 CONF_DIR = ROOT / "recipes" / "conf"
 
@@ -67,9 +69,7 @@ def scenario_name(cfg: Any = None) -> str:
     except Exception:
         return "custom"
     name = str(hc.runtime.choices.get("env", "custom"))
-    extra = [
-        o for o in hc.overrides.task if o.split("=")[0].lstrip("+~").startswith(("env.", "reward."))
-    ]
+    extra = [o for o in hc.overrides.task if is_scenario_key(o)]
     return f"{name}[{','.join(extra)}]" if extra else name
 
 
@@ -80,17 +80,62 @@ def scenario_overrides() -> list[str]:
 
     hc = HydraConfig.get()
     out = [f"{g}={hc.runtime.choices[g]}" for g in ("env", "reward") if hc.runtime.choices.get(g)]
-    out += [
-        o for o in hc.overrides.task if o.split("=")[0].lstrip("+~").startswith(("env.", "reward."))
-    ]
+    out += [o for o in hc.overrides.task if is_scenario_key(o)]
     return out
+
+
+RENAMED = {
+    "solve": {
+        "gamma": "optimum_gamma",
+        "mc_episodes": "eval.mc_episodes",
+        "num_envs": "eval.mc_num_envs",
+    },
+    "qlearning": {"mc_episodes": "eval.mc_episodes", "num_envs": "eval.mc_num_envs"},
+    "figure2": {"dqn_eval_every_frames": "eval.every_frames"},
+    "demo": {"num_envs": "eval.mc_num_envs", "episodes": "eval.mc_episodes"},
+    "bench_dqn": {"eval_every_frames": "eval.every_frames"},
+}
+"""Per recipe: config keys renamed when every recipe got one name per idea (old → new). The old
+names keep working on the command line and in sweeps, with a note."""
+
+REMOVED = {
+    "qlearning": {
+        "algo.eval_every_episodes": "use eval.every_frames (env steps: episodes × env.horizon)",
+    },
+}
+"""Per recipe: keys that no longer exist, and what to use instead."""
+
+
+def rename_overrides(config_name: str, overrides: list[str]) -> tuple[list[str], list[str]]:
+    """Command-line overrides with renamed keys (``RENAMED``) replaced by their new names.
+
+    Returns:
+        (the overrides, one note per renamed key).
+
+    Raises:
+        ValueError: an override sets a removed key (``REMOVED``), naming what to use instead.
+    """
+    renamed, removed = RENAMED.get(config_name, {}), REMOVED.get(config_name, {})
+    out, notes = [], []
+    for o in overrides:
+        key = override_key(o)
+        if key in removed:
+            raise ValueError(f"{key} no longer exists: {removed[key]}")
+        if key in renamed and "=" in o:
+            prefix = o[: len(o) - len(o.lstrip("+~"))]
+            o = f"{prefix}{renamed[key]}={o.split('=', 1)[1]}"
+            notes.append(f"note: {key} is now {renamed[key]} (the old name still works for now)")
+        out.append(o)
+    return out, notes
 
 
 def compose(config_name: str, overrides: list[str] | None = None) -> DictConfig:
     """Compose ``recipes/conf/<config_name>.yaml`` with command-line style ``overrides``.
 
-    Works inside or outside a running Hydra app (the global Hydra state is restored afterwards).
+    Renamed keys are accepted (``RENAMED``). Works inside or outside a running Hydra app (the
+    global Hydra state is restored afterwards).
     """
+    overrides, _ = rename_overrides(config_name, list(overrides or []))
     from hydra import compose as hydra_compose
     from hydra import initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra

@@ -1,4 +1,4 @@
-"""Sweeps on Ray Tune: a grid of config overrides, each point one run of ``irdrc.runs``.
+"""Sweeps on Ray Tune: a grid of config overrides, each point one run of ``irdrc.experiments.runs``.
 
 The driver composes every grid point's config itself (so workers need the ``irdrc`` package only,
 not the recipes' YAML files), runs the points as Tune trials, and receives each trial's
@@ -11,95 +11,31 @@ from __future__ import annotations
 
 import contextlib
 import csv
-import hashlib
 import io
-import itertools
 import json
 import logging
 import os
 import tempfile
 import time
 import traceback
-from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
-from irdrc.config import compose
-from irdrc.params import to_plain
-from irdrc.results import atomic_write_text
+from irdrc.experiments.config import compose
+from irdrc.experiments.grid import format_value, parse_grid, point_id, point_overrides, scenario_of
+from irdrc.experiments.results import atomic_write_text
+from irdrc.experiments.runs import RUNNERS
 
 METHODS = ("dqn", "qlearning", "solve")
 # Settings a sweep gives every trial before the user's base overrides (which may change them).
 TRIAL_DEFAULTS = {
     "dqn": ["progress=false", "compare.qlearning_paper=false", "logger=none"],
-    "qlearning": ["progress=false"],
+    "qlearning": ["progress=false", "logger=none"],
     "solve": [],
 }
 STATUSES = ("DONE", "ERROR", "INCOMPLETE")
-
-
-def format_value(value: Any) -> str:
-    """A value as Hydra's override grammar reads it back (lists as ``[a,b]``, None as ``null``)."""
-    if value is None:
-        return "null"
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, list | tuple):
-        return "[" + ",".join(format_value(v) for v in value) + "]"
-    return str(value)
-
-
-def parse_grid(grid: Any) -> list[dict[str, Any]]:
-    """All points of a grid ``{key: [values…]}`` (the cartesian product, in key order).
-
-    Raises:
-        ValueError: empty or malformed grid (not a mapping, a key without values, a value that is
-            not a non-empty list, a duplicate value).
-    """
-    grid = to_plain(grid)
-    if grid is None or (isinstance(grid, Mapping) and not grid):
-        raise ValueError(
-            "sweep.grid is empty: give it as sweep.grid='{seed: [0,1,2], reward.r4: [5,50]}'"
-        )
-    if not isinstance(grid, Mapping):
-        raise ValueError(f"sweep.grid={grid!r} must be a mapping of override key → list of values")
-    for key, values in grid.items():
-        if not isinstance(key, str) or not key or "=" in key:
-            raise ValueError(f"sweep.grid key {key!r} must be a config key such as env.p1.speed")
-        if not isinstance(values, list) or not values:
-            raise ValueError(f"sweep.grid.{key}={values!r} must be a non-empty list of values")
-        if len({format_value(v) for v in values}) != len(values):
-            raise ValueError(f"sweep.grid.{key}={values!r} repeats a value")
-    keys = list(grid)
-    return [
-        dict(zip(keys, combo, strict=True)) for combo in itertools.product(*(grid[k] for k in keys))
-    ]
-
-
-def point_overrides(point: Mapping[str, Any]) -> list[str]:
-    """A grid point as override strings."""
-    return [f"{k}={format_value(v)}" for k, v in point.items()]
-
-
-def point_id(point: Mapping[str, Any], method: str = "", base: list[str] | tuple = ()) -> str:
-    """Stable id of a grid point: readable prefix + hash of its overrides (order-independent),
-    of the method and of the base overrides (so two sweeps of one grid with different bases, or
-    methods, never share a trial directory)."""
-    ov = sorted(point_overrides(point))
-    key = "|".join(ov) + (f"||{method}||" + "|".join(base) if method or base else "")
-    digest = hashlib.sha1(key.encode()).hexdigest()[:10]
-    readable = "_".join(o.split(".")[-1] for o in ov)
-    safe = "".join(c if c.isalnum() or c in "=_.-" else "-" for c in readable)[:60]
-    return f"{safe}__{digest}"
-
-
-def scenario_of(overrides: list[str]) -> str:
-    """Scenario name as the recipes write it: the env choice plus env./reward. overrides."""
-    env = next((o.split("=", 1)[1] for o in overrides if o.startswith("env=")), "paper")
-    extra = [o for o in overrides if o.split("=")[0].lstrip("+~").startswith(("env.", "reward."))]
-    return f"{env}[{','.join(extra)}]" if extra else env
 
 
 def _matches(point_ov: list[str], fail_on: list[str]) -> bool:
@@ -128,8 +64,6 @@ RESULT_FILES = ("metrics.csv", "policy.csv", "learners.csv", "episode_rewards.cs
 
 def run_point(config: dict[str, Any], out: Path) -> dict[str, Any]:
     """Run one planned point into ``out``; return what a trial reports (summary and run files)."""
-    from irdrc.runs import RUNNERS
-
     if config.get("fail"):
         raise RuntimeError(f"injected failure (sweep.fail_on) in {config['point_id']}")
     cfg = OmegaConf.create(config["cfg"])

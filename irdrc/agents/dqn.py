@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Sequence
 from dataclasses import dataclass, field, fields
 from typing import Any
 
@@ -23,13 +23,43 @@ from torchrl.data.replay_buffers.samplers import RandomSampler
 from torchrl.modules import MLP, EGreedyModule, QValueActor
 from torchrl.objectives import DQNLoss, HardUpdate, SoftUpdate
 
-from irdrc.env import DFRCEnv
-from irdrc.model import build_model
-from irdrc.params import Params
-from irdrc.replay import make_prioritized_sampler
-from irdrc.solve import ExactScorer
+from irdrc.agents.base import Hooks, RunRecord, make_scorers, progress_record, scenario_list
+from irdrc.agents.replay import make_prioritized_sampler
+from irdrc.core.env import DFRCEnv
+from irdrc.core.params import Params, reject_unknown_keys, to_plain
+from irdrc.core.solve import ExactScorer
+
+NAME = "dqn"
+DEFAULT_EVAL_EVERY_FRAMES = 1_000
+"""Exact evaluation period when the caller gives none, env steps."""
 
 ACTIVATIONS = {"relu": nn.ReLU, "tanh": nn.Tanh, "elu": nn.ELU, "gelu": nn.GELU, "silu": nn.SiLU}
+
+
+@dataclass(frozen=True)
+class NetworkConfig:
+    """Q-network shape (config group ``network``): hidden layer sizes and activation."""
+
+    hidden: tuple[int, ...] = (64, 64)
+    activation: str = "relu"
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "hidden", tuple(self.hidden))
+        if not self.hidden or any(not isinstance(h, int) or h < 1 for h in self.hidden):
+            raise ValueError(
+                f"network.hidden={list(self.hidden)!r} must be a non-empty list of integers >= 1"
+            )
+        if self.activation not in ACTIVATIONS:
+            raise ValueError(
+                f"network.activation={self.activation!r} must be one of {', '.join(ACTIVATIONS)}"
+            )
+
+    @classmethod
+    def from_dict(cls, data: Any) -> NetworkConfig:
+        """From a mapping with ``hidden`` and ``activation`` (``name`` is ignored)."""
+        data = {k: v for k, v in dict(to_plain(data)).items() if k != "name"}
+        reject_unknown_keys("network.", data, {"hidden", "activation"})
+        return cls(**data)
 
 
 @dataclass(frozen=True)
@@ -57,6 +87,7 @@ class DQNConfig:
         prioritized: proportional prioritised replay with exponent ``alpha`` and importance
             exponent annealed from ``beta_start`` to 1 over ``total_frames``.
         sampler: ``auto`` (TorchRL's when its extension loads, else ours), ``torchrl``, ``torch``.
+        network: the Q-network's shape (config group ``network``).
     """
 
     num_envs: int = 8
@@ -82,6 +113,7 @@ class DQNConfig:
     alpha: float = 0.6
     beta_start: float = 1.0
     sampler: str = "auto"
+    network: NetworkConfig = field(default_factory=NetworkConfig)
     name: str = field(default="dqn", compare=False)
 
     def __post_init__(self) -> None:
@@ -136,49 +168,27 @@ class DQNConfig:
             )
 
     @classmethod
-    def from_dict(cls, data: Any) -> DQNConfig:
-        """From a mapping (e.g. the ``algo`` config node); unknown keys are rejected."""
-        from irdrc.params import _to_plain
-
-        data = dict(_to_plain(data))
-        names = {f.name for f in fields(cls)}
-        extra = sorted(set(data) - names)
-        if extra:
-            raise ValueError(
-                f"unknown key(s) {', '.join('algo.' + k for k in extra)}; "
-                f"allowed: {', '.join('algo.' + n for n in sorted(names))}"
-            )
+    def from_dict(cls, data: Any, network: Any = None) -> DQNConfig:
+        """From a mapping (the ``algo`` config node) and optionally the ``network`` node; unknown
+        keys are rejected."""
+        data = dict(to_plain(data))
+        reject_unknown_keys("algo.", data, {f.name for f in fields(cls) if f.name != "network"})
+        if network is not None:
+            data["network"] = NetworkConfig.from_dict(network)
         return cls(**data)
-
-
-@dataclass(frozen=True)
-class NetworkConfig:
-    """Q-network shape (config group ``network``): hidden layer sizes and activation."""
-
-    hidden: tuple[int, ...] = (64, 64)
-    activation: str = "relu"
-
-    def __post_init__(self) -> None:
-        object.__setattr__(self, "hidden", tuple(self.hidden))
-        if not self.hidden or any(not isinstance(h, int) or h < 1 for h in self.hidden):
-            raise ValueError(
-                f"network.hidden={list(self.hidden)!r} must be a non-empty list of integers >= 1"
-            )
-        if self.activation not in ACTIVATIONS:
-            raise ValueError(
-                f"network.activation={self.activation!r} must be one of {', '.join(ACTIVATIONS)}"
-            )
 
     @classmethod
-    def from_dict(cls, data: Any) -> NetworkConfig:
-        """From a mapping with ``hidden`` and ``activation`` (``name`` is ignored)."""
-        from irdrc.params import _to_plain
+    def from_node(cls, cfg: Any) -> DQNConfig:
+        """From a recipe's config (its ``algo`` and ``network`` groups)."""
+        return cls.from_dict(cfg["algo"], cfg["network"])
 
-        data = {k: v for k, v in dict(_to_plain(data)).items() if k != "name"}
-        extra = sorted(set(data) - {"hidden", "activation"})
-        if extra:
-            raise ValueError(f"unknown key(s) {', '.join('network.' + k for k in extra)}")
-        return cls(**data)
+    def env_steps(self, horizon: int) -> int:
+        """Env steps of the whole run."""
+        return self.total_frames
+
+
+Config = DQNConfig
+"""This learner's config class (the interface of ``irdrc.agents.base``)."""
 
 
 class _Scale(nn.Module):
@@ -219,7 +229,7 @@ def make_exploration(env: DFRCEnv, cfg: DQNConfig) -> EGreedyModule:
 
 
 def make_buffer(cfg: DQNConfig):
-    """Replay buffer: prioritised (see ``irdrc.replay``) or uniform. Returns (buffer, sampler)."""
+    """Replay buffer: prioritised (see ``irdrc.agents.replay``) or uniform. Returns (buffer, sampler)."""
     if cfg.prioritized:
         sampler = make_prioritized_sampler(
             cfg.buffer_size, cfg.alpha, cfg.beta_start, prefer=cfg.sampler
@@ -252,171 +262,194 @@ def make_target_updater(loss: DQNLoss, cfg: DQNConfig):
     return HardUpdate(loss, value_network_update_interval=cfg.target_update_every_updates)
 
 
-@dataclass
-class DQNRun:
-    """Everything ``train`` built and learned (kept so a caller can save or inspect it)."""
-
-    qnet: QValueActor
-    loss: DQNLoss
-    optimizer: torch.optim.Optimizer
-    exploration: EGreedyModule
-    sampler_name: str
-    frames: int = 0
-    updates: int = 0
-    wall_seconds: float = 0.0
-    history: list[dict[str, Any]] = field(default_factory=list)
-    scorer: ExactScorer | None = None
-    episode_rewards: list[dict[str, Any]] = field(default_factory=list)
+def _all_states(qnet: QValueActor, env: DFRCEnv) -> TensorDictBase:
+    with torch.no_grad():
+        obs = env.dynamics.obs
+        return qnet(TensorDict({"observation": obs}, batch_size=[obs.shape[0]], device=obs.device))
 
 
 def greedy_table(qnet: QValueActor, env: DFRCEnv) -> torch.Tensor:
     """The greedy action of the Q-network in every state ([S], ties → comm)."""
-    with torch.no_grad():
-        obs = env.dynamics.obs
-        td = qnet(TensorDict({"observation": obs}, batch_size=[obs.shape[0]], device=obs.device))
-        return td["action"].reshape(-1).long().cpu()
+    return _all_states(qnet, env)["action"].reshape(-1).long().cpu()
+
+
+def action_values(qnet: QValueActor, env: DFRCEnv) -> torch.Tensor:
+    """The Q-network's action values in every state ([S, 2], comm then radar)."""
+    return _all_states(qnet, env)["action_value"].reshape(-1, 2).float().cpu()
 
 
 def train(
-    params: Params,
-    cfg: DQNConfig,
-    net: NetworkConfig,
+    params: Params | Sequence[Params],
+    cfg: DQNConfig | None = None,
     *,
+    num_learners: int = 1,
     seed: int = 0,
     device: str = "cpu",
-    eval_every_frames: int = 1_000,
-    on_eval: Callable[[dict[str, Any]], None] | None = None,
-    on_batch: Callable[[dict[str, Any]], None] | None = None,
-    state: dict[str, Any] | None = None,
-    scorer: ExactScorer | None = None,
-) -> DQNRun:
+    scorers: ExactScorer | Sequence[ExactScorer] | None = None,
+    eval_every_frames: int = DEFAULT_EVAL_EVERY_FRAMES,
+    hooks: Hooks | None = None,
+    resume: dict[str, Any] | None = None,
+) -> RunRecord:
     """Train DQN on the batched env and evaluate the greedy network exactly on a schedule.
 
-    Args:
-        params: the model.
-        cfg: DQN hyperparameters.
-        net: Q-network shape.
-        seed: seeds torch, the env and the collector.
-        device: torch device.
-        eval_every_frames: exact evaluation every this many env steps (and at the end).
-        on_eval: called with each evaluation record (``env_steps``, ``wall_seconds``,
-            ``updates``, ``optimality_ratio`` and every exact metric).
-        on_batch: called after each batch with ``env_steps``, ``epsilon``, ``loss``, ``beta``.
-        state: a checkpoint (see ``checkpoint_state``) to resume from.
-        scorer: exact evaluator (built from ``params`` if omitted).
+    The interface of ``irdrc.agents.base``: one scenario and one network per run (``num_learners``
+    1); ``hooks.on_batch`` gets ``env_steps``, ``episodes``, ``epsilon``, ``loss``, ``beta``,
+    ``buffer`` after each collected batch; ``resume`` is an earlier run's ``RunRecord.state``; the
+    returned record's ``state`` is the checkpoint (networks, optimiser, counters).
     """
+    cfg = cfg or DQNConfig()
+    hooks = hooks or Hooks()
+    scenarios = scenario_list(params)
+    if len(scenarios) != 1 or num_learners != 1:
+        raise ValueError("DQN trains one network on one scenario per run (num_learners=1)")
     if eval_every_frames < 1:
         raise ValueError(f"eval.every_frames={eval_every_frames!r} must be >= 1")
+    (params,) = scenarios
+    (scorer,) = make_scorers(scenarios, scorers)
     torch.manual_seed(seed)
     env = DFRCEnv(params, batch_size=[cfg.num_envs], device=device, seed=seed)
-    scorer = scorer or ExactScorer(build_model(params), cfg.gamma)
 
-    qnet = make_qnet(env, net)
+    # Components in a fixed order: model → exploration → buffer → loss → target → optimiser.
+    qnet = make_qnet(env, cfg.network)
     exploration = make_exploration(env, cfg)
     policy = TensorDictSequential(qnet, exploration)
     rb, sampler = make_buffer(cfg)
     loss = make_loss(qnet, env, cfg)
     target = make_target_updater(loss, cfg)
     optimizer = torch.optim.Adam(loss.parameters(), lr=cfg.lr)
-    run = DQNRun(qnet, loss, optimizer, exploration, type(sampler).__name__, scorer=scorer)
+    record = RunRecord(method=cfg.name, greedy=torch.zeros(1, env.num_states, dtype=torch.int64))
+    record.info["replay_sampler"] = type(sampler).__name__
 
-    start_frames = 0
-    if state is not None:
-        loss.load_state_dict(state["loss"])
-        optimizer.load_state_dict(state["optimizer"])
-        start_frames, run.updates = int(state["frames"]), int(state["updates"])
-        exploration.step(start_frames)
-        run.history = list(state.get("history", []))
-        run.episode_rewards = list(state.get("episode_rewards", []))
+    start_frames = _restore(resume, loss, optimizer, exploration, record)
     remaining = cfg.total_frames - start_frames
     if remaining <= 0:
         raise ValueError(
             f"nothing to resume: the checkpoint is at {start_frames} ≥ algo.total_frames"
         )
     # A resumed run has no buffer: it refills with its own policy and learns from batch_size on.
-    random_frames = 0 if state is not None else cfg.init_random_frames
     learn_from = (
-        cfg.batch_size if state is not None else max(cfg.batch_size, cfg.init_random_frames)
+        cfg.batch_size if resume is not None else max(cfg.batch_size, cfg.init_random_frames)
     )
     collector = Collector(
         env,
         policy,
         frames_per_batch=cfg.frames_per_batch,
         total_frames=remaining,
-        init_random_frames=random_frames,
+        init_random_frames=0 if resume is not None else cfg.init_random_frames,
         device=device,
         auto_register_policy_transforms=False,
     )
     collector.set_seed(seed + start_frames)
 
-    t0 = time.perf_counter() - (float(state["wall_seconds"]) if state is not None else 0.0)
+    t0 = time.perf_counter() - (float(resume["wall_seconds"]) if resume is not None else 0.0)
     frames = start_frames
     next_eval = (frames // eval_every_frames + 1) * eval_every_frames
+    optimal = scorer.optimal_metrics.avg_reward
 
     def evaluate_now() -> None:
-        table = greedy_table(qnet, env)
-        m = scorer.metrics(table)
-        entry = {
-            "env_steps": frames,
-            "wall_seconds": time.perf_counter() - t0,
-            "updates": run.updates,
-            "optimality_ratio": m.avg_reward / scorer.optimal_metrics.avg_reward,
-            **m.as_dict(),
-        }
-        run.history.append(entry)
-        if on_eval is not None:
-            on_eval(entry)
+        m = scorer.metrics(greedy_table(qnet, env))
+        wall = time.perf_counter() - t0
+        entry = progress_record(
+            0, frames, len(record.episode_rewards), wall, record.updates, m, optimal
+        )
+        record.history.append(entry)
+        hooks.eval([entry])
 
-    if state is None:
+    if resume is None:
         evaluate_now()
     last_loss = math.nan
     ep_total = torch.zeros(cfg.num_envs, dtype=torch.float64)
     for data in collector:
-        _track_episodes(data, ep_total, frames, run.episode_rewards)
+        _track_episodes(data, ep_total, frames, record.episode_rewards)
         data = data.reshape(-1)
         rb.extend(data)
         frames += data.numel()
         exploration.step(data.numel())
-        for group in optimizer.param_groups:
-            group["lr"] = cfg.lr + (cfg.lr_end - cfg.lr) * min(1.0, frames / cfg.total_frames)
-        if cfg.prioritized:
-            sampler.beta = cfg.beta_start + (1.0 - cfg.beta_start) * min(
-                1.0, frames / cfg.total_frames
-            )
+        _anneal(cfg, optimizer, sampler, frames)
         if len(rb) >= learn_from:
-            for _ in range(cfg.updates_per_batch):
-                sample = rb.sample()
-                out = loss(sample)
-                optimizer.zero_grad(set_to_none=True)
-                out["loss"].backward()
-                if cfg.max_grad_norm > 0:
-                    nn.utils.clip_grad_norm_(loss.parameters(), cfg.max_grad_norm)
-                optimizer.step()
-                target.step()
-                run.updates += 1
-                if cfg.prioritized:
-                    # DQNLoss writes the squared TD error; proportional PER uses |δ|.
-                    rb.update_priority(
-                        sample["index"], sample["td_error"].detach().sqrt().reshape(-1)
-                    )
-                last_loss = float(out["loss"].detach())
-        if on_batch is not None:
-            on_batch(
-                {
-                    "env_steps": frames,
-                    "epsilon": float(exploration.eps),
-                    "loss": last_loss,
-                    "beta": getattr(sampler, "beta", math.nan),
-                    "buffer": len(rb),
-                }
-            )
+            last_loss = _learn(cfg, rb, loss, optimizer, target)
+            record.updates += cfg.updates_per_batch
+        hooks.batch(
+            {
+                "env_steps": frames,
+                "episodes": len(record.episode_rewards),
+                "epsilon": float(exploration.eps),
+                "loss": last_loss,
+                "beta": getattr(sampler, "beta", math.nan),
+                "buffer": len(rb),
+            }
+        )
         if frames >= next_eval or frames >= cfg.total_frames:
             evaluate_now()
             next_eval = (frames // eval_every_frames + 1) * eval_every_frames
     collector.shutdown()
-    run.frames = frames
-    run.wall_seconds = time.perf_counter() - t0
-    return run
+    record.env_steps = frames
+    record.episodes = len(record.episode_rewards)
+    record.wall_seconds = time.perf_counter() - t0
+    record.greedy = greedy_table(qnet, env)[None]
+    record.q = action_values(qnet, env)[None]
+    record.state = _checkpoint(loss, optimizer, record)
+    return record
+
+
+def _checkpoint(loss: DQNLoss, optimizer: torch.optim.Optimizer, record: RunRecord) -> dict:
+    """The resumable state: networks, optimiser, counters and the record's history so far."""
+    return {
+        "loss": loss.state_dict(),
+        "optimizer": optimizer.state_dict(),
+        "frames": record.env_steps,
+        "updates": record.updates,
+        "wall_seconds": record.wall_seconds,
+        "history": record.history,
+        "episode_rewards": record.episode_rewards,
+    }
+
+
+def _restore(
+    resume: dict[str, Any] | None,
+    loss: DQNLoss,
+    optimizer: torch.optim.Optimizer,
+    exploration: EGreedyModule,
+    record: RunRecord,
+) -> int:
+    """Load a checkpoint into the components and the record; returns its env steps (0 if none)."""
+    if resume is None:
+        return 0
+    loss.load_state_dict(resume["loss"])
+    optimizer.load_state_dict(resume["optimizer"])
+    frames, record.updates = int(resume["frames"]), int(resume["updates"])
+    exploration.step(frames)
+    record.history = list(resume.get("history", []))
+    record.episode_rewards = list(resume.get("episode_rewards", []))
+    return frames
+
+
+def _anneal(cfg: DQNConfig, optimizer: torch.optim.Optimizer, sampler, frames: int) -> None:
+    """Learning rate (``lr`` → ``lr_end``) and PER's β (``beta_start`` → 1), linear in env steps."""
+    progress = min(1.0, frames / cfg.total_frames)
+    for group in optimizer.param_groups:
+        group["lr"] = cfg.lr + (cfg.lr_end - cfg.lr) * progress
+    if cfg.prioritized:
+        sampler.beta = cfg.beta_start + (1.0 - cfg.beta_start) * progress
+
+
+def _learn(cfg: DQNConfig, rb, loss: DQNLoss, optimizer: torch.optim.Optimizer, target) -> float:
+    """``updates_per_batch`` gradient updates from replay; returns the last loss."""
+    last = math.nan
+    for _ in range(cfg.updates_per_batch):
+        sample = rb.sample()
+        out = loss(sample)
+        optimizer.zero_grad(set_to_none=True)
+        out["loss"].backward()
+        if cfg.max_grad_norm > 0:
+            nn.utils.clip_grad_norm_(loss.parameters(), cfg.max_grad_norm)
+        optimizer.step()
+        target.step()
+        if cfg.prioritized:
+            # DQNLoss writes the squared TD error; proportional PER uses |δ|.
+            rb.update_priority(sample["index"], sample["td_error"].detach().sqrt().reshape(-1))
+        last = float(out["loss"].detach())
+    return last
 
 
 def _track_episodes(
@@ -433,6 +466,7 @@ def _track_episodes(
         for e in done[:, t].nonzero().flatten().tolist():
             out.append(
                 {
+                    "learner": 0,
                     "episode": len(out) + 1,
                     "env_steps": frames + (t + 1) * total.shape[0],
                     "reward": float(total[e]),
@@ -441,23 +475,6 @@ def _track_episodes(
             total[e] = 0.0
 
 
-def checkpoint_state(run: DQNRun, config: dict[str, Any]) -> dict[str, Any]:
-    """A ``weights_only``-loadable checkpoint: network, target, optimiser, step counters, config.
-
-    The replay buffer is not saved; a resumed run refills it.
-    """
-    return {
-        "loss": run.loss.state_dict(),
-        "optimizer": run.optimizer.state_dict(),
-        "frames": run.frames,
-        "updates": run.updates,
-        "wall_seconds": run.wall_seconds,
-        "history": run.history,
-        "episode_rewards": run.episode_rewards,
-        "config": config,
-    }
-
-
 def load_checkpoint(path) -> dict[str, Any]:
-    """Load a checkpoint written by ``checkpoint_state`` (``torch.load(weights_only=True)``)."""
+    """Load a checkpoint (``RunRecord.state`` plus the run's config, ``torch.load(weights_only=True)``)."""
     return torch.load(path, map_location="cpu", weights_only=True)

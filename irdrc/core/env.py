@@ -24,13 +24,7 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
-from irdrc.params import EVENT_FACTORS, Params
-
-OBS_KEYS = ("d", "c", "r", "w", "v", "m")
-"""Order of the observation vector."""
-
-INFO_KEYS = ("event", "missed", "sent", "dropped", "capacity")
-"""Per-step quantities the env reports beside the observation (see ``DFRCEnv``)."""
+from irdrc.core.params import EVENT_FACTORS, Params
 
 # Bit of each Markov factor in the state index, in MARKOV_FACTORS order (c, r, w, v, m).
 FACTOR_BITS = (4, 3, 2, 1, 0)

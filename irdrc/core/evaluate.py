@@ -9,8 +9,8 @@ import torch
 from tensordict import TensorDictBase
 from torchrl.envs.utils import step_mdp
 
-from irdrc.env import DFRCEnv
-from irdrc.metrics import METRIC_NAMES, Metrics
+from irdrc.core.env import DFRCEnv
+from irdrc.core.metrics import METRIC_NAMES, Metrics
 
 # Per-episode sums collected by ``evaluate``: numerator of each metric, and its denominator.
 _RATIOS = {
@@ -34,14 +34,12 @@ class Evaluation:
             independent; NaN when fewer than two episodes or no event).
         episodes: episodes evaluated.
         steps: env steps evaluated.
-        totals: the raw sums (reward, event, missed, sent, capacity, radar, dropped, queue, steps).
     """
 
     metrics: Metrics
     ci95: dict[str, float]
     episodes: int
     steps: int
-    totals: dict[str, float]
 
 
 def ratio_ci(x: torch.Tensor, y: torch.Tensor, z: float = 1.959964) -> tuple[float, float]:
@@ -70,7 +68,7 @@ def evaluate(policy, env: DFRCEnv, episodes: int | None = None) -> Evaluation:
     ``ceil(episodes / N)`` batched rounds are run (all of one round's episodes count).
 
     Args:
-        policy: any TensorDictModule writing ``action`` (see ``irdrc.policies``).
+        policy: any TensorDictModule writing ``action`` (see ``irdrc.core.policies``).
         env: a ``DFRCEnv`` (its own seed decides the randomness).
         episodes: episodes to run at least; default one per batch row.
     """
@@ -101,11 +99,9 @@ def evaluate(policy, env: DFRCEnv, episodes: int | None = None) -> Evaluation:
         values[name], ci[name] = ratio_ci(cols[num], cols[den])
     values["episode_reward"] = values["avg_reward"] * horizon
     ci["episode_reward"] = ci["avg_reward"] * horizon
-    totals = {k: float(v.sum()) for k, v in cols.items()}
     return Evaluation(
         metrics=Metrics(**{k: values[k] for k in METRIC_NAMES}),
         ci95={k: ci[k] for k in METRIC_NAMES},
         episodes=int(cols["reward"].numel()),
-        steps=int(totals["steps"]),
-        totals=totals,
+        steps=int(cols["steps"].sum()),
     )

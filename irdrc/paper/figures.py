@@ -1,7 +1,7 @@
 """Data behind the figures: means and confidence bands over seeds, learning curves, exact references.
 
 ``recipes/figure2.py`` and ``recipes/tradeoff.py`` gather their runs' files with these helpers and hand
-plain rows to ``irdrc.plots`` (drawing) and ``irdrc.claims`` (verdicts).
+plain rows to ``irdrc.paper.plots`` (drawing) and ``irdrc.paper.claims`` (verdicts).
 """
 
 from __future__ import annotations
@@ -15,8 +15,8 @@ from typing import Any
 
 import torch
 
-from irdrc.env import Dynamics
-from irdrc.params import Params
+from irdrc.core.env import Dynamics
+from irdrc.core.params import Params
 
 # Two-sided 95 % quantiles of Student's t for 1 … 30 degrees of freedom (beyond: the normal's).
 _T975 = (
@@ -54,6 +54,11 @@ def read_csv(path: Path) -> list[dict[str, str]]:
         return list(csv.DictReader(f))
 
 
+def to_float(v: Any) -> float:
+    """A number read from CSV or JSON; empty or None (an undefined metric) is NaN."""
+    return math.nan if v in (None, "") else float(v)
+
+
 def same_value(a: Any, b: Any) -> bool:
     """Whether two config values read from different places (floats, CSV strings) are equal."""
     try:
@@ -69,11 +74,6 @@ def band_rows(series: str, xs: Sequence[float], per_seed: Sequence[Sequence[floa
         stats = mean_ci(curve[i] for curve in per_seed if i < len(curve))
         rows.append({"series": series, "x": x, **stats})
     return rows
-
-
-def first_reaching(rows: Sequence[dict], threshold: float) -> float | None:
-    """The first ``x`` whose ``mean`` is ≥ ``threshold`` (rows in increasing x), else None."""
-    return next((r["x"] for r in rows if r["mean"] >= threshold), None)
 
 
 def moving_average(values: Sequence[float], window: int) -> list[float]:
@@ -93,7 +93,7 @@ def round_robin_episodes(params: Params, seeds: Sequence[int], episodes: int) ->
     """Total reward of ``episodes`` simulated round-robin episodes for each seed.
 
     Round-robin communicates first after each reset and alternates every step (as
-    ``irdrc.policies.round_robin``); each seed is its own generator.
+    ``irdrc.core.policies.round_robin``); each seed is its own generator.
     """
     dyn = Dynamics(params)
     out = []

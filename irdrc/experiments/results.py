@@ -3,27 +3,25 @@
 from __future__ import annotations
 
 import csv
+import io
 import json
 import math
 import os
 import tempfile
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
 import torch
 
-from irdrc.env import decode_state
-from irdrc.metrics import Metrics
-from irdrc.model import ExactModel
+from irdrc.core.env import decode_state
+from irdrc.core.metrics import Metrics
+from irdrc.core.model import ExactModel
 
 
 def clean_number(x: float | None) -> float | None:
     """A number for JSON/CSV: NaN (an undefined metric) becomes None."""
     return None if x is None or (isinstance(x, float) and math.isnan(x)) else float(x)
-
-
-_clean = clean_number
 
 
 def atomic_write_text(path: Path, text: str) -> None:
@@ -54,9 +52,9 @@ def summary_dict(
         "seed": int(seed),
         "env_steps": int(env_steps),
         "wall_seconds": float(wall_seconds),
-        "metrics": {k: _clean(v) for k, v in metrics.as_dict().items()},
-        "optimal": {k: _clean(v) for k, v in optimal.as_dict().items()},
-        "optimality_ratio": _clean(metrics.avg_reward / optimal.avg_reward)
+        "metrics": {k: clean_number(v) for k, v in metrics.as_dict().items()},
+        "optimal": {k: clean_number(v) for k, v in optimal.as_dict().items()},
+        "optimality_ratio": clean_number(metrics.avg_reward / optimal.avg_reward)
         if optimal.avg_reward != 0
         else None,
     }
@@ -85,16 +83,17 @@ def read_policy_csv(path: Path) -> torch.Tensor:
     return torch.tensor([int(r["action"]) for r in rows])
 
 
-def write_rows_csv(path: Path, rows: Iterable[dict[str, Any]]) -> None:
-    """A list of flat dicts as CSV (header from the first row), atomically."""
+def write_rows_csv(
+    path: Path, rows: Iterable[dict[str, Any]], fieldnames: Sequence[str] | None = None
+) -> None:
+    """A list of flat dicts as CSV, atomically. The header is ``fieldnames`` (written even with no
+    rows), else the first row's keys."""
     rows = list(rows)
-    if not rows:
+    if not rows and fieldnames is None:
         atomic_write_text(Path(path), "")
         return
-    import io
-
     buf = io.StringIO()
-    w = csv.DictWriter(buf, fieldnames=list(rows[0]))
+    w = csv.DictWriter(buf, fieldnames=list(fieldnames or rows[0]))
     w.writeheader()
     w.writerows(rows)
     atomic_write_text(Path(path), buf.getvalue())

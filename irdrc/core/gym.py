@@ -1,6 +1,6 @@
 """Gymnasium entry point: ``gymnasium.make("irdrc/DFRC-v0", **overrides)`` after ``import irdrc``.
 
-A single, unbatched env with exactly the dynamics of ``DFRCEnv`` (both call ``irdrc.env.Dynamics``).
+A single, unbatched env with exactly the dynamics of ``DFRCEnv`` (both call ``irdrc.core.env.Dynamics``).
 Overrides use the config names, nested or dotted: ``gymnasium.make("irdrc/DFRC-v0",
 env={"p1": {"speed": 0.5}}, reward={"r4": 50})``, ``p1={"speed": 0.5}``, ``horizon=100``,
 ``r4=50`` or ``**{"env.p1.speed": 0.5}``.
@@ -15,8 +15,8 @@ import numpy as np
 import torch
 from gymnasium import spaces
 
-from irdrc.env import Dynamics
-from irdrc.params import Params
+from irdrc.core.env import Dynamics
+from irdrc.core.params import Params
 
 ENV_ID = "irdrc/DFRC-v0"
 
@@ -84,4 +84,4 @@ class DFRCGymEnv(gymnasium.Env):
 def register() -> None:
     """Register ``irdrc/DFRC-v0`` with gymnasium (idempotent)."""
     if ENV_ID not in gymnasium.registry:
-        gymnasium.register(id=ENV_ID, entry_point="irdrc.gym:DFRCGymEnv")
+        gymnasium.register(id=ENV_ID, entry_point="irdrc.core.gym:DFRCGymEnv")

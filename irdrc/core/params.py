@@ -9,8 +9,9 @@ allowed range.
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import math
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field, fields
 from typing import Any
 
@@ -37,9 +38,6 @@ def to_plain(node: Any) -> Any:
     return node
 
 
-_to_plain = to_plain
-
-
 def _check_number(key: str, value: Any, lo: float, hi: float, *, integer: bool = False) -> Any:
     kind = "an integer" if integer else "a number"
     bounds = f"[{lo}, {hi}]" if hi != math.inf else f">= {lo}"
@@ -52,21 +50,32 @@ def _check_number(key: str, value: Any, lo: float, hi: float, *, integer: bool =
     return int(value) if integer else float(value)
 
 
+def reject_unknown_keys(prefix: str, keys: Iterable[Any], allowed: Iterable[str]) -> None:
+    """Raise a ``ValueError`` naming every key of ``keys`` not in ``allowed`` (with ``prefix``), the
+    closest allowed key for each, and the allowed ones. The one check behind every config section."""
+    allowed = sorted(allowed)
+    extra = sorted(str(k) for k in set(keys) - set(allowed))
+    if not extra:
+        return
+    hints = []
+    for k in extra:
+        close = difflib.get_close_matches(k, allowed, n=1, cutoff=0.6)
+        hints.append(f"{prefix}{k}" + (f" (did you mean {prefix}{close[0]}?)" if close else ""))
+    raise ValueError(
+        f"unknown key(s) {', '.join(hints)}; allowed: {', '.join(prefix + n for n in allowed)}"
+    )
+
+
 def _check_keys(prefix: str, data: Mapping, cls: type, *, strict: bool) -> None:
     names = {f.name for f in fields(cls) if not f.name.startswith("_")}
-    extra = sorted(set(data) - names)
-    if extra:
-        raise ValueError(
-            f"unknown key(s) {', '.join(prefix + str(k) for k in extra)}; "
-            f"allowed: {', '.join(prefix + n for n in sorted(names))}"
-        )
+    reject_unknown_keys(prefix, data, names)
     missing = sorted(names - set(data))
     if strict and missing:
         raise ValueError(f"missing key(s) {', '.join(prefix + k for k in missing)}")
 
 
 def _from_mapping(cls: type, data: Any, prefix: str, *, strict: bool) -> Any:
-    data = _to_plain(data)
+    data = to_plain(data)
     if not isinstance(data, Mapping):
         raise ValueError(f"{prefix.rstrip('.')} must be a mapping, got {data!r}")
     _check_keys(prefix, data, cls, strict=strict)
@@ -280,7 +289,7 @@ class Params:
             cfg: a dict or OmegaConf node, e.g. a recipe's Hydra config.
             strict: if True both sections must be complete; if False missing keys take defaults.
         """
-        cfg = _to_plain(cfg)
+        cfg = to_plain(cfg)
         if not isinstance(cfg, Mapping):
             raise ValueError(f"config must be a mapping, got {cfg!r}")
         for key in ("env", "reward"):
@@ -330,7 +339,7 @@ def _apply_overrides(merged: dict[str, Any], overrides: Mapping[str, Any]) -> No
             target = target.setdefault(p, {})
             if not isinstance(target, dict):
                 raise ValueError(f"override {key!r} conflicts with another key")
-        _deep_set(target, parts[-1], _to_plain(value))
+        _deep_set(target, parts[-1], to_plain(value))
 
 
 def _deep_set(target: dict, key: str, value: Any) -> None:
@@ -355,7 +364,7 @@ def as_dict(obj: Any) -> dict[str, Any]:
 def _fill(defaults: Any, data: Any) -> dict[str, Any]:
     """Defaults (as a dict) updated recursively by ``data``; unknown keys are kept for the checks."""
     base = as_dict(defaults)
-    data = _to_plain(data)
+    data = to_plain(data)
     if not isinstance(data, Mapping):
         return data
     for k, v in data.items():

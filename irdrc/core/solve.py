@@ -14,10 +14,14 @@ from typing import Any
 
 import torch
 
-from irdrc.metrics import Metrics
-from irdrc.model import ExactModel
+from irdrc.core.metrics import Metrics
+from irdrc.core.model import ExactModel
 
 Schedule = list[torch.Tensor]
+
+DEFAULT_OPTIMUM_GAMMA = 0.99
+"""The discount that defines the optimum every optimality ratio is read against (MODEL.md, ref impl);
+recipes expose it as ``optimum_gamma``."""
 
 
 @dataclass(frozen=True)
@@ -40,7 +44,10 @@ class Solution:
 
 
 def value_iteration(
-    model: ExactModel, gamma: float = 0.99, tol: float = 1e-9, max_iter: int = 100_000
+    model: ExactModel,
+    gamma: float = DEFAULT_OPTIMUM_GAMMA,
+    tol: float = 1e-9,
+    max_iter: int = 100_000,
 ) -> Solution:
     """Optimal policy by value iteration, stopped when sup |V_{k+1} − V_k| < tol.
 
@@ -114,7 +121,9 @@ def _chain(model: ExactModel, table: torch.Tensor) -> torch.Tensor:
     return table[:, 0, None] * model.P[0] + table[:, 1, None] * model.P[1]
 
 
-def policy_evaluation(model: ExactModel, policy, gamma: float = 0.99) -> torch.Tensor:
+def policy_evaluation(
+    model: ExactModel, policy, gamma: float = DEFAULT_OPTIMUM_GAMMA
+) -> torch.Tensor:
     """Exact discounted values V^π of a stationary policy: solves (I − γ P_π) V = R_π."""
     sched = as_schedule(policy, model.num_states)
     if len(sched) != 1:
@@ -212,7 +221,7 @@ def episodic_metrics(model: ExactModel, policy, horizon: int | None = None) -> M
 class ExactScorer:
     """Exact stationary metrics of greedy tables, cached (learners often revisit the same table)."""
 
-    def __init__(self, model: ExactModel, gamma: float) -> None:
+    def __init__(self, model: ExactModel, gamma: float = DEFAULT_OPTIMUM_GAMMA) -> None:
         self.model = model
         self.optimal = value_iteration(model, gamma=gamma)
         self.optimal_metrics = stationary_metrics(model, self.optimal.policy)

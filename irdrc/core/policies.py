@@ -10,7 +10,7 @@ import torch
 from tensordict.nn import TensorDictModule
 from torch import nn
 
-from irdrc.env import fresh_seed
+from irdrc.core.env import fresh_seed
 
 
 class _Constant(nn.Module):
@@ -82,7 +82,7 @@ def uniform_random(p_radar: float = 0.5, seed: int | None = None) -> TensorDictM
 
 
 def table_policy(actions: torch.Tensor) -> TensorDictModule:
-    """Deterministic policy from a table of one action per state index (see ``irdrc.env``)."""
+    """Deterministic policy from a table of one action per state index (see ``irdrc.core.env``)."""
     actions = torch.as_tensor(actions)
     if (
         actions.ndim != 1

@@ -2,7 +2,7 @@
 
 Built from the same ``Params`` as the simulator but written independently of its step code (per-factor
 2×2 chains combined by Kronecker products, the queue summed over Poisson arrivals exactly), so that
-comparing the two can catch a bug in either. State indexing is the one of ``irdrc.env``:
+comparing the two can catch a bug in either. State indexing is the one of ``irdrc.core.env``:
 s = d·32 + c·16 + r·8 + w·4 + v·2 + m.
 """
 
@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import torch
 
-from irdrc.params import Params
+from irdrc.core.params import Params
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,152 @@
+"""The one learner interface: every learner's ``train`` takes the same arguments and returns a
+``RunRecord`` whose progress is one schema (``PROGRESS_FIELDS``), whatever the method.
+
+A learner module (``irdrc.agents.qlearning``, ``irdrc.agents.dqn``) provides:
+
+- ``NAME``, and a frozen ``Config`` dataclass with ``from_node(cfg)`` reading its config groups;
+- ``train(scenarios, config, *, num_learners, seed, device, scorers, eval_every_frames, hooks,
+  resume) -> RunRecord``.
+
+Learners know nothing of files or loggers: they report through ``Hooks`` and return their record;
+``irdrc.experiments.runs`` turns that into a run directory the same way for every method.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import torch
+
+from irdrc.core.metrics import METRIC_NAMES, Metrics, first_reaching
+from irdrc.core.model import build_model
+from irdrc.core.params import Params
+from irdrc.core.solve import DEFAULT_OPTIMUM_GAMMA, ExactScorer
+
+PROGRESS_FIELDS = (
+    "learner",
+    "env_steps",
+    "episodes",
+    "wall_seconds",
+    "updates",
+    "optimality_ratio",
+    *METRIC_NAMES,
+)
+"""One exact evaluation of one learner's greedy policy: the columns of every ``metrics.csv``.
+``env_steps`` and ``episodes`` count this learner's own interaction; metrics are exact stationary."""
+
+EPISODE_FIELDS = ("learner", "episode", "env_steps", "reward")
+"""One finished training episode (exploration included): the columns of ``episode_rewards.csv``."""
+
+
+@dataclass
+class Hooks:
+    """What a learner calls while it trains (all optional).
+
+    Attributes:
+        on_eval: after each exact evaluation, with its progress records (one per learner).
+        on_batch: after each batch of interaction, with ``env_steps`` and the learner's training
+            scalars (e.g. ``epsilon``, ``loss``), logged as ``train/<name>``.
+    """
+
+    on_eval: Callable[[list[dict[str, Any]]], None] | None = None
+    on_batch: Callable[[dict[str, Any]], None] | None = None
+
+    def eval(self, records: list[dict[str, Any]]) -> None:
+        """Call ``on_eval`` if set."""
+        if self.on_eval is not None:
+            self.on_eval(records)
+
+    def batch(self, info: dict[str, Any]) -> None:
+        """Call ``on_batch`` if set."""
+        if self.on_batch is not None:
+            self.on_batch(info)
+
+
+@dataclass
+class RunRecord:
+    """What a learner returns.
+
+    Attributes:
+        method: the learner's name.
+        greedy: [N, S] final greedy action per learner and state (ties → comm).
+        history: progress records (``PROGRESS_FIELDS``) of every evaluation of every learner.
+        episode_rewards: finished training episodes (``EPISODE_FIELDS``).
+        env_steps: env steps per learner.
+        episodes: finished training episodes per learner.
+        updates: learning updates (per learner).
+        wall_seconds: training wall time, evaluations included.
+        group: scenario index of each learner (row n of ``greedy``).
+        q: [N, S, 2] final action values per learner and state, where the learner has them.
+        info: learner-specific facts worth reporting (e.g. the replay sampler).
+        state: a resumable state (written as ``checkpoint.pt``), or None for learners that do not
+            checkpoint.
+    """
+
+    method: str
+    greedy: torch.Tensor
+    history: list[dict[str, Any]] = field(default_factory=list)
+    episode_rewards: list[dict[str, Any]] = field(default_factory=list)
+    env_steps: int = 0
+    episodes: int = 0
+    updates: int = 0
+    wall_seconds: float = 0.0
+    group: list[int] = field(default_factory=lambda: [0])
+    q: torch.Tensor | None = None
+    info: dict[str, Any] = field(default_factory=dict)
+    state: dict[str, Any] | None = None
+
+    @property
+    def num_learners(self) -> int:
+        """Rows of ``greedy``."""
+        return int(self.greedy.shape[0])
+
+    def curve(self, learner: int = 0) -> list[dict[str, Any]]:
+        """The progress records of one learner, in order."""
+        return [r for r in self.history if r["learner"] == learner]
+
+    def first_reaching(self, threshold: float, learner: int = 0, at: str = "env_steps") -> Any:
+        """``at`` (env steps, wall seconds, …) of the first evaluation ≥ ``threshold`` of the optimum."""
+        return first_reaching(self.curve(learner), threshold, at=at)
+
+
+def progress_record(
+    learner: int,
+    env_steps: int,
+    episodes: int,
+    wall_seconds: float,
+    updates: int,
+    metrics: Metrics,
+    optimal_avg_reward: float,
+) -> dict[str, Any]:
+    """One row of ``PROGRESS_FIELDS``."""
+    return {
+        "learner": int(learner),
+        "env_steps": int(env_steps),
+        "episodes": int(episodes),
+        "wall_seconds": float(wall_seconds),
+        "updates": int(updates),
+        "optimality_ratio": metrics.avg_reward / optimal_avg_reward,
+        **metrics.as_dict(),
+    }
+
+
+def scenario_list(params: Params | Sequence[Params]) -> list[Params]:
+    """One ``Params`` or several, as a non-empty list."""
+    scenarios = [params] if isinstance(params, Params) else list(params)
+    if not scenarios:
+        raise ValueError("train needs at least one scenario")
+    return scenarios
+
+
+def make_scorers(
+    scenarios: Sequence[Params], scorers: ExactScorer | Sequence[ExactScorer] | None
+) -> list[ExactScorer]:
+    """One exact scorer per scenario: the given ones, or built at the model's discount."""
+    if scorers is None:
+        return [ExactScorer(build_model(p), DEFAULT_OPTIMUM_GAMMA) for p in scenarios]
+    out = [scorers] if isinstance(scorers, ExactScorer) else list(scorers)
+    if len(out) != len(scenarios):
+        raise ValueError(f"{len(out)} scorers for {len(scenarios)} scenarios")
+    return out

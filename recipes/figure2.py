@@ -13,9 +13,9 @@ network start it inside a loopback-only namespace: ``unshare -n sh -c 'ip link s
 from __future__ import annotations
 
 from irdrc.experiments.app import recipe
-from irdrc.paper.figure2 import run_figure2
+from irdrc.paper.figure2 import run_figure2, validate_figure2
 
-main = recipe("figure2", run_figure2, scenario_overrides=True)
+main = recipe("figure2", run_figure2, scenario_overrides=True, check=validate_figure2)
 
 if __name__ == "__main__":
     main()

@@ -10,9 +10,9 @@ DQN runs (``dqn.r4``) go through the sweep engine like any sweep (Ray: see recip
 from __future__ import annotations
 
 from irdrc.experiments.app import recipe
-from irdrc.paper.tradeoff import run_tradeoff
+from irdrc.paper.tradeoff import run_tradeoff, validate_tradeoff
 
-main = recipe("tradeoff", run_tradeoff, scenario_overrides=True)
+main = recipe("tradeoff", run_tradeoff, scenario_overrides=True, check=validate_tradeoff)
 
 if __name__ == "__main__":
     main()

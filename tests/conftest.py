@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 from tensordict import TensorDict
@@ -27,3 +29,22 @@ def one_step(params: Params, states, actions, seed: int = 0) -> TensorDict:
 @pytest.fixture
 def step_from():
     return one_step
+
+
+def assert_chi2(counts: torch.Tensor, expected: torch.Tensor) -> None:
+    """Pearson χ² of observed transition ``counts`` [rows, S] against ``expected`` counts.
+
+    Cells with expected count ≥ 5 are compared one by one, each row's remaining cells lumped into one
+    (kept when its expectation is ≥ 5 too). Under the model the statistic has mean dof and sd
+    √(2·dof); 5 sd above the mean is the bound. Cells the model calls impossible must stay empty.
+    """
+    big = expected >= 5
+    stat = float((((counts - expected) ** 2 / expected.clamp(min=1e-300)) * big).sum())
+    dof = int(big.sum()) - counts.shape[0]
+    rest_e = (expected * ~big).sum(1)
+    rest_o = (counts * ~big).sum(1)
+    keep = rest_e >= 5
+    stat += float(((rest_o - rest_e) ** 2 / rest_e.clamp(min=1e-300))[keep].sum())
+    dof += int(keep.sum())
+    assert stat < dof + 5 * math.sqrt(2 * dof), (stat, dof)
+    assert float(counts[expected == 0].sum()) == 0.0

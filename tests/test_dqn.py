@@ -143,6 +143,14 @@ def test_recipe_end_to_end_and_resume(tmp_path):
     s = json.loads((out / "summary.json").read_text())
     assert s["method"] == "dqn" and s["env_steps"] == 640 and s["scenario"] == "paper[reward.r4=50]"
     assert "optimal (exact)" in first.stdout and "round_robin (exact)" in first.stdout
+    assert "final greedy policy:" in first.stdout and "the optimum" in first.stdout
+    assert (out / "learning_curve.png").stat().st_size > 0
+    assert set(s["table"]) == {
+        "dqn (exact)",
+        "dqn (Monte-Carlo, episodic)",
+        "optimal (exact)",
+        "round_robin (exact)",
+    }
     ckpt = torch.load(out / "checkpoint.pt", weights_only=True)
     assert ckpt["frames"] == 640 and ckpt["config"]["network"]["hidden"] == [32, 32]
     # resume: the step count continues from the checkpoint to the new total
@@ -175,6 +183,7 @@ def test_wandb_offline_without_network_or_key(tmp_path):
     assert r.returncode == 0, r.stderr
     runs = list((tmp_path / "run" / "logs" / "wandb").glob("offline-run-*"))
     assert runs, list((tmp_path / "run").rglob("*"))[:20]
+    assert f"wandb sync {runs[0]}" in r.stdout
 
 
 def test_wandb_mode_resolution(monkeypatch, tmp_path):
@@ -195,3 +204,14 @@ def test_default_profile_reaches_99_percent(seed):
     run = train(Params(), DQNConfig(), seed=seed, eval_every_frames=1000)
     best = max(e["optimality_ratio"] for e in run.history)
     assert best >= 0.99, [round(e["optimality_ratio"], 3) for e in run.history]
+
+
+def test_output_for_a_log_file_has_no_bar_frames(tmp_path):
+    """With stdout not a terminal, progress is a few plain lines, and the replay line comes first."""
+    r = run_dqn(tmp_path, "progress=true")
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert "\r" not in r.stdout and "\r" not in r.stderr
+    lines = r.stdout.splitlines()
+    assert lines[0].startswith("replay sampler:")
+    assert sum(line.startswith("[dqn] ") for line in lines) <= 10
+    assert "Initialized LazyTensorStorage" not in r.stdout + r.stderr

@@ -6,6 +6,7 @@ import math
 
 import pytest
 import torch
+from conftest import assert_chi2
 
 from irdrc import DFRCEnv, Params, policies
 from irdrc.core.evaluate import evaluate
@@ -116,20 +117,7 @@ def test_simulator_matches_model_chi2(name):
         (rows, nxt["state"]), torch.ones(rows.numel(), dtype=torch.float64), accumulate=True
     )
     expected = m.P.reshape(2 * S, S) * K
-    # Pearson χ² over cells with expected count ≥ 5, each row's remaining cells lumped into one
-    # (kept when its expectation is ≥ 5 too). Under the model the statistic has mean dof and sd
-    # √(2·dof); 5 sd above the mean is the bound.
-    big = expected >= 5
-    stat = float((((counts - expected) ** 2 / expected.clamp(min=1e-300)) * big).sum())
-    dof = int(big.sum()) - 2 * S
-    rest_e = (expected * ~big).sum(1)
-    rest_o = (counts * ~big).sum(1)
-    keep = rest_e >= 5
-    stat += float(((rest_o - rest_e) ** 2 / rest_e.clamp(min=1e-300))[keep].sum())
-    dof += int(keep.sum())
-    assert stat < dof + 5 * math.sqrt(2 * dof), (stat, dof)
-    # cells the model calls impossible are never visited
-    assert float(counts[expected == 0].sum()) == 0.0
+    assert_chi2(counts, expected)
     # mean reward, sent, dropped, capacity per (action, state) within 5 standard errors
     for key, exact in (
         ("reward", m.R),

@@ -6,10 +6,13 @@ import gymnasium
 import numpy as np
 import pytest
 import torch
+from conftest import assert_chi2
 from gymnasium.utils.env_checker import check_env
 
 import irdrc  # noqa: F401 - registers irdrc/DFRC-v0
-from irdrc import DFRCEnv, Params
+from irdrc.core.gym import DFRCGymEnv
+from irdrc.core.model import build_model
+from irdrc.core.params import Params
 
 
 def test_env_checker_passes():
@@ -39,18 +42,72 @@ def test_episode_and_info():
         env.step(2)
 
 
-def test_same_dynamics_as_torchrl_env():
-    params = Params.from_overrides(horizon=1000)
-    genv = gymnasium.make("irdrc/DFRC-v0", horizon=1000).unwrapped
-    obs, _ = genv.reset(seed=42)
-    tenv = DFRCEnv(params, batch_size=[], seed=42)
-    td = tenv.reset()
-    assert np.array_equal(obs, td["observation"].numpy())
-    actions = torch.randint(0, 2, (300,), generator=torch.Generator().manual_seed(0))
-    for a in actions:
-        obs, reward, _, _, info = genv.step(int(a))
-        td["action"] = a
-        td = tenv.step(td)["next"]
-        assert np.array_equal(obs, td["observation"].numpy())
-        assert reward == pytest.approx(float(td["reward"]))
-        assert info["sent"] == int(td["sent"]) and info["event"] == bool(td["event"])
+def test_transitions_and_rewards_match_the_exact_model():
+    """From every (state, action), K steps of the single env: χ² on next states against the exact
+    model; mean reward, sent, dropped and capacity within 5 standard errors."""
+    params = Params.from_overrides(
+        {"env.p1.speed": 0.6, "env.arrival_rate": 1.7, "env.stay_good.road": 0.7}
+    )
+    m = build_model(params)
+    S, K = m.num_states, 400
+    env = DFRCGymEnv(params)
+    env.reset(seed=3)
+    counts = torch.zeros(2 * S, S, dtype=torch.float64)
+    sums = {
+        k: torch.zeros(2 * S, dtype=torch.float64)
+        for k in ("reward", "sent", "dropped", "capacity")
+    }
+    sq = {k: torch.zeros(2 * S, dtype=torch.float64) for k in sums}
+    for a in (0, 1):
+        for s in range(S):
+            row = a * S + s
+            for _ in range(K):
+                env.reset(options={"state": s})
+                _, reward, _, _, info = env.step(a)
+                counts[row, info["state"]] += 1
+                for k, x in (
+                    ("reward", reward),
+                    *((k, info[k]) for k in ("sent", "dropped", "capacity")),
+                ):
+                    sums[k][row] += x
+                    sq[k][row] += x * x
+    assert_chi2(counts, m.P.reshape(2 * S, S) * K)
+    for key, exact in (
+        ("reward", m.R),
+        ("sent", m.sent),
+        ("dropped", m.dropped),
+        ("capacity", m.capacity),
+    ):
+        mean = sums[key] / K
+        se = torch.sqrt((sq[key] / K - mean**2).clamp(min=0) / (K - 1))
+        mu = exact.reshape(-1)
+        if key == "reward":
+            # The reward takes two values, with the event probability e: its exact variance is
+            # e(1 − e)·(gap)². Rare events make the sample variance too small in some of the 704
+            # rows, so the exact one is the bound.
+            dyn = env.dynamics
+            f = torch.arange(S) % 32
+            e = dyn.event_prob[f % 16].double()
+            gap = torch.stack(
+                [dyn.reward[a * 64 + 32 + f] - dyn.reward[a * 64 + f] for a in (0, 1)]
+            ).double()
+            se = torch.sqrt((e * (1 - e) * gap**2).reshape(-1) / K)
+        else:
+            # an integer count X ≥ 0 has Var X ≥ μ − μ²: a floor when every sample was 0
+            se = torch.maximum(se, torch.sqrt((mu - mu**2).clamp(min=0) / K))
+        bad = (mean - mu).abs() > 5 * se + 1e-6  # 1e-6: float32 rewards where all samples agree
+        assert not bool(bad.any()), (key, mean[bad][:5].tolist(), mu[bad][:5].tolist())
+
+
+def test_vector_env_matches_the_batched_dynamics_and_autoresets():
+    venv = gymnasium.make_vec("irdrc/DFRC-v0", num_envs=3, horizon=2)
+    obs, info = venv.reset(seed=0)
+    assert obs.shape == (3, 6) and obs.dtype == np.float32
+    _, _, term, trunc, _ = venv.step(np.array([0, 1, 0]))
+    assert not trunc.any() and not term.any()
+    _, _, _, trunc, _ = venv.step(np.array([0, 1, 0]))
+    assert trunc.all()  # horizon 2
+    obs, reward, _, trunc, info = venv.step(np.array([1, 1, 1]))  # the autoreset step
+    assert not trunc.any() and (reward == 0).all() and not info["event"].any()
+    with pytest.raises(ValueError, match="action must be 0"):
+        venv.step(np.array([0, 2, 0]))

@@ -54,12 +54,14 @@ def test_bench_env_writes_csv(tmp_path):
         "threads=[1]",
         "repeats=2",
         "max_iters=20",
+        "single_steps=2000",
         f"hydra.run.dir={tmp_path}",
     )
     assert out.returncode == 0, out.stderr
-    assert "best env throughput" in out.stdout
+    assert "best batched env throughput" in out.stdout and "numpy baseline" in out.stdout
     rows = list(csv.DictReader((tmp_path / "bench_env.csv").open()))
-    assert len(rows) == 2 * 3
+    # 2 single-env modes at N = 1, then 4 batched modes at each of 2 sizes
+    assert [r["mode"] for r in rows[:2]] == ["numpy_single", "gym"] and len(rows) == 2 + 2 * 4
     assert all(float(r["median_steps_per_s"]) > 0 for r in rows)
 
 
@@ -89,7 +91,8 @@ def _check_summary(path: Path, method: str) -> dict:
     assert keys <= set(s["metrics"]) and keys <= set(s["optimal"])
     assert s["method"] == method
     rows = list(csv.DictReader((path / "policy.csv").open()))
-    assert list(rows[0]) == ["d", "c", "r", "w", "v", "m", "action"] and len(rows) == 352
+    assert list(rows[0]) == ["d", "c", "r", "w", "v", "m", "action", "p_radar"] and len(rows) == 352
+    assert all(r["p_radar"] == r["action"] for r in rows)  # deterministic: p_radar is 0 or 1
     assert set(s["table"]) >= {"optimal (exact)"} or s["method"] == "optimal"
     assert {r["action"] for r in rows} <= {"0", "1"}
     from irdrc.experiments.results import read_policy_csv

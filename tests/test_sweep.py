@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import json
 import shlex
 import shutil
 import subprocess
@@ -211,3 +212,92 @@ def test_point_ids_separate_methods_and_bases():
     ids = {x[0]["point_id"] for x in (a, b, c)}
     assert len(ids) == 3 and all(i.startswith("seed=0__") for i in ids)
     assert b[0]["cfg"]["reward"]["r4"] == 50 and c[0]["cfg"]["algo"]["name"] == "qlearning"
+
+
+def _sweep_popen(tmp_path: Path, *overrides: str) -> subprocess.Popen:
+    """The sweep driver in its own session (so the test can signal or kill the whole group)."""
+    pytest.importorskip("ray")
+    cmd = shlex.join(
+        [
+            sys.executable,
+            str(ROOT / "recipes" / "sweep.py"),
+            *overrides,
+            "ray.num_cpus=1",
+            f"hydra.run.dir={tmp_path}",
+        ]
+    )
+    return subprocess.Popen(
+        ["unshare", "-n", "sh", "-c", f"ip link set lo up; exec {cmd}"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=ROOT,
+        start_new_session=True,
+    )
+
+
+def _wait_for_done(tmp_path: Path, proc: subprocess.Popen, n: int, timeout: float = 240) -> None:
+    import time
+
+    t0 = time.monotonic()
+    while len(list((tmp_path / "trials").glob("*/summary.json"))) < n:
+        assert proc.poll() is None, proc.communicate()
+        assert time.monotonic() - t0 < timeout, "no trial finished in time"
+        time.sleep(0.2)
+
+
+SLOW_GRID = (
+    "method=qlearning",
+    "sweep.grid={seed: [0,1,2,3]}",
+    "sweep.base=['algo.episodes=40','eval.mc_episodes=0','eval.every_frames=8000']",
+)
+
+
+@needs_ray_netns
+def test_driver_killed_mid_sweep_keeps_finished_trials_and_resume_runs_the_rest(tmp_path):
+    """kill -9 of the driver after the first trial: its files are already stored (they are written
+    when each trial finishes), and resume reruns only the others."""
+    import os
+    import signal
+
+    proc = _sweep_popen(tmp_path, *SLOW_GRID)
+    _wait_for_done(tmp_path, proc, 1)
+    os.killpg(proc.pid, signal.SIGKILL)
+    proc.communicate(timeout=60)
+    done = [p.parent for p in (tmp_path / "trials").glob("*/summary.json")]
+    assert 1 <= len(done) < 4
+    for d in done:
+        assert json.loads((d / "status.json").read_text())["status"] == "DONE"
+        assert (d / "metrics.csv").is_file()
+    r = sweep(tmp_path, *SLOW_GRID, "resume=true")
+    assert r.returncode == 0, (r.stdout[-3000:], r.stderr[-3000:])
+    assert f"4 grid points, {4 - len(done)} to run (resume)" in r.stdout
+    assert {t["status"] for t in rows(tmp_path / "summary.csv")} == {"DONE"}
+
+
+@needs_ray_netns
+def test_ctrl_c_leaves_a_valid_summary_with_incomplete_rows(tmp_path):
+    import os
+    import signal
+
+    proc = _sweep_popen(tmp_path, *SLOW_GRID)
+    _wait_for_done(tmp_path, proc, 1)
+    os.killpg(proc.pid, signal.SIGINT)
+    stdout, stderr = proc.communicate(timeout=180)
+    assert proc.returncode != 0 and "Traceback" not in stderr, (stdout[-2000:], stderr[-3000:])
+    table = rows(tmp_path / "summary.csv")
+    assert len(table) == 4 and "DONE" in {t["status"] for t in table}
+    assert {t["status"] for t in table} <= {"DONE", "INCOMPLETE", "ERROR"}
+
+
+def test_status_files_are_checked(tmp_path, capsys):
+    from irdrc.experiments.sweep import read_status
+
+    d = tmp_path / "p"
+    d.mkdir()
+    (d / "status.json").write_text('{"status": "DONE"}')
+    assert read_status(d)["status"] == "INCOMPLETE"  # DONE without its summary is not DONE
+    (d / "summary.json").write_text("{}")
+    assert read_status(d)["status"] == "DONE"
+    (d / "status.json").write_text("{not json")
+    assert read_status(d) is None and str(d / "status.json") in capsys.readouterr().out

@@ -48,10 +48,33 @@ class Hooks:
         on_eval: after each exact evaluation, with its progress records (one per learner).
         on_batch: after each batch of interaction, with ``env_steps`` and the learner's training
             scalars (e.g. ``epsilon``, ``loss``), logged as ``train/<name>``.
+        on_start: once the learner is built, with facts about it (e.g. the replay sampler).
+        on_checkpoint: with the resumable state, every ``checkpoint_every_frames`` env steps
+            (learners that checkpoint; 0: never during the run).
+        should_stop: polled after each batch; True makes the learner stop there, evaluate, and
+            return its record with ``interrupted`` set (and ``state`` to resume from).
     """
 
     on_eval: Callable[[list[dict[str, Any]]], None] | None = None
     on_batch: Callable[[dict[str, Any]], None] | None = None
+    on_start: Callable[[dict[str, Any]], None] | None = None
+    on_checkpoint: Callable[[dict[str, Any]], None] | None = None
+    checkpoint_every_frames: int = 0
+    should_stop: Callable[[], bool] | None = None
+
+    def start(self, info: dict[str, Any]) -> None:
+        """Call ``on_start`` (what the learner built, before the first step) if set."""
+        if self.on_start is not None:
+            self.on_start(info)
+
+    def checkpoint_due(self, before: int, after: int) -> bool:
+        """Whether a multiple of ``checkpoint_every_frames`` lies in (before, after]."""
+        every = self.checkpoint_every_frames
+        return bool(every) and self.on_checkpoint is not None and after // every > before // every
+
+    def stop_requested(self) -> bool:
+        """Whether the caller asked the learner to stop after this batch (e.g. on SIGTERM)."""
+        return self.should_stop is not None and self.should_stop()
 
     def eval(self, records: list[dict[str, Any]]) -> None:
         """Call ``on_eval`` if set."""
@@ -82,6 +105,7 @@ class RunRecord:
         info: learner-specific facts worth reporting (e.g. the replay sampler).
         state: a resumable state (written as ``checkpoint.pt``), or None for learners that do not
             checkpoint.
+        interrupted: the run stopped early because ``Hooks.should_stop`` asked it to.
     """
 
     method: str
@@ -96,6 +120,7 @@ class RunRecord:
     q: torch.Tensor | None = None
     info: dict[str, Any] = field(default_factory=dict)
     state: dict[str, Any] | None = None
+    interrupted: bool = False
 
     @property
     def num_learners(self) -> int:

@@ -11,6 +11,7 @@ import math
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field, fields
+from pathlib import Path
 from typing import Any
 
 import torch
@@ -26,7 +27,14 @@ from torchrl.objectives import DQNLoss, HardUpdate, SoftUpdate
 from irdrc.agents.base import Hooks, RunRecord, make_scorers, progress_record, scenario_list
 from irdrc.agents.replay import make_prioritized_sampler
 from irdrc.core.env import DFRCEnv
-from irdrc.core.params import Params, reject_unknown_keys, to_plain
+from irdrc.core.params import (
+    Params,
+    check_bool,
+    check_choice,
+    check_number,
+    reject_unknown_keys,
+    to_plain,
+)
 from irdrc.core.solve import ExactScorer
 
 NAME = "dqn"
@@ -44,10 +52,15 @@ class NetworkConfig:
     activation: str = "relu"
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "hidden", tuple(self.hidden))
-        if not self.hidden or any(not isinstance(h, int) or h < 1 for h in self.hidden):
+        hidden = self.hidden if isinstance(self.hidden, list | tuple) else None
+        object.__setattr__(self, "hidden", tuple(hidden) if hidden is not None else ())
+        if not self.hidden or any(
+            isinstance(h, bool) or not isinstance(h, int) or not 1 <= h <= 65536
+            for h in self.hidden
+        ):
             raise ValueError(
-                f"network.hidden={list(self.hidden)!r} must be a non-empty list of integers >= 1"
+                f"network.hidden={hidden if hidden is not None else self.hidden!r} must be a "
+                "non-empty list of integers in [1, 65536]"
             )
         if self.activation not in ACTIVATIONS:
             raise ValueError(
@@ -117,35 +130,34 @@ class DQNConfig:
     name: str = field(default="dqn", compare=False)
 
     def __post_init__(self) -> None:
-        def need(key: str, ok: bool, allowed: str) -> None:
-            if not ok:
-                raise ValueError(f"algo.{key}={getattr(self, key)!r} must be {allowed}")
+        def num(key: str, lo: float, hi: float = math.inf, **kw: Any) -> None:
+            object.__setattr__(
+                self, key, check_number(f"algo.{key}", getattr(self, key), lo, hi, **kw)
+            )
 
-        for key in ("num_envs", "frames_per_batch", "total_frames", "buffer_size", "batch_size"):
-            need(
-                key,
-                isinstance(getattr(self, key), int) and getattr(self, key) >= 1,
-                "an integer >= 1",
-            )
-        for key in ("init_random_frames", "updates_per_batch", "eps_anneal_frames"):
-            need(
-                key,
-                isinstance(getattr(self, key), int) and getattr(self, key) >= 0,
-                "an integer >= 0",
-            )
-        need("target_update_every_updates", self.target_update_every_updates >= 1, ">= 1")
-        need("lr", 0 < self.lr < 1, "in (0, 1)")
-        need("lr_end", 0 <= self.lr_end < 1, "in [0, 1)")
-        need("max_grad_norm", self.max_grad_norm >= 0, ">= 0")
-        need("gamma", 0 <= self.gamma < 1, "in [0, 1)")
-        need(
-            "loss_function", self.loss_function in ("l2", "l1", "smooth_l1"), "l2, l1 or smooth_l1"
-        )
+        # Sizes are capped where a larger value could only exhaust memory or time on any machine.
+        for key in ("num_envs", "frames_per_batch", "batch_size"):
+            num(key, 1, 10**7, integer=True)
+        num("total_frames", 1, 10**12, integer=True)
+        num("buffer_size", 1, 10**9, integer=True)
+        num("updates_per_batch", 1, 10**6, integer=True)  # 0 would never learn
+        for key in ("init_random_frames", "eps_anneal_frames"):
+            num(key, 0, 10**12, integer=True)
+        num("target_update_every_updates", 1, 10**12, integer=True)
+        num("lr", 0, 1, open_lo=True, open_hi=True)
+        num("lr_end", 0, 1, open_hi=True)
+        num("max_grad_norm", 0)
+        num("gamma", 0, 1, open_hi=True)
         for key in ("eps_start", "eps_end", "tau", "beta_start"):
-            need(key, 0 <= getattr(self, key) <= 1, "in [0, 1]")
-        need("alpha", self.alpha >= 0, ">= 0")
-        need("target_update", self.target_update in ("soft", "hard"), "soft or hard")
-        need("sampler", self.sampler in ("auto", "torchrl", "torch"), "auto, torchrl or torch")
+            num(key, 0, 1)
+        num("alpha", 0, 10)
+        check_choice("algo.loss_function", self.loss_function, ("l2", "l1", "smooth_l1"))
+        check_choice("algo.target_update", self.target_update, ("soft", "hard"))
+        check_choice("algo.sampler", self.sampler, ("auto", "torchrl", "torch"))
+        check_bool("algo.double_dqn", self.double_dqn)
+        check_bool("algo.prioritized", self.prioritized)
+        if not isinstance(self.network, NetworkConfig):
+            raise ValueError(f"network={self.network!r} must be a NetworkConfig")
         # Combinations, named by their keys.
         if self.frames_per_batch % self.num_envs:
             raise ValueError(
@@ -318,7 +330,10 @@ def train(
     target = make_target_updater(loss, cfg)
     optimizer = torch.optim.Adam(loss.parameters(), lr=cfg.lr)
     record = RunRecord(method=cfg.name, greedy=torch.zeros(1, env.num_states, dtype=torch.int64))
-    record.info["replay_sampler"] = type(sampler).__name__
+    record.info["replay_sampler"] = type(sampler).__name__ + (
+        " (prioritised)" if cfg.prioritized else " (uniform)"
+    )
+    hooks.start(dict(record.info))
 
     start_frames = _restore(resume, loss, optimizer, exploration, record)
     remaining = cfg.total_frames - start_frames
@@ -379,29 +394,38 @@ def train(
                 "buffer": len(rb),
             }
         )
-        if frames >= next_eval or frames >= cfg.total_frames:
+        stop = hooks.stop_requested()
+        if frames >= next_eval or frames >= cfg.total_frames or stop:
             evaluate_now()
             next_eval = (frames // eval_every_frames + 1) * eval_every_frames
+        if hooks.checkpoint_due(frames - data.numel(), frames) and frames < cfg.total_frames:
+            wall = time.perf_counter() - t0
+            hooks.on_checkpoint(_checkpoint(loss, optimizer, record, frames, wall))
+        if stop:
+            record.interrupted = True
+            break
     collector.shutdown()
     record.env_steps = frames
     record.episodes = len(record.episode_rewards)
     record.wall_seconds = time.perf_counter() - t0
     record.greedy = greedy_table(qnet, env)[None]
     record.q = action_values(qnet, env)[None]
-    record.state = _checkpoint(loss, optimizer, record)
+    record.state = _checkpoint(loss, optimizer, record, frames, record.wall_seconds)
     return record
 
 
-def _checkpoint(loss: DQNLoss, optimizer: torch.optim.Optimizer, record: RunRecord) -> dict:
-    """The resumable state: networks, optimiser, counters and the record's history so far."""
+def _checkpoint(
+    loss: DQNLoss, optimizer: torch.optim.Optimizer, record: RunRecord, frames: int, wall: float
+) -> dict:
+    """The resumable state at ``frames`` env steps: networks, optimiser, counters, history so far."""
     return {
         "loss": loss.state_dict(),
         "optimizer": optimizer.state_dict(),
-        "frames": record.env_steps,
+        "frames": frames,
         "updates": record.updates,
-        "wall_seconds": record.wall_seconds,
-        "history": record.history,
-        "episode_rewards": record.episode_rewards,
+        "wall_seconds": wall,
+        "history": list(record.history),
+        "episode_rewards": list(record.episode_rewards),
     }
 
 
@@ -475,6 +499,27 @@ def _track_episodes(
             total[e] = 0.0
 
 
+CHECKPOINT_KEYS = ("loss", "optimizer", "frames", "updates", "wall_seconds", "history", "config")
+
+
 def load_checkpoint(path) -> dict[str, Any]:
-    """Load a checkpoint (``RunRecord.state`` plus the run's config, ``torch.load(weights_only=True)``)."""
-    return torch.load(path, map_location="cpu", weights_only=True)
+    """Load a checkpoint (``RunRecord.state`` plus the run's ``config``) written by a DQN run.
+
+    Raises:
+        ValueError: one line naming the file when it is missing, truncated, corrupt or not a DQN
+            checkpoint.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"resume={path}: no such checkpoint file")
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as err:  # truncated or corrupt: EOFError, RuntimeError, UnpicklingError …
+        raise ValueError(
+            f"resume={path}: not a readable checkpoint ({type(err).__name__}); it may be truncated "
+            "or from another program"
+        ) from err
+    missing = [k for k in CHECKPOINT_KEYS if not isinstance(state, dict) or k not in state]
+    if missing:
+        raise ValueError(f"resume={path}: not an irdrc DQN checkpoint (no {', '.join(missing)})")
+    return state

@@ -12,6 +12,7 @@ Two profiles: ``PAPER`` (the reference profile of MODEL.md: α = 0.01, ε = 0.1 
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, fields
@@ -27,7 +28,7 @@ from irdrc.agents.base import (
     scenario_list,
 )
 from irdrc.core.env import Dynamics
-from irdrc.core.params import Params, reject_unknown_keys, to_plain
+from irdrc.core.params import Params, check_choice, check_number, reject_unknown_keys, to_plain
 from irdrc.core.solve import ExactScorer
 
 NAME = "qlearning"
@@ -65,21 +66,21 @@ class QLearningConfig:
     init_q: float = 0.0
 
     def __post_init__(self) -> None:
-        checks = [
-            ("episodes", self.episodes >= 1 and isinstance(self.episodes, int), ">= 1 (integer)"),
-            ("gamma", 0.0 <= self.gamma < 1.0, "in [0, 1)"),
-            ("alpha", 0.0 < self.alpha <= 1.0, "in (0, 1]"),
-            ("init_q", isinstance(self.init_q, int | float), "a number"),
-            ("alpha_schedule", self.alpha_schedule in ("constant", "count"), "constant or count"),
-            ("alpha_power", 0.0 <= self.alpha_power <= 1.0, "in [0, 1]"),
-            ("alpha_min", 0.0 <= self.alpha_min <= 1.0, "in [0, 1]"),
-            ("epsilon_start", 0.0 <= self.epsilon_start <= 1.0, "in [0, 1]"),
-            ("epsilon_end", 0.0 <= self.epsilon_end <= 1.0, "in [0, 1]"),
-            ("epsilon_decay_episodes", self.epsilon_decay_episodes >= 0, ">= 0"),
-        ]
-        for key, ok, allowed in checks:
-            if not ok:
-                raise ValueError(f"algo.{key}={getattr(self, key)!r} must be {allowed}")
+        def num(key: str, lo: float, hi: float = math.inf, **kw: Any) -> None:
+            object.__setattr__(
+                self, key, check_number(f"algo.{key}", getattr(self, key), lo, hi, **kw)
+            )
+
+        num("episodes", 1, 10**9, integer=True)
+        num("gamma", 0, 1, open_hi=True)
+        num("alpha", 0, 1, open_lo=True)
+        check_choice("algo.alpha_schedule", self.alpha_schedule, ("constant", "count"))
+        num("alpha_power", 0, 1)
+        num("alpha_min", 0, 1)
+        num("epsilon_start", 0, 1)
+        num("epsilon_end", 0, 1)
+        num("epsilon_decay_episodes", 0, 10**9, integer=True)
+        num("init_q", -1e12, 1e12)
 
     @classmethod
     def from_dict(cls, data: Any) -> QLearningConfig:
@@ -217,14 +218,18 @@ def train(
             for n, r in enumerate(total.cpu().tolist())
         ]
         hooks.batch({"env_steps": done * T, "episodes": done, "epsilon": eps})
-        if done * T >= next_eval or done == cfg.episodes:
+        stop = hooks.stop_requested()
+        if done * T >= next_eval or done == cfg.episodes or stop:
             evaluate(done)
             next_eval = (done * T // eval_every_frames + 1) * eval_every_frames
+        if stop:
+            record.interrupted = True
+            break
     record.wall_seconds = time.perf_counter() - t0
     record.q = q.view(N, S, 2).cpu()
     record.greedy = record.q.argmax(-1)
-    record.env_steps = record.updates = cfg.episodes * T
-    record.episodes = cfg.episodes
+    record.episodes = len(record.episode_rewards) // N
+    record.env_steps = record.updates = record.episodes * T
     return record
 
 

@@ -242,6 +242,19 @@ def _scenario_tables(params: Params) -> dict[str, torch.Tensor]:
     }
 
 
+def checked_actions(action: torch.Tensor) -> torch.Tensor:
+    """``action`` as int64 if every entry is 0 (communication) or 1 (radar), else a ``ValueError``.
+
+    Floating-point 0.0 / 1.0 are accepted; 0.5, 1.7, −1 or 2 are not (they would index the tables
+    out of their meaning)."""
+    bad = (action != 0) & (action != 1)
+    if bool(bad.any()):
+        raise ValueError(
+            f"action must be 0 (communication) or 1 (radar); got {action[bad][:3].tolist()}"
+        )
+    return action.to(torch.int64)
+
+
 def queue_update(
     d: torch.Tensor, arrivals: torch.Tensor, capacity: torch.Tensor, queue_capacity: int
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -390,8 +403,23 @@ class DFRCEnv(EnvBase):
         return self._out(state, steps, None, torch.zeros_like(steps, dtype=torch.bool))
 
     def _step(self, tensordict: TensorDictBase) -> TensorDict:
-        state = tensordict.get("state").reshape(-1)
-        action = tensordict.get("action").reshape(-1).to(torch.int64)
+        state, action = tensordict.get("state", None), tensordict.get("action", None)
+        if state is None or tensordict.get("step_count", None) is None:
+            raise ValueError(
+                "DFRCEnv.step needs the 'state' and 'step_count' that reset() returns: call "
+                "env.reset() first (or set them by hand)"
+            )
+        if action is None:
+            raise ValueError("DFRCEnv.step needs an 'action': 0 (communication) or 1 (radar)")
+        state, action = state.reshape(-1), checked_actions(action.reshape(-1))
+        if state.dtype.is_floating_point or bool(
+            ((state < 0) | (state >= self.dynamics.num_states)).any()
+        ):
+            bad = state[(state < 0) | (state >= self.dynamics.num_states)][:3].tolist()
+            raise ValueError(
+                f"state must hold integer state indices in [0, {self.dynamics.num_states}); "
+                f"got {bad or state.dtype}"
+            )
         steps = tensordict.get("step_count").reshape(-1) + 1
         res = self.dynamics.step(state, action, self.rng)
         truncated = steps >= self.params.env.horizon

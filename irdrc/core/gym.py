@@ -1,87 +1,216 @@
-"""Gymnasium entry point: ``gymnasium.make("irdrc/DFRC-v0", **overrides)`` after ``import irdrc``.
+"""Gymnasium entry points, registered by ``import irdrc``:
 
-A single, unbatched env with exactly the dynamics of ``DFRCEnv`` (both call ``irdrc.core.env.Dynamics``).
-Overrides use the config names, nested or dotted: ``gymnasium.make("irdrc/DFRC-v0",
-env={"p1": {"speed": 0.5}}, reward={"r4": 50})``, ``p1={"speed": 0.5}``, ``horizon=100``,
-``r4=50`` or ``**{"env.p1.speed": 0.5}``.
+- ``gymnasium.make("irdrc/DFRC-v0", **overrides)``: one env, for SB3, CleanRL and other single-env
+  code. It steps the same tables as ``irdrc.core.env.Dynamics`` in plain Python (a batched torch
+  step costs ~100 µs of overhead for one env; this costs a few µs), so its transitions have exactly
+  the distribution of the batched env's, not the same draws for a seed.
+- ``gymnasium.make_vec("irdrc/DFRC-v0", num_envs=N, **overrides)``: N envs stepped together by
+  ``Dynamics`` (torch), with gymnasium's next-step autoreset.
+
+Overrides use the config names, nested or dotted: ``env={"p1": {"speed": 0.5}}``,
+``reward={"r4": 50}``, ``p1={"speed": 0.5}``, ``horizon=100``, ``r4=50`` or
+``**{"env.p1.speed": 0.5}``.
 """
 
 from __future__ import annotations
 
+import bisect
+import random
 from typing import Any
 
 import gymnasium
 import numpy as np
 import torch
 from gymnasium import spaces
+from gymnasium.vector import AutoresetMode, VectorEnv
 
-from irdrc.core.env import Dynamics
+from irdrc.core.env import FACTOR_BITS, Dynamics, checked_actions
 from irdrc.core.params import Params
 
 ENV_ID = "irdrc/DFRC-v0"
 
 
+def _params(params: Params | None, overrides: dict[str, Any]) -> Params:
+    if params is not None and overrides:
+        raise ValueError("pass either params or overrides, not both")
+    return params if params is not None else Params.from_overrides(overrides)
+
+
+def _observation_space(params: Params) -> spaces.Box:
+    high = np.array([params.env.queue_capacity, 1, 1, 1, 1, 1], dtype=np.float32)
+    return spaces.Box(np.zeros(6, dtype=np.float32), high, dtype=np.float32)
+
+
+def _action(action: Any) -> int:
+    """A gymnasium action as 0 or 1: an int or a 0-d integer array; anything else is refused."""
+    if isinstance(action, bool | np.bool_):
+        raise ValueError(f"action={action!r} must be 0 (communication) or 1 (radar), not a bool")
+    if isinstance(action, int | np.integer) or (
+        isinstance(action, np.ndarray) and action.shape == () and action.dtype.kind in "iu"
+    ):
+        a = int(action)
+        if a in (0, 1):
+            return a
+    raise ValueError(f"action={action!r} must be 0 (communication) or 1 (radar)")
+
+
 class DFRCGymEnv(gymnasium.Env):
     """One iRDRC env for gymnasium users (SB3, CleanRL, …).
 
-    Observation: float32 array (d, c, r, w, v, m). Action: 0 = communication, 1 = radar.
-    ``terminated`` is always False; ``truncated`` is True at step ``env.horizon``.
-    ``info`` holds ``state`` (index), ``event``, ``missed``, ``sent``, ``dropped``, ``capacity``,
-    ``step_count``.
+    Observation: float32 array (d, c, r, w, v, m). Action: 0 = communication, 1 = radar (an int or a
+    0-d integer array). ``terminated`` is always False; ``truncated`` is True at step
+    ``env.horizon``. ``info`` holds ``state`` (index), ``event``, ``missed``, ``sent``,
+    ``dropped``, ``capacity``, ``step_count``.
     """
 
     metadata = {"render_modes": []}  # noqa: RUF012 - gymnasium's convention
 
     def __init__(self, params: Params | None = None, **overrides: Any) -> None:
-        if params is not None and overrides:
-            raise ValueError("pass either params or overrides, not both")
-        self.params = params if params is not None else Params.from_overrides(overrides)
-        self.dynamics = Dynamics(self.params)
-        env = self.params.env
-        high = np.array([env.queue_capacity, 1, 1, 1, 1, 1], dtype=np.float32)
-        self.observation_space = spaces.Box(np.zeros(6, dtype=np.float32), high, dtype=np.float32)
+        self.params = _params(params, overrides)
+        self.dynamics = dyn = Dynamics(self.params)
+        self.observation_space = _observation_space(self.params)
         self.action_space = spaces.Discrete(2)
-        self._rng = torch.Generator()
-        self._rng.manual_seed(int(np.random.SeedSequence().generate_state(1)[0]))
-        self._state = torch.zeros(1, dtype=torch.int64)
+        # The tables of Dynamics (scenario 0), as Python lists for a step without tensor overhead.
+        self._event = dyn.event_prob.tolist()
+        self._next1 = dyn.next1.tolist()
+        self._reward = dyn.reward.tolist()
+        self._capacity = dyn.capacity.tolist()
+        cdf = dyn.arrival_cdf if dyn.arrival_cdf.ndim == 1 else dyn.arrival_cdf[0]
+        self._cdf = cdf.tolist()
+        self._weights = [1 << b for b in FACTOR_BITS]
+        self._obs = [o for o in dyn.obs.numpy()]
+        self._D = dyn.queue_capacity
+        self._S = dyn.num_states
+        self._horizon = self.params.env.horizon
+        self._rng = random.Random(int(np.random.SeedSequence().generate_state(1)[0]))
+        self._state = -1  # no episode yet: step() before reset() is refused
         self._steps = 0
-
-    def _obs(self) -> np.ndarray:
-        return self.dynamics.obs[self._state[0]].numpy().copy()
 
     def reset(
         self, *, seed: int | None = None, options: dict[str, Any] | None = None
     ) -> tuple[np.ndarray, dict[str, Any]]:
-        """Start an episode from a uniformly drawn state; ``seed`` reseeds the generator."""
+        """Start an episode from a uniformly drawn state, or from ``options={"state": s}`` (a state
+        index, see ``irdrc.state_index``); ``seed`` reseeds the generator."""
         super().reset(seed=seed)
         if seed is not None:
-            self._rng.manual_seed(int(seed))
-        self._state = self.dynamics.reset_states(1, self._rng)
+            self._rng.seed(int(seed))
+        start = (options or {}).get("state")
+        if start is None:
+            self._state = int(self._rng.random() * self._S)
+        elif isinstance(start, int | np.integer) and 0 <= int(start) < self._S:
+            self._state = int(start)
+        else:
+            raise ValueError(f"options['state']={start!r} must be a state index in [0, {self._S})")
         self._steps = 0
-        return self._obs(), {"state": int(self._state[0]), "step_count": 0}
+        return self._obs[self._state].copy(), {"state": self._state, "step_count": 0}
 
     def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         """Apply action 0 (comm) or 1 (radar)."""
-        a = int(action)
-        if a not in (0, 1):
-            raise ValueError(f"action={action!r} must be 0 (communication) or 1 (radar)")
-        res = self.dynamics.step(self._state, torch.tensor([a]), self._rng)
-        self._state = res.state
+        if self._state < 0:
+            raise gymnasium.error.ResetNeeded("call reset() before step()")
+        a = _action(action)
+        s, u = self._state, self._rng.random
+        f = s & 31
+        event = u() < self._event[f & 15]
+        arrivals = bisect.bisect_right(self._cdf, u())
+        p1 = self._next1[a * 32 + f]
+        f_next = 0
+        for i in range(5):
+            if u() < p1[i]:
+                f_next += self._weights[i]
+        capacity = self._capacity[a * 2 + (f >> 4)]
+        total = (s >> 5) + arrivals
+        sent = min(total, capacity)
+        rest = total - sent
+        d_next = min(rest, self._D)
+        self._state = d_next * 32 + f_next
         self._steps += 1
         info = {
-            "state": int(res.state[0]),
-            "event": bool(res.event[0]),
-            "missed": bool(res.missed[0]),
-            "sent": int(res.sent[0]),
-            "dropped": int(res.dropped[0]),
-            "capacity": int(res.capacity[0]),
+            "state": self._state,
+            "event": event,
+            "missed": event and a == 0,
+            "sent": sent,
+            "dropped": rest - d_next,
+            "capacity": capacity,
             "step_count": self._steps,
         }
-        truncated = self._steps >= self.params.env.horizon
-        return self._obs(), float(res.reward[0]), False, truncated, info
+        reward = self._reward[a * 64 + event * 32 + f]
+        truncated = self._steps >= self._horizon
+        return self._obs[self._state].copy(), reward, False, truncated, info
+
+
+class DFRCVectorEnv(VectorEnv):
+    """``num_envs`` iRDRC envs stepped together by ``Dynamics``, for gymnasium's vector API.
+
+    Autoreset is gymnasium's default (next step): the step after an episode's last one resets that
+    env, ignoring its action and returning reward 0. ``info`` holds arrays ``state``, ``event``,
+    ``missed``, ``sent``, ``dropped``, ``capacity``.
+    """
+
+    metadata = {"autoreset_mode": AutoresetMode.NEXT_STEP}  # noqa: RUF012 - gymnasium's convention
+
+    def __init__(self, num_envs: int = 1, params: Params | None = None, **overrides: Any) -> None:
+        if isinstance(num_envs, bool) or not isinstance(num_envs, int) or num_envs < 1:
+            raise ValueError(f"num_envs={num_envs!r} must be an integer >= 1")
+        self.params = _params(params, overrides)
+        self.dynamics = Dynamics(self.params)
+        self.num_envs = num_envs
+        self.single_observation_space = _observation_space(self.params)
+        self.single_action_space = spaces.Discrete(2)
+        self.observation_space = gymnasium.vector.utils.batch_space(
+            self.single_observation_space, num_envs
+        )
+        self.action_space = gymnasium.vector.utils.batch_space(self.single_action_space, num_envs)
+        self._rng = torch.Generator()
+        self._rng.manual_seed(int(np.random.SeedSequence().generate_state(1)[0]))
+        self._state: torch.Tensor | None = None
+        self._steps = torch.zeros(num_envs, dtype=torch.int64)
+        self._autoreset = torch.zeros(num_envs, dtype=torch.bool)
+
+    def reset(
+        self, *, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[np.ndarray, dict[str, Any]]:
+        """Reset every env (``seed`` reseeds the shared generator)."""
+        if seed is not None:
+            self._rng.manual_seed(int(seed))
+        self._state = self.dynamics.reset_states(self.num_envs, self._rng)
+        self._steps.zero_()
+        self._autoreset.zero_()
+        return self.dynamics.obs[self._state].numpy(), {"state": self._state.numpy().copy()}
+
+    def step(self, actions: Any):
+        """Step every env with ``actions`` (0 or 1 each)."""
+        if self._state is None:
+            raise gymnasium.error.ResetNeeded("call reset() before step()")
+        a = checked_actions(torch.as_tensor(np.asarray(actions)).reshape(-1))
+        if a.numel() != self.num_envs:
+            raise ValueError(f"{a.numel()} actions for {self.num_envs} envs")
+        res = self.dynamics.step(self._state, a, self._rng)
+        fresh = self.dynamics.reset_states(self.num_envs, self._rng)
+        done_before = self._autoreset
+        state = torch.where(done_before, fresh, res.state)
+        reward = torch.where(done_before, 0.0, res.reward).numpy().astype(np.float64)
+        self._steps = torch.where(done_before, 0, self._steps + 1)
+        truncated = (self._steps >= self.params.env.horizon).numpy()
+        self._state, self._autoreset = state, torch.as_tensor(truncated)
+        keep = ~done_before
+        info = {
+            "state": state.numpy().copy(),
+            "event": (res.event & keep).numpy(),
+            "missed": (res.missed & keep).numpy(),
+            "sent": torch.where(keep, res.sent, 0).numpy(),
+            "dropped": torch.where(keep, res.dropped, 0).numpy(),
+            "capacity": torch.where(keep, res.capacity, 0).numpy(),
+        }
+        terminated = np.zeros(self.num_envs, dtype=bool)
+        return self.dynamics.obs[state].numpy(), reward, terminated, truncated, info
 
 
 def register() -> None:
-    """Register ``irdrc/DFRC-v0`` with gymnasium (idempotent)."""
+    """Register ``irdrc/DFRC-v0`` (single and vector) with gymnasium (idempotent)."""
     if ENV_ID not in gymnasium.registry:
-        gymnasium.register(id=ENV_ID, entry_point="irdrc.core.gym:DFRCGymEnv")
+        gymnasium.register(
+            id=ENV_ID,
+            entry_point="irdrc.core.gym:DFRCGymEnv",
+            vector_entry_point="irdrc.core.gym:DFRCVectorEnv",
+        )

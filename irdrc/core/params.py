@@ -38,16 +38,55 @@ def to_plain(node: Any) -> Any:
     return node
 
 
-def _check_number(key: str, value: Any, lo: float, hi: float, *, integer: bool = False) -> Any:
+def check_number(
+    key: str,
+    value: Any,
+    lo: float = -math.inf,
+    hi: float = math.inf,
+    *,
+    integer: bool = False,
+    open_lo: bool = False,
+    open_hi: bool = False,
+) -> Any:
+    """``value`` as an int or float if it is a finite number within the bounds, else a ``ValueError``
+    naming ``key``, the value and the allowed range (``open_lo`` / ``open_hi`` exclude a bound)."""
     kind = "an integer" if integer else "a number"
-    bounds = f"[{lo}, {hi}]" if hi != math.inf else f">= {lo}"
+    left, right = "(" if open_lo else "[", ")" if open_hi else "]"
+    if hi == math.inf:
+        bounds = f"> {lo}" if open_lo else f">= {lo}"
+    elif lo == -math.inf:
+        bounds = f"< {hi}" if open_hi else f"<= {hi}"
+    else:
+        bounds = f"{left}{lo}, {hi}{right}"
     if isinstance(value, bool) or not isinstance(value, int | float):
-        raise ValueError(f"{key}={value!r} must be {kind} in {bounds}")
-    if integer and not (isinstance(value, int) or float(value).is_integer()):
-        raise ValueError(f"{key}={value!r} must be {kind} in {bounds}")
-    if not math.isfinite(value) or not lo <= value <= hi:
+        raise ValueError(
+            f"{key}={value!r} must be {kind} {'in ' if lo > -math.inf and hi < math.inf else ''}{bounds}"
+        )
+    if integer and not (
+        isinstance(value, int) or (math.isfinite(value) and float(value).is_integer())
+    ):
+        raise ValueError(f"{key}={value!r} must be {kind} (a whole number)")
+    ok = (lo < value if open_lo else lo <= value) and (value < hi if open_hi else value <= hi)
+    if not math.isfinite(value) or not ok:
         raise ValueError(f"{key}={value!r} is outside the allowed range {bounds}")
     return int(value) if integer else float(value)
+
+
+def check_choice(key: str, value: Any, choices: Iterable[Any]) -> Any:
+    """``value`` if it is one of ``choices``, else a ``ValueError`` naming the key and the choices."""
+    choices = list(choices)
+    if isinstance(value, bool) and not any(isinstance(c, bool) for c in choices):
+        raise ValueError(f"{key}={value!r} must be one of {', '.join(map(str, choices))}")
+    if value not in choices:
+        raise ValueError(f"{key}={value!r} must be one of {', '.join(map(str, choices))}")
+    return value
+
+
+def check_bool(key: str, value: Any) -> bool:
+    """``value`` if it is true or false, else a ``ValueError`` naming the key."""
+    if not isinstance(value, bool):
+        raise ValueError(f"{key}={value!r} must be true or false")
+    return value
 
 
 def reject_unknown_keys(prefix: str, keys: Iterable[Any], allowed: Iterable[str]) -> None:
@@ -106,7 +145,7 @@ class EventProbs:
     def __post_init__(self) -> None:
         for name in EVENT_FACTORS:
             object.__setattr__(
-                self, name, _check_number(self._prefix + name, getattr(self, name), 0.0, 1.0)
+                self, name, check_number(self._prefix + name, getattr(self, name), 0.0, 1.0)
             )
 
     def as_tuple(self) -> tuple[float, float, float, float]:
@@ -128,7 +167,7 @@ class StayProbs:
     def __post_init__(self) -> None:
         for name in MARKOV_FACTORS:
             object.__setattr__(
-                self, name, _check_number(self._prefix + name, getattr(self, name), 0.0, 1.0)
+                self, name, check_number(self._prefix + name, getattr(self, name), 0.0, 1.0)
             )
 
     def as_tuple(self) -> tuple[float, float, float, float, float]:
@@ -193,22 +232,20 @@ class EnvParams:
         set_(
             self,
             "queue_capacity",
-            _check_number("env.queue_capacity", self.queue_capacity, 1, 10_000, integer=True),
+            check_number("env.queue_capacity", self.queue_capacity, 1, 10_000, integer=True),
         )
         # The exact model sums arrivals up to a tail bucket; rates above 1000 packets/step are not a
         # regime this model is meant for and would make that table huge.
-        set_(
-            self, "arrival_rate", _check_number("env.arrival_rate", self.arrival_rate, 0.0, 1000.0)
-        )
+        set_(self, "arrival_rate", check_number("env.arrival_rate", self.arrival_rate, 0.0, 1000.0))
         set_(
             self,
             "packets_good",
-            _check_number("env.packets_good", self.packets_good, 0, 10_000, integer=True),
+            check_number("env.packets_good", self.packets_good, 0, 10_000, integer=True),
         )
         set_(
             self,
             "packets_bad",
-            _check_number("env.packets_bad", self.packets_bad, 0, 10_000, integer=True),
+            check_number("env.packets_bad", self.packets_bad, 0, 10_000, integer=True),
         )
         for name, cls in (
             ("p0", EventProbs),
@@ -218,6 +255,15 @@ class EnvParams:
         ):
             if not isinstance(getattr(self, name), cls):
                 raise ValueError(f"env.{name} must be a mapping of {cls.__name__} values")
+        for name, g, h in zip(
+            MARKOV_FACTORS, self.stay_good.as_tuple(), self.stay_bad.as_tuple(), strict=True
+        ):
+            if g == 1.0 and h == 1.0:
+                raise ValueError(
+                    f"env.stay_good.{name}=1 and env.stay_bad.{name}=1: the {name} never changes, so "
+                    "the long-run behaviour depends on where it starts and the exact long-run "
+                    "metrics are not defined; make at least one of them < 1"
+                )
         if self.event_model not in EVENT_MODELS:
             raise ValueError(
                 f"env.event_model={self.event_model!r} must be one of {', '.join(EVENT_MODELS)}"
@@ -227,9 +273,9 @@ class EnvParams:
         set_(
             self,
             "reaction_clear",
-            _check_number("env.reaction_clear", self.reaction_clear, 0.0, 1.0),
+            check_number("env.reaction_clear", self.reaction_clear, 0.0, 1.0),
         )
-        set_(self, "horizon", _check_number("env.horizon", self.horizon, 1, 10**9, integer=True))
+        set_(self, "horizon", check_number("env.horizon", self.horizon, 1, 10**9, integer=True))
 
     @property
     def num_states(self) -> int:
@@ -263,7 +309,7 @@ class RewardParams:
     def __post_init__(self) -> None:
         for name in ("r1", "r2", "r3", "r4"):
             # Weights are magnitudes: the signs live in eq. (3) (r3 is subtracted).
-            value = _check_number(f"reward.{name}", getattr(self, name), 0.0, 1e9)
+            value = check_number(f"reward.{name}", getattr(self, name), 0.0, 1e9)
             object.__setattr__(self, name, value)
 
     @classmethod

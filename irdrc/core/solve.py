@@ -189,18 +189,48 @@ def stationary_occupancy(model: ExactModel, policy) -> torch.Tensor:
     return occ / len(sched)
 
 
+DOUBLING_MAX_STATES = 2048
+"""Up to this many states, long episodic horizons use repeated squaring (log2(T) matrix products);
+above it, one matrix-vector product per step."""
+
+
+def _power_sum(M: torch.Tensor, n: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """(Σ_{m<n} M^m, M^n) by repeated squaring."""
+    eye = torch.eye(M.shape[0], dtype=M.dtype)
+    if n == 0:
+        return torch.zeros_like(M), eye
+    G, P = _power_sum(M, n // 2)
+    G, P = G + P @ G, P @ P  # Σ_{m<2h} = Σ_{m<h} + M^h Σ_{m<h}
+    if n % 2:
+        G, P = G + P, P @ M
+    return G, P
+
+
 def episodic_occupancy(model: ExactModel, policy, horizon: int | None = None) -> torch.Tensor:
     """State-action occupancy [2, S] averaged over the steps of an episode from the reset
     distribution (uniform over all states), for ``horizon`` steps (default ``env.horizon``)."""
     sched = as_schedule(policy, model.num_states)
     horizon = model.params.env.horizon if horizon is None else horizon
+    k, S = len(sched), model.num_states
     chains = [_chain(model, t) for t in sched]
-    rho = torch.full((model.num_states,), 1.0 / model.num_states, dtype=torch.float64)
-    occ = torch.zeros(2, model.num_states, dtype=torch.float64)
-    for t in range(horizon):
-        k = t % len(sched)
-        occ += (rho[:, None] * sched[k]).T
-        rho = rho @ chains[k]
+    rho = torch.full((S,), 1.0 / S, dtype=torch.float64)
+    occ = torch.zeros(2, S, dtype=torch.float64)
+    if horizon <= 4 * S or S > DOUBLING_MAX_STATES:
+        for t in range(horizon):
+            j = t % k
+            occ += (rho[:, None] * sched[j]).T
+            rho = rho @ chains[j]
+        return occ / horizon
+    # Step t = m·k + j is at rho · M^m · C_0 ⋯ C_{j−1}, with M the product over one period.
+    cycle = chains[0]
+    for ch in chains[1:]:
+        cycle = cycle @ ch
+    prefix = torch.eye(S, dtype=torch.float64)
+    for j in range(k):
+        n_j = (horizon - j + k - 1) // k  # steps of phase j within the horizon
+        G, _ = _power_sum(cycle, n_j)
+        occ += ((rho @ G @ prefix)[:, None] * sched[j]).T
+        prefix = prefix @ chains[j]
     return occ / horizon
 
 

@@ -1,4 +1,5 @@
-"""What every recipe does around its run: scenarios registered, renamed keys mapped, errors clear.
+"""What every recipe does around its run: scenarios registered, renamed keys mapped, the command line
+and the composed config checked before any work, and errors reported in a line, not a traceback.
 
 A recipe is ``main = recipe("dqn", run_dqn)`` plus ``if __name__ == "__main__": main()``: the run
 function gets the composed config and the run directory, and its return value (an exit code or a
@@ -7,15 +8,33 @@ summary) decides the exit status.
 
 from __future__ import annotations
 
+import os
 import sys
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from irdrc.experiments.config import CONF_DIR, register_scenarios, rename_overrides
+from irdrc.experiments.config import CONF_DIR, compose, register_scenarios, rename_overrides
+from irdrc.experiments.grid import override_key
+from irdrc.experiments.guard import RunInterrupted
+
+EXIT_USAGE = 2
+"""Exit status of a run refused before any work (a bad key or value)."""
 
 
-def recipe(config_name: str, run: Callable[..., Any], *, scenario_overrides: bool = False):
+def fail(message: str, code: int = EXIT_USAGE) -> None:
+    """Print ``error: message`` (no traceback) and exit with ``code``."""
+    print(f"error: {message}", file=sys.stderr, flush=True)
+    sys.exit(code)
+
+
+def recipe(
+    config_name: str,
+    run: Callable[..., Any],
+    *,
+    scenario_overrides: bool = False,
+    check: Callable[[Any], None] | None = None,
+):
     """A Hydra entry point for ``recipes/conf/<config_name>.yaml`` calling ``run(cfg, out)``.
 
     Args:
@@ -24,34 +43,63 @@ def recipe(config_name: str, run: Callable[..., Any], *, scenario_overrides: boo
             int return value is the exit status.
         scenario_overrides: pass the command line's scenario (``env=…``, ``env.*``, ``reward.*``) as
             a third argument, for recipes that plan runs of their own.
+        check: validates the composed config before ``run`` (default: the recipe's own checks in
+            ``irdrc.experiments.validate``).
+
+    Set ``IRDRC_TRACEBACK=1`` to see the traceback of an error instead of its one line.
     """
     import hydra
     from hydra.core.hydra_config import HydraConfig
 
+    from irdrc.experiments.validate import check_overrides, validate
+
     register_scenarios()
+    full = bool(os.environ.get("IRDRC_TRACEBACK"))
 
     @hydra.main(config_path=str(CONF_DIR), config_name=config_name, version_base=None)
     def _main(cfg) -> None:
         out = Path(HydraConfig.get().runtime.output_dir)
-        if scenario_overrides:
-            from irdrc.experiments.config import scenario_overrides as current
+        try:
+            if scenario_overrides:
+                from irdrc.experiments.config import scenario_overrides as current
 
-            code = run(cfg, out, current())
-        else:
-            code = run(cfg, out)
+                code = run(cfg, out, current())
+            else:
+                code = run(cfg, out)
+        except RunInterrupted as err:
+            fail(str(err), err.code)
+        except (ValueError, OSError) as err:
+            if full:
+                raise
+            fail(str(err))
         if isinstance(code, int) and code:
             sys.exit(code)  # Hydra's wrapper drops return values, so exit from inside the task
 
     def main() -> None:
+        args = sys.argv[1:]
         try:
-            sys.argv[1:], notes = rename_overrides(config_name, sys.argv[1:])
-        except ValueError as err:
-            print(f"error: {err}", file=sys.stderr)
-            sys.exit(2)
+            args, notes = rename_overrides(config_name, args)
+            overrides = [a for a in args if not a.startswith("-")]
+            check_overrides(config_name, overrides)
+            # Checked before Hydra starts, which creates (or, when it exists, rewrites) the run
+            # directory: a refused run leaves no trace.
+            cfg = compose(
+                config_name, [o for o in overrides if not override_key(o).startswith("hydra")]
+            )
+            (check or (lambda c: validate(config_name, c, overrides)))(cfg)
+        except (ValueError, OSError) as err:
+            if full:
+                raise
+            fail(str(err))
+        except Exception as err:  # Hydra's own parse errors: one line, not a traceback
+            if full:
+                raise
+            fail(f"{type(err).__name__}: {str(err).strip().splitlines()[0]}")
         for note in notes:
             print(note, file=sys.stderr)
-        if not any(a.startswith("hydra.job.name=") for a in sys.argv[1:]):
-            sys.argv.append(f"hydra.job.name={config_name}")  # the log file is <recipe>.log
+        if not any(a.startswith("hydra.job.name=") for a in args):
+            args.append(f"hydra.job.name={config_name}")  # the log file is <recipe>.log
+        sys.argv[1:] = args
         _main()
 
     return main

@@ -51,9 +51,8 @@ def parse_grid(grid: Any, name: str = "sweep.grid") -> list[dict[str, Any]]:
     """
     grid = to_plain(grid)
     if grid is None or (isinstance(grid, Mapping) and not grid):
-        raise ValueError(
-            f"{name} is empty: give it as {name}='{{seed: [0,1,2], reward.r4: [5,50]}}'"
-        )
+        example = "{env.p1.speed: [0.1,1.0]}" if name == "batch_grid" else "{seed: [0,1,2]}"
+        raise ValueError(f"{name} is empty: give it as {name}='{example}'")
     if not isinstance(grid, Mapping):
         raise ValueError(f"{name}={grid!r} must be a mapping of override key → list of values")
     for key, values in grid.items():

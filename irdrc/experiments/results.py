@@ -2,15 +2,16 @@
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import io
 import json
 import math
 import os
 import tempfile
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 
 import torch
 
@@ -24,14 +25,50 @@ def clean_number(x: float | None) -> float | None:
     return None if x is None or (isinstance(x, float) and math.isnan(x)) else float(x)
 
 
-def atomic_write_text(path: Path, text: str) -> None:
-    """Write ``text`` to ``path`` through a temporary file and a rename."""
+def _umask() -> int:
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+FILE_MODE = 0o666 & ~_umask()
+"""Mode of the files a run writes: what ``open`` would give under the user's umask (a temporary
+file is created 0600, so it is set explicitly)."""
+
+
+def atomic_write(path: Path, write: Callable[[BinaryIO], None]) -> None:
+    """Write ``path`` all at once or not at all: ``write`` fills a temporary file beside it, which
+    is flushed, fsynced and renamed over ``path``. On any error (a full disk, a signal) the
+    temporary file is removed and ``path`` keeps its previous content.
+
+    Raises:
+        OSError: with the file named, e.g. ``No space left on device``.
+    """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
-    with os.fdopen(fd, "w") as f:
-        f.write(text)
-    os.replace(tmp, path)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            write(f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.chmod(tmp, FILE_MODE)
+        os.replace(tmp, path)
+    except BaseException as err:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        if isinstance(err, OSError) and not isinstance(err, FileNotFoundError):
+            reason = err.strerror or str(err)
+            raise OSError(
+                err.errno, f"cannot write {path}: {reason} (its previous content is intact)"
+            ) from err
+        raise
+
+
+def atomic_write_text(path: Path, text: str) -> None:
+    """Write ``text`` to ``path`` atomically (see ``atomic_write``)."""
+    data = text.encode()
+    atomic_write(path, lambda f: f.write(data))
 
 
 def summary_dict(
@@ -67,20 +104,51 @@ def write_summary(path: Path, summary: dict[str, Any]) -> None:
     atomic_write_text(Path(path), json.dumps(summary, indent=2, allow_nan=False) + "\n")
 
 
-def write_policy_csv(path: Path, actions: torch.Tensor) -> None:
-    """``policy.csv``: header ``d,c,r,w,v,m,action``, one row per state in index order."""
-    actions = torch.as_tensor(actions).long().cpu()
+POLICY_COLUMNS = ("d", "c", "r", "w", "v", "m", "action", "p_radar")
+"""``policy.csv``: one row per state in index order: the state's factors, ``action`` (the mode
+chosen: 0 = communication, 1 = radar; the likelier one for a randomised policy) and ``p_radar``
+(the probability of radar: 0 or 1 for a deterministic policy)."""
+
+
+def write_policy_csv(path: Path, policy: torch.Tensor) -> None:
+    """``policy.csv`` (see ``POLICY_COLUMNS``) from an [S] action table or [S, 2] probabilities."""
+    policy = torch.as_tensor(policy).cpu()
+    if policy.ndim == 2:
+        p_radar = policy[:, 1].double()
+        actions = (p_radar > 0.5).long()
+    else:
+        actions = policy.long()
+        p_radar = actions.double()
     cols = decode_state(torch.arange(actions.numel()))
-    lines = ["d,c,r,w,v,m,action"]
-    lines += [",".join(map(str, [*c.tolist(), int(a)])) for c, a in zip(cols, actions, strict=True)]
+    lines = [",".join(POLICY_COLUMNS)]
+    lines += [
+        ",".join(map(str, [*c.tolist(), int(a), _prob(float(p))]))
+        for c, a, p in zip(cols, actions, p_radar, strict=True)
+    ]
     atomic_write_text(Path(path), "\n".join(lines) + "\n")
 
 
-def read_policy_csv(path: Path) -> torch.Tensor:
-    """Inverse of ``write_policy_csv``: the [S] action table."""
-    with Path(path).open() as f:
-        rows = list(csv.DictReader(f))
-    return torch.tensor([int(r["action"]) for r in rows])
+def _prob(p: float) -> str:
+    return "0" if p == 0 else "1" if p == 1 else repr(p)
+
+
+def read_policy_csv(path: Path, num_states: int | None = None) -> torch.Tensor:
+    """Inverse of ``write_policy_csv``: the [S] action table.
+
+    Raises:
+        ValueError: naming the file, if it is not a policy table (of ``num_states`` rows).
+    """
+    try:
+        with Path(path).open() as f:
+            rows = list(csv.DictReader(f))
+        actions = torch.tensor([int(r["action"]) for r in rows], dtype=torch.int64)
+    except (OSError, KeyError, ValueError, TypeError) as err:
+        raise ValueError(f"{path}: not a readable policy table ({type(err).__name__})") from err
+    if actions.numel() == 0 or bool(((actions != 0) & (actions != 1)).any()):
+        raise ValueError(f"{path}: a policy table holds one action 0 or 1 per state")
+    if num_states is not None and actions.numel() != num_states:
+        raise ValueError(f"{path}: {actions.numel()} states, expected {num_states}")
+    return actions
 
 
 def write_rows_csv(
@@ -117,4 +185,34 @@ def policy_table(model: ExactModel, actions: torch.Tensor) -> str:
             mode = "".join("R" if int(a) else "C" for a in col)
         pe = float(model.event[f])
         lines.append(f"{' '.join(map(str, bits))}  {sum(bits[1:])}  {pe:8.4f}  {mode}")
+    return "\n".join(lines)
+
+
+def policy_differences(model: ExactModel, actions: torch.Tensor, optimal: torch.Tensor) -> str:
+    """In words, where a policy differs from the optimum: one line per factor combination (c, r, w,
+    v, m) with a difference, each policy's mode by queue length (C = comm, R = radar, d = 0 … D)."""
+    D = model.params.env.queue_capacity
+    acts = torch.as_tensor(actions).long().view(D + 1, 32)
+    opt = torch.as_tensor(optimal).long().view(D + 1, 32)
+    n_diff = int((acts != opt).sum())
+    if n_diff == 0:
+        return f"the learned policy equals the optimum in all {model.num_states} states"
+    lines = [
+        f"the learned policy differs from the optimum in {n_diff} of {model.num_states} states "
+        "(mode by queue length d = 0 … D; C = comm, R = radar):",
+        "  c r w v m  P(event)  learned       optimum",
+    ]
+    for f in range(32):
+        if bool((acts[:, f] == opt[:, f]).all()):
+            continue
+        bits = " ".join(str((f >> s) & 1) for s in (4, 3, 2, 1, 0))
+
+        def mode(col: torch.Tensor) -> str:
+            if bool((col == col[0]).all()):
+                return "radar" if int(col[0]) else "comm"
+            return "".join("R" if int(a) else "C" for a in col)
+
+        lines.append(
+            f"  {bits}  {float(model.event[f]):8.4f}  {mode(acts[:, f]):<12}  {mode(opt[:, f])}"
+        )
     return "\n".join(lines)

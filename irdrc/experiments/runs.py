@@ -12,9 +12,12 @@ from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import math
-import statistics
+import signal
+import sys
 import time
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -23,7 +26,7 @@ from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
 from irdrc.agents import dqn, qlearning
-from irdrc.agents.base import EPISODE_FIELDS, PROGRESS_FIELDS, Hooks, RunRecord
+from irdrc.agents.base import Hooks
 from irdrc.core.env import DFRCEnv
 from irdrc.core.evaluate import evaluate
 from irdrc.core.metrics import Metrics, format_table
@@ -32,16 +35,22 @@ from irdrc.core.params import Params
 from irdrc.core.policies import table_policy
 from irdrc.core.solve import ExactScorer, episodic_metrics, stationary_metrics, value_iteration
 from irdrc.experiments.config import compose, scenario_name
-from irdrc.experiments.grid import is_scenario_key, parse_grid, point_overrides
+from irdrc.experiments.finish import finish_run, table_dict
+from irdrc.experiments.grid import is_scenario_key, parse_grid
+from irdrc.experiments.guard import (
+    RunInterrupted,
+    check_resume,
+    save_checkpoint,
+    stop_on_signals,
+)
 from irdrc.experiments.results import (
-    clean_number,
     policy_table,
+    read_policy_csv,
     summary_dict,
     write_policy_csv,
-    write_rows_csv,
     write_summary,
 )
-from irdrc.experiments.tracking import log_scalars, make_logger
+from irdrc.experiments.tracking import log_scalars, make_logger, resolve_wandb_mode
 
 LEARNERS = {dqn.NAME: dqn, qlearning.NAME: qlearning}
 """Method name → learner module (``Config``, ``train``; see ``irdrc.agents.base``)."""
@@ -90,7 +99,7 @@ def run_solve(cfg: DictConfig, out: Path, scenario: str | None = None) -> dict[s
         metrics=opt,
         optimal=opt,
         episodic=rows["optimal (episodic)"].as_dict(),
-        table=_table_dict(rows, errs),
+        table=table_dict(rows, errs),
     )
     write_summary(out / "summary.json", summary)
     write_policy_csv(out / "policy.csv", sol.policy)
@@ -132,24 +141,45 @@ def batch_points(cfg: DictConfig) -> list[dict[str, Any]]:
 
 
 class _Progress:
-    """Progress bar and logging hooks of a run (learner 0 is the one logged as ``eval/…``)."""
+    """Progress of a run, and its logging hooks (learner 0 is the one logged as ``eval/…``).
 
-    def __init__(self, total: int, enabled: bool, logger) -> None:
-        self.bar = tqdm(total=total, unit="step", disable=not enabled, dynamic_ncols=True)
-        self.logger = logger
+    On a terminal: a bar. Otherwise (a log file): one plain line per tenth of the run, with the ETA.
+    """
+
+    def __init__(self, total: int, enabled: bool, logger, label: str) -> None:
+        self.total, self.enabled, self.logger, self.label = total, enabled, logger, label
+        self.tty = sys.stdout.isatty()
+        self.bar: tqdm | None = None
         self.ratio = math.nan
         self.min_ratio = math.nan
+        self.start = time.perf_counter()
+        self.next_line = 0.1
+
+    def on_start(self, info: dict[str, Any]) -> None:
+        for key, value in info.items():
+            print(f"{key.replace('_', ' ')}: {value}", flush=True)
 
     def on_batch(self, info: dict[str, Any]) -> None:
-        self.bar.update(info["env_steps"] - self.bar.n)
-        post = {"opt": f"{self.ratio:.4f}"}
-        if not math.isnan(self.min_ratio):
-            post["min"] = f"{self.min_ratio:.4f}"
-        if "epsilon" in info:
-            post["eps"] = f"{info['epsilon']:.3f}"
-        self.bar.set_postfix(post)
-        scalars = {f"train/{k}": v for k, v in info.items() if k not in ("env_steps",)}
-        log_scalars(self.logger, scalars, info["env_steps"])
+        steps = info["env_steps"]
+        if self.enabled and self.tty:
+            if self.bar is None:
+                self.bar = tqdm(total=self.total, unit="step", dynamic_ncols=True)
+            self.bar.update(steps - self.bar.n)
+            post = {"opt": f"{self.ratio:.4f}"}
+            if not math.isnan(self.min_ratio):
+                post["min"] = f"{self.min_ratio:.4f}"
+            self.bar.set_postfix(post, refresh=False)
+        elif self.enabled and steps >= self.next_line * self.total:
+            elapsed = time.perf_counter() - self.start
+            eta = elapsed / steps * (self.total - steps) if steps else math.nan
+            print(
+                f"[{self.label}] {steps}/{self.total} env steps ({steps / self.total:.0%}), "
+                f"ratio {self.ratio:.4f}, {elapsed:.0f} s, ETA {eta:.0f} s",
+                flush=True,
+            )
+            self.next_line = math.floor(steps / self.total * 10 + 1) / 10
+        scalars = {f"train/{k}": v for k, v in info.items() if k != "env_steps"}
+        log_scalars(self.logger, scalars, steps)
 
     def on_eval(self, records: list[dict[str, Any]]) -> None:
         first = records[0]
@@ -166,236 +196,110 @@ class _Progress:
         )
 
     def close(self) -> None:
-        self.bar.close()
+        if self.bar is not None:
+            self.bar.close()
+
+
+def _load_resume(cfg: DictConfig) -> tuple[dict[str, Any] | None, Path | None]:
+    """The checkpoint to resume from (``resume=…``), checked against this run's config before
+    anything is written."""
+    if not cfg.get("resume"):
+        return None, None
+    path = Path(str(cfg.resume)).expanduser()
+    state = dqn.load_checkpoint(path)
+    check_resume(path, state, OmegaConf.to_container(cfg, resolve=True))
+    total = int(cfg.algo.total_frames)
+    if int(state["frames"]) >= total:
+        raise ValueError(
+            f"resume={path} is at {state['frames']} env steps, algo.total_frames={total}: "
+            "nothing left to train; raise algo.total_frames"
+        )
+    return state, path
 
 
 def run_learner(
     method: str, cfg: DictConfig, out: Path, scenario: str | None = None
 ) -> dict[str, Any]:
-    """Train ``method`` on the composed config ``cfg`` and finish the run in ``out``."""
+    """Train ``method`` on the composed config ``cfg`` and finish the run in ``out``.
+
+    SIGINT / SIGTERM stop the learner after its current batch; the files so far (and, for learners
+    that checkpoint, ``checkpoint.pt``) are written and ``RunInterrupted`` says how to go on.
+    """
     agent = LEARNERS[method]
     torch.set_num_threads(int(cfg.get("num_threads", 1)))
+    logging.getLogger("torchrl").setLevel(logging.WARNING)  # its storage line would cut the bar
+    # the run's own record counts the extra frames of a last partial batch
+    warnings.filterwarnings("ignore", message="total_frames .* is not exactly divisible")
     config = agent.Config.from_node(cfg)
     base = Params.from_config(cfg)
     _check_eval(cfg)
     num_learners = int(cfg.get("num_learners", 1))
-    if num_learners < 1:
-        raise ValueError(f"num_learners={num_learners} must be >= 1")
     points = batch_points(cfg)
     scenarios = [base.with_overrides(p) for p in points]
+    resume, resume_path = _load_resume(cfg)  # before anything is written
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     scenario = scenario or scenario_name(cfg)
-    resume = None
-    if cfg.get("resume"):
-        resume = dqn.load_checkpoint(Path(str(cfg.resume)).expanduser())
     name = str(cfg.algo.get("name", method))
-    exp_name = f"{scenario}__{name}__{cfg.seed}"
     OmegaConf.save(cfg, out / "config.yaml")
     logger = make_logger(
         cfg.logger.backend,
-        exp_name,
+        f"{scenario}__{name}__{cfg.seed}",
         out / "logs",
         project=cfg.logger.project,
         mode=cfg.logger.mode,
         config=OmegaConf.to_container(cfg, resolve=True),
     )
-    gamma = float(cfg.optimum_gamma)
-    scorers = [ExactScorer(build_model(p), gamma=gamma) for p in scenarios]
-    progress = _Progress(config.env_steps(base.env.horizon), bool(cfg.progress), logger)
-    record = agent.train(
-        scenarios,
-        config,
-        num_learners=num_learners,
-        seed=int(cfg.seed),
-        device=cfg.device,
-        scorers=scorers,
-        eval_every_frames=int(cfg.eval.every_frames),
-        hooks=Hooks(on_eval=progress.on_eval, on_batch=progress.on_batch),
-        resume=resume,
-    )
-    progress.close()
-    comparisons = comparison_rows(cfg, base)
-    summary = finish_run(
-        name, cfg, out, scenario, record, scenarios, scorers, points, num_learners, comparisons
-    )
+    if resume_path is not None:
+        print(f"resumed from {resume_path} at {resume['frames']} env steps", flush=True)
+    scorers = [ExactScorer(build_model(p), gamma=float(cfg.optimum_gamma)) for p in scenarios]
+    progress = _Progress(config.env_steps(base.env.horizon), bool(cfg.progress), logger, name)
+    config_plain = OmegaConf.to_container(cfg, resolve=True)
+    with stop_on_signals() as stop:
+        hooks = Hooks(
+            on_eval=progress.on_eval,
+            on_batch=progress.on_batch,
+            on_start=progress.on_start,
+            on_checkpoint=lambda state: save_checkpoint(out, state, config_plain),
+            checkpoint_every_frames=int(cfg.get("checkpoint", {}).get("every_frames", 0) or 0),
+            should_stop=stop,
+        )
+        record = agent.train(
+            scenarios,
+            config,
+            num_learners=num_learners,
+            seed=int(cfg.seed),
+            device=cfg.device,
+            scorers=scorers,
+            eval_every_frames=int(cfg.eval.every_frames),
+            hooks=hooks,
+            resume=resume,
+        )
+        progress.close()
+        comparisons = {} if record.interrupted else comparison_rows(cfg, base)
+        summary = finish_run(
+            name, cfg, out, scenario, record, scenarios, scorers, points, num_learners, comparisons
+        )
     log_scalars(logger, {"final/optimality_ratio": summary["optimality_ratio"]}, record.env_steps)
     if logger is not None and cfg.logger.backend == "wandb":
+        sync_dir = Path(logger.experiment.dir).parent
         logger.experiment.finish()
-    return summary
-
-
-def finish_run(
-    name: str,
-    cfg: DictConfig,
-    out: Path,
-    scenario: str,
-    record: RunRecord,
-    scenarios: list[Params],
-    scorers: list[ExactScorer],
-    points: list[dict[str, Any]],
-    num_learners: int,
-    comparisons: dict[str, Metrics],
-) -> dict[str, Any]:
-    """Write the run files of every learner the same way, print the table, return the summary."""
-    learners = learner_rows(record, scorers, points, num_learners)
-    write_rows_csv(out / "metrics.csv", record.history, PROGRESS_FIELDS)
-    write_rows_csv(out / "episode_rewards.csv", record.episode_rewards, EPISODE_FIELDS)
-    write_rows_csv(out / "learners.csv", learners)
-    greedy = record.greedy[0].cpu()
-    write_policy_csv(out / "policy.csv", greedy)
-    if record.state is not None:
-        config_plain = OmegaConf.to_container(cfg, resolve=True)
-        torch.save({**record.state, "config": config_plain}, out / "checkpoint.pt")
-
-    model, opt = scorers[0].model, scorers[0].optimal_metrics
-    learned = scorers[0].metrics(greedy)
-    rows: dict[str, Metrics] = {f"{name} (exact)": learned}
-    errs: dict[str, dict[str, float]] = {}
-    if int(cfg.eval.mc_episodes):
-        env = DFRCEnv(scenarios[0], batch_size=[int(cfg.eval.mc_num_envs)], seed=int(cfg.seed) + 1)
-        ev = evaluate(table_policy(greedy), env, episodes=int(cfg.eval.mc_episodes))
-        label = f"{name} (Monte-Carlo, episodic)"
-        rows[label], errs[label] = ev.metrics, ev.ci95
-    rows["optimal (exact)"] = opt
-    rows["round_robin (exact)"] = stationary_metrics(model, "round_robin")
-    for label, m in comparisons.items():
-        rows[f"{label} (exact)"] = m
-
-    first99 = record.first_reaching(0.99)
-    extra: dict[str, Any] = {
-        "updates": record.updates,
-        "env_steps_to_95": record.first_reaching(0.95),
-        "env_steps_to_99": first99,
-        "num_learners": num_learners,
-        "learners": [_summary_row(r) for r in learners],
-        "table": _table_dict(rows, errs),
-        **record.info,
-    }
-    if len(scenarios) > 1:
-        extra["batch_grid"] = [
-            {
-                "overrides": point_overrides(point),
-                "optimal": {
-                    k: clean_number(v) for k, v in scorers[g].optimal_metrics.as_dict().items()
-                },
-            }
-            for g, point in enumerate(points)
-        ]
-    summary = summary_dict(
-        method=name,
-        scenario=scenario,
-        seed=int(cfg.seed),
-        env_steps=record.env_steps,
-        wall_seconds=record.wall_seconds,
-        metrics=learned,
-        optimal=opt,
-        **extra,
-    )
-    write_summary(out / "summary.json", summary)
-
-    _print_run(name, cfg, out, scenario, record, scenarios, scorers, points, learners, rows, errs)
-    return summary
-
-
-def _print_run(
-    name: str,
-    cfg: DictConfig,
-    out: Path,
-    scenario: str,
-    record: RunRecord,
-    scenarios: list[Params],
-    scorers: list[ExactScorer],
-    points: list[dict[str, Any]],
-    learners: list[dict[str, Any]],
-    rows: dict[str, Metrics],
-    errs: dict[str, dict[str, float]],
-) -> None:
-    """The run's printout: the table (or one line per batched scenario), learners, files."""
-    num_learners = int(cfg.get("num_learners", 1))
-    print(
-        f"\nscenario={scenario} method={name} seed={cfg.seed} learners={num_learners}"
-        + (f" × {len(scenarios)} scenarios (batch_grid)" if len(scenarios) > 1 else "")
-    )
-    print(
-        f"{record.env_steps} env steps per learner, {record.updates} updates in "
-        f"{record.wall_seconds:.1f} s; exact evaluation every {cfg.eval.every_frames} env steps\n"
-    )
-    if len(scenarios) == 1:
-        print(format_table(rows, errors=errs))
-    else:
-        print("scenario                        optimum avg reward  final ratio (median, min)")
-        for g, point in enumerate(points):
-            mine = [r["final_ratio"] for r in learners if record.group[r["learner"]] == g]
-            label = " ".join(point_overrides(point))
-            print(
-                f"{label:<32}{scorers[g].optimal_metrics.avg_reward:>18.4f}  "
-                f"{statistics.median(mine):.4f}, {min(mine):.4f}"
-            )
-    if record.num_learners > 1:
-        print("\nlearner  final ratio  env steps to 95 %  to 99 %")
-        for row in learners:
-            print(
-                f"{row['learner']:>7}  {row['final_ratio']:>11.4f}  {row['env_steps_to_95']!s:>17}  "
-                f"{row['env_steps_to_99']!s:>7}"
-            )
-    for th in ("95", "99"):
-        got = [r[f"env_steps_to_{th}"] for r in learners]
-        hit = sorted(g for g in got if g is not None)
-        med = statistics.median(hit) if len(hit) == len(got) else None
-        print(f"to {th} %: {len(hit)}/{len(got)} learners; median env steps {med}")
-    for key, value in record.info.items():
-        print(f"{key.replace('_', ' ')}: {value}")
-    files = ["summary.json", "policy.csv", "metrics.csv", "learners.csv", "episode_rewards.csv"]
-    if record.state is not None:
-        files += ["config.yaml", "checkpoint.pt"]
-    print(f"\nwrote {', '.join(files)} to {out}")
-
-
-def learner_rows(
-    record: RunRecord,
-    scorers: list[ExactScorer],
-    points: list[dict[str, Any]],
-    num_learners: int,
-) -> list[dict[str, Any]]:
-    """``learners.csv``: one row per learner — its scenario point, ``learner`` (the index used in
-    ``metrics.csv`` and ``episode_rewards.csv``), ``replicate`` (its index within its scenario),
-    final ratio, steps to 95 / 99 % and final exact metrics."""
-    rows = []
-    for n in range(record.num_learners):
-        g = record.group[n]
-        final = scorers[g].metrics(record.greedy[n].cpu())
-        curve = record.curve(n)
-        rows.append(
-            {
-                **points[g],
-                "learner": n,
-                "replicate": n % num_learners,
-                "final_ratio": curve[-1]["optimality_ratio"],
-                "env_steps_to_95": record.first_reaching(0.95, n),
-                "env_steps_to_99": record.first_reaching(0.99, n),
-                **{k: clean_number(v) for k, v in final.as_dict().items()},
-            }
+        if resolve_wandb_mode(cfg.logger.mode) == "offline":
+            print(f"W&B: offline run in {sync_dir}; upload it with: wandb sync {sync_dir}")
+    if record.interrupted:
+        signum = stop.signal or signal.SIGINT
+        how = (
+            f"go on with: python recipes/{method}.py resume={out / 'checkpoint.pt'} "
+            "(and the same overrides)"
+            if record.state is not None
+            else f"{method} runs do not resume: start again"
         )
-    return rows
-
-
-def _summary_row(row: dict[str, Any]) -> dict[str, Any]:
-    keys = ("learner", "replicate", "final_ratio", "env_steps_to_95", "env_steps_to_99")
-    return {k: row[k] for k in keys} | {k: v for k, v in row.items() if is_scenario_key(k)}
-
-
-def _table_dict(
-    rows: dict[str, Metrics], errs: dict[str, dict[str, float]]
-) -> dict[str, dict[str, Any]]:
-    """The printed table as JSON: row → metrics (and ``ci95`` where the row has intervals)."""
-    out = {}
-    for label, m in rows.items():
-        entry: dict[str, Any] = {k: clean_number(v) for k, v in m.as_dict().items()}
-        if label in errs:
-            entry["ci95"] = {k: clean_number(v) for k, v in errs[label].items()}
-        out[label] = entry
-    return out
+        raise RunInterrupted(
+            f"stopped by {signal.Signals(signum).name} at {record.env_steps} env steps; the files "
+            f"so far are in {out}; {how}",
+            code=128 + int(signum),
+        )
+    return summary
 
 
 def scenario_as_overrides(params: Params) -> list[str]:
@@ -430,12 +334,18 @@ def comparison_rows(cfg: DictConfig, params: Params) -> dict[str, Metrics]:
     cache = Path(str(cfg.cache_dir)).expanduser() / (
         "qlearning_paper-" + hashlib.sha256(key.encode()).hexdigest()[:16]
     )
-    summary_path = cache / "summary.json"
-    if not summary_path.is_file():
+    # Only the cached policy is trusted, and its metrics are recomputed exactly: an edited or
+    # truncated cache entry cannot print a wrong number.
+    model = build_model(params)
+    try:
+        table = read_policy_csv(cache / "policy.csv", model.num_states)
+    except ValueError as err:
+        if (cache / "policy.csv").exists():
+            print(f"comparison: ignoring the cache entry ({err})")
         print("\ncomparison: training Q-learning's paper profile (cached for next time)")
         run_learner(qlearning.NAME, qcfg, cache, scenario="comparison")
-    metrics = json.loads(summary_path.read_text())["metrics"]
-    return {"qlearning_paper": Metrics.from_dict(metrics)}
+        table = read_policy_csv(cache / "policy.csv", model.num_states)
+    return {"qlearning_paper": stationary_metrics(model, table)}
 
 
 RUNNERS = {"solve": run_solve, "qlearning": run_qlearning, "dqn": run_dqn}

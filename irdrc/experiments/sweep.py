@@ -27,6 +27,7 @@ from irdrc.experiments.config import compose
 from irdrc.experiments.grid import format_value, parse_grid, point_id, point_overrides, scenario_of
 from irdrc.experiments.results import atomic_write_text
 from irdrc.experiments.runs import RUNNERS
+from irdrc.experiments.validate import validate
 
 METHODS = ("dqn", "qlearning", "solve")
 # Settings a sweep gives every trial before the user's base overrides (which may change them).
@@ -93,15 +94,31 @@ def _ray_init(address: str, num_cpus: int | None) -> None:
         ray.init(address=address, **kwargs)
 
 
-def _read_status(trial_dir: Path) -> dict[str, Any] | None:
+def read_status(trial_dir: Path) -> dict[str, Any] | None:
+    """A trial's status, or None when it has none. DONE counts only with its ``summary.json``; a
+    status file that cannot be read is reported (naming it) and counts as not done."""
     path = trial_dir / "status.json"
-    return json.loads(path.read_text()) if path.is_file() else None
+    if not path.is_file():
+        return None
+    try:
+        status = json.loads(path.read_text())
+        if not isinstance(status, dict) or status.get("status") not in STATUSES:
+            raise ValueError("no status")
+    except (OSError, ValueError) as err:
+        print(
+            f"sweep: ignoring {path}: unreadable ({err}); the point counts as not done", flush=True
+        )
+        return None
+    if status["status"] == "DONE" and not (trial_dir / "summary.json").is_file():
+        return {**status, "status": "INCOMPLETE"}
+    return status
 
 
 def plan(
     method: str, points: list[dict[str, Any]], base: list[str], fail_on: list[str] = ()
 ) -> list[dict[str, Any]]:
-    """Compose every point's config on the driver (a bad key or value fails here, before Ray starts).
+    """Compose and validate every point's config on the driver (a bad key or value, in the base or
+    in any grid value, fails here, naming the point, before Ray starts or any trial runs).
 
     Returns one record per point: ``point_id``, ``point``, ``overrides``, ``method``, ``base``, the
     composed ``cfg`` (plain), ``scenario`` and ``fail``. Plans of several methods may be
@@ -113,7 +130,12 @@ def plan(
     planned = []
     for point in points:
         ov = point_overrides(point)
-        composed = compose(method, [*TRIAL_DEFAULTS[method], *base, *ov])
+        try:
+            composed = compose(method, [*TRIAL_DEFAULTS[method], *base, *ov])
+            validate(method, composed, [*base, *ov])
+        except Exception as err:
+            where = " ".join([*base, *ov]) or "(no overrides)"
+            raise ValueError(f"grid point {where}: {str(err).strip().splitlines()[0]}") from err
         planned.append(
             {
                 "point_id": point_id(point, method, base),
@@ -153,7 +175,7 @@ def execute(cfg: DictConfig, planned: list[dict[str, Any]], out: Path) -> int:
         p
         for p in planned
         if not (
-            cfg.resume and (_read_status(trials_dir / p["point_id"]) or {}).get("status") == "DONE"
+            cfg.resume and (read_status(trials_dir / p["point_id"]) or {}).get("status") == "DONE"
         )
     ]
     total = len(planned)
@@ -163,11 +185,21 @@ def execute(cfg: DictConfig, planned: list[dict[str, Any]], out: Path) -> int:
         + (" (resume)" if cfg.resume else ""),
         flush=True,
     )
-    if todo and executor == "ray":
-        _run_tune(cfg, out, todo, total - len(todo), total, trials_dir)
-    elif todo:
-        _run_local(todo, total - len(todo), total, trials_dir)
-    return write_summary_csv(out / "summary.csv", planned, trials_dir)
+    interrupted = False
+    try:
+        if todo and executor == "ray":
+            _run_tune(cfg, out, todo, total - len(todo), total, trials_dir)
+        elif todo:
+            _run_local(todo, total - len(todo), total, trials_dir)
+    except KeyboardInterrupt:
+        interrupted = True
+        print(
+            "\nsweep: interrupted; finished points are kept (resume=true runs the rest)", flush=True
+        )
+    finally:
+        # Whatever happened, summary.csv lists every planned point: DONE, ERROR or INCOMPLETE.
+        code = write_summary_csv(out / "summary.csv", planned, trials_dir)
+    return 130 if interrupted else code
 
 
 def run_sweep(cfg: DictConfig, out: Path) -> int:
@@ -187,16 +219,23 @@ def run_sweep(cfg: DictConfig, out: Path) -> int:
 def _record(tdir: Path, p: dict[str, Any], result: dict[str, Any] | None, error: Any) -> None:
     """Write a finished point's files and status into its trial directory."""
     tdir.mkdir(parents=True, exist_ok=True)
+    if error is None and not (result and "summary_json" in result):
+        error = "the trial reported no summary"
     if error is None and result and "summary_json" in result:
         atomic_write_text(tdir / "summary.json", result["summary_json"] + "\n")
         for name, text in (result.get("files") or {}).items():
             atomic_write_text(tdir / name, text)
         status = {"status": "DONE"}
     else:
-        status = {"status": "ERROR", "error": str(error).strip().splitlines()[-1:]}
+        status = {"status": "ERROR", "error": [_last_line(error)]}
     atomic_write_text(
         tdir / "status.json", json.dumps({**status, "overrides": p["overrides"]}) + "\n"
     )
+
+
+def _last_line(error: Any) -> str:
+    lines = [line for line in str(error).strip().splitlines() if line.strip()]
+    return lines[-1].strip() if lines else "unknown error"
 
 
 def _progress_line(done: int, total: int, already: int, t0: float, p: dict, tail: str) -> None:
@@ -231,7 +270,11 @@ def _run_local(todo: list[dict], already: int, total: int, trials_dir: Path) -> 
                 print(traceback.format_exc())
         _record(tdir, p, result, error)
         ratio = (result or {}).get("optimality_ratio")
-        tail = "ERROR" if error else "DONE" + (f", optimality ratio {ratio:.4f}" if ratio else "")
+        tail = (
+            f"ERROR: {_last_line(error)}"
+            if error
+            else "DONE" + (f", optimality ratio {ratio:.4f}" if ratio else "")
+        )
         _progress_line(already + i + 1, total, already, t0, p, tail)
 
 
@@ -249,14 +292,32 @@ def _run_tune(
             done["n"] += 1
             _progress_line(done["n"], total, already, t0, trial.config["point"], status + extra)
 
+        def on_trial_start(self, iteration, trials, trial, **info) -> None:
+            p = trial.config["point"]
+            label = (
+                " ".join([*p["base"], *p["overrides"]])
+                if p.get("base")
+                else " ".join(p["overrides"])
+            )
+            print(f"[started] {label}  (elapsed {time.perf_counter() - t0:.0f} s)", flush=True)
+
         def on_trial_complete(self, iteration, trials, trial, **info) -> None:
+            # The trial's files are stored now, not when the sweep ends: a killed driver keeps them.
+            p = trial.config["point"]
+            _record(trials_dir / p["point_id"], p, trial.last_result, None)
             ratio = (trial.last_result or {}).get("optimality_ratio")
             self._line(
                 trial, "DONE", f", optimality ratio {ratio:.4f}" if ratio is not None else ""
             )
 
         def on_trial_error(self, iteration, trials, trial, **info) -> None:
-            self._line(trial, "ERROR")
+            p = trial.config["point"]
+            try:
+                error = str(trial.get_error() or "the trial failed")
+            except Exception:  # the error file may not be readable yet
+                error = "the trial failed"
+            _record(trials_dir / p["point_id"], p, None, error)
+            self._line(trial, "ERROR: " + _last_line(error))
 
     _ray_init(str(cfg.ray.address), cfg.ray.num_cpus)
     try:
@@ -278,8 +339,9 @@ def _run_tune(
         )
         results = tuner.fit()
         for result in results:
-            p = result.config["point"]
-            _record(trials_dir / p["point_id"], p, result.metrics, result.error)
+            p = (result.config or {}).get("point")
+            if p is not None and read_status(trials_dir / p["point_id"]) is None:
+                _record(trials_dir / p["point_id"], p, result.metrics, result.error)
     finally:
         ray.shutdown()
 
@@ -296,7 +358,7 @@ def write_summary_csv(path: Path, planned: list[dict], trials_dir: Path) -> int:
     rows, metric_names = [], []
     for p in planned:
         tdir = trials_dir / p["point_id"]
-        st = _read_status(tdir) or {"status": "INCOMPLETE"}
+        st = read_status(tdir) or {"status": "INCOMPLETE"}
         row: dict[str, Any] = (
             {"method": p["method"], "base": " ".join(p.get("base", ()))} if mixed else {}
         )

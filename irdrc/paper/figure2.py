@@ -22,11 +22,12 @@ from omegaconf import DictConfig
 
 from irdrc.core.metrics import Metrics, first_reaching
 from irdrc.core.model import build_model
-from irdrc.core.params import Params, to_plain
+from irdrc.core.params import Params, check_number, to_plain
 from irdrc.core.solve import ExactScorer, episodic_metrics, stationary_metrics
 from irdrc.experiments.grid import format_value, parse_grid
 from irdrc.experiments.results import atomic_write_text, write_rows_csv
 from irdrc.experiments.sweep import execute, plan
+from irdrc.experiments.validate import check_common, check_executor
 from irdrc.paper import claims as cl
 from irdrc.paper import plots
 from irdrc.paper.figures import (
@@ -365,7 +366,14 @@ PANEL_METRICS = ("avg_reward", "throughput", "link_capacity", "miss_detection")
 
 def _panels_bcd(fig: _Figure) -> dict[str, dict[str, list[float]]]:
     """Panels (b)–(d): final policies against p^v_1. Returns subject → metric → mean per p^v_1."""
-    ps = fig.ps
+    ps, env = fig.ps, fig.base.env
+    # The ranges the final policies' exact long-run values lie in: bands are clipped to them.
+    bounds = {
+        "avg_reward": None,
+        "throughput": (0.0, env.arrival_rate),
+        "link_capacity": (0.0, float(max(env.packets_good, env.packets_bad))),
+        "miss_detection": (0.0, 1.0),
+    }
     metric_rows: dict[str, list[dict]] = {m: [] for m in PANEL_METRICS}
     sweep_means: dict[str, dict[str, list[float]]] = {}
     for name in [m for m in fig.methods if "bcd" in fig.cfg.learners[m].panels]:
@@ -373,7 +381,10 @@ def _panels_bcd(fig: _Figure) -> dict[str, dict[str, list[float]]]:
         sweep_means[name] = {}
         for metric, rows in metric_rows.items():
             band = band_rows(
-                name, ps, [[f[metric] for f in fin] for fin in zip(*per_p, strict=True)]
+                name,
+                ps,
+                [[f[metric] for f in fin] for fin in zip(*per_p, strict=True)],
+                bounds[metric],
             )
             rows += band
             sweep_means[name][metric] = [r["mean"] for r in band]
@@ -426,3 +437,15 @@ def _panels_bcd(fig: _Figure) -> dict[str, dict[str, list[float]]]:
         title="Fig. 2(d)",
     )
     return sweep_means
+
+
+def validate_figure2(cfg: DictConfig) -> None:
+    """Every key of ``recipes/conf/figure2.yaml`` and every planned training run, before any work."""
+    check_common(cfg)
+    check_executor(cfg)
+    r4 = to_plain(cfg.claim3_r4)
+    if not isinstance(r4, list):
+        raise ValueError(f"claim3_r4={r4!r} must be a list of detection rewards")
+    for i, v in enumerate(r4):
+        check_number(f"claim3_r4[{i}]", v, 0, 1e9, open_lo=True)
+    plan_figure2(cfg, [])  # composes and validates every training run

@@ -67,11 +67,23 @@ def same_value(a: Any, b: Any) -> bool:
         return str(a) == str(b)
 
 
-def band_rows(series: str, xs: Sequence[float], per_seed: Sequence[Sequence[float]]) -> list[dict]:
-    """Rows ``series, x, mean, lo, hi, n`` of curves given per seed on the same ``xs``."""
+def band_rows(
+    series: str,
+    xs: Sequence[float],
+    per_seed: Sequence[Sequence[float]],
+    bounds: tuple[float, float] | None = None,
+) -> list[dict]:
+    """Rows ``series, x, mean, lo, hi, n`` of curves given per seed on the same ``xs``.
+
+    ``bounds``: the range every value of the metric lies in (e.g. [0, 1] for miss detection); the
+    t-interval is clipped to it, since no replicate can fall outside.
+    """
     rows = []
     for i, x in enumerate(xs):
         stats = mean_ci(curve[i] for curve in per_seed if i < len(curve))
+        if bounds is not None and stats["n"]:
+            stats["lo"] = min(max(stats["lo"], bounds[0]), bounds[1])
+            stats["hi"] = max(min(stats["hi"], bounds[1]), bounds[0])
         rows.append({"series": series, "x": x, **stats})
     return rows
 

@@ -124,7 +124,9 @@ def plot_p_sweep(
     panels: Sequence[tuple[str, str, Sequence[Mapping]]], path: Path, *, seeds: int, title: str
 ) -> None:
     """One panel per (title, y label, rows) against p^v_1 (rows' ``x``), side by side."""
-    fig, axes = plt.subplots(1, len(panels), figsize=(6 * len(panels), 4.4), squeeze=False)
+    fig, axes = plt.subplots(
+        1, len(panels), figsize=(max(8.0, 6 * len(panels)), 4.6), squeeze=False
+    )
     for ax, (sub, ylabel, rows) in zip(axes[0], panels, strict=True):
         _draw_bands(ax, rows, marker="o")
         ax.set_title(sub)
@@ -133,7 +135,9 @@ def plot_p_sweep(
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
     fig.suptitle(
-        f"{title} — learned: final greedy policies, exact; mean and 95 % band over {seeds} seeds"
+        f"{title} — learned: final greedy policies, exact; mean and 95 % band over {seeds} "
+        "seeds (clipped to the metric's range)",
+        fontsize=10,
     )
     fig.tight_layout()
     fig.savefig(path, dpi=DPI)
@@ -154,7 +158,7 @@ def plot_tradeoff(
     ``link_capacity``; ``learned``: the same keys plus ``lo``/``hi`` bounds of miss detection;
     ``scan``: extra (denser) exact points drawn in the r4 panel.
     """
-    fig, axes = plt.subplots(1, 3, figsize=(16, 4.6))
+    fig, axes = plt.subplots(1, 3, figsize=(18, 5.6))
     colors = {}
     ax = axes[0]
     for name, rs in _series(rows).items():
@@ -186,10 +190,12 @@ def plot_tradeoff(
                 ax.annotate(
                     "r4=" + ", ".join(names),
                     (x, y),
-                    fontsize=7,
-                    xytext=(4, 4),
+                    fontsize=8,
+                    xytext=(-6, 6),
                     textcoords="offset points",
+                    ha="right",
                     color=colors[name],
+                    bbox={"boxstyle": "round,pad=0.15", "fc": "white", "ec": "none", "alpha": 0.8},
                 )
         for r in learned:
             _learned_point(ax, r, metric)
@@ -223,8 +229,10 @@ def _learned_point(ax, r: Mapping, xkey: str) -> None:
     ax.annotate(
         f"DQN r4={float(r['r4']):g}",
         (float(r[xkey]), y),
-        fontsize=7,
-        xytext=(4, -10),
+        fontsize=8,
+        xytext=(-6, -14),
         textcoords="offset points",
+        ha="right",
         color="tab:blue",
+        bbox={"boxstyle": "round,pad=0.15", "fc": "white", "ec": "none", "alpha": 0.8},
     )

@@ -18,11 +18,13 @@ from omegaconf import DictConfig
 
 from irdrc.core.metrics import Metrics
 from irdrc.core.model import build_model
-from irdrc.core.params import Params, to_plain
+from irdrc.core.params import Params, check_bool, check_number, to_plain
 from irdrc.core.solve import stationary_metrics, value_iteration
 from irdrc.experiments.grid import parse_grid
+from irdrc.experiments.progress import Ticker
 from irdrc.experiments.results import atomic_write_text, write_rows_csv
 from irdrc.experiments.sweep import execute, plan
+from irdrc.experiments.validate import SOLVES_LIMIT, check_common, check_executor
 from irdrc.paper import plots
 from irdrc.paper.figures import mean_ci, same_value, to_float
 
@@ -124,10 +126,12 @@ def run_tradeoff(cfg: DictConfig, out: Path, scenario: list[str] | None = None) 
 def _exact_curves(base: Params, ps: list[float], r4s: list[float], gamma: float) -> list[dict]:
     """The optimal policy's metrics at every (p^v_1, r4), printed as a table."""
     rows = []
+    ticker = Ticker(len(ps) * len(r4s), "exact solves over r4")
     for p in ps:
         params = ref_params(base, p)
         for r4 in r4s:
             policy, m = optimal_at(params, r4, gamma)
+            ticker.tick()
             rows.append(
                 {
                     "series": f"p1.speed={p:g}",
@@ -171,7 +175,12 @@ def _smallest_r4_each(
             # Bisection assumes miss detection never rises with r4; it can (see
             # docs/REPRODUCTION.md), so every grid point below the answer is solved too.
             grid = [round(lo + k * res, 10) for k in range(round((r4 - lo) / res))]
-            below = [r for r in grid if miss_of(r) <= target]
+            ticker = Ticker(len(grid), f"p1.speed={p:g}: checking every r4 below {r4:g}")
+            below = []
+            for r in grid:
+                if miss_of(r) <= target:
+                    below.append(r)
+                ticker.tick()
             entry["verified"] = not below
             if below:
                 entry["r4"] = r4 = below[0]
@@ -268,3 +277,41 @@ def _dqn_points(
             f"throughput {r['throughput']:.4f}, link capacity {r['link_capacity']:.4f}"
         )
     return code, learned_rows
+
+
+def validate_tradeoff(cfg: DictConfig) -> None:
+    """Every key of ``recipes/conf/tradeoff.yaml``, and the cost of the search, before any work."""
+    check_common(cfg)
+    check_executor(cfg)
+    r4 = to_plain(cfg.r4)
+    if not isinstance(r4, list) or not r4:
+        raise ValueError(f"r4={r4!r} must be a non-empty list of detection rewards")
+    for i, v in enumerate(r4):
+        check_number(f"r4[{i}]", v, 0, 1e9, open_lo=True)
+    ps = to_plain(cfg.p1_speed)
+    if not isinstance(ps, list) or not ps:
+        raise ValueError(f"p1_speed={ps!r} must be a non-empty list of probabilities")
+    for i, v in enumerate(ps):
+        check_number(f"p1_speed[{i}]", v, 0, 1)
+    if cfg.target_miss is not None:
+        check_number("target_miss", cfg.target_miss, 0, 1)
+        lo = check_number("search.lo", cfg.search.lo, 0, 1e9, open_lo=True)
+        hi = check_number("search.hi", cfg.search.hi, 0, 1e9, open_lo=True)
+        res = check_number("search.resolution", cfg.search.resolution, 0, 1e9, open_lo=True)
+        check_bool("search.verify", cfg.search.verify)
+        if hi < lo:
+            raise ValueError(f"search.lo={lo} must be <= search.hi={hi}")
+        points = math.floor((hi - lo) / res + 1e-9) + 1
+        if cfg.search.verify and points * len(ps) > SOLVES_LIMIT:
+            raise ValueError(
+                f"search.resolution={res}: the grid from search.lo={lo} to search.hi={hi} has "
+                f"{points} points per p^v_1, and search.verify may solve each of them "
+                f"({points * len(ps)} exact solves, ~{points * len(ps) * 0.3 / 60:.0f} min here; "
+                f"limit {SOLVES_LIMIT}); use a coarser resolution or search.verify=false"
+            )
+    if to_plain(cfg.dqn.r4):
+        for i, v in enumerate(to_plain(cfg.dqn.r4)):
+            check_number(f"dqn.r4[{i}]", v, 0, 1e9, open_lo=True)
+        seeds = to_plain(cfg.dqn.seeds)
+        if not isinstance(seeds, list) or not seeds:
+            raise ValueError(f"dqn.seeds={seeds!r} must be a non-empty list of seeds")

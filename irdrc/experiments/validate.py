@@ -1,0 +1,318 @@
+"""Every recipe's config checked before any work: keys, values, combinations and cost.
+
+``check_overrides`` runs on the command line before Hydra composes anything: an unknown key (with or
+without ``+``) fails with the closest valid key. ``validate(name, cfg)`` runs on the composed config
+(of a recipe, or of every point of a sweep before any trial starts) and raises a ``ValueError``
+naming the key and the allowed range; what would exhaust memory or run for hours is refused with
+its estimated cost.
+"""
+
+from __future__ import annotations
+
+import difflib
+import math
+import os
+import tempfile
+import warnings
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from omegaconf import DictConfig, OmegaConf
+
+from irdrc.agents import dqn, qlearning
+from irdrc.core.params import Params, check_bool, check_choice, check_number, to_plain
+from irdrc.experiments.config import CONF_DIR, compose, list_scenarios
+from irdrc.experiments.grid import override_key, parse_grid
+from irdrc.experiments.guard import check_resume
+from irdrc.experiments.runs import RUNNERS, batch_points
+from irdrc.experiments.tracking import BACKENDS, WANDB_MODES
+
+DENSE_MODEL_LIMIT_BYTES = 2**29
+"""The exact model P[a, s, s′] is dense float64: 16·S² bytes. Above this it is refused."""
+EPISODIC_LIMIT_FLOPS = 2e11
+"""Exact episodic metrics step a distribution through ``env.horizon`` matrix-vector products
+(2·S² flops each, one run per policy) unless S is small enough for repeated squaring; above this
+estimate they are refused (minutes on this class of machine)."""
+MC_LIMIT_STEPS = 1e6
+"""A Monte-Carlo evaluation steps its batch ``env.horizon`` times per round (~0.1 ms a step here):
+above this many batched steps it is refused."""
+SOLVES_LIMIT = 5_000
+"""The trade-off's bisection check solves every grid point below its answer: at most this many."""
+
+
+def config_groups() -> list[str]:
+    """Config groups a command line may choose (``env=…``, ``algo=…``, …)."""
+    return sorted(["env", *(p.name for p in CONF_DIR.iterdir() if p.is_dir())])
+
+
+def flat_keys(node: Any, prefix: str = "") -> set[str]:
+    """Every dotted key of a config, mappings included (``eval``, ``eval.every_frames``)."""
+    out = set()
+    if isinstance(node, dict):
+        for k, v in node.items():
+            key = f"{prefix}{k}"
+            out.add(key)
+            out |= flat_keys(v, key + ".")
+    return out
+
+
+def check_overrides(config_name: str, overrides: list[str]) -> None:
+    """Fail on a key ``recipes/conf/<config_name>.yaml`` does not have (``+key`` included), naming
+    the closest valid key, and on an unknown scenario or group option.
+
+    Raises:
+        ValueError: the first bad override.
+    """
+    groups = config_groups()
+    choices = [o for o in overrides if "=" in o and override_key(o) in groups and o[0] not in "+~"]
+    rest = [o for o in overrides if o not in choices]
+    for o in choices:
+        key, value = o.split("=", 1)
+        options = (
+            list_scenarios()
+            if key == "env"
+            else sorted(p.stem for p in (CONF_DIR / key).glob("*.yaml"))
+        )
+        if value not in options:
+            raise ValueError(f"{key}={value!r} is not a choice of {key}: {', '.join(options)}")
+    base = OmegaConf.to_container(compose(config_name, choices), resolve=False)
+    keys = flat_keys(base)
+    for o in rest:
+        if "=" not in o and not o.startswith("~"):
+            raise ValueError(f"{o!r} is not an override: write key=value")
+        key = override_key(o)
+        if key.startswith("hydra.") or key == "hydra" or key in keys:
+            continue
+        close = difflib.get_close_matches(key, sorted(keys | set(groups)), n=1, cutoff=0.5)
+        hint = f"; did you mean {close[0]}?" if close else ""
+        raise ValueError(
+            f"unknown key {key!r} in {config_name}{hint} ({config_name}.yaml has no such key)"
+        )
+
+
+# -- shared checks ----------------------------------------------------------------------------------
+
+
+def _opt(cfg: DictConfig, key: str) -> Any:
+    """A value by dotted key, or None when absent."""
+    return OmegaConf.select(cfg, key, default=None)
+
+
+def check_device(device: Any) -> str:
+    """``device`` if torch can use it here (``cpu``, or ``cuda[:n]`` with a CUDA device)."""
+    import torch
+
+    if not isinstance(device, str):
+        raise ValueError(f"device={device!r} must be cpu or cuda")
+    try:
+        dev = torch.device(device)
+    except RuntimeError as err:
+        raise ValueError(f"device={device!r} is not a torch device (cpu, cuda, cuda:0 …)") from err
+    if dev.type == "cuda":
+        if not torch.cuda.is_available():
+            raise ValueError(f"device={device}: no CUDA device here (use device=cpu)")
+        if dev.index is not None and dev.index >= torch.cuda.device_count():
+            raise ValueError(f"device={device}: only {torch.cuda.device_count()} CUDA device(s)")
+    elif dev.type != "cpu":
+        raise ValueError(f"device={device!r} must be cpu or cuda")
+    return device
+
+
+def check_writable_dir(key: str, path: Any) -> Path:
+    """``path`` as a directory this process can create files in (created if missing)."""
+    p = Path(str(path)).expanduser()
+    try:
+        p.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=p, prefix=".irdrc-write-test-"):
+            pass
+    except OSError as err:
+        raise ValueError(f"{key}={path}: cannot write there ({err.strerror or err})") from err
+    return p
+
+
+def check_params(cfg: DictConfig) -> Params:
+    """The model (``env``, ``reward``), and what the exact solver can afford for it."""
+    params = Params.from_config(cfg)
+    S = params.env.num_states
+    dense = 16 * S * S
+    if dense > DENSE_MODEL_LIMIT_BYTES:
+        raise ValueError(
+            f"env.queue_capacity={params.env.queue_capacity}: the exact model has S = {S} states "
+            f"and its dense transition tensor would take {dense / 2**30:.1f} GiB (limit "
+            f"{DENSE_MODEL_LIMIT_BYTES / 2**30:.1f} GiB); use env.queue_capacity ≤ "
+            f"{int(math.sqrt(DENSE_MODEL_LIMIT_BYTES / 16) // 32) - 1}"
+        )
+    rw = params.reward
+    if rw.r1 == rw.r2 == rw.r3 == rw.r4 == 0:
+        warnings.warn("reward.r1 … r4 are all 0: every policy is optimal", stacklevel=2)
+    return params
+
+
+def check_episodic_cost(params: Params, key: str = "env.horizon") -> None:
+    """Refuse exact episodic metrics that would run for long (see ``EPISODIC_LIMIT_FLOPS``)."""
+    from irdrc.core.solve import DOUBLING_MAX_STATES
+
+    S, T = params.env.num_states, params.env.horizon
+    if S <= DOUBLING_MAX_STATES:
+        return  # repeated squaring: log2(T) matrix products
+    flops = 2.0 * S * S * T * 5
+    if flops > EPISODIC_LIMIT_FLOPS:
+        raise ValueError(
+            f"{key}={T} with S = {S} states: exact episodic metrics would take ~{flops:.1e} flops "
+            f"(limit {EPISODIC_LIMIT_FLOPS:.0e}); use a shorter horizon"
+        )
+
+
+def check_common(cfg: DictConfig) -> Params | None:
+    """Keys most recipes share: seed, device, threads, discount, evaluation, progress, logger."""
+    params = check_params(cfg) if "env" in cfg else None
+    if "seed" in cfg:
+        check_number("seed", cfg.seed, 0, 2**32 - 1, integer=True)
+    if "device" in cfg:
+        check_device(cfg.device)
+    if "num_threads" in cfg:
+        check_number("num_threads", cfg.num_threads, 1, os.cpu_count() or 1, integer=True)
+    if "optimum_gamma" in cfg:
+        check_number("optimum_gamma", cfg.optimum_gamma, 0, 1, open_hi=True)
+    if _opt(cfg, "eval.every_frames") is not None:
+        check_number("eval.every_frames", cfg.eval.every_frames, 1, 10**12, integer=True)
+    if _opt(cfg, "eval.mc_episodes") is not None:
+        check_number("eval.mc_episodes", cfg.eval.mc_episodes, 0, 10**7, integer=True)
+    if _opt(cfg, "eval.mc_num_envs") is not None:
+        check_number("eval.mc_num_envs", cfg.eval.mc_num_envs, 1, 10**6, integer=True)
+    if params is not None and _opt(cfg, "eval.mc_episodes"):
+        rounds = math.ceil(int(cfg.eval.mc_episodes) / int(cfg.eval.mc_num_envs))
+        batched_steps = rounds * params.env.horizon
+        if batched_steps > MC_LIMIT_STEPS:
+            raise ValueError(
+                f"eval.mc_episodes={cfg.eval.mc_episodes} of env.horizon={params.env.horizon} "
+                f"steps: {batched_steps:.2e} batched env steps (~{batched_steps * 1e-4 / 60:.0f} min "
+                f"here, limit {MC_LIMIT_STEPS:.0e}); use eval.mc_episodes=0 or a shorter horizon"
+            )
+    if "progress" in cfg and cfg.progress != "auto":
+        check_bool("progress", cfg.progress)
+    if "logger" in cfg:
+        check_choice("logger.backend", cfg.logger.backend, BACKENDS)
+        check_choice("logger.mode", cfg.logger.mode, WANDB_MODES)
+    if "resume" in cfg and not isinstance(cfg.resume, bool | str | type(None)):
+        raise ValueError(f"resume={cfg.resume!r} must be a path (or true/false for sweeps)")
+    return params
+
+
+def _check_eval_period(cfg: DictConfig, total: int, explicit: frozenset[str]) -> None:
+    """An evaluation period set on purpose longer than the run is a mistake; a profile's default
+    period on a run shortened by hand just evaluates at the start and the end."""
+    every = int(cfg.eval.every_frames)
+    if every > total and "eval.every_frames" in explicit:
+        raise ValueError(
+            f"eval.every_frames={every} is more than the run's {total} env steps: only the start "
+            "and the end would be evaluated; use a smaller value"
+        )
+
+
+# -- per recipe -------------------------------------------------------------------------------------
+
+
+def _solve(cfg: DictConfig) -> None:
+    params = check_common(cfg)
+    check_number("tol", cfg.tol, 0, 1, open_lo=True)
+    check_number("max_iter", cfg.max_iter, 1, 10**8, integer=True)
+    check_episodic_cost(params)
+
+
+def _dqn(cfg: DictConfig, explicit: frozenset[str] = frozenset()) -> None:
+    params = check_common(cfg)
+    config = dqn.DQNConfig.from_node(cfg)
+    _check_eval_period(cfg, config.total_frames, explicit)
+    if _opt(cfg, "checkpoint.every_frames") is not None:
+        check_number(
+            "checkpoint.every_frames", cfg.checkpoint.every_frames, 0, 10**12, integer=True
+        )
+    if _opt(cfg, "compare.qlearning_paper"):
+        check_writable_dir("cache_dir", cfg.cache_dir)
+    if cfg.get("resume"):
+        path = Path(str(cfg.resume)).expanduser()
+        state = dqn.load_checkpoint(path)
+        check_resume(path, state, OmegaConf.to_container(cfg, resolve=True))
+    del params
+
+
+def _qlearning(cfg: DictConfig, explicit: frozenset[str] = frozenset()) -> None:
+    params = check_common(cfg)
+    config = qlearning.QLearningConfig.from_node(cfg)
+    n = check_number("num_learners", cfg.num_learners, 1, 10**6, integer=True)
+    points = batch_points(cfg)
+    for point in points:
+        params.with_overrides(point)
+    rows = n * len(points)
+    table_bytes = rows * params.env.num_states * 2 * 4 * 2  # Q-values and visit counts, float32
+    if table_bytes > 4 * 2**30:
+        raise ValueError(
+            f"num_learners={n} × {len(points)} scenarios: the Q-tables would take "
+            f"{table_bytes / 2**30:.1f} GiB (limit 4 GiB); use fewer learners"
+        )
+    _check_eval_period(cfg, config.episodes * params.env.horizon, explicit)
+
+
+def check_executor(cfg: DictConfig) -> None:
+    """The executor group's keys (sweeps, figure2, tradeoff)."""
+    check_choice("executor", cfg.executor, ("ray", "local"))
+    check_bool("resume", cfg.resume)
+    check_number("cpus_per_trial", cfg.cpus_per_trial, 1, 10**4, integer=True)
+    check_number("max_failures", cfg.max_failures, 0, 10**4, integer=True)
+    if cfg.ray.num_cpus is not None:
+        check_number("ray.num_cpus", cfg.ray.num_cpus, 1, 10**5, integer=True)
+
+
+def _sweep(cfg: DictConfig) -> None:
+    check_executor(cfg)
+    check_choice("method", cfg.method, tuple(RUNNERS))
+    parse_grid(cfg.sweep.grid)
+
+
+def _bench_dqn(cfg: DictConfig) -> None:
+    check_common(cfg)
+    for name in cfg.profiles:
+        check_choice("profiles", name, ("dqn", "dqn_paper"))
+
+
+def _demo(cfg: DictConfig) -> None:
+    check_common(cfg)
+
+
+def _bench_env(cfg: DictConfig) -> None:
+    check_common(cfg)
+    check_number("repeats", cfg.repeats, 1, 1000, integer=True)
+    check_number("single_steps", cfg.single_steps, 1, 10**8, integer=True)
+    for key in ("sizes", "threads"):
+        values = to_plain(cfg[key])
+        if not isinstance(values, list):
+            raise ValueError(f"{key}={values!r} must be a list")
+        for i, v in enumerate(values):
+            check_number(f"{key}[{i}]", v, 1, 10**8, integer=True)
+
+
+VALIDATORS: dict[str, Callable[[DictConfig], None]] = {
+    "solve": _solve,
+    "dqn": _dqn,
+    "qlearning": _qlearning,
+    "sweep": _sweep,
+    "bench_dqn": _bench_dqn,
+    "bench_env": _bench_env,
+    "demo": _demo,
+}
+
+
+def validate(config_name: str, cfg: DictConfig, overrides: list[str] | tuple = ()) -> None:
+    """Check a composed config of ``config_name`` before any work (see the module docstring).
+
+    ``overrides``: the overrides it was composed with (what the user set on purpose).
+    The paper's recipes bring their own checks (``irdrc.paper.figure2.validate_figure2`` …)."""
+    check = VALIDATORS.get(config_name)
+    if check is None:
+        return
+    if config_name in ("dqn", "qlearning"):
+        check(cfg, frozenset(override_key(o) for o in overrides))
+    else:
+        check(cfg)

@@ -1,0 +1,220 @@
+"""Work is never lost: periodic atomic checkpoints, signals, kills, resume checks, file modes."""
+
+from __future__ import annotations
+
+import csv
+import json
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import torch
+
+from irdrc.experiments.results import FILE_MODE, atomic_write, atomic_write_text
+
+ROOT = Path(__file__).resolve().parents[1]
+# 4 000 env steps, a checkpoint every 640 (about a second apart here)
+RUN = [
+    "algo.total_frames=4000",
+    "algo.init_random_frames=128",
+    "algo.buffer_size=1000",
+    "algo.batch_size=32",
+    "eval.every_frames=320",
+    "checkpoint.every_frames=640",
+    "eval.mc_episodes=0",
+    "logger=none",
+]
+
+
+def dqn(out: Path, *overrides: str, wait: bool = True):
+    cmd = [
+        sys.executable,
+        str(ROOT / "recipes" / "dqn.py"),
+        *RUN,
+        *overrides,
+        f"hydra.run.dir={out}",
+    ]
+    if wait:
+        return subprocess.run(cmd, capture_output=True, text=True, timeout=300, cwd=ROOT)
+    return subprocess.Popen(
+        cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT
+    )
+
+
+def wait_for(path: Path, proc: subprocess.Popen, timeout: float = 120) -> None:
+    t0 = time.monotonic()
+    while not path.exists():
+        assert proc.poll() is None, proc.communicate()
+        assert time.monotonic() - t0 < timeout, f"{path} never appeared"
+        time.sleep(0.05)
+
+
+def steps_of(path: Path) -> list[int]:
+    return [int(r["env_steps"]) for r in csv.DictReader(path.open())]
+
+
+def test_sigterm_saves_and_resume_continues_without_lost_or_duplicated_rows(tmp_path):
+    out = tmp_path / "run"
+    proc = dqn(out, wait=False)
+    wait_for(out / "checkpoint.pt", proc)
+    proc.send_signal(signal.SIGTERM)
+    _, stderr = proc.communicate(timeout=120)
+    assert proc.returncode == 128 + signal.SIGTERM, stderr[-2000:]
+    assert "stopped by SIGTERM" in stderr and "resume=" in stderr and "Traceback" not in stderr
+    ckpt = torch.load(out / "checkpoint.pt", weights_only=True)
+    stopped_at = ckpt["frames"]
+    assert 0 < stopped_at < 4000
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["interrupted"] is True and summary["env_steps"] == stopped_at
+    before = steps_of(out / "metrics.csv")
+    assert before[-1] == stopped_at
+
+    r = dqn(tmp_path / "resumed", f"resume={out / 'checkpoint.pt'}")
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert f"resumed from {out / 'checkpoint.pt'} at {stopped_at} env steps" in r.stdout
+    after = steps_of(tmp_path / "resumed" / "metrics.csv")
+    assert after[: len(before)] == before  # nothing lost
+    assert len(after) == len(set(after)) and after == sorted(after)  # nothing twice
+    assert after[-1] == 4000 and all(s % 320 == 0 or s == 4000 for s in after[len(before) :])
+
+
+def test_kill_9_during_training_leaves_a_resumable_checkpoint(tmp_path):
+    out = tmp_path / "run"
+    proc = dqn(out, wait=False)
+    wait_for(out / "checkpoint.pt", proc)
+    proc.kill()  # SIGKILL: no handler runs
+    proc.communicate(timeout=60)
+    frames = torch.load(out / "checkpoint.pt", weights_only=True)["frames"]
+    assert frames % 640 == 0 and frames > 0
+    assert steps_of(out / "metrics.csv")[-1] >= frames - 320  # files so far were written with it
+    r = dqn(tmp_path / "resumed", f"resume={out / 'checkpoint.pt'}")
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert steps_of(tmp_path / "resumed" / "metrics.csv")[-1] == 4000
+
+
+def test_kill_9_during_a_checkpoint_write_keeps_the_previous_one(tmp_path):
+    """A process killed half-way through writing leaves the old file whole (the write goes to a
+    temporary file that is renamed only once complete)."""
+    path = tmp_path / "checkpoint.pt"
+    atomic_write_text(path, "the previous, good checkpoint")
+    code = (
+        "import os, signal, sys\n"
+        "from irdrc.experiments.results import atomic_write\n"
+        "def half(f):\n"
+        "    f.write(b'x' * 100000); f.flush()\n"
+        "    os.kill(os.getpid(), signal.SIGKILL)\n"
+        f"atomic_write({str(path)!r}, half)\n"
+    )
+    r = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True)
+    assert r.returncode == -signal.SIGKILL
+    assert path.read_text() == "the previous, good checkpoint"
+
+
+def test_a_failed_write_keeps_the_previous_file_and_leaves_no_temp(tmp_path):
+    """Disk full (ENOSPC) in the middle of a write: a clear error, the old content, no litter."""
+    path = tmp_path / "metrics.csv"
+    atomic_write_text(path, "old")
+
+    def full(f):
+        f.write(b"partial")
+        raise OSError(28, "No space left on device")
+
+    with pytest.raises(OSError, match=r"cannot write .*metrics\.csv: No space left on device"):
+        atomic_write(path, full)
+    assert path.read_text() == "old" and [p.name for p in tmp_path.iterdir()] == ["metrics.csv"]
+
+
+def test_files_follow_the_umask(tmp_path):
+    atomic_write_text(tmp_path / "a.txt", "x")
+    assert (tmp_path / "a.txt").stat().st_mode & 0o777 == FILE_MODE
+
+
+def test_resume_refuses_another_configuration_and_changes_nothing(tmp_path):
+    first = dqn(tmp_path / "a", "algo.total_frames=640", "checkpoint.every_frames=0")
+    assert first.returncode == 0, first.stderr[-2000:]
+    ckpt = tmp_path / "a" / "checkpoint.pt"
+    before = {p.name: p.read_bytes() for p in (tmp_path / "a").iterdir() if p.is_file()}
+    r = dqn(
+        tmp_path / "a", f"resume={ckpt}", "env.p1.speed=1.0", "reward.r4=50", "env.queue_capacity=5"
+    )
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+    for key in ("env.p1.speed: 0.1 → 1.0", "reward.r4: 5.0 → 50", "env.queue_capacity: 10 → 5"):
+        assert key in r.stderr, r.stderr
+    after = {p.name: p.read_bytes() for p in (tmp_path / "a").iterdir() if p.is_file()}
+    assert after == before  # config.yaml and the rest untouched
+
+
+@pytest.mark.parametrize("damage", ["truncate", "garbage", "empty"])
+def test_corrupt_checkpoint_is_one_line_naming_the_file(tmp_path, damage):
+    first = dqn(tmp_path / "a", "algo.total_frames=640", "checkpoint.every_frames=0")
+    assert first.returncode == 0, first.stderr[-2000:]
+    ckpt = tmp_path / "a" / "checkpoint.pt"
+    data = ckpt.read_bytes()
+    ckpt.write_bytes(
+        {"truncate": data[: len(data) // 2], "garbage": b"\x00junk" * 50, "empty": b""}[damage]
+    )
+    r = dqn(tmp_path / "b", f"resume={ckpt}")
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+    errors = [line for line in r.stderr.splitlines() if line.startswith("error:")]
+    assert len(errors) == 1 and str(ckpt) in errors[0], r.stderr[-1500:]
+    assert not (tmp_path / "b").exists()
+
+
+def test_umask_is_honoured_by_a_whole_run(tmp_path):
+    code = "import os, sys, runpy; os.umask(0o027); sys.argv = sys.argv[1:]; runpy.run_path(sys.argv[0], run_name='__main__')"
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-c",
+            code,
+            str(ROOT / "recipes" / "solve.py"),
+            "eval.mc_episodes=0",
+            f"hydra.run.dir={tmp_path}",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=ROOT,
+    )
+    assert r.returncode == 0, r.stderr[-2000:]
+    for name in ("summary.json", "policy.csv"):
+        assert (tmp_path / name).stat().st_mode & 0o777 == 0o640, name
+
+
+def test_cached_comparison_is_recomputed_from_its_policy_not_trusted(tmp_path, monkeypatch):
+    """The opt-in Q-learning comparison is cached; an edited cache entry cannot print a wrong number
+    (only its policy is read, and its metrics are recomputed exactly), a broken one is retrained."""
+    from irdrc.core.model import build_model
+    from irdrc.core.params import Params
+    from irdrc.core.solve import stationary_metrics, value_iteration
+    from irdrc.experiments import runs
+    from irdrc.experiments.config import compose
+    from irdrc.experiments.results import write_policy_csv
+
+    params = Params()
+    model = build_model(params)
+    optimal = value_iteration(model).policy
+    trained = []
+
+    def fake_run(method, cfg, out, scenario=None):  # stands in for 1 M steps of training
+        trained.append(method)
+        Path(out).mkdir(parents=True, exist_ok=True)
+        write_policy_csv(Path(out) / "policy.csv", optimal)
+        (Path(out) / "summary.json").write_text(json.dumps({"metrics": {"avg_reward": 999}}))
+
+    monkeypatch.setattr(runs, "run_learner", fake_run)
+    cfg = compose(
+        "dqn", ["compare.qlearning_paper=true", f"cache_dir={tmp_path}", "progress=false"]
+    )
+    first = runs.comparison_rows(cfg, params)["qlearning_paper"]
+    assert trained == ["qlearning"]
+    assert first == stationary_metrics(model, optimal)  # not the 999 of the summary
+    second = runs.comparison_rows(cfg, params)["qlearning_paper"]
+    assert trained == ["qlearning"] and second == first  # cached
+    (entry,) = tmp_path.glob("qlearning_paper-*")
+    (entry / "policy.csv").write_text("d,c,r,w,v,m,action\n0,0,0,0,0,0,7\n")
+    runs.comparison_rows(cfg, params)
+    assert trained == ["qlearning", "qlearning"]  # a broken entry is retrained, not printed

@@ -1,0 +1,192 @@
+"""Every mistake gets a clear answer before any work: bad values, typos, ``+`` keys, env misuse.
+
+Most cases run the checks in-process on the composed config (what a recipe does before its run);
+a few go through the command line to check that the answer is one line, exit status 2, no traceback.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import gymnasium
+import numpy as np
+import pytest
+import torch
+from tensordict import TensorDict
+
+import irdrc  # noqa: F401 - registers irdrc/DFRC-v0
+from irdrc.core.env import DFRCEnv
+from irdrc.core.params import Params
+from irdrc.experiments.config import compose, rename_overrides
+from irdrc.experiments.sweep import plan
+from irdrc.experiments.validate import check_overrides, validate
+from irdrc.paper.figure2 import validate_figure2
+from irdrc.paper.tradeoff import validate_tradeoff
+
+ROOT = Path(__file__).resolve().parents[1]
+CHECKS = {"figure2": validate_figure2, "tradeoff": validate_tradeoff}
+
+
+def refused(recipe: str, *overrides: str) -> str:
+    """The message a recipe refuses ``overrides`` with, before any work (fails if it accepts)."""
+    with pytest.raises(ValueError) as err:
+        args, _ = rename_overrides(recipe, list(overrides))
+        check_overrides(recipe, args)
+        cfg = compose(recipe, args)
+        CHECKS.get(recipe, lambda c: validate(recipe, c, args))(cfg)
+    return str(err.value)
+
+
+@pytest.mark.parametrize(
+    ("recipe", "overrides", "named"),
+    [
+        # typos, with or without +, name the closest valid key
+        ("dqn", ["rewards.r4=50"], "did you mean reward.r4"),
+        ("dqn", ["+rewards.r4=50"], "did you mean reward.r4"),
+        ("solve", ["+foo=1"], "unknown key 'foo'"),
+        ("dqn", ["algo.lrr=0.1"], "did you mean algo.lr"),
+        ("dqn", ["env=nope"], "env='nope' is not a choice"),
+        # wrong types and ranges name the key
+        ("dqn", ["optimum_gamma=1.0"], "optimum_gamma=1.0"),
+        ("dqn", ["seed=abc"], "seed='abc'"),
+        ("dqn", ["seed=-1"], "seed=-1"),
+        ("dqn", ["num_threads=0"], "num_threads=0"),
+        ("solve", ["gamma=abc"], "optimum_gamma='abc'"),
+        ("qlearning", ["algo.alpha=abc"], "algo.alpha='abc'"),
+        ("qlearning", ["num_learners=1000000"], "num_learners=1000000"),
+        ("qlearning", ["batch_grid={}"], "batch_grid is empty"),
+        ("qlearning", ["batch_grid={algo.alpha: [0.1]}"], "must be an env. or reward. key"),
+        ("dqn", ["algo.alpha=inf"], "algo.alpha=inf"),
+        ("solve", ["tol=nan"], "tol=nan"),
+        ("tradeoff", ["search.lo=10", "search.hi=5"], "search.lo=10"),
+        ("figure2", ["claim3_r4=[-5]"], "claim3_r4[0]=-5"),
+        ("dqn", ["algo.updates_per_batch=0"], "algo.updates_per_batch=0"),
+        ("qlearning", ["algo.init_q=nan"], "algo.init_q=nan"),
+        ("qlearning", ["algo.epsilon_decay_episodes=2.5"], "algo.epsilon_decay_episodes=2.5"),
+        ("qlearning", ["eval.every_frames=10000000"], "eval.every_frames=10000000"),
+        ("qlearning", ["algo.eval_every_episodes=5"], "use eval.every_frames"),
+        ("solve", ["env.stay_good.road=1", "env.stay_bad.road=1"], "env.stay_good.road=1"),
+        ("solve", ["env.p1.speed=1.5"], "env.p1.speed=1.5"),
+        ("dqn", ["network.hidden=[0]"], "network.hidden"),
+        ("dqn", ["logger.mode=sometimes"], "logger.mode"),
+        # what cannot run is refused with its cost
+        ("solve", ["env.queue_capacity=400"], "GiB"),
+        ("solve", ["env.queue_capacity=10000"], "GiB"),
+        ("tradeoff", ["search.resolution=0.001"], "exact solves"),
+        ("sweep", ["sweep.grid={}"], "sweep.grid is empty"),
+        ("sweep", ["method=sarsa", "sweep.grid={seed: [0]}"], "method='sarsa'"),
+        ("dqn", ["compare.qlearning_paper=true", "cache_dir=/proc/irdrc"], "cache_dir=/proc/irdrc"),
+    ],
+)
+def test_bad_input_is_refused_naming_the_key(recipe, overrides, named):
+    assert named in refused(recipe, *overrides)
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="a CUDA device is present")
+def test_cuda_without_a_device_is_refused():
+    assert "no CUDA device" in refused("dqn", "device=cuda")
+
+
+def test_long_horizon_is_cheap_not_refused():
+    # exact episodic metrics use repeated squaring: a horizon of 1e9 costs ~log2(1e9) products
+    validate("solve", compose("solve", ["env.horizon=1000000000", "eval.mc_episodes=0"]))
+
+
+def test_all_zero_rewards_warn():
+    with pytest.warns(UserWarning, match="all 0"):
+        validate("solve", compose("solve", [f"reward.r{i}=0" for i in range(1, 5)]))
+
+
+def test_sweep_values_are_validated_before_any_trial():
+    """A bad value inside the grid (not only in the base) fails at planning, naming the point."""
+    with pytest.raises(ValueError, match=r"env\.p1\.speed=1\.5.*env\.p1\.speed=1\.5 is outside"):
+        plan("solve", [{"env.p1.speed": 0.5}, {"env.p1.speed": 1.5}], [])
+
+
+@pytest.mark.parametrize(
+    ("args", "named"),
+    [
+        (["recipes/dqn.py", "rewards.r4=50"], "did you mean reward.r4"),
+        (["recipes/qlearning.py", "algo.alpha=abc"], "algo.alpha='abc'"),
+        (["recipes/solve.py", "env.queue_capacity=10000"], "GiB"),
+    ],
+)
+def test_command_line_answer_is_one_line_without_traceback(tmp_path, args, named):
+    r = subprocess.run(
+        [sys.executable, *args, f"hydra.run.dir={tmp_path / 'run'}"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=ROOT,
+    )
+    assert r.returncode == 2, r.stderr[-2000:]
+    assert named in r.stderr and "Traceback" not in r.stderr
+    assert len([line for line in r.stderr.splitlines() if line.startswith("error:")]) == 1
+    assert not (tmp_path / "run").exists()  # refused before any work
+
+
+# -- the envs, misused -----------------------------------------------------------------------------
+
+
+def _td(state, action, n=1):
+    return TensorDict(
+        {
+            "state": torch.as_tensor(state).reshape(n),
+            "action": torch.as_tensor(action).reshape(n),
+            "step_count": torch.zeros(n, 1, dtype=torch.int64),
+        },
+        batch_size=[n],
+    )
+
+
+@pytest.mark.parametrize("action", [-1, 2, 0.5, 1.7])
+def test_torchrl_env_refuses_actions_other_than_0_and_1(action):
+    env = DFRCEnv(Params(), batch_size=[1], seed=0)
+    with pytest.raises(ValueError, match="action must be 0"):
+        env.step(_td(0, action))
+
+
+def test_torchrl_env_accepts_float_zero_and_one():
+    env = DFRCEnv(Params(), batch_size=[2], seed=0)
+    out = env.step(_td([0, 0], torch.tensor([0.0, 1.0]), n=2))["next"]
+    assert out["capacity"].tolist() == [4, 0]
+
+
+@pytest.mark.parametrize("state", [-1, 352, 10**6])
+def test_torchrl_env_refuses_out_of_range_states(state):
+    env = DFRCEnv(Params(), batch_size=[1], seed=0)
+    with pytest.raises(ValueError, match=r"state must hold integer state indices in \[0, 352\)"):
+        env.step(_td(state, 0))
+
+
+def test_torchrl_env_step_before_reset_is_explained():
+    env = DFRCEnv(Params(), batch_size=[1], seed=0)
+    td = TensorDict({"action": torch.zeros(1, dtype=torch.int64)}, batch_size=[1])
+    with pytest.raises(ValueError, match=r"call env\.reset\(\) first"):
+        env.step(td)
+
+
+@pytest.mark.parametrize("action", [0.5, 1.7, "1", 1.0, 2, -1, True, np.array([1])])
+def test_gym_env_refuses_anything_but_0_and_1(action):
+    env = gymnasium.make("irdrc/DFRC-v0")
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match=r"must be 0 \(communication\) or 1 \(radar\)"):
+        env.unwrapped.step(action)
+
+
+def test_gym_env_accepts_integer_scalars():
+    env = gymnasium.make("irdrc/DFRC-v0").unwrapped
+    env.reset(seed=0)
+    for a in (0, 1, np.int64(1), np.array(0)):
+        env.step(a)
+
+
+def test_gym_env_step_before_reset_is_refused():
+    from irdrc.core.gym import DFRCGymEnv
+
+    with pytest.raises(gymnasium.error.ResetNeeded):
+        DFRCGymEnv().step(0)
+    with pytest.raises(gymnasium.error.ResetNeeded):
+        gymnasium.make_vec("irdrc/DFRC-v0", num_envs=2).step(np.array([0, 1]))

@@ -132,10 +132,24 @@ def test_files_follow_the_umask(tmp_path):
     assert (tmp_path / "a.txt").stat().st_mode & 0o777 == FILE_MODE
 
 
-def test_resume_refuses_another_configuration_and_changes_nothing(tmp_path):
-    first = dqn(tmp_path / "a", "algo.total_frames=640", "checkpoint.every_frames=0")
+@pytest.fixture(scope="module")
+def finished_run(tmp_path_factory) -> Path:
+    """One short finished DQN run, copied by the tests that damage or resume it."""
+    out = tmp_path_factory.mktemp("finished") / "a"
+    first = dqn(out, "algo.total_frames=640", "checkpoint.every_frames=0")
     assert first.returncode == 0, first.stderr[-2000:]
-    ckpt = tmp_path / "a" / "checkpoint.pt"
+    return out
+
+
+def _copy(run: Path, tmp_path: Path) -> Path:
+    import shutil
+
+    return Path(shutil.copytree(run, tmp_path / "a"))
+
+
+def test_resume_refuses_another_configuration_and_changes_nothing(finished_run, tmp_path):
+    run = _copy(finished_run, tmp_path)
+    ckpt = run / "checkpoint.pt"
     before = {p.name: p.read_bytes() for p in (tmp_path / "a").iterdir() if p.is_file()}
     r = dqn(
         tmp_path / "a", f"resume={ckpt}", "env.p1.speed=1.0", "reward.r4=50", "env.queue_capacity=5"
@@ -148,10 +162,8 @@ def test_resume_refuses_another_configuration_and_changes_nothing(tmp_path):
 
 
 @pytest.mark.parametrize("damage", ["truncate", "garbage", "empty"])
-def test_corrupt_checkpoint_is_one_line_naming_the_file(tmp_path, damage):
-    first = dqn(tmp_path / "a", "algo.total_frames=640", "checkpoint.every_frames=0")
-    assert first.returncode == 0, first.stderr[-2000:]
-    ckpt = tmp_path / "a" / "checkpoint.pt"
+def test_corrupt_checkpoint_is_one_line_naming_the_file(finished_run, tmp_path, damage):
+    ckpt = _copy(finished_run, tmp_path) / "checkpoint.pt"
     data = ckpt.read_bytes()
     ckpt.write_bytes(
         {"truncate": data[: len(data) // 2], "garbage": b"\x00junk" * 50, "empty": b""}[damage]

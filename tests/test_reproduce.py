@@ -6,6 +6,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+import re
 import shlex
 import subprocess
 import sys
@@ -252,15 +253,21 @@ def test_figure2_end_to_end_tiny_local(tiny_figure):
     assert json.loads((out / "summary.json").read_text())["resumed"] is True
 
 
-def test_figure2_rejects_bad_settings(tmp_path):
-    for override, msg in (
+@pytest.mark.parametrize(
+    ("override", "msg"),
+    [
         ("seeds=[0,0]", "seeds"),
         ("p1_speed=[0.1,1.5]", "p1_speed value 1.5"),
         ("methods=[dqn,sarsa]", "'sarsa' is not in learners"),
         ("learners.dqn.panels=[e]", "learners.dqn.panels"),
-    ):
-        r = _run("figure2.py", tmp_path, override, "executor=local")
-        assert r.returncode != 0 and msg in r.stderr, (override, r.stderr[-1500:])
+    ],
+)
+def test_figure2_rejects_bad_settings(override, msg):
+    from irdrc.experiments.config import compose
+    from irdrc.paper.figure2 import validate_figure2
+
+    with pytest.raises(ValueError, match=re.escape(msg)):
+        validate_figure2(compose("figure2", [override, "executor=local"]))
 
 
 def _unshare_works() -> bool:

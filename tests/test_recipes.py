@@ -204,3 +204,23 @@ def test_cli_lists_and_dispatches(tmp_path):
     )
     assert run.returncode == 0, run.stderr
     assert (tmp_path / "summary.json").is_file()
+
+
+def test_bench_robust_recipe(tmp_path):
+    out = run_recipe(
+        "bench_robust.py",
+        "seeds=[5,6]",
+        "p1_speed=[0.1]",
+        "r4=[5]",
+        "overrides=['algo=dqn','algo.total_frames=640','algo.init_random_frames=128','algo.batch_size=32']",
+        "eval.every_frames=320",
+        "executor=local",
+        f"hydra.run.dir={tmp_path}",
+    )
+    assert out.returncode == 0, out.stderr[-2000:]
+    rows = list(csv.DictReader((tmp_path / "bench_robust.csv").open()))
+    assert [r["seed"] for r in rows] == ["5", "6"] and all(int(r["env_steps"]) == 640 for r in rows)
+    assert all(-2 < float(r["final_ratio"]) <= 1 + 1e-9 for r in rows)
+    assert "runs end ≥ 0.99 of their optimum" in out.stdout
+    bad = run_recipe("bench_robust.py", "p1_speed=[1.5]", f"hydra.run.dir={tmp_path / 'x'}")
+    assert bad.returncode == 2 and "p1_speed[0]=1.5" in bad.stderr

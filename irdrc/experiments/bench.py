@@ -11,10 +11,11 @@ from omegaconf import DictConfig
 
 from irdrc.agents import dqn
 from irdrc.core.model import build_model
-from irdrc.core.params import Params
+from irdrc.core.params import Params, to_plain
 from irdrc.core.solve import ExactScorer
 from irdrc.experiments.config import compose
 from irdrc.experiments.results import write_rows_csv
+from irdrc.experiments.sweep import read_csv_rows as read_csv
 
 SUMMARY_KEYS = (
     "env_steps_to_95",
@@ -98,3 +99,84 @@ def run_bench_dqn(cfg: DictConfig, out: Path) -> int:
     write_rows_csv(Path(out) / cfg.csv, rows)
     print(f"\nwrote {Path(out) / cfg.csv}")
     return 0
+
+
+def run_bench_robust(cfg: DictConfig, out: Path, scenario: list[str] | None = None) -> int:
+    """Every (scenario, seed) of ``cfg`` as one DQN run through the sweep engine; per run and per
+    scenario: final ratio, env steps and seconds to the threshold, and the share of evaluations after
+    first reaching it that stay there."""
+    from irdrc.experiments.grid import parse_grid
+    from irdrc.experiments.sweep import execute, plan
+
+    th = float(cfg.threshold)
+    grid = {
+        "env.p1.speed": [float(p) for p in to_plain(cfg.p1_speed)],
+        "reward.r4": [float(r) for r in to_plain(cfg.r4)],
+        "seed": [int(s) for s in to_plain(cfg.seeds)],
+    }
+    base = [
+        *(scenario or []),
+        *[str(o) for o in cfg.overrides],
+        "eval.mc_episodes=0",
+        f"eval.every_frames={int(cfg.eval.every_frames)}",
+        f"optimum_gamma={float(cfg.optimum_gamma)}",
+        "checkpoint.every_frames=0",
+    ]
+    planned = plan("dqn", parse_grid(grid), base)
+    code = execute(cfg, planned, out)
+    rows = []
+    for p in planned:
+        tdir = Path(out) / "trials" / p["point_id"]
+        if not (tdir / "summary.json").is_file():
+            continue
+        hist = read_csv(tdir / "metrics.csv")
+        ratios = [float(r["optimality_ratio"]) for r in hist]
+        first = next((i for i, r in enumerate(ratios) if r >= th), None)
+        later = ratios[first + 1 :] if first is not None else []
+        rows.append(
+            {
+                **{k: v for k, v in p["point"].items()},
+                "final_ratio": ratios[-1],
+                "holds": ratios[-1] >= th,
+                "env_steps_to_threshold": int(hist[first]["env_steps"])
+                if first is not None
+                else None,
+                "seconds_to_threshold": float(hist[first]["wall_seconds"])
+                if first is not None
+                else None,
+                "later_evals_at_threshold": sum(r >= th for r in later) / len(later)
+                if later
+                else None,
+                "env_steps": int(hist[-1]["env_steps"]),
+                "wall_seconds": float(hist[-1]["wall_seconds"]),
+            }
+        )
+    write_rows_csv(Path(out) / cfg.csv, rows)
+    keys = [k for k in grid if k != "seed"]
+    print(f"\nfinal greedy policy ≥ {th} of the optimum, per scenario ({len(grid['seed'])} seeds):")
+    print(
+        "scenario                          runs  hold  worst final  median steps to th  "
+        "median s to th  later evals ≥ th (median, min)"
+    )
+    for point in parse_grid({k: grid[k] for k in keys}):
+        mine = [r for r in rows if all(r[k] == v for k, v in point.items())]
+        if not mine:
+            continue
+        steps = [
+            r["env_steps_to_threshold"] for r in mine if r["env_steps_to_threshold"] is not None
+        ]
+        secs = [r["seconds_to_threshold"] for r in mine if r["seconds_to_threshold"] is not None]
+        later = [
+            r["later_evals_at_threshold"] for r in mine if r["later_evals_at_threshold"] is not None
+        ]
+        label = " ".join(f"{k}={v}" for k, v in point.items())
+        print(
+            f"{label:<32}  {len(mine):>4}  {sum(r['holds'] for r in mine):>4}  "
+            f"{min(r['final_ratio'] for r in mine):>11.4f}  "
+            f"{statistics.median(steps) if steps else float('nan'):>18.0f}  "
+            f"{statistics.median(secs) if secs else float('nan'):>14.2f}  "
+            + (f"{statistics.median(later):.2f}, {min(later):.2f}" if later else "n/a")
+        )
+    held = sum(r["holds"] for r in rows)
+    print(f"\n{held}/{len(rows)} runs end ≥ {th} of their optimum; wrote {Path(out) / cfg.csv}")
+    return code

@@ -277,6 +277,24 @@ def _bench_dqn(cfg: DictConfig) -> None:
         check_choice("profiles", name, ("dqn", "dqn_paper"))
 
 
+def _bench_robust(cfg: DictConfig) -> None:
+    check_common(cfg)
+    check_executor(cfg)
+    check_number("threshold", cfg.threshold, 0, 1, open_lo=True)
+    seeds = to_plain(cfg.seeds)
+    if not isinstance(seeds, list) or not seeds:
+        raise ValueError(f"seeds={seeds!r} must be a non-empty list of seeds")
+    for i, v in enumerate(seeds):
+        check_number(f"seeds[{i}]", v, 0, 2**32 - 1, integer=True)
+    for key, lo, hi in (("p1_speed", 0, 1), ("r4", 0, 1e9)):
+        values = to_plain(cfg[key])
+        if not isinstance(values, list) or not values:
+            raise ValueError(f"{key}={values!r} must be a non-empty list")
+        for i, v in enumerate(values):
+            check_number(f"{key}[{i}]", v, lo, hi)
+    # every run's full config is composed and checked when the run plans them, before any trial
+
+
 def _demo(cfg: DictConfig) -> None:
     check_common(cfg)
 
@@ -301,6 +319,7 @@ VALIDATORS: dict[str, Callable[[DictConfig], None]] = {
     "bench_dqn": _bench_dqn,
     "bench_env": _bench_env,
     "demo": _demo,
+    "bench_robust": _bench_robust,
 }
 
 

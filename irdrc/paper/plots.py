@@ -135,7 +135,7 @@ def plot_p_sweep(
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
     fig.suptitle(
-        f"{title} — learned: final greedy policies, exact; mean and 95 % band over {seeds} "
+        f"{title} — learned: final greedy policies, exact\nmean and 95 % band over {seeds} "
         "seeds (clipped to the metric's range)",
         fontsize=10,
     )

@@ -14,8 +14,8 @@ from irdrc.core.model import build_model
 from irdrc.core.params import Params, to_plain
 from irdrc.core.solve import ExactScorer
 from irdrc.experiments.config import compose
+from irdrc.experiments.results import read_csv_rows as read_csv
 from irdrc.experiments.results import write_rows_csv
-from irdrc.experiments.sweep import read_csv_rows as read_csv
 
 SUMMARY_KEYS = (
     "env_steps_to_95",

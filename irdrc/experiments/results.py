@@ -151,6 +151,12 @@ def read_policy_csv(path: Path, num_states: int | None = None) -> torch.Tensor:
     return actions
 
 
+def read_csv_rows(path: Path) -> list[dict[str, str]]:
+    """Rows of a CSV file as dicts of strings (what ``write_rows_csv`` wrote)."""
+    with Path(path).open(newline="") as f:
+        return list(csv.DictReader(f))
+
+
 def write_rows_csv(
     path: Path, rows: Iterable[dict[str, Any]], fieldnames: Sequence[str] | None = None
 ) -> None:

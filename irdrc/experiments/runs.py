@@ -44,6 +44,7 @@ from irdrc.experiments.guard import (
     stop_on_signals,
 )
 from irdrc.experiments.results import (
+    atomic_write_text,
     policy_table,
     read_policy_csv,
     summary_dict,
@@ -241,7 +242,7 @@ def run_learner(
     out.mkdir(parents=True, exist_ok=True)
     scenario = scenario or scenario_name(cfg)
     name = str(cfg.algo.get("name", method))
-    OmegaConf.save(cfg, out / "config.yaml")
+    atomic_write_text(out / "config.yaml", OmegaConf.to_yaml(cfg))
     logger = make_logger(
         cfg.logger.backend,
         f"{scenario}__{name}__{cfg.seed}",

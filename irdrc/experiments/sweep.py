@@ -346,12 +346,6 @@ def _run_tune(
         ray.shutdown()
 
 
-def read_csv_rows(path: Path) -> list[dict[str, str]]:
-    """Rows of a CSV file as dicts of strings."""
-    with Path(path).open(newline="") as f:
-        return list(csv.DictReader(f))
-
-
 def write_summary_csv(path: Path, planned: list[dict], trials_dir: Path) -> int:
     """``summary.csv``: one row per expected grid point (overrides, status, final metrics).
 

@@ -229,6 +229,8 @@ def _dqn(cfg: DictConfig, explicit: frozenset[str] = frozenset()) -> None:
         check_number(
             "checkpoint.every_frames", cfg.checkpoint.every_frames, 0, 10**12, integer=True
         )
+    if _opt(cfg, "compare.qlearning_paper") is not None:
+        check_bool("compare.qlearning_paper", cfg.compare.qlearning_paper)
     if _opt(cfg, "compare.qlearning_paper"):
         check_writable_dir("cache_dir", cfg.cache_dir)
     if cfg.get("resume"):

@@ -6,17 +6,16 @@ plain rows to ``irdrc.paper.plots`` (drawing) and ``irdrc.paper.claims`` (verdic
 
 from __future__ import annotations
 
-import csv
 import math
 import statistics
 from collections.abc import Iterable, Sequence
-from pathlib import Path
 from typing import Any
 
 import torch
 
 from irdrc.core.env import Dynamics
 from irdrc.core.params import Params
+from irdrc.experiments.results import read_csv_rows as read_csv  # noqa: F401 - re-exported
 
 # Two-sided 95 % quantiles of Student's t for 1 … 30 degrees of freedom (beyond: the normal's).
 _T975 = (
@@ -46,12 +45,6 @@ def mean_ci(values: Iterable[float]) -> dict[str, float]:
         return {"mean": m, "lo": m, "hi": m, "n": 1}
     half = t975(len(xs) - 1) * statistics.stdev(xs) / math.sqrt(len(xs))
     return {"mean": m, "lo": m - half, "hi": m + half, "n": len(xs)}
-
-
-def read_csv(path: Path) -> list[dict[str, str]]:
-    """Rows of a CSV file as dicts of strings."""
-    with Path(path).open(newline="") as f:
-        return list(csv.DictReader(f))
 
 
 def to_float(v: Any) -> float:

@@ -53,6 +53,8 @@ class Hooks:
             (learners that checkpoint; 0: never during the run).
         should_stop: polled after each batch; True makes the learner stop there, evaluate, and
             return its record with ``interrupted`` set (and ``state`` to resume from).
+        on_values: after each exact evaluation, with the env steps and the learner's action
+            values [N, S, 2] (comm, radar), for learners that have them; diagnostics only.
     """
 
     on_eval: Callable[[list[dict[str, Any]]], None] | None = None
@@ -61,6 +63,7 @@ class Hooks:
     on_checkpoint: Callable[[dict[str, Any]], None] | None = None
     checkpoint_every_frames: int = 0
     should_stop: Callable[[], bool] | None = None
+    on_values: Callable[[int, torch.Tensor], None] | None = None
 
     def start(self, info: dict[str, Any]) -> None:
         """Call ``on_start`` (what the learner built, before the first step) if set."""
@@ -80,6 +83,11 @@ class Hooks:
         """Call ``on_eval`` if set."""
         if self.on_eval is not None:
             self.on_eval(records)
+
+    def values(self, env_steps: int, q: torch.Tensor) -> None:
+        """Call ``on_values`` if set."""
+        if self.on_values is not None:
+            self.on_values(env_steps, q)
 
     def batch(self, info: dict[str, Any]) -> None:
         """Call ``on_batch`` if set."""

@@ -7,6 +7,7 @@ greedy network *exactly* on all states on a schedule.
 
 from __future__ import annotations
 
+import copy
 import math
 import time
 from collections.abc import Sequence
@@ -17,10 +18,12 @@ from typing import Any
 import torch
 from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictSequential
+from tensordict.utils import expand_as_right
 from torch import nn
 from torchrl.collectors import Collector
-from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+from torchrl.data import Composite, LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.data.replay_buffers.samplers import RandomSampler
+from torchrl.envs.utils import ExplorationType, exploration_type
 from torchrl.modules import MLP, EGreedyModule, QValueActor
 from torchrl.objectives import DQNLoss, HardUpdate, SoftUpdate
 
@@ -41,15 +44,23 @@ NAME = "dqn"
 DEFAULT_EVAL_EVERY_FRAMES = 1_000
 """Exact evaluation period when the caller gives none, env steps."""
 
+ENCODINGS = ("scale", "onehot")
 ACTIVATIONS = {"relu": nn.ReLU, "tanh": nn.Tanh, "elu": nn.ELU, "gelu": nn.GELU, "silu": nn.SiLU}
 
 
 @dataclass(frozen=True)
 class NetworkConfig:
-    """Q-network shape (config group ``network``): hidden layer sizes and activation."""
+    """Q-network shape (config group ``network``): hidden layer sizes, activation, and how
+    observations enter the network.
+
+    ``encoding``: ``scale`` divides each observation entry by its largest value (one input per
+    entry, in [0, 1]); ``onehot`` gives each level of each entry its own input (an entry with
+    levels 0..n becomes n + 1 inputs), so no level's value is extrapolated from the others.
+    """
 
     hidden: tuple[int, ...] = (64, 64)
     activation: str = "relu"
+    encoding: str = "scale"
 
     def __post_init__(self) -> None:
         hidden = self.hidden if isinstance(self.hidden, list | tuple) else None
@@ -62,6 +73,7 @@ class NetworkConfig:
                 f"network.hidden={hidden if hidden is not None else self.hidden!r} must be a "
                 "non-empty list of integers in [1, 65536]"
             )
+        check_choice("network.encoding", self.encoding, ENCODINGS)
         if self.activation not in ACTIVATIONS:
             raise ValueError(
                 f"network.activation={self.activation!r} must be one of {', '.join(ACTIVATIONS)}"
@@ -71,7 +83,7 @@ class NetworkConfig:
     def from_dict(cls, data: Any) -> NetworkConfig:
         """From a mapping with ``hidden`` and ``activation`` (``name`` is ignored)."""
         data = {k: v for k, v in dict(to_plain(data)).items() if k != "name"}
-        reject_unknown_keys("network.", data, {"hidden", "activation"})
+        reject_unknown_keys("network.", data, {"hidden", "activation", "encoding"})
         return cls(**data)
 
 
@@ -95,8 +107,13 @@ class DQNConfig:
             ``smooth_l1``.
         double_dqn: use the online network to pick the next action (van Hasselt et al.).
         eps_start, eps_end, eps_anneal_frames: ε-greedy, annealed linearly over env steps.
+        eps_duration_max: 1 (ε-greedy) or the longest hold of a random action (εz-greedy: each
+            exploration holds its action for n ≤ this steps, P(n) ∝ n^−2).
         target_update: ``soft`` (Polyak, rate ``tau`` per update) or ``hard`` (copy every
             ``target_update_every_updates`` updates).
+        average_tau: 0, or the rate of a Polyak average of the online network (updated after every
+            gradient update) whose greedy actions are the evaluated and the final policy; acting
+            stays with the online network.
         prioritized: proportional prioritised replay with exponent ``alpha`` and importance
             exponent annealed from ``beta_start`` to 1 over ``total_frames``.
         sampler: ``auto`` (TorchRL's when its extension loads, else ours), ``torchrl``, ``torch``.
@@ -119,9 +136,11 @@ class DQNConfig:
     eps_start: float = 1.0
     eps_end: float = 0.05
     eps_anneal_frames: int = 4_000
+    eps_duration_max: int = 1
     target_update: str = "soft"
     tau: float = 0.01
     target_update_every_updates: int = 500
+    average_tau: float = 0.0
     prioritized: bool = True
     alpha: float = 0.6
     beta_start: float = 1.0
@@ -144,11 +163,12 @@ class DQNConfig:
         for key in ("init_random_frames", "eps_anneal_frames"):
             num(key, 0, 10**12, integer=True)
         num("target_update_every_updates", 1, 10**12, integer=True)
+        num("eps_duration_max", 1, 10**6, integer=True)
         num("lr", 0, 1, open_lo=True, open_hi=True)
         num("lr_end", 0, 1, open_hi=True)
         num("max_grad_norm", 0)
         num("gamma", 0, 1, open_hi=True)
-        for key in ("eps_start", "eps_end", "tau", "beta_start"):
+        for key in ("eps_start", "eps_end", "tau", "beta_start", "average_tau"):
             num(key, 0, 1)
         num("alpha", 0, 10)
         check_choice("algo.loss_function", self.loss_function, ("l2", "l1", "smooth_l1"))
@@ -214,29 +234,87 @@ class _Scale(nn.Module):
         return x * self.inv
 
 
+class _OneHot(nn.Module):
+    """Each entry of an integer-valued observation as a one-hot vector over its levels 0..high."""
+
+    def __init__(self, high: torch.Tensor) -> None:
+        super().__init__()
+        levels = high.round().long() + 1
+        self.register_buffer("offset", torch.cumsum(levels, 0) - levels)
+        self.size = int(levels.sum())
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        index = x.round().long() + self.offset
+        out = torch.zeros(*x.shape[:-1], self.size, dtype=x.dtype, device=x.device)
+        return out.scatter_(-1, index, 1.0)
+
+
 def make_qnet(env: DFRCEnv, net: NetworkConfig) -> QValueActor:
-    """Q-value actor sized from the env's specs: observation dim in, one Q-value per action out."""
+    """Q-value actor sized from the env's specs: observation (encoded by ``net.encoding``) in, one
+    Q-value per action out."""
     obs_spec = env.observation_spec["observation"]
     n_actions = env.action_spec_unbatched.space.n
     high = obs_spec.space.high.reshape(-1, obs_spec.shape[-1])[0].to(torch.float32)
+    encode = _OneHot(high) if net.encoding == "onehot" else _Scale(high)
     mlp = MLP(
-        in_features=obs_spec.shape[-1],
+        in_features=encode.size if net.encoding == "onehot" else obs_spec.shape[-1],
         out_features=n_actions,
         num_cells=list(net.hidden),
         activation_class=ACTIVATIONS[net.activation],
         device=env.device,
     )
-    module = nn.Sequential(_Scale(high.to(env.device)), mlp)
+    module = nn.Sequential(encode.to(env.device), mlp)
     return QValueActor(module=module, in_keys=["observation"], spec=env.action_spec_unbatched)
 
 
+class EZGreedyModule(EGreedyModule):
+    """Temporally extended ε-greedy (εz-greedy, Dabney et al. 2021): with probability ε an env not
+    already exploring starts an exploration, a uniformly random action held for n steps, n drawn
+    from a zeta distribution (P(n) ∝ n^−2) truncated at ``max_duration``; ``max_duration`` 1 is
+    TorchRL's ε-greedy. Held actions reach states that one-step dithering rarely does (here: long
+    runs of one mode fill or empty the queue)."""
+
+    def __init__(self, *args: Any, max_duration: int = 1, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.max_duration = int(max_duration)
+        n = torch.arange(1, self.max_duration + 1, dtype=torch.float64)
+        self.register_buffer("_duration_p", (n**-2.0 / (n**-2.0).sum()).float())
+        self._remaining: torch.Tensor | None = None
+        self._held: torch.Tensor | None = None
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        if self.max_duration <= 1 or exploration_type() not in (ExplorationType.RANDOM, None):
+            return super().forward(tensordict)
+        action = tensordict.get(self.action_key)
+        shape = tensordict.shape
+        if self._remaining is None or self._remaining.shape != shape:
+            self._remaining = torch.zeros(shape, dtype=torch.long, device=action.device)
+            self._held = torch.zeros_like(action)
+        start = (self._remaining == 0) & (torch.rand(shape, device=action.device) < self.eps)
+        if bool(start.any()):
+            spec = self.spec[self.action_key] if isinstance(self.spec, Composite) else self.spec
+            spec = spec.expand(action.shape) if spec.shape != action.shape else spec
+            draw = torch.multinomial(self._duration_p, int(start.numel()), replacement=True) + 1
+            self._remaining = torch.where(
+                start, draw.view(shape).to(action.device), self._remaining
+            )
+            self._held = torch.where(expand_as_right(start, action), spec.rand(), self._held)
+        active = self._remaining > 0
+        action = torch.where(expand_as_right(active, action), self._held, action)
+        self._remaining = (self._remaining - 1).clamp(min=0)
+        tensordict.set(self.action_key, action)
+        return tensordict
+
+
 def make_exploration(env: DFRCEnv, cfg: DQNConfig) -> EGreedyModule:
-    """ε-greedy, linear from ``eps_start`` to ``eps_end`` over ``eps_anneal_frames`` env steps."""
-    return EGreedyModule(
+    """ε-greedy, linear from ``eps_start`` to ``eps_end`` over ``eps_anneal_frames`` env steps;
+    temporally extended (``EZGreedyModule``) when ``eps_duration_max`` > 1."""
+    return EZGreedyModule(
         spec=env.action_spec_unbatched,
         eps_init=cfg.eps_start,
         eps_end=cfg.eps_end,
         annealing_num_steps=max(1, cfg.eps_anneal_frames),
+        max_duration=cfg.eps_duration_max,
     )
 
 
@@ -329,13 +407,15 @@ def train(
     loss = make_loss(qnet, env, cfg)
     target = make_target_updater(loss, cfg)
     optimizer = torch.optim.Adam(loss.parameters(), lr=cfg.lr)
+    average = _make_average(qnet, cfg)
+    greedy_net = average if average is not None else qnet
     record = RunRecord(method=cfg.name, greedy=torch.zeros(1, env.num_states, dtype=torch.int64))
     record.info["replay_sampler"] = type(sampler).__name__ + (
         " (prioritised)" if cfg.prioritized else " (uniform)"
     )
     hooks.start(dict(record.info))
 
-    start_frames = _restore(resume, loss, optimizer, exploration, record)
+    start_frames = _restore(resume, loss, optimizer, exploration, record, average)
     remaining = cfg.total_frames - start_frames
     if remaining <= 0:
         raise ValueError(
@@ -362,13 +442,15 @@ def train(
     optimal = scorer.optimal_metrics.avg_reward
 
     def evaluate_now() -> None:
-        m = scorer.metrics(greedy_table(qnet, env))
+        m = scorer.metrics(greedy_table(greedy_net, env))
         wall = time.perf_counter() - t0
         entry = progress_record(
             0, frames, len(record.episode_rewards), wall, record.updates, m, optimal
         )
         record.history.append(entry)
         hooks.eval([entry])
+        if hooks.on_values is not None:
+            hooks.values(frames, action_values(greedy_net, env)[None])
 
     if resume is None:
         evaluate_now()
@@ -382,7 +464,7 @@ def train(
         exploration.step(data.numel())
         _anneal(cfg, optimizer, sampler, frames)
         if len(rb) >= learn_from:
-            last_loss = _learn(cfg, rb, loss, optimizer, target)
+            last_loss = _learn(cfg, rb, loss, optimizer, target, (average, qnet))
             record.updates += cfg.updates_per_batch
         hooks.batch(
             {
@@ -400,7 +482,7 @@ def train(
             next_eval = (frames // eval_every_frames + 1) * eval_every_frames
         if hooks.checkpoint_due(frames - data.numel(), frames) and frames < cfg.total_frames:
             wall = time.perf_counter() - t0
-            hooks.on_checkpoint(_checkpoint(loss, optimizer, record, frames, wall))
+            hooks.on_checkpoint(_checkpoint(loss, optimizer, record, frames, wall, average))
         if stop:
             record.interrupted = True
             break
@@ -408,17 +490,43 @@ def train(
     record.env_steps = frames
     record.episodes = len(record.episode_rewards)
     record.wall_seconds = time.perf_counter() - t0
-    record.greedy = greedy_table(qnet, env)[None]
-    record.q = action_values(qnet, env)[None]
-    record.state = _checkpoint(loss, optimizer, record, frames, record.wall_seconds)
+    record.greedy = greedy_table(greedy_net, env)[None]
+    record.q = action_values(greedy_net, env)[None]
+    record.state = _checkpoint(loss, optimizer, record, frames, record.wall_seconds, average)
     return record
 
 
+def _make_average(qnet: QValueActor, cfg: DQNConfig) -> QValueActor | None:
+    """A frozen copy of the Q-network to hold its Polyak average, or None when ``average_tau`` is 0."""
+    if cfg.average_tau <= 0:
+        return None
+    average = copy.deepcopy(qnet)
+    for p in average.parameters():
+        p.requires_grad_(False)
+    return average
+
+
+def _update_average(average: QValueActor | None, qnet: nn.Module, tau: float) -> None:
+    """average ← (1 − τ)·average + τ·online, parameter by parameter."""
+    if average is None:
+        return
+    with torch.no_grad():
+        for pa, p in zip(average.parameters(), qnet.parameters(), strict=True):
+            pa.lerp_(p, tau)
+
+
 def _checkpoint(
-    loss: DQNLoss, optimizer: torch.optim.Optimizer, record: RunRecord, frames: int, wall: float
+    loss: DQNLoss,
+    optimizer: torch.optim.Optimizer,
+    record: RunRecord,
+    frames: int,
+    wall: float,
+    average: QValueActor | None = None,
 ) -> dict:
-    """The resumable state at ``frames`` env steps: networks, optimiser, counters, history so far."""
+    """The resumable state at ``frames`` env steps: networks (the averaged one too, when there is
+    one), optimiser, counters, history so far."""
     return {
+        **({"average": average.state_dict()} if average is not None else {}),
         "loss": loss.state_dict(),
         "optimizer": optimizer.state_dict(),
         "frames": frames,
@@ -435,11 +543,14 @@ def _restore(
     optimizer: torch.optim.Optimizer,
     exploration: EGreedyModule,
     record: RunRecord,
+    average: QValueActor | None = None,
 ) -> int:
     """Load a checkpoint into the components and the record; returns its env steps (0 if none)."""
     if resume is None:
         return 0
     loss.load_state_dict(resume["loss"])
+    if average is not None:
+        average.load_state_dict(resume["average"])
     optimizer.load_state_dict(resume["optimizer"])
     frames, record.updates = int(resume["frames"]), int(resume["updates"])
     exploration.step(frames)
@@ -457,8 +568,16 @@ def _anneal(cfg: DQNConfig, optimizer: torch.optim.Optimizer, sampler, frames: i
         sampler.beta = cfg.beta_start + (1.0 - cfg.beta_start) * progress
 
 
-def _learn(cfg: DQNConfig, rb, loss: DQNLoss, optimizer: torch.optim.Optimizer, target) -> float:
-    """``updates_per_batch`` gradient updates from replay; returns the last loss."""
+def _learn(
+    cfg: DQNConfig,
+    rb,
+    loss: DQNLoss,
+    optimizer: torch.optim.Optimizer,
+    target,
+    average: tuple[QValueActor | None, QValueActor] | None = None,
+) -> float:
+    """``updates_per_batch`` gradient updates from replay (each followed by the target update and,
+    with ``average`` = (average, online network), the policy average's); returns the last loss."""
     last = math.nan
     for _ in range(cfg.updates_per_batch):
         sample = rb.sample()
@@ -469,6 +588,8 @@ def _learn(cfg: DQNConfig, rb, loss: DQNLoss, optimizer: torch.optim.Optimizer, 
             nn.utils.clip_grad_norm_(loss.parameters(), cfg.max_grad_norm)
         optimizer.step()
         target.step()
+        if average is not None:
+            _update_average(*average, cfg.average_tau)
         if cfg.prioritized:
             # DQNLoss writes the squared TD error; proportional PER uses |δ|.
             rb.update_priority(sample["index"], sample["td_error"].detach().sqrt().reshape(-1))

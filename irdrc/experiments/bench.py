@@ -10,9 +10,11 @@ import torch
 from omegaconf import DictConfig
 
 from irdrc.agents import dqn
+from irdrc.agents.base import Hooks
+from irdrc.core.env import decode_state
 from irdrc.core.model import build_model
 from irdrc.core.params import Params, to_plain
-from irdrc.core.solve import ExactScorer
+from irdrc.core.solve import ExactScorer, stationary_occupancy
 from irdrc.experiments.config import compose
 from irdrc.experiments.results import read_csv_rows as read_csv
 from irdrc.experiments.results import write_rows_csv
@@ -42,11 +44,61 @@ def _fmt(values: list) -> str:
     return f"median {statistics.median(hit):.4g} (range {min(hit):.4g}–{max(hit):.4g})"
 
 
+def comm_states(scorer: ExactScorer) -> list[dict[str, Any]]:
+    """The states where the optimum communicates, each with its label, its share of time under the
+    optimum, its true action gap Q*(s, comm) − Q*(s, radar), and the optimality ratio of the
+    optimum with radar in that state alone (what one wrong greedy action there costs)."""
+    model, opt = scorer.model, scorer.optimal
+    visits = stationary_occupancy(model, opt.policy).sum(0)
+    out = []
+    for s in (opt.policy == 0).nonzero().flatten().tolist():
+        flipped = opt.policy.clone()
+        flipped[s] = 1
+        d, c, r, w, v, m = (int(x) for x in decode_state(torch.tensor(s)).tolist())
+        out.append(
+            {
+                "state": s,
+                "label": f"d={d} c={c} r={r} w={w} v={v} m={m}",
+                "visit_frequency": float(visits[s]),
+                "true_gap": float(opt.q[0, s] - opt.q[1, s]),
+                "ratio_if_radar_here": scorer.ratio(flipped),
+            }
+        )
+    return out
+
+
+def _gap_tracer(states: list[dict[str, Any]], profile: str, seed: int, rows: list[dict[str, Any]]):
+    """An ``on_values`` hook appending the learned gap at ``states`` to ``rows``."""
+
+    def on_values(env_steps: int, q: torch.Tensor) -> None:
+        for st in states:
+            gap = float(q[0, st["state"], 0] - q[0, st["state"], 1])
+            rows.append(
+                {
+                    "profile": profile,
+                    "seed": seed,
+                    "env_steps": env_steps,
+                    "state": st["label"],
+                    "visit_frequency": st["visit_frequency"],
+                    "ratio_if_radar_here": st["ratio_if_radar_here"],
+                    "true_gap": st["true_gap"],
+                    "learned_gap": gap,
+                }
+            )
+
+    return on_values
+
+
 def run_bench_dqn(cfg: DictConfig, out: Path) -> int:
-    """Train every (profile, seed), print medians and ranges, write ``cfg.csv`` into ``out``."""
+    """Train every (profile, seed), print medians and ranges, write ``cfg.csv`` into ``out``; with
+    ``trace_gaps``, also the learned action gap at every state where the optimum communicates, at
+    every evaluation (``gap_trace.csv``), and each run's final gaps there."""
     torch.set_num_threads(int(cfg.num_threads))
     params = Params.from_config(cfg)
     scorer = ExactScorer(build_model(params), gamma=float(cfg.optimum_gamma))
+    trace = bool(cfg.get("trace_gaps", False))
+    states = comm_states(scorer) if trace else []
+    gap_rows: list[dict[str, Any]] = []
     rows: list[dict[str, Any]] = []
     for name in cfg.profiles:
         extra = []
@@ -54,6 +106,9 @@ def run_bench_dqn(cfg: DictConfig, out: Path) -> int:
             extra.append(f"algo.total_frames={int(cfg.frames_override[name])}")
         config = profile_config(name, extra)
         for seed in cfg.seeds:
+            hooks = Hooks(
+                on_values=_gap_tracer(states, name, int(seed), gap_rows) if trace else None
+            )
             rec = dqn.train(
                 params,
                 config,
@@ -61,6 +116,7 @@ def run_bench_dqn(cfg: DictConfig, out: Path) -> int:
                 device=cfg.device,
                 eval_every_frames=int(cfg.eval.every_frames),
                 scorers=scorer,
+                hooks=hooks,
             )
             t99 = rec.first_reaching(0.99)
             later = [e for e in rec.history if t99 is not None and e["env_steps"] > t99]
@@ -90,6 +146,17 @@ def run_bench_dqn(cfg: DictConfig, out: Path) -> int:
                 f"{rec.env_steps} steps in {rec.wall_seconds:.1f} s",
                 flush=True,
             )
+            if trace:
+                final = gap_rows[-len(states) :]
+                print(
+                    "    final learned gap (true "
+                    + ", ".join(sorted({f"{st['true_gap']:.3f}" for st in states}))
+                    + "): "
+                    + "; ".join(
+                        f"{st['label']}: {g['learned_gap']:+.2f}"
+                        for st, g in zip(states, final, strict=True)
+                    )
+                )
     print()
     for name in cfg.profiles:
         rs = [r for r in rows if r["profile"] == name]
@@ -98,6 +165,14 @@ def run_bench_dqn(cfg: DictConfig, out: Path) -> int:
             print(f"  {key:<18} {_fmt([r[key] for r in rs])}")
     write_rows_csv(Path(out) / cfg.csv, rows)
     print(f"\nwrote {Path(out) / cfg.csv}")
+    if trace:
+        write_rows_csv(Path(out) / "gap_trace.csv", gap_rows)
+        print(f"wrote {Path(out) / 'gap_trace.csv'}")
+        for st in states:
+            print(
+                f"  {st['label']}: {st['visit_frequency']:.4f} of the time under the optimum; "
+                f"radar there alone → ratio {st['ratio_if_radar_here']:.4f}"
+            )
     return 0
 
 

@@ -277,6 +277,7 @@ def _bench_dqn(cfg: DictConfig) -> None:
     check_common(cfg)
     for name in cfg.profiles:
         check_choice("profiles", name, ("dqn", "dqn_paper"))
+    check_bool("trace_gaps", cfg.get("trace_gaps", False))
 
 
 def _bench_robust(cfg: DictConfig) -> None:
@@ -313,7 +314,48 @@ def _bench_env(cfg: DictConfig) -> None:
             check_number(f"{key}[{i}]", v, 1, 10**8, integer=True)
 
 
+def _constrained(cfg: DictConfig) -> None:
+    from irdrc.core.cmdp import OBJECTIVES, solve_cmdp
+    from irdrc.core.model import build_model
+
+    params = check_common(cfg)
+    check_choice("objective", cfg.objective, OBJECTIVES)
+    check_number("target_miss", cfg.target_miss, 0, 1)
+    if cfg.max_drop is not None:
+        check_number("max_drop", cfg.max_drop, 0)
+    if cfg.min_radar is not None:
+        check_number("min_radar", cfg.min_radar, 0, 1)
+    check_number("optimum_gamma", cfg.optimum_gamma, 0, 1, open_hi=True)
+    check_bool("frontier", cfg.frontier)
+    grid = cfg.frontier_grid
+    ps = to_plain(grid.p1_speed)
+    if not isinstance(ps, list) or not ps:
+        raise ValueError(f"frontier_grid.p1_speed={ps!r} must be a non-empty list")
+    for i, p in enumerate(ps):
+        check_number(f"frontier_grid.p1_speed[{i}]", p, 0, 1)
+    check_number("frontier_grid.points", grid.points, 2, 10_000, integer=True)
+    lo = check_number("frontier_grid.r4.lo", grid.r4.lo, 0)
+    hi = check_number("frontier_grid.r4.hi", grid.r4.hi, lo)
+    step = check_number("frontier_grid.r4.step", grid.r4.step, 0, open_lo=True)
+    if (hi - lo) / step > 5000:
+        raise ValueError(
+            f"frontier_grid.r4: {int((hi - lo) / step) + 1} exact solves per p1.speed (> 5 000); "
+            "raise frontier_grid.r4.step"
+        )
+    targets = to_plain(grid.targets)
+    if not isinstance(targets, list):
+        raise ValueError(f"frontier_grid.targets={targets!r} must be a list")
+    for i, t in enumerate(targets):
+        check_number(f"frontier_grid.targets[{i}]", t, 0, 1)
+    if params is not None and not cfg.frontier:
+        # Feasibility is the LP itself: refused here, before the run directory exists.
+        from irdrc.experiments.constrained import constraint_kwargs
+
+        solve_cmdp(build_model(params), **constraint_kwargs(cfg))
+
+
 VALIDATORS: dict[str, Callable[[DictConfig], None]] = {
+    "constrained": _constrained,
     "solve": _solve,
     "dqn": _dqn,
     "qlearning": _qlearning,

@@ -52,6 +52,18 @@ class _Table(nn.Module):
         return self.actions[state]
 
 
+class _RandomTable(nn.Module):
+    def __init__(self, p_radar: torch.Tensor, seed: int | None) -> None:
+        super().__init__()
+        self.register_buffer("p_radar", torch.as_tensor(p_radar, dtype=torch.float64).clone())
+        self.generator = torch.Generator()
+        self.generator.manual_seed(seed if seed is not None else fresh_seed())
+
+    def forward(self, state: torch.Tensor) -> torch.Tensor:
+        u = torch.rand(state.shape, generator=self.generator, dtype=torch.float64)
+        return (u.to(state.device) < self.p_radar[state]).to(torch.int64)
+
+
 def always_comm() -> TensorDictModule:
     """Communication mode every step."""
     return TensorDictModule(_Constant(0), in_keys=["state"], out_keys=["action"])
@@ -81,9 +93,25 @@ def uniform_random(p_radar: float = 0.5, seed: int | None = None) -> TensorDictM
     return TensorDictModule(_Random(p_radar, seed), in_keys=["state"], out_keys=["action"])
 
 
-def table_policy(actions: torch.Tensor) -> TensorDictModule:
-    """Deterministic policy from a table of one action per state index (see ``irdrc.core.env``)."""
+def table_policy(actions: torch.Tensor, seed: int | None = None) -> TensorDictModule:
+    """Policy from a table per state index (see ``irdrc.core.env``): [S] actions (deterministic)
+    or [S, 2] probabilities of (comm, radar) (randomised, drawn from its own generator seeded by
+    ``seed``)."""
     actions = torch.as_tensor(actions)
+    if actions.ndim == 2:
+        if (
+            actions.shape[1] != 2
+            or actions.shape[0] % 32
+            or bool((actions < 0).any())
+            or not torch.allclose(actions.sum(-1).double(), torch.ones(actions.shape[0]).double())
+        ):
+            raise ValueError(
+                "a randomised policy must be an [S, 2] table of probabilities summing to 1 per "
+                "state, with S = (D + 1)·32"
+            )
+        return TensorDictModule(
+            _RandomTable(actions[:, 1], seed), in_keys=["state"], out_keys=["action"]
+        )
     if (
         actions.ndim != 1
         or actions.numel() % 32

@@ -1,0 +1,173 @@
+"""The design question's frontier (``recipes/constrained.py frontier=true``): the most data for each
+miss-detection target, exactly (the LP), against the paper's route of tuning the detection reward r4
+(the reward-optimal deterministic policy at each r4), on the same axes."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from omegaconf import DictConfig
+
+from irdrc.core.cmdp import solve_cmdp
+from irdrc.core.model import build_model
+from irdrc.core.params import Params, to_plain
+from irdrc.core.solve import stationary_metrics, value_iteration
+from irdrc.experiments.constrained import constraint_kwargs, run_constrained
+from irdrc.experiments.progress import Ticker
+from irdrc.experiments.results import write_rows_csv, write_summary
+from irdrc.paper.tradeoff import optimal_at, ref_params
+
+FRONTIER_COLUMNS = (
+    "p1_speed",
+    "route",
+    "target_miss",
+    "r4",
+    "throughput",
+    "miss_detection",
+    "radar_fraction",
+    "link_capacity",
+    "avg_reward",
+    "randomised_states",
+)
+
+
+def r4_grid(cfg: DictConfig) -> list[float]:
+    """The r4 values of the reward route: ``lo``, ``lo + step``, …, ≤ ``hi``."""
+    lo, hi, step = (float(cfg.frontier_grid.r4[k]) for k in ("lo", "hi", "step"))
+    return [float(x) for x in np.round(np.arange(lo, hi + step / 2, step), 10)]
+
+
+def _lp_points(
+    params: Params, p: float, kwargs: dict[str, Any], n: int, gamma: float, extra: list[float]
+) -> list:
+    """LP optima at ``n`` targets from 0 to the reward-optimal policy's miss detection, and at the
+    ``extra`` targets (the table's)."""
+    model = build_model(params)
+    top = stationary_metrics(model, value_iteration(model, gamma=gamma).policy).miss_detection
+    rows = []
+    for target in sorted({*np.linspace(0.0, top, n).tolist(), *extra}):
+        sol = solve_cmdp(model, **{**kwargs, "target_miss": float(target)})
+        rows.append(
+            {
+                "p1_speed": p,
+                "route": "lp",
+                "target_miss": float(target),
+                "r4": None,
+                **{k: getattr(sol.metrics, k) for k in FRONTIER_COLUMNS[4:9]},
+                "randomised_states": len(sol.randomised),
+            }
+        )
+    return rows
+
+
+def _r4_points(params: Params, p: float, r4s: list[float], gamma: float, ticker: Ticker) -> list:
+    rows = []
+    for r4 in r4s:
+        _, m = optimal_at(params, r4, gamma)
+        ticker.tick()
+        rows.append(
+            {
+                "p1_speed": p,
+                "route": "r4",
+                "target_miss": None,
+                "r4": r4,
+                **{k: getattr(m, k) for k in FRONTIER_COLUMNS[4:9]},
+                "randomised_states": 0,
+            }
+        )
+    return rows
+
+
+def give_up_table(lp: list[dict], r4: list[dict], targets: list[float]) -> list[dict]:
+    """At each target (solved exactly by the LP among ``lp``): the LP's throughput, the best throughput of an r4-route policy meeting the
+    target (and its r4), and what the r4 route gives up."""
+    out = []
+    for p in sorted({r["p1_speed"] for r in lp}):
+        r4_rows = [r for r in r4 if r["p1_speed"] == p]
+        model_lp = [r for r in lp if r["p1_speed"] == p]
+        for t in targets:
+            best_lp = next((r["throughput"] for r in model_lp if r["target_miss"] == t), None)
+            ok = [r for r in r4_rows if r["miss_detection"] <= t + 1e-12]
+            best = max(ok, key=lambda r: r["throughput"]) if ok else None
+            out.append(
+                {
+                    "p1_speed": p,
+                    "target_miss": t,
+                    "lp_throughput": best_lp,
+                    "r4_throughput": best["throughput"] if best else None,
+                    "r4": best["r4"] if best else None,
+                    "given_up": (best_lp - best["throughput"])
+                    if best and best_lp is not None
+                    else None,
+                }
+            )
+    return out
+
+
+def run_frontier(cfg: DictConfig, out: Path) -> dict[str, Any]:
+    """The LP frontier and the r4 route at each ``frontier_grid.p1_speed``: ``frontier.csv``,
+    ``frontier_gap.csv``, ``frontier.png``, ``summary.json``, and the printed tables."""
+    from irdrc.paper.plots import plot_frontier
+
+    torch.set_num_threads(1)
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    base = Params.from_config(cfg)
+    gamma = float(cfg.optimum_gamma)
+    kwargs = constraint_kwargs(cfg)
+    ps = [float(p) for p in to_plain(cfg.frontier_grid.p1_speed)]
+    n = int(cfg.frontier_grid.points)
+    r4s = r4_grid(cfg)
+    targets = [float(t) for t in to_plain(cfg.frontier_grid.targets)]
+    t0 = time.perf_counter()
+    lp_rows: list[dict] = []
+    r4_rows: list[dict] = []
+    ticker = Ticker(len(ps) * len(r4s), "reward route: exact solves over r4")
+    for p in ps:
+        params = ref_params(base, p)
+        lp_rows += _lp_points(params, p, kwargs, n, gamma, targets)
+        r4_rows += _r4_points(params, p, r4s, gamma, ticker)
+    gap = give_up_table(lp_rows, r4_rows, targets)
+    wall = time.perf_counter() - t0
+    write_rows_csv(out / "frontier.csv", [*lp_rows, *r4_rows], FRONTIER_COLUMNS)
+    write_rows_csv(out / "frontier_gap.csv", gap)
+    plot_frontier(lp_rows, r4_rows, out / "frontier.png", targets=targets)
+    print(
+        f"\nthe most data per miss-detection target (LP, {n} targets per p^v_1) against the best "
+        f"reward-optimal policy over r4 ∈ [{r4s[0]:g}, {r4s[-1]:g}] (step {r4s[1] - r4s[0]:g}), "
+        f"{wall:.1f} s:\n"
+    )
+    print("p1.speed  target  LP throughput  r4 route throughput (r4)  given up")
+    for g in gap:
+        r4txt = (
+            f"{g['r4_throughput']:.4f} (r4={g['r4']:g})"
+            if g["r4_throughput"] is not None
+            else "none meets it"
+        )
+        lost = f"{g['given_up']:.4f}" if g["given_up"] is not None else "all"
+        print(
+            f"{g['p1_speed']:>8g}  {g['target_miss']:>6g}  {g['lp_throughput']:>13.4f}  "
+            f"{r4txt:>24}  {lost:>8}"
+        )
+    summary = {
+        "method": "constrained_frontier",
+        "p1_speed": ps,
+        "targets": targets,
+        "objective": kwargs["objective"],
+        "wall_seconds": wall,
+        "given_up": gap,
+    }
+    write_summary(out / "summary.json", summary)
+    print(f"\nwrote {out / 'frontier.csv'}, {out / 'frontier_gap.csv'}, {out / 'frontier.png'}")
+    return summary
+
+
+def run_constrained_recipe(cfg: DictConfig, out: Path) -> Any:
+    """``recipes/constrained.py``: one exact solve, or the frontier with ``frontier=true``."""
+    if bool(cfg.frontier):
+        return run_frontier(cfg, out)
+    return run_constrained(cfg, out)

@@ -195,6 +195,33 @@ def test_local_executor_crash_resume_and_mixed_plans(tmp_path):
     assert r.returncode == 0 and "2 grid points, 1 to run (resume)" in r.stdout, r.stdout[-2000:]
 
 
+def test_constrained_method_sweeps_targets(tmp_path):
+    """method=constrained: one exact LP per grid point; a tighter target never sends more."""
+    r = subprocess.run(
+        [
+            sys.executable,
+            str(ROOT / "recipes" / "sweep.py"),
+            "method=constrained",
+            "executor=local",
+            "sweep.grid={target_miss: [0.05, 0.15]}",
+            f"hydra.run.dir={tmp_path}",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        cwd=ROOT,
+    )
+    assert r.returncode == 0, r.stderr[-2000:]
+    done = {t["target_miss"]: t for t in rows(tmp_path / "summary.csv")}
+    assert {k: v["status"] for k, v in done.items()} == {"0.05": "DONE", "0.15": "DONE"}
+    got = {}
+    for t in done.values():
+        s = json.loads((tmp_path / "trials" / t["point_id"] / "summary.json").read_text())
+        assert s["optimal"]["miss_detection"] <= s["target_miss"]
+        got[s["target_miss"]] = s["optimal"]["throughput"]
+    assert got[0.05] < got[0.15]
+
+
 def test_point_ids_separate_methods_and_bases():
     from irdrc.experiments.sweep import plan
 

@@ -35,6 +35,7 @@ from irdrc.core.params import Params
 from irdrc.core.policies import table_policy
 from irdrc.core.solve import ExactScorer, episodic_metrics, stationary_metrics, value_iteration
 from irdrc.experiments.config import compose, scenario_name
+from irdrc.experiments.constrained import run_constrained
 from irdrc.experiments.finish import finish_run, table_dict
 from irdrc.experiments.grid import is_scenario_key, parse_grid
 from irdrc.experiments.guard import (
@@ -349,5 +350,10 @@ def comparison_rows(cfg: DictConfig, params: Params) -> dict[str, Metrics]:
     return {"qlearning_paper": stationary_metrics(model, table)}
 
 
-RUNNERS = {"solve": run_solve, "qlearning": run_qlearning, "dqn": run_dqn}
+RUNNERS = {
+    "solve": run_solve,
+    "qlearning": run_qlearning,
+    "dqn": run_dqn,
+    "constrained": run_constrained,
+}
 """Method name → run function (what a sweep calls per grid point)."""

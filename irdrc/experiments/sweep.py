@@ -29,12 +29,13 @@ from irdrc.experiments.results import atomic_write_text
 from irdrc.experiments.runs import RUNNERS
 from irdrc.experiments.validate import validate
 
-METHODS = ("dqn", "qlearning", "solve")
+METHODS = ("dqn", "qlearning", "solve", "constrained")
 # Settings a sweep gives every trial before the user's base overrides (which may change them).
 TRIAL_DEFAULTS = {
     "dqn": ["progress=false", "compare.qlearning_paper=false", "logger=none"],
     "qlearning": ["progress=false", "logger=none"],
     "solve": [],
+    "constrained": [],
 }
 STATUSES = ("DONE", "ERROR", "INCOMPLETE")
 

@@ -223,5 +223,11 @@ def test_bench_robust_recipe(tmp_path):
     assert [r["seed"] for r in rows] == ["5", "6"] and all(int(r["env_steps"]) == 640 for r in rows)
     assert all(-2 < float(r["final_ratio"]) <= 1 + 1e-9 for r in rows)
     assert "runs end ≥ 0.99 of their optimum" in out.stdout
+    for r in rows:  # every failing run is explained state by state
+        if r["holds"] == "False":
+            assert (
+                f"seed={r['seed']}: final" in out.stdout
+                and "differs from the optimum" in out.stdout
+            )
     bad = run_recipe("bench_robust.py", "p1_speed=[1.5]", f"hydra.run.dir={tmp_path / 'x'}")
     assert bad.returncode == 2 and "p1_speed[0]=1.5" in bad.stderr

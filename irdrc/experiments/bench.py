@@ -7,7 +7,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from irdrc.agents import dqn
 from irdrc.agents.base import Hooks
@@ -16,8 +16,8 @@ from irdrc.core.model import build_model
 from irdrc.core.params import Params, to_plain
 from irdrc.core.solve import ExactScorer, stationary_occupancy
 from irdrc.experiments.config import compose
+from irdrc.experiments.results import policy_differences, read_policy_csv, write_rows_csv
 from irdrc.experiments.results import read_csv_rows as read_csv
-from irdrc.experiments.results import write_rows_csv
 
 SUMMARY_KEYS = (
     "env_steps_to_95",
@@ -222,6 +222,8 @@ def run_bench_robust(cfg: DictConfig, out: Path, scenario: list[str] | None = No
                 "later_evals_at_threshold": sum(r >= th for r in later) / len(later)
                 if later
                 else None,
+                "later_evals": len(later),
+                "later_evals_ok": sum(r >= th for r in later),
                 "env_steps": int(hist[-1]["env_steps"]),
                 "wall_seconds": float(hist[-1]["wall_seconds"]),
             }
@@ -253,5 +255,26 @@ def run_bench_robust(cfg: DictConfig, out: Path, scenario: list[str] | None = No
             + (f"{statistics.median(later):.2f}, {min(later):.2f}" if later else "n/a")
         )
     held = sum(r["holds"] for r in rows)
-    print(f"\n{held}/{len(rows)} runs end ≥ {th} of their optimum; wrote {Path(out) / cfg.csv}")
+    n_later = sum(r["later_evals"] for r in rows)
+    ok_later = sum(r["later_evals_ok"] for r in rows)
+    print(
+        f"\n{held}/{len(rows)} runs end ≥ {th} of their optimum (worst "
+        f"{min((r['final_ratio'] for r in rows), default=float('nan')):.4f}); of all evaluations "
+        f"after a run first reached {th}, {ok_later}/{n_later}"
+        + (f" ({ok_later / n_later:.3f})" if n_later else "")
+        + f" stay ≥ {th}; wrote {Path(out) / cfg.csv}"
+    )
+    for p in planned:
+        row = next((r for r in rows if all(r[k] == v for k, v in p["point"].items())), None)
+        if row is None or row["holds"]:
+            continue
+        model = build_model(Params.from_config(OmegaConf.create(p["cfg"])))
+        tdir = Path(out) / "trials" / p["point_id"]
+        learned = read_policy_csv(tdir / "policy.csv", model.num_states)
+        optimal = ExactScorer(model, float(cfg.optimum_gamma)).optimal.policy
+        label = " ".join(f"{k}={v}" for k, v in p["point"].items())
+        print(
+            f"\n{label}: final {row['final_ratio']:.4f}; "
+            + policy_differences(model, learned, optimal)
+        )
     return code

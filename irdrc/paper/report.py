@@ -39,9 +39,16 @@ def _fmt(x: Any, digits: int = 4) -> str:
     return "n/a" if math.isnan(v) else f"{v:.{digits}g}"
 
 
-def write_report(figure_dir: Path, tradeoff_dir: Path, docs_dir: Path, command: str) -> None:
+def write_report(
+    figure_dir: Path,
+    tradeoff_dir: Path,
+    docs_dir: Path,
+    command: str,
+    frontier_dir: Path | None = None,
+) -> None:
     """Copy the figures into ``docs_dir/figures`` and fill the generated blocks of
-    ``docs_dir/REPRODUCTION.md`` from a figure2 run and a tradeoff run."""
+    ``docs_dir/REPRODUCTION.md`` from a figure2 run, a tradeoff run and (when given) a
+    ``constrained.py frontier=true`` run."""
     figure_dir, tradeoff_dir, docs_dir = Path(figure_dir), Path(tradeoff_dir), Path(docs_dir)
     fig_out = docs_dir / "figures"
     fig_out.mkdir(parents=True, exist_ok=True)
@@ -104,7 +111,43 @@ def write_report(figure_dir: Path, tradeoff_dir: Path, docs_dir: Path, command: 
     report = _block(report, "panels_bcd", _md_table(header, rows))
     report = _block(report, "claims", (figure_dir / "claims.md").read_text())
     report = _block(report, "tradeoff", _tradeoff_block(tradeoff_dir, trade))
+    if frontier_dir is not None:
+        shutil.copyfile(Path(frontier_dir) / "frontier.png", fig_out / "frontier.png")
+        report = _block(report, "design", design_block(Path(frontier_dir)))
     atomic_write_text(docs_dir / "REPRODUCTION.md", report)
+
+
+def design_block(frontier_dir: Path) -> str:
+    """The throughput the r4 route gives up at each target, from ``frontier_gap.csv``."""
+    rows = []
+    for g in read_csv(frontier_dir / "frontier_gap.csv"):
+        r4 = g["r4_throughput"]
+        rows.append(
+            [
+                _fmt(g["p1_speed"], 3),
+                _fmt(g["target_miss"], 3),
+                _fmt(g["lp_throughput"]),
+                f"{_fmt(r4)} (r4 = {_fmt(g['r4'], 4)})"
+                if r4 not in ("", None)
+                else "none meets it",
+                _fmt(g["given_up"]) if g["given_up"] not in ("", None) else "all",
+            ]
+        )
+    summary = json.loads((frontier_dir / "summary.json").read_text())
+    return (
+        _md_table(
+            [
+                "p^v_1",
+                "target miss detection",
+                "most data (exact LP), packets/step",
+                "best r4-route policy meeting it",
+                "throughput given up by the r4 route",
+            ],
+            rows,
+        )
+        + f"\n\nObjective: {summary['objective']}; {summary['wall_seconds']:.0f} s for the frontier "
+        "and the r4 scan."
+    )
 
 
 def _tradeoff_block(tradeoff_dir: Path, trade: dict[str, Any]) -> str:

@@ -101,7 +101,7 @@ def run_bench_dqn(cfg: DictConfig, out: Path) -> int:
     gap_rows: list[dict[str, Any]] = []
     rows: list[dict[str, Any]] = []
     for name in cfg.profiles:
-        extra = []
+        extra = [str(o) for o in cfg.get("overrides", [])]
         if name in cfg.frames_override:
             extra.append(f"algo.total_frames={int(cfg.frames_override[name])}")
         config = profile_config(name, extra)

@@ -275,8 +275,10 @@ def _sweep(cfg: DictConfig) -> None:
 
 def _bench_dqn(cfg: DictConfig) -> None:
     check_common(cfg)
+    overrides = [str(o) for o in cfg.get("overrides", [])]
     for name in cfg.profiles:
         check_choice("profiles", name, ("dqn", "dqn_paper"))
+        dqn.DQNConfig.from_node(compose("dqn", [f"algo={name}", *overrides]))
     check_bool("trace_gaps", cfg.get("trace_gaps", False))
 
 

@@ -155,3 +155,16 @@ def test_objective_tables(paper):
     assert torch.equal(objective_table(paper, "throughput"), paper.sent)
     assert torch.equal(objective_table(paper, "avg_reward"), paper.R)
     assert torch.equal(objective_table(paper, "link_capacity"), paper.capacity)
+
+
+def test_randomised_policy_csv_round_trip(paper, tmp_path):
+    from irdrc.experiments.results import read_policy_csv, write_policy_csv
+
+    sol = solve_cmdp(paper, 0.05)
+    write_policy_csv(tmp_path / "policy.csv", sol.policy)
+    back = read_policy_csv(tmp_path / "policy.csv", paper.num_states, probabilities=True)
+    assert torch.allclose(back, sol.policy, atol=1e-15)
+    actions = read_policy_csv(tmp_path / "policy.csv", paper.num_states)
+    assert torch.equal(actions, (sol.policy[:, 1] > 0.5).long())
+    # its exact metrics survive the file
+    assert stationary_metrics(paper, back).throughput == pytest.approx(sol.value, abs=1e-12)

@@ -132,8 +132,12 @@ def _prob(p: float) -> str:
     return "0" if p == 0 else "1" if p == 1 else repr(p)
 
 
-def read_policy_csv(path: Path, num_states: int | None = None) -> torch.Tensor:
-    """Inverse of ``write_policy_csv``: the [S] action table.
+def read_policy_csv(
+    path: Path, num_states: int | None = None, probabilities: bool = False
+) -> torch.Tensor:
+    """Inverse of ``write_policy_csv``: the [S] action table, or with ``probabilities`` the [S, 2]
+    probabilities of (comm, radar) from ``p_radar`` (files without that column: 0 or 1 from
+    ``action``).
 
     Raises:
         ValueError: naming the file, if it is not a policy table (of ``num_states`` rows).
@@ -142,12 +146,19 @@ def read_policy_csv(path: Path, num_states: int | None = None) -> torch.Tensor:
         with Path(path).open() as f:
             rows = list(csv.DictReader(f))
         actions = torch.tensor([int(r["action"]) for r in rows], dtype=torch.int64)
+        p_radar = torch.tensor(
+            [float(r.get("p_radar") or r["action"]) for r in rows], dtype=torch.float64
+        )
     except (OSError, KeyError, ValueError, TypeError) as err:
         raise ValueError(f"{path}: not a readable policy table ({type(err).__name__})") from err
     if actions.numel() == 0 or bool(((actions != 0) & (actions != 1)).any()):
         raise ValueError(f"{path}: a policy table holds one action 0 or 1 per state")
+    if bool(((p_radar < 0) | (p_radar > 1) | p_radar.isnan()).any()):
+        raise ValueError(f"{path}: p_radar must be a probability in every row")
     if num_states is not None and actions.numel() != num_states:
         raise ValueError(f"{path}: {actions.numel()} states, expected {num_states}")
+    if probabilities:
+        return torch.stack([1 - p_radar, p_radar], -1)
     return actions
 
 

@@ -168,3 +168,21 @@ def test_randomised_policy_csv_round_trip(paper, tmp_path):
     assert torch.equal(actions, (sol.policy[:, 1] > 0.5).long())
     # its exact metrics survive the file
     assert stationary_metrics(paper, back).throughput == pytest.approx(sol.value, abs=1e-12)
+
+
+def test_cost_signals_under_documented_keys():
+    """The keys the README documents for constrained learners, in the TorchRL env and the gym env:
+    missed = event ∧ comm, per step."""
+    import gymnasium as gym
+
+    env = DFRCEnv(Params(), batch_size=[512], seed=0)
+    td = env.reset()
+    td["action"] = torch.randint(0, 2, (512,))
+    nxt = env.step(td)["next"]
+    for key in ("event", "missed", "sent", "dropped", "capacity"):
+        assert nxt.get(key, None) is not None, key
+    assert torch.equal(nxt["missed"], nxt["event"] & (td["action"] == 0))
+    g = gym.make("irdrc/DFRC-v0")
+    g.reset(seed=0)
+    _, _, _, _, info = g.step(0)
+    assert {"event", "missed", "sent", "dropped", "capacity"} <= set(info)

@@ -206,6 +206,19 @@ def test_default_profile_reaches_99_percent(seed):
     assert best >= 0.99, [round(e["optimality_ratio"], 3) for e in run.history]
 
 
+@pytest.mark.slow
+def test_default_profile_holds_on_unseen_seeds():
+    """Seeds outside every benchmark (25–28) on the paper scenario: the final greedy policy of the
+    default profile is ≥ 0.99 of the optimum in at least 3 of 4 runs. With the per-run failure rate
+    the robustness benchmark measured (README), 2 or more failures in 4 is a ~1 % event, so this
+    fails when the default loses its robustness, not by chance."""
+    finals = []
+    for seed in (25, 26, 27, 28):
+        run = train(Params(), DQNConfig(), seed=seed, eval_every_frames=5000)
+        finals.append(run.history[-1]["optimality_ratio"])
+    assert sum(f >= 0.99 for f in finals) >= 3, finals
+
+
 def test_output_for_a_log_file_has_no_bar_frames(tmp_path):
     """With stdout not a terminal, progress is a few plain lines, and the replay line comes first."""
     r = run_dqn(tmp_path, "progress=true")

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
-# Regenerates docs/figures/ and the generated blocks of docs/REPRODUCTION.md: runs recipes/figure2.py
-# and recipes/tradeoff.py with their defaults (extra arguments go to figure2.py) into
+# Regenerates docs/figures/ and the generated blocks of docs/REPRODUCTION.md: runs recipes/figure2.py,
+# recipes/tradeoff.py and recipes/constrained.py frontier=true with their defaults (extra arguments go to figure2.py) into
 # outputs/reproduction/, then writes the report. Both recipes start Ray; where `unshare -n` works
 # they run in a loopback-only network namespace.
 set -euo pipefail
@@ -18,7 +18,8 @@ netns() {
 }
 netns "$py" recipes/figure2.py hydra.run.dir="$out/figure2" "$@"
 netns "$py" recipes/tradeoff.py hydra.run.dir="$out/tradeoff"
+"$py" recipes/constrained.py frontier=true hydra.run.dir="$out/constrained"
 cmd="bash ci/reproduce.sh${*:+ $*}"
-"$py" -c "import sys; from irdrc.paper.report import write_report; write_report(sys.argv[1], sys.argv[2], 'docs', sys.argv[3])" \
-  "$out/figure2" "$out/tradeoff" "$cmd"
+"$py" -c "import sys; from irdrc.paper.report import write_report; write_report(sys.argv[1], sys.argv[2], 'docs', sys.argv[3], sys.argv[4])" \
+  "$out/figure2" "$out/tradeoff" "$cmd" "$out/constrained"
 echo "[reproduce] wrote docs/REPRODUCTION.md and docs/figures/ from $out"

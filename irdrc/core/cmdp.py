@@ -17,7 +17,6 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import math
-from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -161,9 +160,8 @@ def objective_table(model: ExactModel, objective: str) -> torch.Tensor:
 def _check_bound(key: str, value: float | None, hi: float = 1.0) -> float | None:
     if value is None:
         return None
+    # NaN fails the range test too
     if isinstance(value, bool) or not isinstance(value, int | float) or not 0 <= value <= hi:
-        raise ValueError(f"{key}={value!r} must be a number in [0, {hi:g}]")
-    if math.isnan(value):
         raise ValueError(f"{key}={value!r} must be a number in [0, {hi:g}]")
     return float(value)
 
@@ -277,13 +275,3 @@ def _solve_once(
         unvisited=(mass <= 0).nonzero().flatten().tolist(),
         constraints=achieved,
     )
-
-
-def solution_summary(sol: CMDPSolution) -> Mapping[str, object]:
-    """Plain facts of a solution for summaries: objective, value, randomised and unvisited counts."""
-    return {
-        "objective": sol.objective,
-        "value": sol.value,
-        "randomised_states": len(sol.randomised),
-        "unvisited_states": len(sol.unvisited),
-    }

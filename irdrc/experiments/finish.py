@@ -8,7 +8,6 @@ prints the table, the final ratio and the states where the policy differs from t
 
 from __future__ import annotations
 
-import io
 import statistics
 from pathlib import Path
 from typing import Any
@@ -29,7 +28,7 @@ from irdrc.core.solve import ExactScorer, stationary_metrics
 from irdrc.experiments.grid import is_scenario_key, point_overrides
 from irdrc.experiments.guard import save_checkpoint
 from irdrc.experiments.results import (
-    atomic_write,
+    atomic_savefig,
     clean_number,
     policy_differences,
     summary_dict,
@@ -258,8 +257,4 @@ def plot_learning_curve(record: RunRecord, path: Path, *, title: str) -> None:
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8, loc="lower right")
     fig.tight_layout()
-    buf = io.BytesIO()
-    fig.savefig(buf, dpi=80, format="png")
-    plt.close(fig)
-    data = buf.getvalue()
-    atomic_write(path, lambda f: f.write(data))
+    atomic_savefig(fig, path, dpi=80)

@@ -65,6 +65,17 @@ def atomic_write(path: Path, write: Callable[[BinaryIO], None]) -> None:
         raise
 
 
+def atomic_savefig(fig: Any, path: Path, dpi: int) -> None:
+    """Write a Matplotlib figure as a PNG atomically (a reader never sees half a file) and close it."""
+    import matplotlib.pyplot as plt
+
+    buf = io.BytesIO()
+    fig.savefig(buf, dpi=dpi, format="png")
+    plt.close(fig)
+    data = buf.getvalue()
+    atomic_write(Path(path), lambda f: f.write(data))
+
+
 def atomic_write_text(path: Path, text: str) -> None:
     """Write ``text`` to ``path`` atomically (see ``atomic_write``)."""
     data = text.encode()

@@ -12,6 +12,8 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 
+from irdrc.experiments.results import atomic_savefig
+
 STYLE = {
     "dqn": {"color": "tab:blue", "label": "DQN (ours)"},
     "dqn_paper": {"color": "tab:cyan", "label": "DQN (paper profile)"},
@@ -116,8 +118,7 @@ def plot_panel_a(
         a.set_xscale("symlog", linthresh=10)
         a.set_xlim(left=0)
     fig.tight_layout()
-    fig.savefig(path, dpi=DPI)
-    plt.close(fig)
+    atomic_savefig(fig, path, dpi=DPI)
 
 
 def plot_p_sweep(
@@ -140,8 +141,7 @@ def plot_p_sweep(
         fontsize=10,
     )
     fig.tight_layout()
-    fig.savefig(path, dpi=DPI)
-    plt.close(fig)
+    atomic_savefig(fig, path, dpi=DPI)
 
 
 def plot_tradeoff(
@@ -212,8 +212,7 @@ def plot_tradeoff(
         ax.legend(handles, labels, fontsize=8)
     fig.suptitle("Radar vs communication: the exact optimum as the detection reward r4 varies")
     fig.tight_layout()
-    fig.savefig(path, dpi=DPI)
-    plt.close(fig)
+    atomic_savefig(fig, path, dpi=DPI)
 
 
 def _learned_point(ax, r: Mapping, xkey: str) -> None:
@@ -270,5 +269,4 @@ def plot_frontier(
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8, loc="lower right")
     fig.tight_layout()
-    fig.savefig(path, dpi=DPI)
-    plt.close(fig)
+    atomic_savefig(fig, path, dpi=DPI)

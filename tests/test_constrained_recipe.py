@@ -73,3 +73,71 @@ def test_bad_and_infeasible_targets_refused_before_work(tmp_path):
     res = run(tmp_path / "b", "target_miss=0.0", "max_drop=0.01")
     assert res.returncode == 2 and "max_drop" in res.stderr, res.stderr
     assert not (tmp_path / "b").exists()
+
+
+def test_learner_run_writes_its_exact_score_beside_the_lp(tmp_path):
+    res = run(
+        tmp_path,
+        "learner=dqn_lagrangian",
+        "target_miss=0.15",
+        "algo.total_frames=1024",
+        "algo.init_random_frames=256",
+        "algo.measure_envs=8",
+        "algo.measure_steps=50",
+        "algo.measure_burn_in=10",
+        "algo.mix_steps=2",
+        "progress=false",
+        "logger=none",
+    )
+    assert res.returncode == 0, res.stderr
+    s = json.loads((tmp_path / "summary.json").read_text())
+    assert s["method"] == "dqn_lagrangian" and s["target_miss"] == 0.15
+    assert s["optimal"]["miss_detection"] <= 0.15 and s["optimal_value"] > 0.99
+    assert s["objective_ratio"] == s["value"] / s["optimal_value"]
+    assert s["metrics"]["throughput"] == s["value"]
+    learner = s["learner"]
+    assert s["env_steps"] == learner["training_env_steps"] + learner["measure_env_steps"]
+    rows = list(csv.DictReader((tmp_path / "policy.csv").open()))
+    assert list(rows[-1]) == ["d", "c", "r", "w", "v", "m", "action", "p_radar"]
+    mu = list(csv.DictReader((tmp_path / "mu.csv").open()))
+    assert list(mu[0]) == ["env_steps", "mu", "measured_miss"] and len(mu) == 1024 // 32
+    assert float(mu[0]["mu"]) > 0
+    hist = list(csv.DictReader((tmp_path / "metrics.csv").open()))
+    assert int(hist[-1]["env_steps"]) == 1024
+    assert "of the LP optimum" in res.stdout
+
+
+def test_learner_refuses_what_it_cannot_learn_before_work(tmp_path):
+    res = run(tmp_path / "a", "learner=dqn_lagrangian", "max_drop=0.1")
+    assert res.returncode == 2 and "max_drop" in res.stderr and "learner=lp" in res.stderr
+    assert not (tmp_path / "a").exists()
+    res = run(tmp_path / "b", "learner=dqn_lagrangian", "algo.mu_lr=-1")
+    assert res.returncode == 2 and "algo.mu_lr" in res.stderr
+    res = run(tmp_path / "c", "learner=sarsa")
+    assert res.returncode == 2 and "learner" in res.stderr
+    assert not (tmp_path / "c").exists()
+
+
+def test_benchmark_table_from_local_runs(tmp_path):
+    res = subprocess.run(
+        [
+            sys.executable,
+            str(ROOT / "recipes" / "bench_constrained.py"),
+            "seeds=[3]",
+            "p1_speed=[1.0]",
+            "targets=[0.15]",
+            "executor=local",
+            "overrides=['algo.total_frames=512','algo.init_random_frames=256',"
+            "'algo.measure_envs=4','algo.measure_steps=20','algo.measure_burn_in=5',"
+            "'algo.mix_steps=1']",
+            f"hydra.run.dir={tmp_path}",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=600,
+        cwd=ROOT,
+    )
+    assert res.returncode == 0, res.stderr
+    rows = list(csv.DictReader((tmp_path / "bench_constrained.csv").open()))
+    assert len(rows) == 1 and rows[0]["target_miss"] == "0.15"
+    assert "| 1 | 0.15 | 1 |" in res.stdout

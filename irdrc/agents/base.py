@@ -114,6 +114,8 @@ class RunRecord:
         state: a resumable state (written as ``checkpoint.pt``), or None for learners that do not
             checkpoint.
         interrupted: the run stopped early because ``Hooks.should_stop`` asked it to.
+        policy: [N, S, 2] final probabilities of (comm, radar), for learners whose final policy
+            may randomise (``greedy`` is then its most likely action); None: ``greedy`` is it.
     """
 
     method: str
@@ -129,6 +131,7 @@ class RunRecord:
     info: dict[str, Any] = field(default_factory=dict)
     state: dict[str, Any] | None = None
     interrupted: bool = False
+    policy: torch.Tensor | None = None
 
     @property
     def num_learners(self) -> int:

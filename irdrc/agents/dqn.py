@@ -249,21 +249,26 @@ class _OneHot(nn.Module):
         return out.scatter_(-1, index, 1.0)
 
 
-def make_qnet(env: DFRCEnv, net: NetworkConfig) -> QValueActor:
-    """Q-value actor sized from the env's specs: observation (encoded by ``net.encoding``) in, one
-    Q-value per action out."""
+def make_mlp(env: DFRCEnv, net: NetworkConfig, out_features: int) -> nn.Sequential:
+    """The network body sized from the env's observation spec: observation (encoded by
+    ``net.encoding``) in, ``out_features`` out."""
     obs_spec = env.observation_spec["observation"]
-    n_actions = env.action_spec_unbatched.space.n
     high = obs_spec.space.high.reshape(-1, obs_spec.shape[-1])[0].to(torch.float32)
     encode = _OneHot(high) if net.encoding == "onehot" else _Scale(high)
     mlp = MLP(
         in_features=encode.size if net.encoding == "onehot" else obs_spec.shape[-1],
-        out_features=n_actions,
+        out_features=out_features,
         num_cells=list(net.hidden),
         activation_class=ACTIVATIONS[net.activation],
         device=env.device,
     )
-    module = nn.Sequential(encode.to(env.device), mlp)
+    return nn.Sequential(encode.to(env.device), mlp)
+
+
+def make_qnet(env: DFRCEnv, net: NetworkConfig) -> QValueActor:
+    """Q-value actor sized from the env's specs: observation (encoded by ``net.encoding``) in, one
+    Q-value per action out."""
+    module = make_mlp(env, net, env.action_spec_unbatched.space.n)
     return QValueActor(module=module, in_keys=["observation"], spec=env.action_spec_unbatched)
 
 

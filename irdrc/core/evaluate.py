@@ -105,3 +105,102 @@ def evaluate(policy, env: DFRCEnv, episodes: int | None = None) -> Evaluation:
         episodes=int(cols["reward"].numel()),
         steps=int(cols["steps"].sum()),
     )
+
+
+STATIONARITY_KEYS = ("miss_detection", "throughput", "mean_queue")
+"""Rates that two consecutive blocks of ``long_run`` must agree on (it checks stationarity)."""
+
+
+@torch.no_grad()
+def long_run(
+    params,
+    p_radar: torch.Tensor,
+    *,
+    envs: int = 256,
+    steps: int = 2_000,
+    burn_in: int = 1_000,
+    max_blocks: int = 1,
+    seed: int = 0,
+    device: str = "cpu",
+) -> Evaluation:
+    """Long-run (stationary) Monte-Carlo metrics of the stationary policy ``p_radar`` ([S]
+    probability of radar per state) on the simulator: ``envs`` independent chains from uniform
+    states, never reset, run ``burn_in`` steps and then measured over blocks of ``steps`` steps.
+
+    The counterpart of ``irdrc.core.solve.stationary_metrics`` by sampling, with no episode
+    boundary: a policy that lingers in some states (e.g. a full queue) is measured as it would
+    run on a vehicle, not biased by resets. With ``max_blocks`` > 1 the chains run block after
+    block until two consecutive blocks agree on ``STATIONARITY_KEYS`` (within twice the combined
+    95 % half-width), at most ``max_blocks`` blocks: a policy that drifts slowly towards a
+    trap (e.g. a full queue it never empties) is then measured after the drift, not during it.
+    The result describes the last block; ``steps`` counts every step run. Confidence
+    half-widths treat each chain as one independent sample (delta method).
+    """
+    from irdrc.core.env import Dynamics
+
+    if envs < 2 or steps < 1 or burn_in < 0 or max_blocks < 1:
+        raise ValueError(
+            "long_run needs envs >= 2, steps >= 1, burn_in >= 0, max_blocks >= 1; got "
+            f"{envs}, {steps}, {burn_in}, {max_blocks}"
+        )
+    dyn = Dynamics(params, device=device)
+    p = torch.as_tensor(p_radar, dtype=torch.float64, device=dyn.device).reshape(-1)
+    if p.shape[0] != dyn.num_states or bool(((p < 0) | (p > 1)).any()):
+        raise ValueError(f"p_radar must be {dyn.num_states} probabilities in [0, 1]")
+    gen = torch.Generator(device=dyn.device).manual_seed(int(seed))
+    state = dyn.reset_states(envs, gen)
+
+    def run(n: int, sums: dict[str, torch.Tensor] | None) -> torch.Tensor:
+        nonlocal state
+        for _ in range(n):
+            u = torch.rand(envs, generator=gen, device=dyn.device, dtype=torch.float64)
+            action = (u < p[state]).long()
+            out = dyn.step(state, action, gen)
+            if sums is not None:
+                sums["queue"] += (state >> 5).double()
+                sums["radar"] += action.double()
+                for k in ("reward", "event", "missed", "sent", "capacity", "dropped"):
+                    sums[k] += getattr(out, k).double()
+            state = out.state
+        return state
+
+    def block() -> tuple[dict[str, float], dict[str, float]]:
+        keys = ("reward", "event", "missed", "sent", "capacity", "radar", "dropped", "queue")
+        sums = {k: torch.zeros(envs, dtype=torch.float64, device=dyn.device) for k in keys}
+        run(steps, sums)
+        sums = {k: v.cpu() for k, v in sums.items()}
+        sums["steps"] = torch.full((envs,), float(steps), dtype=torch.float64)
+        values, ci = {}, {}
+        for name, (num, den) in _RATIOS.items():
+            values[name], ci[name] = ratio_ci(sums[num], sums[den])
+        return values, ci
+
+    def agree(a: tuple, b: tuple) -> bool:
+        for k in STATIONARITY_KEYS:
+            va, vb, ha, hb = a[0][k], b[0][k], a[1][k], b[1][k]
+            if math.isnan(va) != math.isnan(vb):
+                return False
+            if not math.isnan(va) and abs(va - vb) > 2 * math.hypot(ha, hb) + 1e-12:
+                return False
+        return True
+
+    run(burn_in, None)
+    last = block()
+    blocks = 1
+    while blocks < max_blocks:
+        nxt = block()
+        blocks += 1
+        settled = agree(last, nxt)
+        last = nxt
+        if settled:
+            break
+    values, ci = last
+    horizon = params.env.horizon
+    values["episode_reward"] = values["avg_reward"] * horizon
+    ci["episode_reward"] = ci["avg_reward"] * horizon
+    return Evaluation(
+        metrics=Metrics(**{k: values[k] for k in METRIC_NAMES}),
+        ci95={k: ci[k] for k in METRIC_NAMES},
+        episodes=envs,
+        steps=envs * (burn_in + blocks * steps),
+    )

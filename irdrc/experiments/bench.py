@@ -278,3 +278,82 @@ def run_bench_robust(cfg: DictConfig, out: Path, scenario: list[str] | None = No
             + policy_differences(model, learned, optimal)
         )
     return code
+
+
+def run_bench_constrained(cfg: DictConfig, out: Path, scenario: list[str] | None = None) -> int:
+    """Every (p^v_1, target, seed) of ``cfg`` as one ``recipes/constrained.py
+    learner=dqn_lagrangian`` run through the sweep engine, scored exactly against the LP: per cell,
+    the runs whose miss detection is ≤ target + ``miss_tolerance`` and those whose objective is
+    ≥ ``objective_share`` of the LP optimum, with env steps (training + measurement) and seconds."""
+    import json
+
+    from irdrc.experiments.grid import parse_grid
+    from irdrc.experiments.sweep import execute, plan
+
+    tol, share = float(cfg.miss_tolerance), float(cfg.objective_share)
+    grid = {
+        "env.p1.speed": [float(p) for p in to_plain(cfg.p1_speed)],
+        "target_miss": [float(t) for t in to_plain(cfg.targets)],
+        "seed": [int(s) for s in to_plain(cfg.seeds)],
+    }
+    base = [
+        *(scenario or []),
+        "learner=dqn_lagrangian",
+        *[str(o) for o in cfg.overrides],
+        f"optimum_gamma={float(cfg.optimum_gamma)}",
+    ]
+    planned = plan("constrained", parse_grid(grid), base)
+    code = execute(cfg, planned, out)
+    rows = []
+    for p in planned:
+        path = Path(out) / "trials" / p["point_id"] / "summary.json"
+        if not path.is_file():
+            continue
+        s = json.loads(path.read_text())
+        learner = s["learner"]
+        miss = float(s["metrics"]["miss_detection"])
+        rows.append(
+            {
+                **dict(p["point"].items()),
+                "objective": s["objective"],
+                "lp_value": s["optimal_value"],
+                "value": s["value"],
+                "objective_ratio": s["objective_ratio"],
+                "miss_detection": miss,
+                "lp_miss_detection": s["optimal"]["miss_detection"],
+                "miss_ok": miss <= float(p["point"]["target_miss"]) + tol,
+                "objective_ok": float(s["objective_ratio"]) >= share,
+                "mu": learner["mu"],
+                "randomised_state": learner.get("switch_state"),
+                "training_env_steps": learner["training_env_steps"],
+                "measure_env_steps": learner["measure_env_steps"],
+                "wall_seconds": s["wall_seconds"],
+            }
+        )
+    write_rows_csv(Path(out) / cfg.csv, rows)
+    print(
+        f"\nLagrangian DQN against the LP ({len(grid['seed'])} seeds per cell): miss detection ≤ "
+        f"target + {tol:g}, objective ≥ {share:g} of the LP optimum"
+    )
+    header = (
+        "| p^v_1 | target | runs | miss ≤ target + tol | objective ≥ share | worst miss | "
+        "worst ratio | median ratio | median env steps (train + measure) | median s |"
+    )
+    print(header)
+    print("|---" * (header.count("|") - 1) + "|")
+    for point in parse_grid({k: grid[k] for k in ("env.p1.speed", "target_miss")}):
+        mine = [r for r in rows if all(r[k] == v for k, v in point.items())]
+        if not mine:
+            continue
+        train = statistics.median(r["training_env_steps"] for r in mine)
+        meas = statistics.median(r["measure_env_steps"] for r in mine)
+        print(
+            f"| {point['env.p1.speed']:g} | {point['target_miss']:g} | {len(mine)} | "
+            f"{sum(r['miss_ok'] for r in mine)} | {sum(r['objective_ok'] for r in mine)} | "
+            f"{max(r['miss_detection'] for r in mine):.4f} | "
+            f"{min(r['objective_ratio'] for r in mine):.3f} | "
+            f"{statistics.median(r['objective_ratio'] for r in mine):.3f} | "
+            f"{train:.0f} + {meas:.0f} | {statistics.median(r['wall_seconds'] for r in mine):.0f} |"
+        )
+    print(f"\nwrote {Path(out) / cfg.csv}")
+    return code

@@ -1,8 +1,16 @@
-"""Plain progress lines with an ETA for long loops (readable in a terminal and in a log file)."""
+"""Progress with an ETA for long loops and learners' runs (a bar in a terminal, plain lines in a
+log file), and the run's scalar logging hooks."""
 
 from __future__ import annotations
 
+import math
+import sys
 import time
+from typing import Any
+
+from tqdm import tqdm
+
+from irdrc.experiments.tracking import log_scalars
 
 
 class Ticker:
@@ -28,3 +36,63 @@ class Ticker:
                 f"elapsed {elapsed:.0f} s, ETA {eta:.0f} s",
                 flush=True,
             )
+
+
+class RunProgress:
+    """Progress of a learner's run, and its logging hooks (learner 0 is the one logged as ``eval/…``).
+
+    On a terminal: a bar. Otherwise (a log file): one plain line per tenth of the run, with the ETA.
+    """
+
+    def __init__(self, total: int, enabled: bool, logger, label: str) -> None:
+        self.total, self.enabled, self.logger, self.label = total, enabled, logger, label
+        self.tty = sys.stdout.isatty()
+        self.bar: tqdm | None = None
+        self.ratio = math.nan
+        self.min_ratio = math.nan
+        self.start = time.perf_counter()
+        self.next_line = 0.1
+
+    def on_start(self, info: dict[str, Any]) -> None:
+        for key, value in info.items():
+            print(f"{key.replace('_', ' ')}: {value}", flush=True)
+
+    def on_batch(self, info: dict[str, Any]) -> None:
+        steps = info["env_steps"]
+        if self.enabled and self.tty:
+            if self.bar is None:
+                self.bar = tqdm(total=self.total, unit="step", dynamic_ncols=True)
+            self.bar.update(steps - self.bar.n)
+            post = {"opt": f"{self.ratio:.4f}"}
+            if not math.isnan(self.min_ratio):
+                post["min"] = f"{self.min_ratio:.4f}"
+            self.bar.set_postfix(post, refresh=False)
+        elif self.enabled and steps >= self.next_line * self.total:
+            elapsed = time.perf_counter() - self.start
+            eta = elapsed / steps * (self.total - steps) if steps else math.nan
+            print(
+                f"[{self.label}] {steps}/{self.total} env steps ({steps / self.total:.0%}), "
+                f"ratio {self.ratio:.4f}, {elapsed:.0f} s, ETA {eta:.0f} s",
+                flush=True,
+            )
+            self.next_line = math.floor(steps / self.total * 10 + 1) / 10
+        scalars = {f"train/{k}": v for k, v in info.items() if k != "env_steps"}
+        log_scalars(self.logger, scalars, steps)
+
+    def on_eval(self, records: list[dict[str, Any]]) -> None:
+        first = records[0]
+        self.ratio = first["optimality_ratio"]
+        if len(records) > 1:
+            self.min_ratio = min(r["optimality_ratio"] for r in records)
+        step = first["env_steps"]
+        skip = ("learner", "env_steps", "episodes", "wall_seconds", "updates")
+        log_scalars(self.logger, {f"eval/{k}": v for k, v in first.items() if k not in skip}, step)
+        log_scalars(
+            self.logger,
+            {"time/wall_seconds": first["wall_seconds"], "time/updates": first["updates"]},
+            step,
+        )
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()

@@ -13,9 +13,7 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
-import math
 import signal
-import sys
 import time
 import warnings
 from pathlib import Path
@@ -23,7 +21,6 @@ from typing import Any
 
 import torch
 from omegaconf import DictConfig, OmegaConf
-from tqdm import tqdm
 
 from irdrc.agents import dqn, qlearning
 from irdrc.agents.base import Hooks
@@ -44,6 +41,7 @@ from irdrc.experiments.guard import (
     save_checkpoint,
     stop_on_signals,
 )
+from irdrc.experiments.progress import RunProgress
 from irdrc.experiments.results import (
     atomic_write_text,
     policy_table,
@@ -142,66 +140,6 @@ def batch_points(cfg: DictConfig) -> list[dict[str, Any]]:
     return points
 
 
-class _Progress:
-    """Progress of a run, and its logging hooks (learner 0 is the one logged as ``eval/…``).
-
-    On a terminal: a bar. Otherwise (a log file): one plain line per tenth of the run, with the ETA.
-    """
-
-    def __init__(self, total: int, enabled: bool, logger, label: str) -> None:
-        self.total, self.enabled, self.logger, self.label = total, enabled, logger, label
-        self.tty = sys.stdout.isatty()
-        self.bar: tqdm | None = None
-        self.ratio = math.nan
-        self.min_ratio = math.nan
-        self.start = time.perf_counter()
-        self.next_line = 0.1
-
-    def on_start(self, info: dict[str, Any]) -> None:
-        for key, value in info.items():
-            print(f"{key.replace('_', ' ')}: {value}", flush=True)
-
-    def on_batch(self, info: dict[str, Any]) -> None:
-        steps = info["env_steps"]
-        if self.enabled and self.tty:
-            if self.bar is None:
-                self.bar = tqdm(total=self.total, unit="step", dynamic_ncols=True)
-            self.bar.update(steps - self.bar.n)
-            post = {"opt": f"{self.ratio:.4f}"}
-            if not math.isnan(self.min_ratio):
-                post["min"] = f"{self.min_ratio:.4f}"
-            self.bar.set_postfix(post, refresh=False)
-        elif self.enabled and steps >= self.next_line * self.total:
-            elapsed = time.perf_counter() - self.start
-            eta = elapsed / steps * (self.total - steps) if steps else math.nan
-            print(
-                f"[{self.label}] {steps}/{self.total} env steps ({steps / self.total:.0%}), "
-                f"ratio {self.ratio:.4f}, {elapsed:.0f} s, ETA {eta:.0f} s",
-                flush=True,
-            )
-            self.next_line = math.floor(steps / self.total * 10 + 1) / 10
-        scalars = {f"train/{k}": v for k, v in info.items() if k != "env_steps"}
-        log_scalars(self.logger, scalars, steps)
-
-    def on_eval(self, records: list[dict[str, Any]]) -> None:
-        first = records[0]
-        self.ratio = first["optimality_ratio"]
-        if len(records) > 1:
-            self.min_ratio = min(r["optimality_ratio"] for r in records)
-        step = first["env_steps"]
-        skip = ("learner", "env_steps", "episodes", "wall_seconds", "updates")
-        log_scalars(self.logger, {f"eval/{k}": v for k, v in first.items() if k not in skip}, step)
-        log_scalars(
-            self.logger,
-            {"time/wall_seconds": first["wall_seconds"], "time/updates": first["updates"]},
-            step,
-        )
-
-    def close(self) -> None:
-        if self.bar is not None:
-            self.bar.close()
-
-
 def _load_resume(cfg: DictConfig) -> tuple[dict[str, Any] | None, Path | None]:
     """The checkpoint to resume from (``resume=…``), checked against this run's config before
     anything is written."""
@@ -255,7 +193,7 @@ def run_learner(
     if resume_path is not None:
         print(f"resumed from {resume_path} at {resume['frames']} env steps", flush=True)
     scorers = [ExactScorer(build_model(p), gamma=float(cfg.optimum_gamma)) for p in scenarios]
-    progress = _Progress(config.env_steps(base.env.horizon), bool(cfg.progress), logger, name)
+    progress = RunProgress(config.env_steps(base.env.horizon), bool(cfg.progress), logger, name)
     config_plain = OmegaConf.to_container(cfg, resolve=True)
     with stop_on_signals() as stop:
         hooks = Hooks(

@@ -35,7 +35,7 @@ TRIAL_DEFAULTS = {
     "dqn": ["progress=false", "compare.qlearning_paper=false", "logger=none"],
     "qlearning": ["progress=false", "logger=none"],
     "solve": [],
-    "constrained": [],
+    "constrained": ["progress=false", "logger=none"],
 }
 STATUSES = ("DONE", "ERROR", "INCOMPLETE")
 

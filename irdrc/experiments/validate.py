@@ -282,6 +282,24 @@ def _bench_dqn(cfg: DictConfig) -> None:
     check_bool("trace_gaps", cfg.get("trace_gaps", False))
 
 
+def _bench_constrained(cfg: DictConfig) -> None:
+    check_common(cfg)
+    check_executor(cfg)
+    check_number("miss_tolerance", cfg.miss_tolerance, 0, 1)
+    check_number("objective_share", cfg.objective_share, 0, 1)
+    for key, lo, hi, integer in (
+        ("seeds", 0, 2**32 - 1, True),
+        ("p1_speed", 0, 1, False),
+        ("targets", 0, 1, False),
+    ):
+        values = to_plain(cfg[key])
+        if not isinstance(values, list) or not values:
+            raise ValueError(f"{key}={values!r} must be a non-empty list")
+        for i, v in enumerate(values):
+            check_number(f"{key}[{i}]", v, lo, hi, integer=integer)
+    # every run's full config is composed and checked when the run plans them, before any trial
+
+
 def _bench_robust(cfg: DictConfig) -> None:
     check_common(cfg)
     check_executor(cfg)
@@ -329,6 +347,21 @@ def _constrained(cfg: DictConfig) -> None:
         check_number("min_radar", cfg.min_radar, 0, 1)
     check_number("optimum_gamma", cfg.optimum_gamma, 0, 1, open_hi=True)
     check_bool("frontier", cfg.frontier)
+    learner = cfg.get("learner", "lp")
+    check_choice("learner", learner, ("lp", "dqn_lagrangian"))
+    if learner == "dqn_lagrangian":
+        from irdrc.agents.lagrangian import LagrangianConfig
+
+        LagrangianConfig.from_node(cfg)
+        if cfg.frontier:
+            raise ValueError("learner=dqn_lagrangian learns one target: use frontier=false")
+        for key in ("max_drop", "min_radar"):
+            if cfg.get(key) is not None:
+                raise ValueError(
+                    f"{key}={cfg[key]}: learner=dqn_lagrangian handles target_miss alone "
+                    f"(use learner=lp for {key})"
+                )
+        check_bool("progress", cfg.progress)
     grid = cfg.frontier_grid
     ps = to_plain(grid.p1_speed)
     if not isinstance(ps, list) or not ps:
@@ -366,6 +399,7 @@ VALIDATORS: dict[str, Callable[[DictConfig], None]] = {
     "bench_env": _bench_env,
     "demo": _demo,
     "bench_robust": _bench_robust,
+    "bench_constrained": _bench_constrained,
 }
 
 

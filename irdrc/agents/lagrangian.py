@@ -1,0 +1,621 @@
+"""A Lagrangian DQN for the constrained problem (MODEL.md § A): the most of an objective subject to
+miss detection ≤ a target, learned from interaction alone.
+
+The DQN machinery of ``irdrc.agents.dqn`` (network body, ε-greedy, replay, TorchRL's collector and
+``SoftUpdate``) with two value heads per action, learned by double-DQN TD(0) from the per-step
+signals the env writes under ``("next", key)``:
+
+- Q_J(s, a): the objective (``sent`` for throughput, ``reward``, or ``capacity``);
+- Q_C(s, a): the constraint cost c = missed − m*·event, whose long-run average is ≤ 0 exactly when
+  miss detection ≤ m* (MODEL.md § A).
+
+The agent acts greedily on Q_J − μ·Q_C: the per-step Lagrangian signal J − μ·(missed − m*·event),
+with the multiplier μ ≥ 0 adapted by dual ascent from the learner's own measured miss detection
+(missed / event over its recent experience). Keeping the two heads apart keeps both signals at
+their own scale whatever μ is, and gives the greedy policy for *every* μ from one network: action
+comm wins in state s while μ < ΔJ(s)/ΔC(s) (Δ = comm − radar), so as μ grows the greedy table
+changes one state at a time at those breakpoints.
+
+The final policy is chosen the way a vehicle could: along that path of tables, a bisection on
+measured miss detection (Monte-Carlo episodes on the simulator, counted in ``env_steps``) finds the
+two neighbouring tables on either side of the target; they differ in one state, and the final
+policy randomises there with the probability found by bisection on measured rates — the same shape
+as the exact LP optimum. The exact model only scores (``history``, the final metrics).
+"""
+
+from __future__ import annotations
+
+import bisect
+import math
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field, fields
+from typing import Any
+
+import torch
+from tensordict import TensorDict, TensorDictBase, TensorDictParams
+from tensordict.nn import TensorDictSequential
+from torch import nn
+from torchrl.collectors import Collector
+from torchrl.modules import QValueActor
+from torchrl.objectives import LossModule, SoftUpdate
+
+from irdrc.agents.base import Hooks, RunRecord, make_scorers, progress_record, scenario_list
+from irdrc.agents.dqn import (
+    DQNConfig,
+    _anneal,
+    _track_episodes,
+    make_buffer,
+    make_exploration,
+    make_mlp,
+)
+from irdrc.core.env import DFRCEnv
+from irdrc.core.evaluate import long_run
+from irdrc.core.params import Params, check_choice, check_number, reject_unknown_keys, to_plain
+from irdrc.core.solve import ExactScorer
+
+NAME = "dqn_lagrangian"
+OBJECTIVE_KEYS = {"throughput": "sent", "avg_reward": "reward", "link_capacity": "capacity"}
+"""The env's per-step signal (under ``("next", key)``) for each objective of ``irdrc.core.cmdp``."""
+
+LAGRANGIAN_KEYS = (
+    "mu_init",
+    "mu_lr",
+    "mu_min",
+    "mu_max",
+    "cost_window_frames",
+    "search_span",
+    "measure_envs",
+    "measure_steps",
+    "measure_burn_in",
+    "measure_max_blocks",
+    "mix_steps",
+)
+
+SEARCH_FLOOR = 1e-6
+"""The final search goes down the path no further than this fraction of the trained μ."""
+
+MIXING_STEPS_PER_BLOCK = 4
+"""The final policy's randomisation is searched on its log-odds within ±log(measure_steps / this):
+a probability closer to 0 or 1 in a state the chain would linger in (a full queue) makes the
+chain mix more slowly than a measurement block can see."""
+
+
+@dataclass(frozen=True)
+class LagrangianConfig:
+    """The Lagrangian DQN (config group ``algo: dqn_lagrangian``): DQN's keys plus these.
+
+    Attributes:
+        dqn: the DQN machinery's hyperparameters (every ``DQNConfig`` key; 80 000 env steps).
+        target_miss: m*, miss detection ≤ this (the recipe's top-level ``target_miss``).
+        objective: what is maximised (the recipe's top-level ``objective``).
+        mu_init: the multiplier at the start.
+        mu_lr: dual ascent rate in log space (``dual_step``): at full relative error μ changes by
+            a factor e^mu_lr per 1 000 env steps; M̂ is the measured miss detection.
+        mu_min, mu_max: the multiplier's bounds.
+        cost_window_frames: M̂ is missed / event over about this many recent env steps
+            (exponential average).
+        search_span: the final search looks at multipliers within this factor of the trained μ.
+        measure_envs, measure_steps, measure_burn_in, measure_max_blocks: each long-run
+            measurement of a candidate final policy runs ``measure_envs`` chains for
+            ``measure_burn_in`` steps, then blocks of ``measure_steps`` until two consecutive
+            blocks agree (at most ``measure_max_blocks``; ``irdrc.core.evaluate.long_run``).
+        mix_steps: bisection steps on the log-odds of the final policy's randomisation.
+    """
+
+    dqn: DQNConfig = field(default_factory=lambda: DQNConfig(total_frames=80_000, name=NAME))
+    target_miss: float = 0.05
+    objective: str = "throughput"
+    mu_init: float = 1.0
+    mu_lr: float = 1.0
+    mu_min: float = 1e-3
+    mu_max: float = 1e5
+    cost_window_frames: int = 4_000
+    search_span: float = 4.0
+    measure_envs: int = 128
+    measure_steps: int = 2_000
+    measure_burn_in: int = 2_000
+    measure_max_blocks: int = 8
+    mix_steps: int = 10
+    name: str = field(default=NAME, compare=False)
+
+    def __post_init__(self) -> None:
+        def num(key: str, lo: float, hi: float = math.inf, **kw: Any) -> None:
+            object.__setattr__(
+                self, key, check_number(f"algo.{key}", getattr(self, key), lo, hi, **kw)
+            )
+
+        object.__setattr__(self, "target_miss", check_number("target_miss", self.target_miss, 0, 1))
+        check_choice("objective", self.objective, tuple(OBJECTIVE_KEYS))
+        num("mu_lr", 0)
+        num("mu_min", 0, open_lo=True)
+        num("mu_max", 0, open_lo=True)
+        num("mu_init", self.mu_min, self.mu_max)
+        num("cost_window_frames", 1, 10**12, integer=True)
+        num("search_span", 1)
+        num("measure_envs", 2, 10**7, integer=True)
+        num("measure_steps", 1, 10**9, integer=True)
+        num("measure_burn_in", 0, 10**9, integer=True)
+        num("measure_max_blocks", 1, 10**6, integer=True)
+        num("mix_steps", 0, 60, integer=True)
+        if not isinstance(self.dqn, DQNConfig):
+            raise ValueError(f"dqn={self.dqn!r} must be a DQNConfig")
+
+    @classmethod
+    def from_dict(
+        cls,
+        data: Any,
+        network: Any = None,
+        target_miss: float = 0.05,
+        objective: str = "throughput",
+    ) -> LagrangianConfig:
+        """From the ``algo`` node (DQN's keys and ``LAGRANGIAN_KEYS``), the ``network`` node and
+        the problem (``target_miss``, ``objective``); unknown keys are rejected."""
+        data = {k: v for k, v in dict(to_plain(data)).items() if k != "name"}
+        dqn_keys = {f.name for f in fields(DQNConfig) if f.name not in ("network", "name")}
+        reject_unknown_keys("algo.", data, dqn_keys | set(LAGRANGIAN_KEYS))
+        own = {k: data.pop(k) for k in LAGRANGIAN_KEYS if k in data}
+        dqn = DQNConfig.from_dict({**data, "name": NAME}, network)
+        return cls(dqn=dqn, target_miss=target_miss, objective=objective, **own)
+
+    @classmethod
+    def from_node(cls, cfg: Any) -> LagrangianConfig:
+        """From a recipe's config: ``algo``, ``network``, ``target_miss``, ``objective``."""
+        return cls.from_dict(
+            cfg["algo"],
+            cfg["network"],
+            target_miss=cfg["target_miss"],
+            objective=cfg.get("objective", "throughput"),
+        )
+
+    def env_steps(self, horizon: int) -> int:
+        """Env steps of training (the final policy's measurements come on top)."""
+        return self.dqn.total_frames
+
+
+Config = LagrangianConfig
+"""This learner's config class (the interface of ``irdrc.agents.base``)."""
+
+
+class TwoHeads(nn.Module):
+    """Observation → [..., 2, 2]: (objective, cost) heads × (comm, radar) actions."""
+
+    def __init__(self, body: nn.Module) -> None:
+        super().__init__()
+        self.body = body
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        out = self.body(obs)
+        return out.reshape(*out.shape[:-1], 2, 2)
+
+
+class Lagrangian(nn.Module):
+    """Q_J − μ·Q_C per action, μ a buffer the dual ascent sets: the acting network's values."""
+
+    def __init__(self, heads: TwoHeads, mu: float) -> None:
+        super().__init__()
+        self.heads = heads
+        self.register_buffer("mu", torch.tensor(float(mu)))
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        q = self.heads(obs)
+        return q[..., 0, :] - self.mu * q[..., 1, :]
+
+
+class LagrangianDQNLoss(LossModule):
+    """Double-DQN TD(0) on both heads: the next action is the online network's greedy action on
+    Q_J − μ·Q_C, valued by the target network's heads. Writes ``td_error`` (|δ_J| + |δ_C|) for
+    prioritised replay; the loss is the (importance-weighted) mean of δ_J² + δ_C² (or the chosen
+    distance)."""
+
+    value_network: TwoHeads
+    value_network_params: TensorDictParams
+    target_value_network_params: TensorDictParams
+
+    def __init__(
+        self,
+        heads: TwoHeads,
+        mu: torch.Tensor,
+        *,
+        gamma: float,
+        objective_key: str,
+        target_miss: float,
+        loss_function: str = "l2",
+    ) -> None:
+        super().__init__()
+        self.convert_to_functional(heads, "value_network", create_target_params=True)
+        self.mu = mu
+        self.gamma = float(gamma)
+        self.objective_key = objective_key
+        self.target_miss = float(target_miss)
+        self.loss_function = loss_function
+
+    def signals(self, td: TensorDictBase) -> torch.Tensor:
+        """[B, 2] per-step (objective, cost) of a batch of transitions."""
+        nxt = td["next"]
+        j = nxt[self.objective_key].reshape(-1).to(torch.float32)
+        c = nxt["missed"].reshape(-1).float() - self.target_miss * nxt["event"].reshape(-1).float()
+        return torch.stack([j, c], -1)
+
+    def forward(self, td: TensorDictBase) -> TensorDict:
+        obs, nobs = td["observation"], td["next", "observation"]
+        action = td["action"].reshape(-1).long()
+        with self.value_network_params.to_module(self.value_network):
+            q = self.value_network(obs)  # [B, 2, 2]
+        taken = q.gather(-1, action.view(-1, 1, 1).expand(-1, 2, 1)).squeeze(-1)  # [B, 2]
+        with torch.no_grad():
+            with self.value_network_params.data.to_module(self.value_network):
+                qn = self.value_network(nobs)
+            best = (qn[:, 0] - self.mu * qn[:, 1]).argmax(-1)
+            with self.target_value_network_params.to_module(self.value_network):
+                qt = self.value_network(nobs)
+            nxt = qt.gather(-1, best.view(-1, 1, 1).expand(-1, 2, 1)).squeeze(-1)
+            terminated = td["next", "terminated"].reshape(-1, 1).float()
+            target = self.signals(td) + self.gamma * (1.0 - terminated) * nxt
+        delta = taken - target
+        if self.loss_function == "l2":
+            per = delta.pow(2).sum(-1)
+        elif self.loss_function == "l1":
+            per = delta.abs().sum(-1)
+        else:
+            per = nn.functional.smooth_l1_loss(taken, target, reduction="none").sum(-1)
+        td.set("td_error", delta.detach().abs().sum(-1), inplace=False)
+        if "priority_weight" in td:
+            per = per * td["priority_weight"].reshape(-1)
+        return TensorDict(loss=per.mean())
+
+
+def make_network(env: DFRCEnv, cfg: LagrangianConfig) -> tuple[TwoHeads, Lagrangian, QValueActor]:
+    """The two heads, their Lagrangian combination (holding μ) and the acting Q-value actor
+    (greedy on Q_J − μ·Q_C)."""
+    heads = TwoHeads(make_mlp(env, cfg.dqn.network, 4))
+    combined = Lagrangian(heads, cfg.mu_init)
+    actor = QValueActor(module=combined, in_keys=["observation"], spec=env.action_spec_unbatched)
+    return heads, combined, actor
+
+
+def heads_table(heads: TwoHeads, env: DFRCEnv) -> torch.Tensor:
+    """[S, 2, 2] (objective, cost) × (comm, radar) values of every state."""
+    with torch.no_grad():
+        return heads(env.dynamics.obs).double().cpu()
+
+
+def greedy_path(q: torch.Tensor) -> tuple[list[float], list[torch.Tensor]]:
+    """The greedy tables of Q_J − μ·Q_C as μ goes from 0 to ∞, from values ``q`` [S, 2, 2].
+
+    Returns ``(breaks, tables)``: ``tables[k]`` is greedy on (breaks[k−1], breaks[k]) (breaks[−1]
+    = 0), consecutive tables differ in exactly one state, ``len(tables) = len(breaks) + 1``.
+    Ties go to comm, as in ``irdrc.agents.dqn.greedy_table``.
+    """
+    dj = q[:, 0, 0] - q[:, 0, 1]  # objective gain of comm over radar
+    dc = q[:, 1, 0] - q[:, 1, 1]  # cost of comm over radar
+    table = (dj < 0).long()  # μ = 0: greedy on Q_J (1 = radar)
+    # State s switches at μ_s = dj/dc where the sign of dj − μ·dc changes for some μ > 0.
+    switch = torch.where(dc != 0, dj / dc, torch.full_like(dj, math.inf))
+    crosses = (switch > 0) & torch.isfinite(switch)
+    order = sorted(crosses.nonzero().flatten().tolist(), key=lambda s: float(switch[s]))
+    breaks, tables = [], [table.clone()]
+    for s in order:
+        table = table.clone()
+        table[s] = 1 - table[s]
+        breaks.append(float(switch[s]))
+        tables.append(table)
+    return breaks, tables
+
+
+def path_index(breaks: list[float], mu: float) -> int:
+    """The index of the table of ``greedy_path`` that is greedy at multiplier ``mu``."""
+    return bisect.bisect_right(breaks, mu)
+
+
+def final_policy(
+    q: torch.Tensor, params: Params, mu: float, cfg: LagrangianConfig, seed: int
+) -> tuple[torch.Tensor, dict[str, Any]]:
+    """The final [S, 2] policy from the learned heads ``q`` [S, 2, 2] and the trained multiplier
+    ``mu``, chosen by measured miss detection alone (long-run Monte-Carlo runs on the simulator,
+    ``irdrc.core.evaluate.long_run``, all with the same random numbers so that measurements of
+    neighbouring policies compare like with like). Returns (policy, facts); facts include the
+    measurement env steps (``measure_env_steps``) and the measured rates of the final policy.
+
+    Along the greedy path (``greedy_path``), from the table greedy at ``mu``: if it meets the
+    target, down the path (multipliers ÷ ``search_span`` at a time) while tables meet it and
+    their measured objective grows; if not, up to ``mu``·``search_span`` and then the safest end.
+    A bisection between the last table above the target and the first at or below it finds
+    neighbours on either side of it; the final policy randomises in the one state where they
+    differ, with the probability found by bisection (on its log-odds) on measured miss
+    detection.
+    """
+    breaks, tables = greedy_path(q)
+    target = cfg.target_miss
+    steps = 0
+    seen: dict[bytes, tuple[float, float]] = {}
+
+    metric = {"sent": "throughput", "reward": "avg_reward", "capacity": "link_capacity"}[
+        OBJECTIVE_KEYS[cfg.objective]
+    ]
+
+    def rates(p_radar: torch.Tensor) -> tuple[float, float]:
+        """Measured (miss detection, objective) of a policy (each policy measured once)."""
+        nonlocal steps
+        key = p_radar.double().numpy().tobytes()
+        if key not in seen:
+            ev = long_run(
+                params,
+                p_radar.double(),
+                envs=cfg.measure_envs,
+                steps=cfg.measure_steps,
+                burn_in=cfg.measure_burn_in,
+                max_blocks=cfg.measure_max_blocks,
+                seed=seed + 7919,
+            )
+            steps += ev.steps
+            seen[key] = (float(ev.metrics.miss_detection), float(getattr(ev.metrics, metric)))
+        return seen[key]
+
+    def miss(p_radar: torch.Tensor) -> float:
+        return rates(p_radar)[0]
+
+    def table(k: int) -> torch.Tensor:
+        return tables[k].double()
+
+    def done(p_radar: torch.Tensor, **extra: Any) -> tuple[torch.Tensor, dict[str, Any]]:
+        facts = {
+            "path_tables": len(tables),
+            "measured_final_miss": miss(p_radar),
+            "measurements": len(seen),
+            "measure_env_steps": steps,
+            **extra,
+        }
+        return torch.stack([1 - p_radar.double(), p_radar.double()], -1), facts
+
+    k0 = path_index(breaks, mu)
+    if miss(table(k0)) <= target:
+        # Down the path (more data) by factors of search_span while the tables stay within the
+        # target and their measured objective grows; the first one above the target brackets.
+        lo, hi = None, k0
+        m = mu
+        while hi > 0 and m > mu * SEARCH_FLOOR:
+            m /= cfg.search_span
+            k = path_index(breaks, m)
+            if k == hi:
+                continue
+            if miss(table(k)) > target:
+                lo = k
+                break
+            if rates(table(k))[1] <= rates(table(hi))[1]:
+                break  # no more data lower down: the heads' differences there are noise
+            hi = k
+        if lo is None:
+            return done(table(hi), switch_state=None, p_switch=None)
+    else:
+        lo, hi = k0, path_index(breaks, mu * cfg.search_span)
+        if miss(table(hi)) > target:
+            hi = len(tables) - 1  # beyond the range: the safest tables of the path
+            if hi == lo or miss(table(hi)) > target:
+                return done(table(hi), switch_state=None, p_switch=None)
+    while hi - lo > 1:  # invariant: miss(lo) > target ≥ miss(hi)
+        mid = (lo + hi) // 2
+        if miss(table(mid)) > target:
+            lo = mid
+        else:
+            hi = mid
+    s = int((tables[lo] != tables[hi]).nonzero().flatten()[0])
+    a_lo, a_hi = float(tables[lo][s]), float(tables[hi][s])
+
+    def mixed(z: float) -> torch.Tensor:
+        w = 1.0 / (1.0 + math.exp(-z))  # weight of tables[hi]'s action in s
+        p = table(hi).clone()
+        p[s] = w * a_hi + (1 - w) * a_lo
+        return p
+
+    # Bisection on the log-odds z of the weight: miss(mixed(z)) falls as z grows.
+    span = math.log(max(2.0, cfg.measure_steps / MIXING_STEPS_PER_BLOCK))
+    z_lo, z_hi = -span, span
+    if miss(mixed(z_hi)) > target:
+        return done(table(hi), switch_state=s, p_switch=float(table(hi)[s]))
+    if miss(mixed(z_lo)) <= target:
+        z_hi = z_lo
+    else:
+        for _ in range(cfg.mix_steps):
+            z = 0.5 * (z_lo + z_hi)
+            if miss(mixed(z)) > target:
+                z_lo = z
+            else:
+                z_hi = z
+    p = mixed(z_hi)
+    return done(p, switch_state=s, p_switch=float(p[s]), mu_switch=breaks[lo])
+
+
+def train(
+    params: Params | Sequence[Params],
+    cfg: LagrangianConfig | None = None,
+    *,
+    num_learners: int = 1,
+    seed: int = 0,
+    device: str = "cpu",
+    scorers: ExactScorer | Sequence[ExactScorer] | None = None,
+    eval_every_frames: int = 1_000,
+    hooks: Hooks | None = None,
+    resume: dict[str, Any] | None = None,
+    optimal_value: float | None = None,
+) -> RunRecord:
+    """Train the Lagrangian DQN and choose its final (possibly randomised) policy.
+
+    The interface of ``irdrc.agents.base``. ``hooks.on_batch`` gets ``env_steps``, ``episodes``,
+    ``epsilon``, ``loss``, ``mu`` (the multiplier), ``measured_miss`` (M̂), ``buffer``. Each exact
+    evaluation scores the greedy table at the current μ; its ``optimality_ratio`` is the objective
+    over ``optimal_value`` (the LP optimum, when given; else over the reward-optimal average
+    reward). The record's ``policy`` is the final [1, S, 2] policy, ``greedy`` its most likely
+    action, and ``info`` the final search's facts. Runs do not resume (``resume`` must be None).
+    """
+    cfg = cfg or LagrangianConfig()
+    dq = cfg.dqn
+    hooks = hooks or Hooks()
+    if resume is not None:
+        raise ValueError(f"{NAME} runs do not resume: start again")
+    scenarios = scenario_list(params)
+    if len(scenarios) != 1 or num_learners != 1:
+        raise ValueError(f"{NAME} trains one network on one scenario per run (num_learners=1)")
+    if eval_every_frames < 1:
+        raise ValueError(f"eval.every_frames={eval_every_frames!r} must be >= 1")
+    (params,) = scenarios
+    (scorer,) = make_scorers(scenarios, scorers)
+    torch.manual_seed(seed)
+    env = DFRCEnv(params, batch_size=[dq.num_envs], device=device, seed=seed)
+
+    heads, combined, actor = make_network(env, cfg)
+    exploration = make_exploration(env, dq)
+    policy = TensorDictSequential(actor, exploration)
+    rb, sampler = make_buffer(dq)
+    mu = combined.mu
+    loss = LagrangianDQNLoss(
+        heads,
+        mu,
+        gamma=dq.gamma,
+        objective_key=OBJECTIVE_KEYS[cfg.objective],
+        target_miss=cfg.target_miss,
+        loss_function=dq.loss_function,
+    )
+    target_net = SoftUpdate(loss, tau=dq.tau)
+    optimizer = torch.optim.Adam(loss.parameters(), lr=dq.lr)
+    record = RunRecord(method=cfg.name, greedy=torch.zeros(1, env.num_states, dtype=torch.int64))
+    record.info["replay_sampler"] = type(sampler).__name__ + (
+        " (prioritised)" if dq.prioritized else " (uniform)"
+    )
+    hooks.start(dict(record.info))
+    learn_from = max(dq.batch_size, dq.init_random_frames)
+    collector = Collector(
+        env,
+        policy,
+        frames_per_batch=dq.frames_per_batch,
+        total_frames=dq.total_frames,
+        init_random_frames=dq.init_random_frames,
+        device=device,
+        auto_register_policy_transforms=False,
+    )
+    collector.set_seed(seed)
+    t0 = time.perf_counter()
+    frames = 0
+    next_eval = eval_every_frames
+    obj_name = {"sent": "throughput", "reward": "avg_reward", "capacity": "link_capacity"}[
+        OBJECTIVE_KEYS[cfg.objective]
+    ]
+    reference = optimal_value if optimal_value is not None else None
+
+    def evaluate_now() -> None:
+        with torch.no_grad():
+            table = actor(
+                TensorDict({"observation": env.dynamics.obs}, batch_size=[env.num_states])
+            )["action"].reshape(-1)
+        m = scorer.metrics(table.long().cpu())
+        wall = time.perf_counter() - t0
+        entry = progress_record(
+            0,
+            frames,
+            len(record.episode_rewards),
+            wall,
+            record.updates,
+            m,
+            scorer.optimal_metrics.avg_reward,
+        )
+        if reference is not None:
+            entry["optimality_ratio"] = getattr(m, obj_name) / reference
+        record.history.append(entry)
+        hooks.eval([entry])
+
+    evaluate_now()
+    last_loss = math.nan
+    missed_avg = event_avg = 0.0
+    measured = math.nan
+    ep_total = torch.zeros(dq.num_envs, dtype=torch.float64)
+    mu_trace: list[dict[str, float]] = []
+    for data in collector:
+        _track_episodes(data, ep_total, frames, record.episode_rewards)
+        data = data.reshape(-1)
+        n = data.numel()
+        rb.extend(data)
+        frames += n
+        exploration.step(n)
+        _anneal(dq, optimizer, sampler, frames)
+        # The learner's own measured constraint: missed / event on the steps where it acted
+        # greedily (exploration's random comm steps would bias it), exponentially averaged.
+        keep = math.exp(-n / cfg.cost_window_frames)
+        missed_avg *= keep
+        event_avg *= keep
+        if "action_value" in data:
+            greedy = data["action"].reshape(-1) == data["action_value"].argmax(-1).reshape(-1)
+            missed_avg += float((data["next", "missed"].reshape(-1) & greedy).sum())
+            event_avg += float((data["next", "event"].reshape(-1) & greedy).sum())
+        measured = missed_avg / event_avg if event_avg > 0 else math.nan
+        if len(rb) >= learn_from:
+            last_loss = _learn(dq, rb, loss, optimizer, target_net)
+            record.updates += dq.updates_per_batch
+            if not math.isnan(measured):  # dual ascent on the measured constraint
+                mu.fill_(dual_step(float(mu), measured, n, cfg))
+        info = {
+            "env_steps": frames,
+            "episodes": len(record.episode_rewards),
+            "epsilon": float(exploration.eps),
+            "loss": last_loss,
+            "mu": float(mu),
+            "measured_miss": measured,
+            "buffer": len(rb),
+        }
+        mu_trace.append({"env_steps": frames, "mu": float(mu), "measured_miss": measured})
+        hooks.batch(info)
+        stop = hooks.stop_requested()
+        if frames >= next_eval or frames >= dq.total_frames or stop:
+            evaluate_now()
+            next_eval = (frames // eval_every_frames + 1) * eval_every_frames
+        if stop:
+            record.interrupted = True
+            break
+    collector.shutdown()
+    record.env_steps = frames
+    record.episodes = len(record.episode_rewards)
+    # The final policy, from measurements on a separate batch of envs (counted in env_steps).
+    q = heads_table(heads, env)
+    probs, facts = final_policy(q, params, float(mu), cfg, seed)
+    record.env_steps += int(facts["measure_env_steps"])
+    record.wall_seconds = time.perf_counter() - t0
+    record.policy = probs[None]
+    record.greedy = (probs[:, 1] > 0.5).long()[None]
+    record.q = (q[:, 0] - float(mu) * q[:, 1]).float()[None]
+    record.info.update(
+        {
+            "mu": float(mu),
+            "measured_miss": measured,
+            "training_env_steps": frames,
+            **facts,
+        }
+    )
+    record.info["mu_trace"] = mu_trace
+    return record
+
+
+def dual_step(mu: float, measured: float, frames: int, cfg: LagrangianConfig) -> float:
+    """One dual-ascent step in log space: μ ← μ·exp(mu_lr·e·frames/1000), e the measured miss
+    detection's relative excess over the target, (M̂ − m*)/max(m*, 0.01), clipped to [−1, 1];
+    kept in [mu_min, mu_max]. Relative steps cover the multiplier's unknown scale (0.1 … 1 000
+    here) at one rate, and a full-error step is the same whether μ is small or large."""
+    err = (measured - cfg.target_miss) / max(cfg.target_miss, 0.01)
+    err = min(1.0, max(-1.0, err))
+    return min(cfg.mu_max, max(cfg.mu_min, mu * math.exp(cfg.mu_lr * err * frames / 1000.0)))
+
+
+def _learn(dq: DQNConfig, rb, loss: LagrangianDQNLoss, optimizer, target) -> float:
+    """``updates_per_batch`` gradient updates from replay, each followed by the target update."""
+    last = math.nan
+    for _ in range(dq.updates_per_batch):
+        sample = rb.sample()
+        out = loss(sample)
+        optimizer.zero_grad(set_to_none=True)
+        out["loss"].backward()
+        if dq.max_grad_norm > 0:
+            nn.utils.clip_grad_norm_(loss.parameters(), dq.max_grad_norm)
+        optimizer.step()
+        target.step()
+        if dq.prioritized:
+            rb.update_priority(sample["index"], sample["td_error"].detach().reshape(-1))
+        last = float(out["loss"].detach())
+    return last

@@ -75,10 +75,11 @@ LAGRANGIAN_KEYS = (
 SEARCH_FLOOR = 1e-6
 """The final search goes down the path no further than this fraction of the trained μ."""
 
-MIXING_STEPS_PER_BLOCK = 4
+MIXING_STEPS_PER_BLOCK = 1
 """The final policy's randomisation is searched on its log-odds within ±log(measure_steps / this):
-a probability closer to 0 or 1 in a state the chain would linger in (a full queue) makes the
-chain mix more slowly than a measurement block can see."""
+a probability closer to 0 or 1 in a state the chain lingers in (a full queue) makes the chain mix
+more slowly than a measurement block can see (at 1 − 1/measure_steps, measured and exact miss
+detection still agreed within 0.002 here)."""
 
 
 @dataclass(frozen=True)

@@ -323,3 +323,16 @@ def test_report_fills_every_generated_block(tiny_figure, tiny_tradeoff, tmp_path
     # writing twice replaces the blocks instead of appending to them
     write_report(fig, tr, tmp_path, "bash ci/reproduce.sh seeds=[0,1]")
     assert (tmp_path / "REPRODUCTION.md").read_text() == text
+
+
+def test_learner_block_is_the_benchmark_table(tmp_path):
+    """The report's learner block is the benchmark's own table file plus the total run time."""
+    from irdrc.experiments.results import write_rows_csv
+    from irdrc.paper.report import learner_block
+
+    write_rows_csv(
+        tmp_path / "bench_constrained.csv", [{"wall_seconds": 60.0}, {"wall_seconds": 120.0}]
+    )
+    (tmp_path / "bench_constrained.md").write_text("| a |\n|---|\n| 1 |\n")
+    block = learner_block(tmp_path)
+    assert block.startswith("| a |\n|---|\n| 1 |") and "2 runs, 3 min" in block

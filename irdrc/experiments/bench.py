@@ -16,7 +16,13 @@ from irdrc.core.model import build_model
 from irdrc.core.params import Params, to_plain
 from irdrc.core.solve import ExactScorer, stationary_occupancy
 from irdrc.experiments.config import compose
-from irdrc.experiments.results import policy_differences, read_policy_csv, write_rows_csv
+from irdrc.experiments.grid import parse_grid
+from irdrc.experiments.results import (
+    atomic_write_text,
+    policy_differences,
+    read_policy_csv,
+    write_rows_csv,
+)
 from irdrc.experiments.results import read_csv_rows as read_csv
 
 SUMMARY_KEYS = (
@@ -180,7 +186,6 @@ def run_bench_robust(cfg: DictConfig, out: Path, scenario: list[str] | None = No
     """Every (scenario, seed) of ``cfg`` as one DQN run through the sweep engine; per run and per
     scenario: final ratio, env steps and seconds to the threshold, and the share of evaluations after
     first reaching it that stay there."""
-    from irdrc.experiments.grid import parse_grid
     from irdrc.experiments.sweep import execute, plan
 
     th = float(cfg.threshold)
@@ -287,7 +292,6 @@ def run_bench_constrained(cfg: DictConfig, out: Path, scenario: list[str] | None
     ≥ ``objective_share`` of the LP optimum, with env steps (training + measurement) and seconds."""
     import json
 
-    from irdrc.experiments.grid import parse_grid
     from irdrc.experiments.sweep import execute, plan
 
     tol, share = float(cfg.miss_tolerance), float(cfg.objective_share)
@@ -331,23 +335,34 @@ def run_bench_constrained(cfg: DictConfig, out: Path, scenario: list[str] | None
             }
         )
     write_rows_csv(Path(out) / cfg.csv, rows)
+    table = constrained_bench_table(rows, grid, tol, share)
     print(
         f"\nLagrangian DQN against the LP ({len(grid['seed'])} seeds per cell): miss detection ≤ "
         f"target + {tol:g}, objective ≥ {share:g} of the LP optimum"
     )
+    print(table)
+    atomic_write_text(Path(out) / "bench_constrained.md", table + "\n")
+    print(f"\nwrote {Path(out) / cfg.csv} and {Path(out) / 'bench_constrained.md'}")
+    return code
+
+
+def constrained_bench_table(
+    rows: list[dict[str, Any]], grid: dict[str, list], tol: float, share: float
+) -> str:
+    """The benchmark's Markdown table: one line per (p^v_1, target) cell."""
     header = (
-        "| p^v_1 | target | runs | miss ≤ target + tol | objective ≥ share | worst miss | "
-        "worst ratio | median ratio | median env steps (train + measure) | median s |"
+        f"| p^v_1 | target | runs | miss ≤ target + {tol:g} | objective ≥ {share:g} of the LP | "
+        "worst miss | worst ratio | median ratio | median env steps (training + measurement) | "
+        "median s |"
     )
-    print(header)
-    print("|---" * (header.count("|") - 1) + "|")
+    lines = [header, "|---" * (header.count("|") - 1) + "|"]
     for point in parse_grid({k: grid[k] for k in ("env.p1.speed", "target_miss")}):
         mine = [r for r in rows if all(r[k] == v for k, v in point.items())]
         if not mine:
             continue
         train = statistics.median(r["training_env_steps"] for r in mine)
         meas = statistics.median(r["measure_env_steps"] for r in mine)
-        print(
+        lines.append(
             f"| {point['env.p1.speed']:g} | {point['target_miss']:g} | {len(mine)} | "
             f"{sum(r['miss_ok'] for r in mine)} | {sum(r['objective_ok'] for r in mine)} | "
             f"{max(r['miss_detection'] for r in mine):.4f} | "
@@ -355,5 +370,4 @@ def run_bench_constrained(cfg: DictConfig, out: Path, scenario: list[str] | None
             f"{statistics.median(r['objective_ratio'] for r in mine):.3f} | "
             f"{train:.0f} + {meas:.0f} | {statistics.median(r['wall_seconds'] for r in mine):.0f} |"
         )
-    print(f"\nwrote {Path(out) / cfg.csv}")
-    return code
+    return "\n".join(lines)

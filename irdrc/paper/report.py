@@ -45,10 +45,11 @@ def write_report(
     docs_dir: Path,
     command: str,
     frontier_dir: Path | None = None,
+    learner_dir: Path | None = None,
 ) -> None:
     """Copy the figures into ``docs_dir/figures`` and fill the generated blocks of
     ``docs_dir/REPRODUCTION.md`` from a figure2 run, a tradeoff run and (when given) a
-    ``constrained.py frontier=true`` run."""
+    ``constrained.py frontier=true`` run and a ``bench_constrained.py`` run."""
     figure_dir, tradeoff_dir, docs_dir = Path(figure_dir), Path(tradeoff_dir), Path(docs_dir)
     fig_out = docs_dir / "figures"
     fig_out.mkdir(parents=True, exist_ok=True)
@@ -114,7 +115,19 @@ def write_report(
     if frontier_dir is not None:
         shutil.copyfile(Path(frontier_dir) / "frontier.png", fig_out / "frontier.png")
         report = _block(report, "design", design_block(Path(frontier_dir)))
+    if learner_dir is not None:
+        report = _block(report, "design_learner", learner_block(Path(learner_dir)))
     atomic_write_text(docs_dir / "REPRODUCTION.md", report)
+
+
+def learner_block(bench_dir: Path) -> str:
+    """The Lagrangian DQN's benchmark table (``bench_constrained.md``) and its total time."""
+    rows = read_csv(bench_dir / "bench_constrained.csv")
+    total = sum(float(r["wall_seconds"]) for r in rows)
+    return (
+        (bench_dir / "bench_constrained.md").read_text().strip()
+        + f"\n\n{len(rows)} runs, {total / 60:.0f} min of run time in all (2 at a time here)."
+    )
 
 
 def design_block(frontier_dir: Path) -> str:

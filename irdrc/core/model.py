@@ -85,11 +85,30 @@ def _factor_transitions(params: Params) -> torch.Tensor:
     return torch.stack([base, radar])
 
 
+DENSE_MODEL_LIMIT_BYTES = 2**29
+"""Recipes use the dense model while its transition tensor (2·S² float64) fits in this; above it
+they switch to the factored operator (``irdrc.core.factored``) or refuse."""
+
+DENSE_MAX_STATES = 8192
+"""The largest S the dense model is built for (2·S² float64: 1 GiB); larger models use the factored
+operator (``irdrc.core.factored``)."""
+
+
 def build_model(params: Params) -> ExactModel:
-    """The exact MDP of ``params`` (see ``ExactModel``)."""
+    """The exact MDP of ``params`` (see ``ExactModel``).
+
+    Raises:
+        ValueError: when S exceeds ``DENSE_MAX_STATES`` (use ``irdrc.core.factored``).
+    """
     env, rw = params.env, params.reward
     D = env.queue_capacity
     S = (D + 1) * 32
+    if S > DENSE_MAX_STATES:
+        raise ValueError(
+            f"env.queue_capacity={D}: S = {S} states is too many for the dense S × S model "
+            f"(at most {DENSE_MAX_STATES}); use the factored operator (irdrc.core.factored."
+            "build_factored), as recipes/solve.py does"
+        )
     s = torch.arange(S)
     d = s // 32
     c = (s // 16) % 2

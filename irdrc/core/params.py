@@ -232,7 +232,7 @@ class EnvParams:
         set_(
             self,
             "queue_capacity",
-            check_number("env.queue_capacity", self.queue_capacity, 1, 10_000, integer=True),
+            check_number("env.queue_capacity", self.queue_capacity, 1, 1_000_000, integer=True),
         )
         # The exact model sums arrivals up to a tail bucket; rates above 1000 packets/step are not a
         # regime this model is meant for and would make that table huge.

@@ -199,7 +199,8 @@ def policy_table(model: ExactModel, actions: torch.Tensor) -> str:
     """Readable policy: one line per factor combination, its event probability and mode by queue.
 
     The mode column is ``comm``/``radar`` when the action is the same at every queue length,
-    otherwise a string with one letter per d = 0 … D (C = comm, R = radar).
+    otherwise a string with one letter per d = 0 … D (C = comm, R = radar), or for D ≥ 64 its runs
+    (``C×5 R×3120``). ``model`` is an ``ExactModel`` or a ``FactoredModel``.
     """
     D = model.params.env.queue_capacity
     acts = torch.as_tensor(actions).long().view(D + 1, 32)
@@ -209,8 +210,15 @@ def policy_table(model: ExactModel, actions: torch.Tensor) -> str:
         col = acts[:, f]
         if bool((col == col[0]).all()):
             mode = "radar" if int(col[0]) else "comm"
-        else:
+        elif D + 1 <= 64:
             mode = "".join("R" if int(a) else "C" for a in col)
+        else:  # runs: "C×5 R×3120" = comm for d = 0 … 4, radar above
+            change = (col[1:] != col[:-1]).nonzero().flatten().tolist()
+            ends = [*(i + 1 for i in change), D + 1]
+            starts = [0, *ends[:-1]]
+            mode = " ".join(
+                f"{'R' if int(col[a]) else 'C'}×{b - a}" for a, b in zip(starts, ends, strict=True)
+            )
         pe = float(model.event[f])
         lines.append(f"{' '.join(map(str, bits))}  {sum(bits[1:])}  {pe:8.4f}  {mode}")
     return "\n".join(lines)

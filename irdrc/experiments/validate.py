@@ -21,6 +21,7 @@ from typing import Any
 from omegaconf import DictConfig, OmegaConf
 
 from irdrc.agents import dqn, qlearning
+from irdrc.core.model import DENSE_MODEL_LIMIT_BYTES
 from irdrc.core.params import Params, check_bool, check_choice, check_number, to_plain
 from irdrc.experiments.config import CONF_DIR, compose, list_scenarios
 from irdrc.experiments.grid import override_key, parse_grid
@@ -28,8 +29,6 @@ from irdrc.experiments.guard import check_resume
 from irdrc.experiments.runs import RUNNERS, batch_points
 from irdrc.experiments.tracking import BACKENDS, WANDB_MODES
 
-DENSE_MODEL_LIMIT_BYTES = 2**29
-"""The exact model P[a, s, s′] is dense float64: 16·S² bytes. Above this it is refused."""
 EPISODIC_LIMIT_FLOPS = 2e11
 """Exact episodic metrics step a distribution through ``env.horizon`` matrix-vector products
 (2·S² flops each, one run per policy) unless S is small enough for repeated squaring; above this
@@ -131,12 +130,14 @@ def check_writable_dir(key: str, path: Any) -> Path:
     return p
 
 
-def check_params(cfg: DictConfig) -> Params:
-    """The model (``env``, ``reward``), and what the exact solver can afford for it."""
+def check_params(cfg: DictConfig, factored: bool = False) -> Params:
+    """The model (``env``, ``reward``), and what the exact solver can afford for it: the dense
+    model up to ``DENSE_MODEL_LIMIT_BYTES``, or with ``factored`` (recipes that switch to the
+    factored operator for large S) any S the configuration allows."""
     params = Params.from_config(cfg)
     S = params.env.num_states
     dense = 16 * S * S
-    if dense > DENSE_MODEL_LIMIT_BYTES:
+    if dense > DENSE_MODEL_LIMIT_BYTES and not factored:
         raise ValueError(
             f"env.queue_capacity={params.env.queue_capacity}: the exact model has S = {S} states "
             f"and its dense transition tensor would take {dense / 2**30:.1f} GiB (limit "
@@ -164,9 +165,10 @@ def check_episodic_cost(params: Params, key: str = "env.horizon") -> None:
         )
 
 
-def check_common(cfg: DictConfig) -> Params | None:
-    """Keys most recipes share: seed, device, threads, discount, evaluation, progress, logger."""
-    params = check_params(cfg) if "env" in cfg else None
+def check_common(cfg: DictConfig, factored: bool = False) -> Params | None:
+    """Keys most recipes share: seed, device, threads, discount, evaluation, progress, logger
+    (``factored``: see ``check_params``)."""
+    params = check_params(cfg, factored) if "env" in cfg else None
     if "seed" in cfg:
         check_number("seed", cfg.seed, 0, 2**32 - 1, integer=True)
     if "device" in cfg:
@@ -215,10 +217,11 @@ def _check_eval_period(cfg: DictConfig, total: int, explicit: frozenset[str]) ->
 
 
 def _solve(cfg: DictConfig) -> None:
-    params = check_common(cfg)
+    params = check_common(cfg, factored=True)  # large S: the factored operator
     check_number("tol", cfg.tol, 0, 1, open_lo=True)
     check_number("max_iter", cfg.max_iter, 1, 10**8, integer=True)
-    check_episodic_cost(params)
+    if 16 * params.env.num_states**2 <= DENSE_MODEL_LIMIT_BYTES:
+        check_episodic_cost(params)
 
 
 def _dqn(cfg: DictConfig, explicit: frozenset[str] = frozenset()) -> None:

@@ -112,3 +112,39 @@ def test_solve_recipe_switches_to_the_factored_operator(tmp_path):
     s = json.loads((tmp_path / "summary.json").read_text())
     assert s["solver"] == "factored" and s["num_states"] == 9984
     assert 0 < s["metrics"]["throughput"] <= 1.5
+
+
+def test_scale_benchmark_table(tmp_path):
+    res = subprocess.run(
+        [
+            sys.executable,
+            str(ROOT / "recipes" / "bench_scale.py"),
+            "scenarios=[paper]",
+            "states=[1000,2000]",
+            "repeats=1",
+            "skip_after_seconds=0",
+            f"hydra.run.dir={tmp_path}",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=600,
+        cwd=ROOT,
+    )
+    assert res.returncode == 0, res.stderr
+    import csv
+
+    rows = list(csv.DictReader((tmp_path / "bench_scale.csv").open()))
+    assert [(r["solver"], r["num_states"]) for r in rows] == [
+        ("dense", "1024"),
+        ("factored", "1024"),
+    ]
+    assert float(rows[0]["avg_reward"]) == pytest.approx(float(rows[1]["avg_reward"]), abs=1e-9)
+    assert "Not run" in (tmp_path / "bench_scale.md").read_text()  # 2 048 skipped: 0 s budget
+    res = subprocess.run(
+        [sys.executable, str(ROOT / "recipes" / "bench_scale.py"), "scenarios=[nowhere]"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=ROOT,
+    )
+    assert res.returncode == 2 and "scenarios[0]" in res.stderr

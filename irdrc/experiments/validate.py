@@ -285,6 +285,26 @@ def _bench_dqn(cfg: DictConfig) -> None:
     check_bool("trace_gaps", cfg.get("trace_gaps", False))
 
 
+def _bench_scale(cfg: DictConfig) -> None:
+    from irdrc.experiments.config import list_scenarios
+
+    check_number("tol", cfg.tol, 0, 1, open_lo=True)
+    check_number("repeats", cfg.repeats, 1, 1000, integer=True)
+    check_number("timeout", cfg.timeout, 1, 10**6)
+    check_number("skip_after_seconds", cfg.skip_after_seconds, 0)
+    check_bool("gpu", cfg.gpu)
+    names = to_plain(cfg.scenarios)
+    if not isinstance(names, list) or not names:
+        raise ValueError(f"scenarios={names!r} must be a non-empty list of env scenarios")
+    for i, name in enumerate(names):
+        check_choice(f"scenarios[{i}]", name, tuple(list_scenarios()))
+    states = to_plain(cfg.states)
+    if not isinstance(states, list) or not states:
+        raise ValueError(f"states={states!r} must be a non-empty list")
+    for i, v in enumerate(states):
+        check_number(f"states[{i}]", v, 64, 32 * 10**6, integer=True)
+
+
 def _bench_constrained(cfg: DictConfig) -> None:
     check_common(cfg)
     check_executor(cfg)
@@ -403,6 +423,7 @@ VALIDATORS: dict[str, Callable[[DictConfig], None]] = {
     "demo": _demo,
     "bench_robust": _bench_robust,
     "bench_constrained": _bench_constrained,
+    "bench_scale": _bench_scale,
 }
 
 

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import torch
 
 from irdrc.core.metrics import Metrics
-from irdrc.core.model import _factor_transitions
+from irdrc.core.model import _factor_transitions, event_and_reward
 from irdrc.core.params import Params
 
 NUM_FACTOR_CONFIGS = 32
@@ -207,21 +207,9 @@ def _queue_expectations(lam: float, D: int, nu: torch.Tensor) -> tuple[torch.Ten
 
 def build_factored(params: Params, device: str | torch.device = "cpu") -> FactoredModel:
     """The factored exact model of ``params`` (any queue capacity D)."""
-    env, rw = params.env, params.reward
+    env = params.env
     dev = torch.device(device)
-    f = torch.arange(NUM_FACTOR_CONFIGS)
-    c = f >> 4
-    rwvm = [(f >> 3) & 1, (f >> 2) & 1, (f >> 1) & 1, f & 1]
-    b = sum(x.to(torch.float64) for x in rwvm)
-    p0 = torch.tensor(env.p0.as_tuple(), dtype=torch.float64)
-    p1 = torch.tensor(env.p1.as_tuple(), dtype=torch.float64)
-    per = [torch.where(x == 1, p1[i], p0[i]) for i, x in enumerate(rwvm)]
-    if env.event_model == "noisy_or":
-        event = 1.0 - math.prod(1.0 - p for p in per)
-    else:
-        event = torch.clamp(sum(per), max=1.0)
-    r12 = torch.tensor([rw.r1, rw.r2], dtype=torch.float64)
-    R = torch.stack([(1.0 - event) * r12[c] - event * rw.r3, event * rw.r4 * (b + 1.0)])
+    event, R = event_and_reward(params, torch.arange(NUM_FACTOR_CONFIGS))
 
     lam = env.arrival_rate
     p = _poisson(lam, int(lam + 50 * math.sqrt(lam) + 60))

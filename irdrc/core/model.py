@@ -85,6 +85,27 @@ def _factor_transitions(params: Params) -> torch.Tensor:
     return torch.stack([base, radar])
 
 
+def event_and_reward(params: Params, s: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """[len(s)] event probability and [2, len(s)] expected reward (eq. (3)) of states ``s`` (only
+    their factor bits s mod 32 matter), float64."""
+    env, rw = params.env, params.reward
+    c = (s // 16) % 2
+    rwvm = [(s // 8) % 2, (s // 4) % 2, (s // 2) % 2, s % 2]
+    b = sum(x.to(torch.float64) for x in rwvm)
+    # Every table is float64 from the parameters on: a Python float given to ``torch.where`` would
+    # become a float32 scalar tensor and round the probabilities (e.g. 0.5212 → 0.5212000111).
+    p0 = torch.tensor(env.p0.as_tuple(), dtype=torch.float64)
+    p1 = torch.tensor(env.p1.as_tuple(), dtype=torch.float64)
+    per = [torch.where(x == 1, p1[i], p0[i]) for i, x in enumerate(rwvm)]
+    if env.event_model == "noisy_or":
+        event = 1.0 - math.prod(1.0 - p for p in per)
+    else:
+        event = torch.clamp(sum(per), max=1.0)
+    r12 = torch.tensor([rw.r1, rw.r2], dtype=torch.float64)
+    R = torch.stack([(1.0 - event) * r12[c] - event * rw.r3, event * rw.r4 * (b + 1.0)])
+    return event, R
+
+
 DENSE_MODEL_LIMIT_BYTES = 2**29
 """Recipes use the dense model while its transition tensor (2·S² float64) fits in this; above it
 they switch to the factored operator (``irdrc.core.factored``) or refuse."""
@@ -100,7 +121,7 @@ def build_model(params: Params) -> ExactModel:
     Raises:
         ValueError: when S exceeds ``DENSE_MAX_STATES`` (use ``irdrc.core.factored``).
     """
-    env, rw = params.env, params.reward
+    env = params.env
     D = env.queue_capacity
     S = (D + 1) * 32
     if S > DENSE_MAX_STATES:
@@ -112,24 +133,7 @@ def build_model(params: Params) -> ExactModel:
     s = torch.arange(S)
     d = s // 32
     c = (s // 16) % 2
-    rwvm = [(s // 8) % 2, (s // 4) % 2, (s // 2) % 2, s % 2]
-    b = sum(x.to(torch.float64) for x in rwvm)
-
-    # Event probability of each state.
-    # Every table is float64 from the parameters on: a Python float given to ``torch.where`` would
-    # become a float32 scalar tensor and round the probabilities (e.g. 0.5212 → 0.5212000111).
-    p0 = torch.tensor(env.p0.as_tuple(), dtype=torch.float64)
-    p1 = torch.tensor(env.p1.as_tuple(), dtype=torch.float64)
-    per = [torch.where(x == 1, p1[i], p0[i]) for i, x in enumerate(rwvm)]
-    if env.event_model == "noisy_or":
-        event = 1.0 - math.prod(1.0 - p for p in per)
-    else:
-        event = torch.clamp(sum(per), max=1.0)
-
-    # Reward, eq. (3), in expectation over the event.
-    r12 = torch.tensor([rw.r1, rw.r2], dtype=torch.float64)
-    comm_ok = r12[c]
-    R = torch.stack([(1.0 - event) * comm_ok - event * rw.r3, event * rw.r4 * (b + 1.0)])
+    event, R = event_and_reward(params, s)
 
     # Queue: for each (a, d, c) the distribution of d′ and expected sent / dropped, summed over
     # A = 0 … K−1 exactly plus a tail bucket A ≥ K, where K = D + max ν + 1 makes every tail

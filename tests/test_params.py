@@ -90,8 +90,8 @@ def test_unknown_and_missing_keys():
         Params.from_overrides({"env.p1.sped": 0.2})
     with pytest.raises(ValueError, match=r"env\.bogus"):
         Params.from_overrides({"env.bogus": 1})
-    with pytest.raises(ValueError, match=r"reward\.r5"):
-        Params.from_overrides({"reward.r5": 1})
+    with pytest.raises(ValueError, match=r"reward\.r6"):
+        Params.from_overrides({"reward.r6": 1})
     full = Params().to_dict()
     del full["env"]["p1"]["road"]
     with pytest.raises(ValueError, match=r"missing key\(s\) env\.p1\.road"):

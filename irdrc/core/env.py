@@ -1,11 +1,13 @@
 """The DFRC simulator: MODEL.md as a natively batched TorchRL environment.
 
-State indexing (shared with the exact model and every policy table)::
+State indexing (shared with the exact model and every policy table), mixed radix with d most
+significant (MODEL.md § B.1)::
 
-    s = d·32 + c·16 + r·8 + w·4 + v·2 + m        (0 ≤ s < (D + 1)·32)
+    s = d·F + f,  f = ((((c·L_r + r)·L_w + w)·L_v + v)·L_m + m)·L_phase + phase,  F = Π L
 
-so ``s & 31`` holds the five Markov factors (channel in bit 4 … object in bit 0), ``s & 15`` the
-four event factors, and ``s >> 5`` the queue length d.
+which for v1 (two levels each, Poisson arrivals) is s = d·32 + c·16 + r·8 + w·4 + v·2 + m, so
+``s & 31`` holds the five Markov factors (channel in bit 4 … object in bit 0) and ``s >> 5`` the
+queue length d.
 
 One step is a handful of table look-ups on that integer: every probability and reward that depends
 on (action, factors) is precomputed once from the parameters, so the step costs the same few
@@ -24,7 +26,8 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
-from irdrc.core.params import EVENT_FACTORS, Params
+from irdrc.core.params import Params
+from irdrc.core.tables import model_tables
 
 # Bit of each Markov factor in the state index, in MARKOV_FACTORS order (c, r, w, v, m).
 FACTOR_BITS = (4, 3, 2, 1, 0)
@@ -36,30 +39,36 @@ def fresh_seed() -> int:
     return int.from_bytes(os.urandom(8), "little") % 2**62
 
 
-def state_index(d, c, r, w, v, m):
-    """State index of (d, c, r, w, v, m); works on ints and integer tensors alike."""
-    return d * 32 + c * 16 + r * 8 + w * 4 + v * 2 + m
+def state_index(d, c, r, w, v, m, phase=0, levels: Sequence[int] | None = None):
+    """State index of (d, c, r, w, v, m[, phase]); works on ints and integer tensors alike.
 
-
-def decode_state(s: torch.Tensor) -> torch.Tensor:
-    """Integer tensor of state indices → [..., 6] integer tensor (d, c, r, w, v, m)."""
-    cols = [s >> 5] + [(s >> b) & 1 for b in FACTOR_BITS]
-    return torch.stack(cols, dim=-1)
-
-
-def event_probability(params: Params) -> torch.Tensor:
-    """P(event | r, w, v, m) for the 16 event-factor configurations (index r·8 + w·4 + v·2 + m).
-
-    ``noisy_or``: 1 − Π(1 − p^i_{s_i});  ``sum``: min(1, Σ p^i_{s_i}) (MODEL.md step 1).
+    ``levels``: L of (c, r, w, v, m, phase) (``Params.env.levels``); None is v1 (two levels each,
+    no phase): s = d·32 + c·16 + r·8 + w·4 + v·2 + m.
     """
-    env = params.env
-    p = torch.tensor([env.p0.as_tuple(), env.p1.as_tuple()], dtype=torch.float64)  # [j, i]
-    cfg = torch.arange(16)
-    bits = torch.stack([(cfg >> b) & 1 for b in (3, 2, 1, 0)], dim=-1)  # r, w, v, m
-    per_factor = p[bits, torch.arange(len(EVENT_FACTORS))]  # [16, 4]
-    if env.event_model == "noisy_or":
-        return 1.0 - torch.prod(1.0 - per_factor, dim=-1)
-    return per_factor.sum(-1).clamp(max=1.0)
+    if levels is None:
+        return d * 32 + c * 16 + r * 8 + w * 4 + v * 2 + m
+    s = d
+    for x, n in zip((c, r, w, v, m, phase), levels, strict=True):
+        s = s * n + x
+    return s
+
+
+def decode_state(s: torch.Tensor, levels: Sequence[int] | None = None) -> torch.Tensor:
+    """Integer tensor of state indices → [..., 6] integer tensor (d, c, r, w, v, m), or [..., 7]
+    with the traffic phase last when ``levels`` (L of c, r, w, v, m, phase) has several phases."""
+    if levels is None:
+        cols = [s >> 5] + [(s >> b) & 1 for b in FACTOR_BITS]
+        return torch.stack(cols, dim=-1)
+    levels = list(levels)
+    nf = math.prod(levels)
+    cols, rest = [], s % nf
+    for n in reversed(levels):
+        cols.append(rest % n)
+        rest = rest // n
+    cols = [s // nf, *reversed(cols)]
+    if levels[-1] == 1:
+        cols = cols[:-1]
+    return torch.stack(cols, dim=-1)
 
 
 def poisson_cdf(rate: float) -> torch.Tensor:
@@ -91,22 +100,28 @@ class StepResult:
     state: torch.Tensor  # int64, next state index
     reward: torch.Tensor  # float32
     event: torch.Tensor  # bool
-    missed: torch.Tensor  # bool: event while in comm mode
+    missed: torch.Tensor  # bool: event in comm mode, or undetected in radar mode
     sent: torch.Tensor  # int64, packets that left the queue
     dropped: torch.Tensor  # int64, packets lost to overflow
     capacity: torch.Tensor  # int64, ν: link capacity of this step (0 in radar mode)
     arrivals: torch.Tensor  # int64, A
+    false_alarm: torch.Tensor | None = None  # bool: radar without an event raised an alarm
+    phase: torch.Tensor | None = None  # int64: the traffic phase of the step (bursty arrivals)
 
 
 class Dynamics:
     """MODEL.md's step on flat integer state tensors, driven by a ``torch.Generator``.
 
-    Shared by ``DFRCEnv`` and the gymnasium wrapper, so both have the very same dynamics.
+    Shared by ``DFRCEnv`` and the gymnasium wrappers, so all have the very same dynamics. It is
+    table-driven (``irdrc.core.tables``): one step is a few look-ups on the state index, whatever
+    the factors' levels. Uniforms per step, in order: event, arrivals, one per factor (c, r, w, v,
+    m, then the traffic phase when arrivals are bursty), then one for the radar's detection / false
+    alarm when the radar is imperfect (v1 draws exactly 7).
 
     Given a sequence of ``Params`` instead of one, the tables of every scenario are stacked and a
     ``group`` tensor passed to ``step`` picks each row's scenario: one batch then steps several
-    scenarios at once (e.g. every p^v_1 value of a sweep). The scenarios must share the queue capacity
-    (hence the state space); horizons are the caller's business.
+    scenarios at once (e.g. every p^v_1 value of a sweep). The scenarios must share the state space
+    (queue capacity and factor levels); horizons are the caller's business.
     """
 
     def __init__(
@@ -120,20 +135,49 @@ class Dynamics:
             raise ValueError(
                 f"scenarios stepped together must share env.queue_capacity; got {sorted(caps)}"
             )
+        tabs = [model_tables(p) for p in scenarios]
+        if len({t.levels for t in tabs}) > 1:
+            raise ValueError(
+                "scenarios stepped together must share the factors' levels (the state space); "
+                f"got {sorted({t.levels for t in tabs})}"
+            )
         self.scenarios = scenarios
         self.params = scenarios[0]
         self.num_groups = len(scenarios)
         self.device = torch.device(device)
         self.num_states = self.params.env.num_states
         self.queue_capacity = self.params.env.queue_capacity
-        tables = [_scenario_tables(p) for p in scenarios]
+        t0 = tabs[0]
+        self.levels = t0.levels
+        self.num_configs = nf = t0.num_configs
+        self.num_phases = t0.levels[-1]
+        # Factors drawn each step: c, r, w, v, m and, with bursty arrivals, the phase.
+        self._nfac = 6 if self.num_phases > 1 else 5
+        self._lmax = max(t0.levels[: self._nfac]) - 1
+        self._imperfect = any(
+            p.env.detection_prob < 1.0 or p.env.false_alarm_prob > 0.0 for p in scenarios
+        )
+        self._pow2 = nf & (nf - 1) == 0
+        self._shift = nf.bit_length() - 1
+        tables = [
+            _scenario_tables(p, t, self._nfac, self._lmax)
+            for p, t in zip(scenarios, tabs, strict=True)
+        ]
         # Flat tables, one block per scenario; ``step`` offsets indices by group · block size.
-        self.event_prob = torch.cat([t["event_prob"] for t in tables])
-        self.next1 = torch.cat([t["next1"] for t in tables])
-        self.reward = torch.cat([t["reward"] for t in tables])
-        self.capacity = torch.cat([t["capacity"] for t in tables])
-        self.factor_weights = torch.tensor([1 << b for b in FACTOR_BITS])
-        cdfs = [t["arrival_cdf"] for t in tables]
+        self.event_prob = torch.cat([t["event_prob"] for t in tables])  # [G·F]
+        self.thresholds = torch.cat([t["thresholds"] for t in tables])  # [G·2F, factors, L − 1]
+        self.reward = torch.cat([t["reward"] for t in tables])  # [G·2·2·F]: (a, event, f)
+        self.capacity = torch.cat([t["capacity"] for t in tables])  # [G·2F]: (a, f)
+        self.radix = t0.radix[: self._nfac].clone()
+        self.detection = torch.tensor(
+            [p.env.detection_prob for p in scenarios], dtype=torch.float64
+        )
+        self.false_alarm = torch.tensor(
+            [p.env.false_alarm_prob for p in scenarios], dtype=torch.float64
+        )
+        self.miss_reward = torch.tensor([-p.reward.r3 for p in scenarios], dtype=torch.float32)
+        self.alarm_reward = torch.tensor([-p.reward.r5 for p in scenarios], dtype=torch.float32)
+        cdfs = [c for t in tables for c in t["arrival_cdf"]]  # G·P rows: (group, phase)
         self._shared_arrivals = all(torch.equal(c, cdfs[0]) for c in cdfs)
         width = max(len(c) for c in cdfs)
         # Padded with 1s, so a row's inverse CDF never goes past its own last entry.
@@ -143,23 +187,40 @@ class Dynamics:
         if self._shared_arrivals:
             self.arrival_cdf = self.arrival_cdf[0]
 
-        # Observation of every state: [S, 6] float32.
-        self.obs = decode_state(torch.arange(self.num_states)).to(torch.float32)
+        # Observation of every state: [S, 6] float32 (7 with the traffic phase).
+        self.obs = decode_state(torch.arange(self.num_states), self.levels).to(torch.float32)
 
         for name in (
             "event_prob",
-            "next1",
-            "factor_weights",
+            "thresholds",
+            "radix",
             "reward",
             "capacity",
             "arrival_cdf",
             "obs",
+            "detection",
+            "false_alarm",
+            "miss_reward",
+            "alarm_reward",
         ):
             setattr(self, name, getattr(self, name).to(self.device))
 
+    @property
+    def next1(self) -> torch.Tensor:
+        """[G·2F, 5]: P(factor′ = 1 | a, f) of two-level factors (v1's table)."""
+        if self._lmax != 1:
+            raise ValueError("next1 is defined only when every factor has two levels")
+        return self.thresholds[..., 0]
+
     def reset_states(self, n: int, generator: torch.Generator) -> torch.Tensor:
-        """n states drawn uniformly from all (D + 1)·32 (MODEL.md step 5)."""
+        """n states drawn uniformly from all S (MODEL.md step 5)."""
         return torch.randint(0, self.num_states, (n,), generator=generator, device=self.device)
+
+    def split(self, state: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(d, f): queue length and factor configuration of state indices."""
+        if self._pow2:
+            return state >> self._shift, state & (self.num_configs - 1)
+        return state // self.num_configs, state % self.num_configs
 
     def step(
         self,
@@ -174,72 +235,95 @@ class Dynamics:
         None means scenario 0 for every row.
         """
         n = state.shape[0]
-        # 7 uniforms per env in one call: event, arrivals, then the 5 factor chains. float64 so the
-        # Poisson tail is sampled down to ~1e-16 (see ``poisson_cdf``).
-        u = torch.rand(n, 7, generator=generator, device=self.device, dtype=torch.float64)
-        f = state & 31
-        ev_idx, af, rw_idx = f & 15, action * NUM_FACTOR_CONFIGS + f, action * 64 + f
-        cap_idx = action * 2 + (f >> 4)
+        nf, nfac = self.num_configs, self._nfac
+        # Uniforms per env in one call (see the class docstring). float64 so the Poisson tail is
+        # sampled down to ~1e-16 (see ``poisson_cdf``).
+        ncol = 2 + nfac + (1 if self._imperfect else 0)
+        u = torch.rand(n, ncol, generator=generator, device=self.device, dtype=torch.float64)
+        d, f = self.split(state)
+        ev_idx, af, rw_idx = f, action * nf + f, action * (2 * nf) + f
         if group is not None:
-            ev_idx = ev_idx + group * 16
-            af = af + group * (2 * NUM_FACTOR_CONFIGS)
-            rw_idx = rw_idx + group * 128
-            cap_idx = cap_idx + group * 4
+            ev_idx = ev_idx + group * nf
+            af = af + group * (2 * nf)
+            rw_idx = rw_idx + group * (4 * nf)
         event = u[:, 0] < self.event_prob[ev_idx]
-        nxt = u[:, 2:] < self.next1[af]
-        f_next = (nxt * self.factor_weights).sum(-1)
-        if group is None or self._shared_arrivals:
-            cdf = self.arrival_cdf if self._shared_arrivals else self.arrival_cdf[0]
-            arrivals = torch.searchsorted(cdf, u[:, 1].contiguous(), right=True)
+        thr = self.thresholds[af]
+        if self._lmax == 1:
+            nxt = u[:, 2 : 2 + nfac] < thr[..., 0]
         else:
+            nxt = (u[:, 2 : 2 + nfac, None] < thr).sum(-1)
+        f_next = (nxt * self.radix).sum(-1)
+        phase = f % self.num_phases if self.num_phases > 1 else None
+        if self._shared_arrivals:
+            arrivals = torch.searchsorted(self.arrival_cdf, u[:, 1].contiguous(), right=True)
+        else:
+            row = (group if group is not None else torch.zeros_like(f)) * self.num_phases
+            if phase is not None:
+                row = row + phase
             arrivals = torch.searchsorted(
-                self.arrival_cdf[group], u[:, 1:2].contiguous(), right=True
+                self.arrival_cdf[row], u[:, 1:2].contiguous(), right=True
             ).squeeze(-1)
-        capacity = self.capacity[cap_idx]
-        sent, d_next, dropped = queue_update(state >> 5, arrivals, capacity, self.queue_capacity)
-        reward = self.reward[rw_idx + event * 32]
+        capacity = self.capacity[af]
+        sent, d_next, dropped = queue_update(d, arrivals, capacity, self.queue_capacity)
+        reward = self.reward[rw_idx + event * nf]
+        missed = event & (action == 0)
+        false_alarm = torch.zeros_like(event)
+        if self._imperfect:
+            g = group if group is not None else torch.zeros_like(f)
+            radar, ud = action == 1, u[:, -1]
+            undetected = event & radar & (ud >= self.detection[g])
+            false_alarm = ~event & radar & (ud < self.false_alarm[g])
+            missed = missed | undetected
+            reward = torch.where(undetected, self.miss_reward[g], reward)
+            reward = torch.where(false_alarm, self.alarm_reward[g], reward)
         return StepResult(
-            state=d_next * 32 + f_next,
+            state=d_next * nf + f_next,
             reward=reward,
             event=event,
-            missed=event & (action == 0),
+            missed=missed,
             sent=sent,
             dropped=dropped,
             capacity=capacity,
             arrivals=arrivals,
+            false_alarm=false_alarm,
+            phase=phase,
         )
 
 
-def _scenario_tables(params: Params) -> dict[str, torch.Tensor]:
+def _scenario_tables(params: Params, t, nfac: int, lmax: int) -> dict:
     """The flat look-up tables of one scenario (see ``Dynamics.step`` for their indexing)."""
-    env, rw = params.env, params.reward
-    f = torch.arange(NUM_FACTOR_CONFIGS)
-    bits = torch.stack([(f >> b) & 1 for b in FACTOR_BITS], dim=-1)  # [32, 5]: c r w v m
-
-    # P(factor′ = 1 | action, factors): [2, 32, 5], flattened on (action·32 + f).
-    g = torch.tensor(env.stay_good.as_tuple(), dtype=torch.float64)
-    h = torch.tensor(env.stay_bad.as_tuple(), dtype=torch.float64)
-    next1 = torch.where(bits == 1, h, 1.0 - g)
-    next1 = torch.stack([next1, next1.clone()])
-    if env.radar_reaction:
-        react = bits[:, 4] == 1  # radar with an object nearby
-        next1[1, react, 3] = 0.0  # v′ = 0
-        next1[1, react, 4] = 1.0 - env.reaction_clear  # m′ = 0 w.p. reaction_clear
-
-    # Reward of eq. (3): [a, event, f] flattened on (a·64 + event·32 + f).
-    b = bits[:, 1:].sum(-1).to(torch.float64)
-    reward = torch.zeros(2, 2, NUM_FACTOR_CONFIGS, dtype=torch.float64)
-    reward[0, 0] = torch.where(bits[:, 0] == 0, rw.r1, rw.r2)
+    rw = params.reward
+    nf = t.num_configs
+    # P(level′ ≥ k | a, f) per drawn factor: [2F, factors, L − 1], padded with 0 (never drawn).
+    thr = torch.zeros(2, nf, nfac, max(lmax, 1), dtype=torch.float64)
+    for i in range(nfac):
+        up = t.upper[i]  # [2, F, L_i − 1]
+        thr[:, :, i, : up.shape[-1]] = up
+    # Reward of eq. (3) with a perfect radar: [a, event, f], flattened on (a·2F + event·F + f);
+    # an imperfect radar's misses and false alarms are applied in ``step``.
+    reward = torch.zeros(2, 2, nf, dtype=torch.float64)
+    reward[0, 0] = t.comm_reward
     reward[0, 1] = -rw.r3
-    reward[1, 1] = rw.r4 * (b + 1.0)
+    reward[1, 1] = t.detect_reward
+    rates = params.env.bursty.rates if params.env.bursty else (params.env.arrival_rate,)
     return {
-        "event_prob": event_probability(params),  # P(event | f & 15)
-        "next1": next1.reshape(2 * NUM_FACTOR_CONFIGS, 5),
+        "event_prob": t.event,
+        "thresholds": thr.reshape(2 * nf, nfac, -1),
         "reward": reward.reshape(-1).to(torch.float32),
-        # Link capacity ν: [a, c] flattened on (a·2 + c).
-        "capacity": torch.tensor([env.packets_good, env.packets_bad, 0, 0]),
-        "arrival_cdf": poisson_cdf(env.arrival_rate),
+        "capacity": t.nu.reshape(-1).to(torch.int64),  # ν: (a·F + f)
+        "arrival_cdf": [poisson_cdf(r) for r in rates],
     }
+
+
+def observation_high(params: Params) -> torch.Tensor:
+    """[6] (or [7] with a traffic phase) float32: the largest value of each observation entry,
+    (D, L_c − 1, L_r − 1, L_w − 1, L_v − 1, L_m − 1[, L_phase − 1]) — what the agents' ``scale``
+    encoding divides by, so each factor is normalised by its own levels."""
+    levels = params.env.levels
+    top = [params.env.queue_capacity, *(n - 1 for n in levels[:5])]
+    if levels[5] > 1:
+        top.append(levels[5] - 1)
+    return torch.tensor(top, dtype=torch.float32)
 
 
 def checked_actions(action: torch.Tensor) -> torch.Tensor:
@@ -276,9 +360,12 @@ class DFRCEnv(EnvBase):
     Stateless in the TorchRL sense: the state index travels in the tensordict (``"state"``), so a
     step can start from any hand-set state, and partial resets touch only the masked rows.
 
-    Keys (B = batch shape; S = (D + 1)·32 states):
+    Keys (B = batch shape; S = (D + 1)·Π L states, v1: (D + 1)·32):
 
-    - ``observation`` float32 [B, 6]: (d, c, r, w, v, m), raw values (d in 0 … D, flags 0/1).
+    - ``observation`` float32 [B, 6]: (d, c, r, w, v, m), raw levels (d in 0 … D, a factor in
+      0 … L − 1; v1: flags 0/1); [B, 7] with the traffic phase last when arrivals are bursty. The
+      spec's ``high`` is each entry's largest level (``observation_high``), which the agents'
+      ``scale`` encoding divides by.
     - ``state`` int64 [B]: the state index (see module docstring), for tabular methods.
     - ``step_count`` int64 [B, 1]: steps taken this episode; the episode is truncated at
       ``env.horizon``.
@@ -287,7 +374,10 @@ class DFRCEnv(EnvBase):
     - per-step info, describing the transition that led to this observation (zero after reset):
       ``event`` bool [B] (an unexpected event occurred), ``missed`` bool [B] (it occurred in comm
       mode), ``sent`` int64 [B] (packets transmitted), ``dropped`` int64 [B] (packets lost to
-      overflow), ``capacity`` int64 [B] (link capacity ν of the step: ν1/ν2 in comm mode, 0 in radar).
+      overflow), ``capacity`` int64 [B] (link capacity ν of the step: ν1/ν2 in comm mode, 0 in radar),
+      ``false_alarm`` bool [B] (radar without an event raised an alarm: P_fa, MODEL.md § B.3),
+      and with bursty arrivals ``phase`` int64 [B] (the traffic phase the step's arrivals came from).
+      ``missed`` also counts events the radar did not detect (P_d < 1).
 
     Example:
         >>> env = DFRCEnv(Params(), batch_size=[1024], seed=0)
@@ -326,16 +416,24 @@ class DFRCEnv(EnvBase):
         env = self.params.env
         b = self.batch_size
         dev = self.device
-        high = torch.tensor([env.queue_capacity, 1, 1, 1, 1, 1], dtype=torch.float32)
-        max_cap = max(env.packets_good, env.packets_bad)
+        high = observation_high(self.params)
+        width = high.shape[0]
+        max_cap = int(self.dynamics.capacity.max())
+        extra = {}
+        if self.dynamics.num_phases > 1:
+            extra["phase"] = Categorical(
+                self.dynamics.num_phases, shape=b, dtype=torch.int64, device=dev
+            )
         self.observation_spec = Composite(
             observation=Bounded(
-                low=torch.zeros(*b, 6, device=dev),
-                high=high.to(dev).expand(*b, 6).clone(),
-                shape=(*b, 6),
+                low=torch.zeros(*b, width, device=dev),
+                high=high.to(dev).expand(*b, width).clone(),
+                shape=(*b, width),
                 dtype=torch.float32,
                 device=dev,
             ),
+            false_alarm=Categorical(2, shape=b, dtype=torch.bool, device=dev),
+            **extra,
             state=Categorical(self.dynamics.num_states, shape=b, dtype=torch.int64, device=dev),
             step_count=Bounded(0, env.horizon, shape=(*b, 1), dtype=torch.int64, device=dev),
             event=Categorical(2, shape=b, dtype=torch.bool, device=dev),
@@ -373,14 +471,16 @@ class DFRCEnv(EnvBase):
         if info is None:
             zeros = torch.zeros(b, dtype=torch.int64, device=self.device)
             falses = torch.zeros(b, dtype=torch.bool, device=self.device)
-            event = missed = falses
-            sent = dropped = capacity = zeros
+            event = missed = false_alarm = falses
+            sent = dropped = capacity = phase = zeros
         else:
             event, missed = info.event.view(b), info.missed.view(b)
             sent, dropped, capacity = info.sent.view(b), info.dropped.view(b), info.capacity.view(b)
+            false_alarm = info.false_alarm.view(b)
+            phase = info.phase.view(b) if info.phase is not None else None
         truncated = truncated.view(*b, 1)
         out = {
-            "observation": self.dynamics.obs[state].view(*b, 6),
+            "observation": self.dynamics.obs[state].view(*b, -1),
             "state": state.view(b),
             "step_count": steps.view(*b, 1),
             "event": event,
@@ -388,10 +488,13 @@ class DFRCEnv(EnvBase):
             "sent": sent,
             "dropped": dropped,
             "capacity": capacity,
+            "false_alarm": false_alarm,
             "done": truncated,
             "terminated": torch.zeros_like(truncated),
             "truncated": truncated,
         }
+        if self.dynamics.num_phases > 1:
+            out["phase"] = phase
         if reward is not None:
             out["reward"] = reward.view(*b, 1)
         return TensorDict(out, batch_size=b, device=self.device)
@@ -427,5 +530,5 @@ class DFRCEnv(EnvBase):
 
     @property
     def num_states(self) -> int:
-        """Number of states, (D + 1)·32."""
+        """Number of states, (D + 1)·Π L (v1: (D + 1)·32)."""
         return self.dynamics.num_states

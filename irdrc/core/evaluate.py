@@ -21,7 +21,28 @@ _RATIOS = {
     "radar_fraction": ("radar", "steps"),
     "drop_rate": ("dropped", "steps"),
     "mean_queue": ("queue", "steps"),
+    "false_alarm_rate": ("alarm", "quiet"),
 }
+_KEYS = (
+    "reward",
+    "event",
+    "missed",
+    "sent",
+    "capacity",
+    "radar",
+    "dropped",
+    "queue",
+    "alarm",
+    "quiet",
+)
+
+
+def _metrics(values: dict[str, float], ci: dict[str, float], params) -> tuple[Metrics, dict]:
+    """The Metrics record (false alarms only where the scenario has them) and its CIs."""
+    names = list(METRIC_NAMES)
+    if params.env.false_alarm_prob > 0.0:
+        names.append("false_alarm_rate")
+    return Metrics(**{k: values[k] for k in names}), {k: ci[k] for k in names}
 
 
 @dataclass(frozen=True)
@@ -75,7 +96,7 @@ def evaluate(policy, env: DFRCEnv, episodes: int | None = None) -> Evaluation:
     n = env.batch_size.numel()
     rounds = 1 if episodes is None else max(1, math.ceil(episodes / n))
     horizon = env.params.env.horizon
-    keys = ("reward", "event", "missed", "sent", "capacity", "radar", "dropped", "queue")
+    keys = _KEYS
     per_episode = {k: [] for k in keys}
     for _ in range(rounds):
         sums = {k: torch.zeros(n, dtype=torch.float64, device=env.device) for k in keys}
@@ -89,6 +110,8 @@ def evaluate(policy, env: DFRCEnv, episodes: int | None = None) -> Evaluation:
             sums["reward"] += nxt["reward"].reshape(-1)
             for k in ("event", "missed", "sent", "capacity", "dropped"):
                 sums[k] += nxt[k].reshape(-1)
+            sums["alarm"] += nxt["false_alarm"].reshape(-1)
+            sums["quiet"] += (td["action"].reshape(-1) == 1) & ~nxt["event"].reshape(-1)
             td = step_mdp(td)
         for k in keys:
             per_episode[k].append(sums[k].cpu())
@@ -99,9 +122,10 @@ def evaluate(policy, env: DFRCEnv, episodes: int | None = None) -> Evaluation:
         values[name], ci[name] = ratio_ci(cols[num], cols[den])
     values["episode_reward"] = values["avg_reward"] * horizon
     ci["episode_reward"] = ci["avg_reward"] * horizon
+    metrics, ci95 = _metrics(values, ci, env.params)
     return Evaluation(
-        metrics=Metrics(**{k: values[k] for k in METRIC_NAMES}),
-        ci95={k: ci[k] for k in METRIC_NAMES},
+        metrics=metrics,
+        ci95=ci95,
         episodes=int(cols["reward"].numel()),
         steps=int(cols["steps"].sum()),
     )
@@ -157,16 +181,17 @@ def long_run(
             action = (u < p[state]).long()
             out = dyn.step(state, action, gen)
             if sums is not None:
-                sums["queue"] += (state >> 5).double()
+                sums["queue"] += dyn.split(state)[0].double()
                 sums["radar"] += action.double()
                 for k in ("reward", "event", "missed", "sent", "capacity", "dropped"):
                     sums[k] += getattr(out, k).double()
+                sums["alarm"] += out.false_alarm.double()
+                sums["quiet"] += ((action == 1) & ~out.event).double()
             state = out.state
         return state
 
     def block() -> tuple[dict[str, float], dict[str, float]]:
-        keys = ("reward", "event", "missed", "sent", "capacity", "radar", "dropped", "queue")
-        sums = {k: torch.zeros(envs, dtype=torch.float64, device=dyn.device) for k in keys}
+        sums = {k: torch.zeros(envs, dtype=torch.float64, device=dyn.device) for k in _KEYS}
         run(steps, sums)
         sums = {k: v.cpu() for k, v in sums.items()}
         sums["steps"] = torch.full((envs,), float(steps), dtype=torch.float64)
@@ -198,9 +223,10 @@ def long_run(
     horizon = params.env.horizon
     values["episode_reward"] = values["avg_reward"] * horizon
     ci["episode_reward"] = ci["avg_reward"] * horizon
+    metrics, ci95 = _metrics(values, ci, params)
     return Evaluation(
-        metrics=Metrics(**{k: values[k] for k in METRIC_NAMES}),
-        ci95={k: ci[k] for k in METRIC_NAMES},
+        metrics=metrics,
+        ci95=ci95,
         episodes=envs,
         steps=envs * (burn_in + blocks * steps),
     )

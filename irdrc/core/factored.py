@@ -20,10 +20,10 @@ from dataclasses import dataclass
 import torch
 
 from irdrc.core.metrics import Metrics
-from irdrc.core.model import _factor_transitions, event_and_reward
 from irdrc.core.params import Params
+from irdrc.core.solve import false_alarm_rate
+from irdrc.core.tables import model_tables
 
-NUM_FACTOR_CONFIGS = 32
 NEGLIGIBLE_MASS = 1e-30
 """Queue lengths holding less stationary mass than this (summed over the factors) are stepped by
 the power iteration only within the arrivals' reach of the mass (below what any metric resolves)."""
@@ -41,16 +41,22 @@ resolution of the sums) goes into the last bucket, so the operator stays stochas
 
 @dataclass(frozen=True)
 class FactoredModel:
-    """The exact MDP of ``params`` as factors (see the module docstring). S = (D + 1)·32.
+    """The exact MDP of ``params`` as factors (see the module docstring). S = (D + 1)·F, F = Π L
+    the factor configurations (``irdrc.core.tables``; v1: 32).
 
     Attributes:
         params: the parameters it was built from.
-        F: [2, 32, 32] P(factors′ | a, factors).
-        pmf: [K] arrival probabilities, the last entry holding the tail P(A ≥ K − 1).
-        nu: [2, 2] link capacity per (action, channel level).
-        R: [2, 32] expected reward per (action, factor configuration) (independent of d).
-        event: [32] event probability per factor configuration.
-        sent, dropped: [2, 2, D + 1] expected packets sent / dropped per (action, c, d).
+        F: [2, F, F] P(factors′ | a, factors).
+        pmf: [n_rates, K] arrival probabilities per distinct Poisson rate, the last kept entry of
+            each row holding its tail (rows padded with zeros to the longest).
+        nu: [2, F] link capacity per (action, factor configuration).
+        R: [2, F] expected reward per (action, factor configuration) (independent of d).
+        event: [F] event probability per factor configuration.
+        missed, false_alarm: [2, F] expected missed events and radar false alarms.
+        group: [2, F] int64, the queue dynamics (ν, λ) of each (action, configuration), an index
+            into ``groups`` (ν, pmf row) and into the rows of ``sent`` / ``dropped``.
+        groups: (ν, pmf row) per queue dynamics.
+        sent, dropped: [G, D + 1] expected packets sent / dropped per queue dynamics and d.
         device: where the tensors live.
     """
 
@@ -60,9 +66,34 @@ class FactoredModel:
     nu: torch.Tensor
     R: torch.Tensor
     event: torch.Tensor
+    missed: torch.Tensor
+    false_alarm: torch.Tensor
+    group: torch.Tensor
+    groups: tuple[tuple[int, int], ...]
     sent: torch.Tensor
     dropped: torch.Tensor
+    rate: torch.Tensor
     device: torch.device
+
+    def __post_init__(self) -> None:
+        # Per action, the configurations of each queue dynamics: a slice when contiguous (v1: the
+        # channel's halves), else an index tensor.
+        cols = []
+        for a in (0, 1):
+            per = []
+            g_a = self.group[a].cpu()
+            for g in sorted(set(g_a.tolist())):
+                idx = (g_a == g).nonzero().flatten()
+                lo, hi = int(idx[0]), int(idx[-1]) + 1
+                sel = slice(lo, hi) if hi - lo == idx.numel() else idx.to(self.device)
+                per.append((sel, *self.groups[g]))
+            cols.append(tuple(per))
+        object.__setattr__(self, "_cols", tuple(cols))
+
+    @property
+    def num_configs(self) -> int:
+        """F, the factor configurations."""
+        return int(self.F.shape[-1])
 
     @property
     def queue_capacity(self) -> int:
@@ -71,87 +102,82 @@ class FactoredModel:
 
     @property
     def num_states(self) -> int:
-        """S = (D + 1)·32."""
-        return (self.queue_capacity + 1) * NUM_FACTOR_CONFIGS
+        """S = (D + 1)·F."""
+        return (self.queue_capacity + 1) * self.num_configs
 
     # ---- per-state tables, [2, S] in the state order of irdrc.core.env -------------------------
 
     def _per_f(self, table: torch.Tensor) -> torch.Tensor:
-        """[2, 32] → [2, S] (constant in d)."""
-        return (
-            table[:, None, :].expand(2, self.queue_capacity + 1, NUM_FACTOR_CONFIGS).reshape(2, -1)
-        )
+        """[2, F] → [2, S] (constant in d)."""
+        D1, nf = self.queue_capacity + 1, self.num_configs
+        return table[:, None, :].expand(2, D1, nf).reshape(2, -1)
 
-    def _per_cd(self, table: torch.Tensor) -> torch.Tensor:
-        """[2, 2, D + 1] (a, c, d) → [2, S]."""
-        c = torch.arange(NUM_FACTOR_CONFIGS, device=self.device) >> 4
-        return table[:, c, :].transpose(1, 2).reshape(2, -1)
+    def _per_group(self, table: torch.Tensor) -> torch.Tensor:
+        """[G, D + 1] (queue dynamics, d) → [2, S]."""
+        return table[self.group].transpose(1, 2).reshape(2, -1)
 
     def reward_table(self) -> torch.Tensor:
         """[2, S] expected reward."""
         return self._per_f(self.R)
 
     def tables(self) -> dict[str, torch.Tensor]:
-        """[2, S] (or [S]) expectations by name, as in ``ExactModel``: R, event, missed, sent,
-        dropped, capacity, queue."""
+        """[2, S] (or [S]) expectations by name, as in ``ExactModel``: R, event, missed,
+        false_alarms, sent, dropped, capacity, queue."""
         D1 = self.queue_capacity + 1
-        c = torch.arange(NUM_FACTOR_CONFIGS, device=self.device) >> 4
-        event = self.event.repeat(D1)
         return {
             "R": self.reward_table(),
-            "event": event,
-            "missed": torch.stack([event, torch.zeros_like(event)]),
-            "sent": self._per_cd(self.sent),
-            "dropped": self._per_cd(self.dropped),
-            "capacity": self._per_f(self.nu[:, c]),
+            "event": self.event.repeat(D1),
+            "missed": self._per_f(self.missed),
+            "false_alarms": self._per_f(self.false_alarm),
+            "sent": self._per_group(self.sent),
+            "dropped": self._per_group(self.dropped),
+            "capacity": self._per_f(self.nu),
             "queue": torch.arange(D1, device=self.device, dtype=torch.float64).repeat_interleave(
-                NUM_FACTOR_CONFIGS
+                self.num_configs
             ),
         }
 
     # ---- the operator ---------------------------------------------------------------------------
 
     def _queue_expect(self, W: torch.Tensor, a: int) -> torch.Tensor:
-        """out[d, f] = Σ_k pmf[k]·W[clamp(d + k − ν(a, c(f)), 0, D), f] for W [D + 1, 32]."""
+        """out[d, f] = Σ_k pmf[k]·W[clamp(d + k − ν(a, f), 0, D), f] for W [D + 1, F]."""
         D1 = W.shape[0]
-        K = self.pmf.shape[0]
         out = torch.empty_like(W)
-        for ch in (0, 1):
-            cols = slice(16 * ch, 16 * ch + 16)
-            nu = int(self.nu[a, ch])
-            w = W[:, cols].T[:, None, :]  # [16, 1, D + 1]
+        for cols, nu, row in self._cols[a]:
+            pmf = self.pmf[row]
+            K = pmf.shape[0]
+            w = W[:, cols].T[:, None, :]  # [n, 1, D + 1]
             # Pad so that index d + k − ν is clamped: ν copies of row 0 before, K copies of row D
             # after; then a correlation with the pmf.
             left = w[..., :1].expand(-1, -1, nu)
             right = w[..., -1:].expand(-1, -1, K)
             padded = torch.cat([left, w, right], -1)
-            conv = torch.nn.functional.conv1d(padded, self.pmf.view(1, 1, -1))  # [16, 1, L]
+            conv = torch.nn.functional.conv1d(padded, pmf.view(1, 1, -1))  # [n, 1, L]
             out[:, cols] = conv[:, 0, :D1].T
         return out
 
     def expect(self, V: torch.Tensor, a: int) -> torch.Tensor:
-        """(P_a V)(s) = E[V(s′) | s, a] for V [S] (or [S, B]… as [S])."""
+        """(P_a V)(s) = E[V(s′) | s, a] for V [S]."""
         D1 = self.queue_capacity + 1
-        W = V.reshape(D1, NUM_FACTOR_CONFIGS) @ self.F[a].T  # W[d′, f] = Σ_f′ F[a,f,f′] V(d′,f′)
+        W = V.reshape(D1, self.num_configs) @ self.F[a].T  # W[d′, f] = Σ_f′ F[a,f,f′] V(d′,f′)
         return self._queue_expect(W, a).reshape(-1)
 
     def push(self, x: torch.Tensor, a: int) -> torch.Tensor:
         """(x P_a)(s′) for a measure x [S] over states: the distribution after one step of a."""
-        return self._push_rows(x.reshape(-1, NUM_FACTOR_CONFIGS), a).reshape(-1)
+        return self._push_rows(x.reshape(-1, self.num_configs), a).reshape(-1)
 
     def _push_rows(self, X: torch.Tensor, a: int) -> torch.Tensor:
-        """One step of a for a measure X [n, 32] on the queue lengths 0 … n − 1 (n = D + 1: the
+        """One step of a for a measure X [n, F] on the queue lengths 0 … n − 1 (n = D + 1: the
         whole chain; a shorter prefix clamps at n − 1 instead of D, exact while no mass comes
         within the arrivals' reach of n − 1)."""
         n = X.shape[0]
         Z = torch.empty_like(X)
-        for ch in (0, 1):
-            cols = slice(16 * ch, 16 * ch + 16)
-            nu = int(self.nu[a, ch])
+        for cols, nu, row in self._cols[a]:
+            pmf = self.pmf[row]
             # full[j] = Σ_k pmf[k]·X[j − k]: mass at d + k; its queue is clamp(j − ν, 0, n − 1).
             full = torch.nn.functional.conv_transpose1d(
-                X[:, cols].T[:, None, :], self.pmf.view(1, 1, -1)
-            )[:, 0, :]  # [16, n + K − 1]
+                X[:, cols].T[:, None, :], pmf.view(1, 1, -1)
+            )[:, 0, :]  # [m, n + K − 1]
             z = full[:, nu : nu + n].clone()
             z[:, 0] += full[:, :nu].sum(-1)
             z[:, -1] += full[:, nu + n :].sum(-1)
@@ -163,7 +189,7 @@ class FactoredModel:
         return self.push(x * (1 - p_radar), 0) + self.push(x * p_radar, 1)
 
     def step_rows(self, X: torch.Tensor, P: torch.Tensor) -> torch.Tensor:
-        """``step_measure`` on the first n queue lengths: X, P [n, 32] (measure, P(radar))."""
+        """``step_measure`` on the first n queue lengths: X, P [n, F] (measure, P(radar))."""
         return self._push_rows(X * (1 - P), 0) + self._push_rows(X * P, 1)
 
 
@@ -175,12 +201,13 @@ def _poisson(lam: float, n: int) -> torch.Tensor:
     return torch.exp(k * math.log(lam) - lam - torch.lgamma(k + 1))
 
 
-def _queue_expectations(lam: float, D: int, nu: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """[2, 2, D + 1] expected packets sent and dropped per (action, c, d), by finite sums:
+def _queue_expectations(
+    lam: float, D: int, n: int, nu_max: int
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """[D + 1] expected packets sent and dropped per d for capacity ν = ``n``, by finite sums:
     sent = E[min(d + A, ν)] = ν − Σ_{k < ν − d} (ν − d − k)·p_k, and dropped =
     E[(d + A − ν − D)^+] = Σ_{k > m} (k − m)·p_k with m = D + ν − d, from tail sums of p_k and
     k·p_k accumulated from the far tail inwards (no cancellation, whatever D)."""
-    nu_max = int(nu.max())
     top = D + nu_max + 1
     p = _poisson(lam, top + int(50 * math.sqrt(lam)) + 60)
     k = torch.arange(p.shape[0], dtype=torch.float64)
@@ -190,46 +217,63 @@ def _queue_expectations(lam: float, D: int, nu: torch.Tensor) -> tuple[torch.Ten
     T0 = torch.cat([T0[1:], T0.new_zeros(1)])
     T1 = torch.cat([T1[1:], T1.new_zeros(1)])
     d = torch.arange(D + 1)
-    sent = torch.zeros(2, 2, D + 1, dtype=torch.float64)
-    dropped = torch.zeros(2, 2, D + 1, dtype=torch.float64)
-    for a in (0, 1):
-        for ch in (0, 1):
-            n = int(nu[a, ch])
-            short = torch.zeros(D + 1, dtype=torch.float64)
-            for kk in range(n):  # Σ_{k < ν − d} (ν − d − k)·p_k, only for d < ν
-                gap = (n - d - kk).clamp(min=0).to(torch.float64)
-                short += gap * p[kk]
-            sent[a, ch] = n - short
-            m = D + n - d
-            dropped[a, ch] = T1[m] - m.to(torch.float64) * T0[m]
-    return sent, dropped
+    short = torch.zeros(D + 1, dtype=torch.float64)
+    for kk in range(n):  # Σ_{k < ν − d} (ν − d − k)·p_k, only for d < ν
+        gap = (n - d - kk).clamp(min=0).to(torch.float64)
+        short += gap * p[kk]
+    m = D + n - d
+    return n - short, T1[m] - m.to(torch.float64) * T0[m]
 
 
-def build_factored(params: Params, device: str | torch.device = "cpu") -> FactoredModel:
-    """The factored exact model of ``params`` (any queue capacity D)."""
-    env = params.env
-    dev = torch.device(device)
-    event, R = event_and_reward(params, torch.arange(NUM_FACTOR_CONFIGS))
-
-    lam = env.arrival_rate
+def _arrival_pmf(lam: float) -> torch.Tensor:
+    """P(A = k), k = 0 … K − 1, K the smallest with P(A ≥ K) < ``ARRIVAL_TAIL``; the last entry
+    holds P(A ≥ K − 1), so the row sums to 1."""
     p = _poisson(lam, int(lam + 50 * math.sqrt(lam) + 60))
     tail = torch.flip(torch.cumsum(torch.flip(p, [0]), 0), [0])  # tail[k] = P(A ≥ k)
     K = max(1, int((tail >= ARRIVAL_TAIL).sum()))  # A = 0 … K − 1 kept; P(A ≥ K) < ARRIVAL_TAIL
     pmf = p[:K].clone()
     pmf[-1] = tail[K - 1]  # the last bucket holds P(A ≥ K − 1)
-    pmf = pmf / pmf.sum()
-    nu = torch.zeros(2, 2, dtype=torch.float64)
-    nu[0, 0], nu[0, 1] = env.packets_good, env.packets_bad
-    sent, dropped = _queue_expectations(lam, env.queue_capacity, nu)
+    return pmf / pmf.sum()
+
+
+def build_factored(params: Params, device: str | torch.device = "cpu") -> FactoredModel:
+    """The factored exact model of ``params`` (any queue capacity D; the general model of
+    MODEL.md § B too)."""
+    dev = torch.device(device)
+    D = params.env.queue_capacity
+    t = model_tables(params)
+    nf = t.num_configs
+    rates = sorted(set(t.rate.tolist()))
+    pmfs = [_arrival_pmf(r) for r in rates]
+    width = max(p.shape[0] for p in pmfs)
+    pmf = torch.stack([torch.cat([p, p.new_zeros(width - p.shape[0])]) for p in pmfs])
+    nu_max = int(t.nu.max())
+    keys: dict[tuple[int, int], int] = {}
+    group = torch.zeros(2, nf, dtype=torch.int64)
+    for a in (0, 1):
+        for g in range(nf):
+            key = (int(t.nu[a, g]), rates.index(float(t.rate[g])))
+            group[a, g] = keys.setdefault(key, len(keys))
+    sent, dropped = [], []
+    for nu, row in keys:
+        s_, d_ = _queue_expectations(rates[row], D, nu, nu_max)
+        sent.append(s_)
+        dropped.append(d_)
+    # Each row's conv1d runs over its own length: trailing zeros would only add work.
     return FactoredModel(
         params=params,
-        F=_factor_transitions(params).to(dev),
+        F=t.F.to(dev),
         pmf=pmf.to(dev),
-        nu=nu.to(dev),
-        R=R.to(dev),
-        event=event.to(dev),
-        sent=sent.to(dev),
-        dropped=dropped.to(dev),
+        nu=t.nu.to(dev),
+        R=t.R.to(dev),
+        event=t.event.to(dev),
+        missed=t.missed.to(dev),
+        false_alarm=t.false_alarm.to(dev),
+        group=group.to(dev),
+        groups=tuple((nu, row) for nu, row in keys),
+        sent=torch.stack(sent).to(dev),
+        dropped=torch.stack(dropped).to(dev),
+        rate=t.rate.to(dev),
         device=dev,
     )
 
@@ -293,22 +337,22 @@ def _start_queue(model: FactoredModel, p: torch.Tensor) -> int:
     drift E[d′ − d] (averaged over the factor configurations as they occur) is ≤ 0 — where the queue settles —
     or D if it grows everywhere. A deep queue then need not be crossed step by step."""
     D1 = p.shape[0]
-    c = torch.arange(NUM_FACTOR_CONFIGS, device=model.device) >> 4
-    lam = float(model.params.env.arrival_rate)
-    # [2, D + 1, 32]: expected packets leaving the queue (sent + dropped) per action, d, f
-    out = (model.sent + model.dropped)[:, c, :].transpose(1, 2)
+    nf = model.num_configs
+    # [2, D + 1, F]: expected packets leaving the queue (sent + dropped) per action, d, f
+    out = (model.sent + model.dropped)[model.group].transpose(1, 2)
     # weight the factor configurations by how often they occur (the factor chain's stationary
     # distribution under comm; the reaction only perturbs it)
     F = model.F[0]
     A = torch.cat(
         [
-            F.T - torch.eye(NUM_FACTOR_CONFIGS, dtype=F.dtype, device=F.device),
-            F.new_ones(1, NUM_FACTOR_CONFIGS),
+            F.T - torch.eye(nf, dtype=F.dtype, device=F.device),
+            F.new_ones(1, nf),
         ]
     )
-    b = F.new_zeros(NUM_FACTOR_CONFIGS + 1)
+    b = F.new_zeros(nf + 1)
     b[-1] = 1.0
     w = torch.linalg.lstsq(A.cpu(), b.cpu()[:, None]).solution[:, 0].clamp(min=0).to(F.device)
+    lam = float((model.rate * w).sum() / w.sum())  # mean arrivals per step
     drift = lam - (((1 - p) * out[0] + p * out[1]) * w).sum(-1) / w.sum()  # [D + 1]
     settled = (drift <= 0).nonzero()
     return int(settled[0]) if settled.numel() else D1 - 1
@@ -335,7 +379,7 @@ def stationary_distribution_factored(
     if method not in ("auto", "gmres", "power"):
         raise ValueError(f"method={method!r} must be auto, gmres or power")
     p = _p_radar(model, policy)
-    rows = p.reshape(-1, NUM_FACTOR_CONFIGS)
+    rows = p.reshape(-1, model.num_configs)
     if method == "power" or (method == "auto" and model.device.type != "cpu"):
         return _stationary_power(model, rows, tol, max_iter)
     start, steps = None, 0
@@ -370,8 +414,9 @@ def _stationary_gmres(
 
     if start is None:
         start = torch.zeros(S, dtype=torch.float64)
-        d0 = _start_queue(model, pc.reshape(-1, NUM_FACTOR_CONFIGS))
-        start[d0 * NUM_FACTOR_CONFIGS : (d0 + 1) * NUM_FACTOR_CONFIGS] = 1.0 / NUM_FACTOR_CONFIGS
+        nf = model.num_configs
+        d0 = _start_queue(model, pc.reshape(-1, nf))
+        start[d0 * nf : (d0 + 1) * nf] = 1.0 / nf
     A = LinearOperator((S, S), matvec=matvec, dtype=np.float64)
     b = np.full(S, 1.0 / S)
     x, info = gmres(
@@ -401,11 +446,12 @@ def _stationary_power(
     ``partial`` (μ, steps, converged) instead of raising when ``max_iter`` steps do not converge."""
     D1 = p.shape[0]
     if start is None:
-        X = torch.zeros(D1, NUM_FACTOR_CONFIGS, dtype=torch.float64, device=model.device)
-        X[_start_queue(model, p)] = 1.0 / NUM_FACTOR_CONFIGS
+        nf = model.num_configs
+        X = torch.zeros(D1, nf, dtype=torch.float64, device=model.device)
+        X[_start_queue(model, p)] = 1.0 / nf
     else:
-        X = start.reshape(D1, NUM_FACTOR_CONFIGS).clone()
-    reach = model.pmf.shape[0] + 1  # how far up the queue one step can carry mass
+        X = start.reshape(D1, model.num_configs).clone()
+    reach = model.pmf.shape[-1] + 1  # how far up the queue one step can carry mass
     for it in range(1, max_iter + 1):
         held = (X.sum(1) > NEGLIGIBLE_MASS).nonzero()
         top = min(D1, int(held.max()) + 1 + 2 * reach) if held.numel() else D1
@@ -443,4 +489,5 @@ def stationary_metrics_factored(
         radar_fraction=float(occ[1].sum()),
         drop_rate=float((occ * t["dropped"]).sum()),
         mean_queue=float((occ.sum(0) * t["queue"]).sum()),
+        false_alarm_rate=false_alarm_rate(occ, t["event"], t["false_alarms"], model.params),
     )

@@ -24,7 +24,7 @@ import torch
 from gymnasium import spaces
 from gymnasium.vector import AutoresetMode, VectorEnv
 
-from irdrc.core.env import FACTOR_BITS, Dynamics, checked_actions
+from irdrc.core.env import Dynamics, checked_actions, observation_high
 from irdrc.core.params import Params
 
 ENV_ID = "irdrc/DFRC-v0"
@@ -37,8 +37,8 @@ def _params(params: Params | None, overrides: dict[str, Any]) -> Params:
 
 
 def _observation_space(params: Params) -> spaces.Box:
-    high = np.array([params.env.queue_capacity, 1, 1, 1, 1, 1], dtype=np.float32)
-    return spaces.Box(np.zeros(6, dtype=np.float32), high, dtype=np.float32)
+    high = observation_high(params).numpy()
+    return spaces.Box(np.zeros_like(high), high, dtype=np.float32)
 
 
 def _action(action: Any) -> int:
@@ -72,12 +72,17 @@ class DFRCGymEnv(gymnasium.Env):
         self.action_space = spaces.Discrete(2)
         # The tables of Dynamics (scenario 0), as Python lists for a step without tensor overhead.
         self._event = dyn.event_prob.tolist()
-        self._next1 = dyn.next1.tolist()
+        self._thr = dyn.thresholds.tolist()  # [2F][factor][k]: P(level′ ≥ k + 1 | a, f)
         self._reward = dyn.reward.tolist()
         self._capacity = dyn.capacity.tolist()
-        cdf = dyn.arrival_cdf if dyn.arrival_cdf.ndim == 1 else dyn.arrival_cdf[0]
-        self._cdf = cdf.tolist()
-        self._weights = [1 << b for b in FACTOR_BITS]
+        cdf = dyn.arrival_cdf if dyn.arrival_cdf.ndim == 2 else dyn.arrival_cdf[None]
+        self._cdfs = cdf.tolist()  # one row per traffic phase
+        self._weights = dyn.radix.tolist()
+        self._nf, self._phases = dyn.num_configs, dyn.num_phases
+        env = self.params.env
+        self._imperfect = env.detection_prob < 1.0 or env.false_alarm_prob > 0.0
+        self._pd, self._pfa = env.detection_prob, env.false_alarm_prob
+        self._miss_r, self._alarm_r = -self.params.reward.r3, -self.params.reward.r5
         self._obs = [o for o in dyn.obs.numpy()]
         self._D = dyn.queue_capacity
         self._S = dyn.num_states
@@ -109,32 +114,44 @@ class DFRCGymEnv(gymnasium.Env):
         if self._state < 0:
             raise gymnasium.error.ResetNeeded("call reset() before step()")
         a = _action(action)
-        s, u = self._state, self._rng.random
-        f = s & 31
-        event = u() < self._event[f & 15]
-        arrivals = bisect.bisect_right(self._cdf, u())
-        p1 = self._next1[a * 32 + f]
+        s, u, nf = self._state, self._rng.random, self._nf
+        d, f = divmod(s, nf)
+        # The uniforms in Dynamics' order: event, arrivals, each factor, then the radar's draw.
+        event = u() < self._event[f]
+        phase = f % self._phases
+        arrivals = bisect.bisect_right(self._cdfs[phase if len(self._cdfs) > 1 else 0], u())
+        thr = self._thr[a * nf + f]
         f_next = 0
-        for i in range(5):
-            if u() < p1[i]:
-                f_next += self._weights[i]
-        capacity = self._capacity[a * 2 + (f >> 4)]
-        total = (s >> 5) + arrivals
+        for i, weight in enumerate(self._weights):
+            x = u()
+            f_next += weight * sum(1 for t in thr[i] if x < t)
+        capacity = self._capacity[a * nf + f]
+        total = d + arrivals
         sent = min(total, capacity)
         rest = total - sent
         d_next = min(rest, self._D)
-        self._state = d_next * 32 + f_next
+        self._state = d_next * nf + f_next
         self._steps += 1
+        reward = self._reward[a * 2 * nf + event * nf + f]
+        missed, alarm = event and a == 0, False
+        if self._imperfect:
+            x = u()
+            if a == 1 and event and x >= self._pd:
+                missed, reward = True, self._miss_r
+            elif a == 1 and not event and x < self._pfa:
+                alarm, reward = True, self._alarm_r
         info = {
             "state": self._state,
             "event": event,
-            "missed": event and a == 0,
+            "missed": missed,
+            "false_alarm": alarm,
             "sent": sent,
             "dropped": rest - d_next,
             "capacity": capacity,
             "step_count": self._steps,
         }
-        reward = self._reward[a * 64 + event * 32 + f]
+        if self._phases > 1:
+            info["phase"] = phase
         truncated = self._steps >= self._horizon
         return self._obs[self._state].copy(), reward, False, truncated, info
 
@@ -201,6 +218,7 @@ class DFRCVectorEnv(VectorEnv):
             "sent": torch.where(keep, res.sent, 0).numpy(),
             "dropped": torch.where(keep, res.dropped, 0).numpy(),
             "capacity": torch.where(keep, res.capacity, 0).numpy(),
+            "false_alarm": (res.false_alarm & keep).numpy(),
         }
         terminated = np.zeros(self.num_envs, dtype=bool)
         return self.dynamics.obs[state].numpy(), reward, terminated, truncated, info

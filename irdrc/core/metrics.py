@@ -21,6 +21,8 @@ METRIC_NAMES = (
     "drop_rate",
     "mean_queue",
 )
+"""The metrics every table, log and CSV reports. ``Metrics.false_alarm_rate`` (false alarms per
+radar step without an event) joins them where the scenario has false alarms (P_fa > 0)."""
 
 
 @dataclass(frozen=True)
@@ -35,18 +37,24 @@ class Metrics:
     radar_fraction: float
     drop_rate: float
     mean_queue: float
+    false_alarm_rate: float = math.nan
 
     def as_dict(self) -> dict[str, float]:
-        """Plain dict keyed by ``METRIC_NAMES``."""
-        return asdict(self)
+        """Plain dict keyed by ``METRIC_NAMES``, plus ``false_alarm_rate`` where it is defined
+        (a scenario with radar false alarms, MODEL.md § B.3)."""
+        out = asdict(self)
+        if math.isnan(out["false_alarm_rate"]):
+            del out["false_alarm_rate"]
+        return out
 
     @classmethod
     def from_dict(cls, data: dict[str, float]) -> Metrics:
         """Inverse of ``as_dict`` (extra keys are ignored; None, an undefined metric, is NaN)."""
         return cls(
             **{
-                f.name: math.nan if data[f.name] is None else float(data[f.name])
+                f.name: math.nan if data.get(f.name) is None else float(data[f.name])
                 for f in fields(cls)
+                if f.name in data or f.name in METRIC_NAMES
             }
         )
 

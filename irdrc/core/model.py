@@ -27,6 +27,8 @@ class ExactModel:
         event: [S] probability of an unexpected event during a step from s (either action).
         sent, dropped, capacity: [2, S] expected packets sent, dropped, and link capacity ν.
         queue: [S] queue length d of each state.
+        missed_table, false_alarm: [2, S] expected missed events and false alarms (None: v1's
+            perfect radar, see ``missed`` and ``false_alarms``).
     """
 
     params: Params
@@ -37,16 +39,28 @@ class ExactModel:
     dropped: torch.Tensor
     capacity: torch.Tensor
     queue: torch.Tensor
+    missed_table: torch.Tensor | None = None
+    false_alarm: torch.Tensor | None = None
 
     @property
     def num_states(self) -> int:
-        """S = (D + 1)·32."""
+        """S = (D + 1)·Π L (v1: (D + 1)·32)."""
         return self.P.shape[-1]
 
     @property
     def missed(self) -> torch.Tensor:
-        """[2, S] expected missed events: the event probability in comm mode, 0 in radar mode."""
+        """[2, S] expected missed events: the event probability in comm mode; in radar mode the
+        event probability times 1 − P_d (0 with a perfect radar)."""
+        if self.missed_table is not None:
+            return self.missed_table
         return torch.stack([self.event, torch.zeros_like(self.event)])
+
+    @property
+    def false_alarms(self) -> torch.Tensor:
+        """[2, S] expected radar false alarms (0 in comm mode, and with P_fa = 0)."""
+        if self.false_alarm is not None:
+            return self.false_alarm
+        return torch.zeros(2, self.num_states, dtype=torch.float64)
 
 
 def _poisson_pmf(rate: float, k: int) -> float:
@@ -116,14 +130,18 @@ operator (``irdrc.core.factored``)."""
 
 
 def build_model(params: Params) -> ExactModel:
-    """The exact MDP of ``params`` (see ``ExactModel``).
+    """The exact MDP of ``params`` (see ``ExactModel``), for the general model of MODEL.md § B too.
 
     Raises:
         ValueError: when S exceeds ``DENSE_MAX_STATES`` (use ``irdrc.core.factored``).
     """
+    from irdrc.core.tables import model_tables
+
     env = params.env
     D = env.queue_capacity
-    S = (D + 1) * 32
+    t = model_tables(params)
+    nf = t.num_configs
+    S = (D + 1) * nf
     if S > DENSE_MAX_STATES:
         raise ValueError(
             f"env.queue_capacity={D}: S = {S} states is too many for the dense S × S model "
@@ -131,56 +149,57 @@ def build_model(params: Params) -> ExactModel:
             "build_factored), as recipes/solve.py does"
         )
     s = torch.arange(S)
-    d = s // 32
-    c = (s // 16) % 2
-    event, R = event_and_reward(params, s)
+    d = s // nf
+    f = s % nf
 
-    # Queue: for each (a, d, c) the distribution of d′ and expected sent / dropped, summed over
+    # Queue: for each (ν, λ) the distribution of d′ and expected sent / dropped, summed over
     # A = 0 … K−1 exactly plus a tail bucket A ≥ K, where K = D + max ν + 1 makes every tail
     # outcome identical (sent = ν, d′ = D) except the drop, whose tail expectation is exact:
     # E[A; A ≥ K] = λ·P(A ≥ K − 1).
-    lam = env.arrival_rate
-    nu_max = max(env.packets_good, env.packets_bad)
+    nu_max = int(t.nu.max())
     K = D + nu_max + 1
-    pmf = [_poisson_pmf(lam, k) for k in range(K)]
-    tail = max(0.0, 1.0 - sum(pmf))  # P(A ≥ K)
-    tail_prev = max(0.0, 1.0 - sum(pmf[: K - 1]))  # P(A ≥ K − 1)
-    q_next = torch.zeros(2, 2, D + 1, D + 1, dtype=torch.float64)  # [a, c, d, d′]
-    q_sent = torch.zeros(2, 2, D + 1, dtype=torch.float64)
-    q_drop = torch.zeros(2, 2, D + 1, dtype=torch.float64)
-    nus = torch.zeros(2, 2, dtype=torch.float64)
+    pairs: dict[tuple[int, float], int] = {}
+    group = torch.zeros(2, nf, dtype=torch.int64)  # [a, f] → index of its (ν, λ)
     for a in (0, 1):
-        for ch in (0, 1):
-            nu = 0 if a == 1 else (env.packets_good if ch == 0 else env.packets_bad)
-            nus[a, ch] = nu
-            for dd in range(D + 1):
-                for k, pk in enumerate(pmf):
-                    rest = max(0, dd + k - nu)
-                    dn = min(D, rest)
-                    q_next[a, ch, dd, dn] += pk
-                    q_sent[a, ch, dd] += pk * min(dd + k, nu)
-                    q_drop[a, ch, dd] += pk * (rest - dn)
-                q_next[a, ch, dd, D] += tail
-                q_sent[a, ch, dd] += tail * nu
-                q_drop[a, ch, dd] += (dd - nu - D) * tail + lam * tail_prev
+        for g in range(nf):
+            key = (int(t.nu[a, g]), float(t.rate[g]))
+            group[a, g] = pairs.setdefault(key, len(pairs))
+    G = len(pairs)
+    q_next = torch.zeros(G, D + 1, D + 1, dtype=torch.float64)  # [(ν, λ), d, d′]
+    q_sent = torch.zeros(G, D + 1, dtype=torch.float64)
+    q_drop = torch.zeros(G, D + 1, dtype=torch.float64)
+    for (nu, lam), i in pairs.items():
+        pmf = [_poisson_pmf(lam, k) for k in range(K)]
+        tail = max(0.0, 1.0 - sum(pmf))  # P(A ≥ K)
+        tail_prev = max(0.0, 1.0 - sum(pmf[: K - 1]))  # P(A ≥ K − 1)
+        for dd in range(D + 1):
+            for k, pk in enumerate(pmf):
+                rest = max(0, dd + k - nu)
+                dn = min(D, rest)
+                q_next[i, dd, dn] += pk
+                q_sent[i, dd] += pk * min(dd + k, nu)
+                q_drop[i, dd] += pk * (rest - dn)
+            q_next[i, dd, D] += tail
+            q_sent[i, dd] += tail * nu
+            q_drop[i, dd] += (dd - nu - D) * tail + lam * tail_prev
 
-    F = _factor_transitions(params)  # [a, f, f′]
-    f = s % 32
     P = torch.zeros(2, S, S, dtype=torch.float64)
     for a in (0, 1):
-        # P[a, (d, f), (d′, f′)] = Q[a, c(f), d, d′] · F[a, f, f′]
-        qa = q_next[a][c, d]  # [S, D + 1]
-        P[a] = (qa[:, :, None] * F[a][f][:, None, :]).reshape(S, S)
-    sent = torch.stack([q_sent[a][c, d] for a in (0, 1)])
-    dropped = torch.stack([q_drop[a][c, d] for a in (0, 1)])
-    capacity = torch.stack([nus[a][c] for a in (0, 1)])
+        # P[a, (d, f), (d′, f′)] = Q[(ν, λ)(a, f), d, d′] · F[a, f, f′]
+        qa = q_next[group[a][f], d]  # [S, D + 1]
+        P[a] = (qa[:, :, None] * t.F[a][f][:, None, :]).reshape(S, S)
+    sent = torch.stack([q_sent[group[a][f], d] for a in (0, 1)])
+    dropped = torch.stack([q_drop[group[a][f], d] for a in (0, 1)])
+    general = not env.is_v1
     return ExactModel(
         params=params,
         P=P,
-        R=R,
-        event=event,
+        R=t.R[:, f],
+        event=t.event[f],
         sent=sent,
         dropped=dropped,
-        capacity=capacity,
+        capacity=t.nu[:, f],
         queue=d.to(torch.float64),
+        missed_table=t.missed[:, f] if general else None,
+        false_alarm=t.false_alarm[:, f] if general else None,
     )

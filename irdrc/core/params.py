@@ -12,7 +12,7 @@ import dataclasses
 import difflib
 import math
 from collections.abc import Iterable, Mapping
-from dataclasses import dataclass, field, fields
+from dataclasses import MISSING, dataclass, field, fields
 from typing import Any
 
 EVENT_FACTORS = ("road", "weather", "speed", "object")
@@ -108,7 +108,8 @@ def reject_unknown_keys(prefix: str, keys: Iterable[Any], allowed: Iterable[str]
 def _check_keys(prefix: str, data: Mapping, cls: type, *, strict: bool) -> None:
     names = {f.name for f in fields(cls) if not f.name.startswith("_")}
     reject_unknown_keys(prefix, data, names)
-    missing = sorted(names - set(data))
+    optional = {f.name for f in fields(cls) if f.metadata.get("optional")}
+    missing = sorted(names - set(data) - optional)
     if strict and missing:
         raise ValueError(f"missing key(s) {', '.join(prefix + k for k in missing)}")
 
@@ -194,6 +195,163 @@ def _stay_bad() -> StayProbs:
     return StayProbs(*(0.1,) * 5, _prefix="env.stay_bad.")  # ref impl: P(1→1) = 0.1
 
 
+def _factor_specs(value: Any) -> tuple[FactorSpec, ...]:
+    """``env.factors`` (a mapping factor name → its levels, transition, …) as FactorSpecs in state
+    order; an empty mapping (v1) gives ()."""
+    value = to_plain(value)
+    if value is None or (isinstance(value, tuple | list) and not value):
+        return ()
+    if isinstance(value, tuple) and all(isinstance(v, FactorSpec) for v in value):
+        return value
+    if not isinstance(value, Mapping):
+        raise ValueError(
+            f"env.factors={value!r} must be a mapping: factor name → levels, transition, …"
+        )
+    reject_unknown_keys("env.factors.", value, MARKOV_FACTORS)
+    specs = []
+    for name in MARKOV_FACTORS:
+        if name not in value:
+            continue
+        spec = to_plain(value[name])
+        if not isinstance(spec, Mapping):
+            raise ValueError(f"env.factors.{name}={spec!r} must be a mapping")
+        reject_unknown_keys(f"env.factors.{name}.", spec, FACTOR_SPEC_KEYS)
+        if "transition" not in spec:
+            raise ValueError(f"env.factors.{name} needs a transition matrix")
+        specs.append(FactorSpec(name=name, **spec))
+    return tuple(specs)
+
+
+def _matrix(key: str, value: Any, n: int | None = None) -> tuple[tuple[float, ...], ...]:
+    """A row-stochastic square matrix (n × n when ``n`` is given) as a tuple of tuples, else a
+    ``ValueError`` naming ``key``."""
+    value = to_plain(value)
+    if not isinstance(value, list | tuple) or not all(isinstance(r, list | tuple) for r in value):
+        raise ValueError(f"{key}={value!r} must be a square matrix (a list of rows)")
+    size = len(value)
+    if size < 2 or any(len(r) != size for r in value) or (n is not None and size != n):
+        want = f"{n} × {n}" if n is not None else "square, at least 2 × 2"
+        raise ValueError(f"{key} must be {want}; got rows of lengths {[len(r) for r in value]}")
+    rows = tuple(
+        tuple(check_number(f"{key}[{i}][{j}]", x, 0.0, 1.0) for j, x in enumerate(r))
+        for i, r in enumerate(value)
+    )
+    for i, r in enumerate(rows):
+        if abs(sum(r) - 1.0) > 1e-9:
+            raise ValueError(f"{key}[{i}]={list(r)} must sum to 1 (it sums to {sum(r):.12g})")
+    return rows
+
+
+def _vector(key: str, value: Any, n: int, lo: float, hi: float, *, integer: bool = False) -> tuple:
+    """A list of ``n`` numbers in [lo, hi] as a tuple, else a ``ValueError`` naming ``key``."""
+    value = to_plain(value)
+    if not isinstance(value, list | tuple) or len(value) != n:
+        raise ValueError(f"{key}={value!r} must be a list of {n} values (one per level)")
+    return tuple(
+        check_number(f"{key}[{i}]", x, lo, hi, integer=integer) for i, x in enumerate(value)
+    )
+
+
+FACTOR_SPEC_KEYS = ("levels", "transition", "event", "packets", "comm_reward")
+
+
+@dataclass(frozen=True)
+class FactorSpec:
+    """One Markov factor with L ≥ 2 ordered levels, 0 the most favourable (MODEL.md § B.1), in one
+    place: its level names, its L × L transition matrix, and what each level does.
+
+    Attributes:
+        name: the factor (``channel``, ``road``, ``weather``, ``speed`` or ``object``).
+        transition: T[ℓ][ℓ′] = P(next level ℓ′ | level ℓ); rows sum to 1.
+        levels: a name per level (default ``0`` … ``L − 1``).
+        event: p^i[ℓ], the event probability per level (road, weather, speed, object: required).
+        packets: ν[ℓ], packets per comm step per level (channel: required).
+        comm_reward: r_comm[ℓ], reward of a comm step without an event per level (channel:
+            required; v1's r1, r2).
+    """
+
+    name: str
+    transition: tuple[tuple[float, ...], ...]
+    levels: tuple[str, ...] = ()
+    event: tuple[float, ...] = ()
+    packets: tuple[int, ...] = ()
+    comm_reward: tuple[float, ...] = ()
+
+    def __post_init__(self) -> None:
+        set_ = object.__setattr__
+        key = f"env.factors.{self.name}"
+        check_choice("env.factors", self.name, MARKOV_FACTORS)
+        set_(self, "transition", _matrix(f"{key}.transition", self.transition))
+        n = len(self.transition)
+        levels = to_plain(self.levels) or [str(i) for i in range(n)]
+        if not isinstance(levels, list | tuple) or len(levels) != n:
+            raise ValueError(
+                f"{key}.levels={levels!r} must name the {n} levels of {key}.transition"
+            )
+        set_(self, "levels", tuple(str(x) for x in levels))
+        if self.name == "channel":
+            for extra in ("event",):
+                if to_plain(getattr(self, extra)):
+                    raise ValueError(f"{key}.{extra} is not used: the channel drives no event")
+            set_(
+                self, "packets", _vector(f"{key}.packets", self.packets, n, 0, 10_000, integer=True)
+            )
+            set_(self, "comm_reward", _vector(f"{key}.comm_reward", self.comm_reward, n, 0.0, 1e9))
+        else:
+            for extra in ("packets", "comm_reward"):
+                if to_plain(getattr(self, extra)):
+                    raise ValueError(f"{key}.{extra} is not used: only the channel has it")
+            set_(self, "event", _vector(f"{key}.event", self.event, n, 0.0, 1.0))
+
+    @property
+    def num_levels(self) -> int:
+        """L."""
+        return len(self.transition)
+
+    def as_config(self) -> dict[str, Any]:
+        """The config mapping (without ``name``), as written in an ``envs/`` file."""
+        out: dict[str, Any] = {
+            "levels": list(self.levels),
+            "transition": [list(r) for r in self.transition],
+        }
+        if self.name == "channel":
+            out["packets"] = list(self.packets)
+            out["comm_reward"] = list(self.comm_reward)
+        else:
+            out["event"] = list(self.event)
+        return out
+
+
+@dataclass(frozen=True)
+class BurstySpec:
+    """Markov-modulated Poisson arrivals (MODEL.md § B.2): a traffic phase with its own chain,
+    Poisson(rates[phase]) packets per step. The phase is one more state factor (after m)."""
+
+    rates: tuple[float, ...]
+    transition: tuple[tuple[float, ...], ...]
+
+    def __post_init__(self) -> None:
+        rates = to_plain(self.rates)
+        if not isinstance(rates, list | tuple) or len(rates) < 2:
+            raise ValueError(
+                f"env.bursty.rates={rates!r} must list a Poisson rate per traffic phase (>= 2)"
+            )
+        object.__setattr__(
+            self,
+            "rates",
+            tuple(
+                check_number(f"env.bursty.rates[{i}]", r, 0.0, 1000.0) for i, r in enumerate(rates)
+            ),
+        )
+        object.__setattr__(
+            self, "transition", _matrix("env.bursty.transition", self.transition, len(rates))
+        )
+
+    def as_config(self) -> dict[str, Any]:
+        """The config mapping."""
+        return {"rates": list(self.rates), "transition": [list(r) for r in self.transition]}
+
+
 @dataclass(frozen=True)
 class EnvParams:
     """The environment of MODEL.md. Defaults are the paper scenario (``envs/paper.yaml``).
@@ -226,6 +384,10 @@ class EnvParams:
     radar_reaction: bool = True
     reaction_clear: float = 0.9
     horizon: int = 400
+    factors: Any = field(default=(), metadata={"optional": True})
+    bursty: Any = field(default=None, metadata={"optional": True})
+    detection_prob: float = field(default=1.0, metadata={"optional": True})
+    false_alarm_prob: float = field(default=0.0, metadata={"optional": True})
 
     def __post_init__(self) -> None:
         set_ = object.__setattr__
@@ -236,7 +398,12 @@ class EnvParams:
         )
         # The exact model sums arrivals up to a tail bucket; rates above 1000 packets/step are not a
         # regime this model is meant for and would make that table huge.
-        set_(self, "arrival_rate", check_number("env.arrival_rate", self.arrival_rate, 0.0, 1000.0))
+        if self.arrival_rate is not None:  # None: bursty arrivals (checked in _check_general)
+            set_(
+                self,
+                "arrival_rate",
+                check_number("env.arrival_rate", self.arrival_rate, 0.0, 1000.0),
+            )
         set_(
             self,
             "packets_good",
@@ -276,11 +443,108 @@ class EnvParams:
             check_number("env.reaction_clear", self.reaction_clear, 0.0, 1.0),
         )
         set_(self, "horizon", check_number("env.horizon", self.horizon, 1, 10**9, integer=True))
+        set_(self, "factors", _factor_specs(self.factors))
+        self._check_general()
+
+    def _check_general(self) -> None:
+        """The general model's keys (MODEL.md § B): bursty arrivals, imperfect radar, and that no
+        v1 key of a factor given in ``factors`` was set (it would be silently unused)."""
+        set_ = object.__setattr__
+        bursty = to_plain(self.bursty)
+        if bursty is not None and not isinstance(bursty, BurstySpec):
+            if not isinstance(bursty, Mapping):
+                raise ValueError(f"env.bursty={bursty!r} must be a mapping with rates, transition")
+            reject_unknown_keys("env.bursty.", bursty, ("rates", "transition"))
+            if set(bursty) != {"rates", "transition"}:
+                raise ValueError("env.bursty needs both rates and transition")
+            bursty = BurstySpec(**bursty)
+        set_(self, "bursty", bursty)
+        if bursty is not None and self.arrival_rate is not None:
+            raise ValueError(
+                f"env.arrival_rate={self.arrival_rate} is not used with bursty arrivals (the "
+                "rates are env.bursty.rates); set env.arrival_rate=null"
+            )
+        if bursty is None and self.arrival_rate is None:
+            raise ValueError("env.arrival_rate=null needs env.bursty (rates and transition)")
+        set_(self, "detection_prob", check_number("env.detection_prob", self.detection_prob, 0, 1))
+        set_(
+            self,
+            "false_alarm_prob",
+            check_number("env.false_alarm_prob", self.false_alarm_prob, 0, 1),
+        )
+        defaults = EnvParams.__dataclass_fields__
+        for spec in self.factors:
+            name = spec.name
+            used = [("stay_good", name), ("stay_bad", name)]
+            if name == "channel":
+                used += [("packets_good", None), ("packets_bad", None)]
+            else:
+                used += [("p0", name), ("p1", name)]
+            for key, sub in used:
+                dflt = defaults[key]
+                base = (
+                    dflt.default_factory() if dflt.default_factory is not MISSING else dflt.default
+                )
+                mine = getattr(self, key)
+                if sub is not None:
+                    base, mine = getattr(base, sub), getattr(mine, sub)
+                if mine != base:
+                    full = f"env.{key}" + (f".{sub}" if sub else "")
+                    raise ValueError(
+                        f"{full}={mine} is not used: env.factors.{name} describes the {name} "
+                        f"(levels, transition{', packets, comm_reward' if name == 'channel' else ', event'}); "
+                        f"set it there or leave {full} at its default {base}"
+                    )
+
+    @property
+    def levels(self) -> tuple[int, ...]:
+        """Levels L_i of the Markov factors (c, r, w, v, m) and, last, the traffic phases (1 for
+        Poisson arrivals)."""
+        by_name = {f.name: f.num_levels for f in self.factors}
+        phases = len(self.bursty.rates) if self.bursty is not None else 1
+        return (*(by_name.get(n, 2) for n in MARKOV_FACTORS), phases)
+
+    @property
+    def is_v1(self) -> bool:
+        """True when the model is MODEL.md's v1: two levels per factor, Poisson arrivals, perfect
+        radar (the general keys at their defaults)."""
+        return (
+            not self.factors
+            and self.bursty is None
+            and self.detection_prob == 1.0
+            and self.false_alarm_prob == 0.0
+        )
+
+    def factor(self, name: str, comm_reward: tuple[float, float] = (2.0, 1.0)) -> FactorSpec:
+        """The factor ``name`` as a ``FactorSpec``: from ``factors`` if given there, else from the
+        v1 keys (two levels, T = [[g, 1 − g], [1 − h, h]]; the channel's comm rewards are then
+        ``comm_reward``, i.e. (r1, r2): use ``Params.factor`` to get them from the reward weights)."""
+        for spec in self.factors:
+            if spec.name == name:
+                return spec
+        i = MARKOV_FACTORS.index(name)
+        g, h = self.stay_good.as_tuple()[i], self.stay_bad.as_tuple()[i]
+        T = ((g, 1.0 - g), (1.0 - h, h))
+        if name == "channel":
+            return FactorSpec(
+                name,
+                T,
+                ("good", "bad"),
+                packets=(self.packets_good, self.packets_bad),
+                comm_reward=comm_reward,
+            )
+        j = EVENT_FACTORS.index(name)
+        return FactorSpec(
+            name,
+            T,
+            ("favourable", "unfavourable"),
+            event=(self.p0.as_tuple()[j], self.p1.as_tuple()[j]),
+        )
 
     @property
     def num_states(self) -> int:
-        """(D + 1) · 2⁵ states."""
-        return (self.queue_capacity + 1) * 32
+        """(D + 1) · Π L_i states (v1: (D + 1) · 2⁵)."""
+        return (self.queue_capacity + 1) * math.prod(self.levels)
 
     @classmethod
     def from_dict(cls, data: Any, *, strict: bool = True) -> EnvParams:
@@ -298,16 +562,18 @@ class RewardParams:
     """Reward weights of paper eq. (3): (r1, r2, r3, r4) = (2, 1, 50, 5) (paper).
 
     r1: comm on a good channel, no event; r2: comm on a bad channel, no event; r3: penalty for a
-    missed event (comm while an event occurs); r4: radar detects an event, times (b + 1).
+    missed event (comm while an event occurs, or radar misses it); r4: radar detects an event,
+    times (b + 1); r5: a radar false alarm (MODEL.md § B.3; default 0, as in v1).
     """
 
     r1: float = 2.0
     r2: float = 1.0
     r3: float = 50.0
     r4: float = 5.0
+    r5: float = field(default=0.0, metadata={"optional": True})
 
     def __post_init__(self) -> None:
-        for name in ("r1", "r2", "r3", "r4"):
+        for name in ("r1", "r2", "r3", "r4", "r5"):
             # Weights are magnitudes: the signs live in eq. (3) (r3 is subtracted).
             value = check_number(f"reward.{name}", getattr(self, name), 0.0, 1e9)
             object.__setattr__(self, name, value)
@@ -326,6 +592,21 @@ class Params:
 
     env: EnvParams = field(default_factory=EnvParams)
     reward: RewardParams = field(default_factory=RewardParams)
+
+    def __post_init__(self) -> None:
+        if any(f.name == "channel" for f in self.env.factors):
+            for name, default in (("r1", 2.0), ("r2", 1.0)):
+                if getattr(self.reward, name) != default:
+                    raise ValueError(
+                        f"reward.{name}={getattr(self.reward, name)} is not used: "
+                        "env.factors.channel.comm_reward gives the comm reward per channel level; "
+                        f"set it there or leave reward.{name} at its default {default}"
+                    )
+
+    def factor(self, name: str) -> FactorSpec:
+        """The Markov factor ``name`` as a ``FactorSpec`` (levels, transition, event probabilities;
+        the channel's packets and comm rewards, v1's (ν1, ν2) and (r1, r2))."""
+        return self.env.factor(name, (self.reward.r1, self.reward.r2))
 
     @classmethod
     def from_config(cls, cfg: Any, *, strict: bool = True) -> Params:
@@ -379,7 +660,7 @@ def _apply_overrides(merged: dict[str, Any], overrides: Mapping[str, Any]) -> No
     for key, value in overrides.items():
         parts = str(key).split(".")
         if parts[0] not in ("env", "reward"):
-            parts = ["reward" if parts[0] in ("r1", "r2", "r3", "r4") else "env", *parts]
+            parts = ["reward" if parts[0] in ("r1", "r2", "r3", "r4", "r5") else "env", *parts]
         target = merged
         for p in parts[:-1]:
             target = target.setdefault(p, {})
@@ -403,7 +684,15 @@ def as_dict(obj: Any) -> dict[str, Any]:
         if f.name.startswith("_"):
             continue
         value = getattr(obj, f.name)
-        out[f.name] = as_dict(value) if dataclasses.is_dataclass(value) else value
+        if f.metadata.get("optional") and value == f.default:
+            continue  # the general model's keys at their v1 defaults: v1 configs stay as they were
+        if isinstance(value, BurstySpec):
+            value = value.as_config()
+        elif f.name == "factors":
+            value = {spec.name: spec.as_config() for spec in value}
+        elif dataclasses.is_dataclass(value):
+            value = as_dict(value)
+        out[f.name] = value
     return out
 
 

@@ -101,21 +101,16 @@ def table_policy(actions: torch.Tensor, seed: int | None = None) -> TensorDictMo
     if actions.ndim == 2:
         if (
             actions.shape[1] != 2
-            or actions.shape[0] % 32
             or bool((actions < 0).any())
             or not torch.allclose(actions.sum(-1).double(), torch.ones(actions.shape[0]).double())
         ):
             raise ValueError(
                 "a randomised policy must be an [S, 2] table of probabilities summing to 1 per "
-                "state, with S = (D + 1)·32"
+                "state, S the env's number of states"
             )
         return TensorDictModule(
             _RandomTable(actions[:, 1], seed), in_keys=["state"], out_keys=["action"]
         )
-    if (
-        actions.ndim != 1
-        or actions.numel() % 32
-        or not bool(((actions == 0) | (actions == 1)).all())
-    ):
-        raise ValueError("actions must be a 1-D table of 0/1 with (D + 1)·32 entries")
+    if actions.ndim != 1 or not bool(((actions == 0) | (actions == 1)).all()):
+        raise ValueError("actions must be a 1-D table of 0/1, one entry per state")
     return TensorDictModule(_Table(actions), in_keys=["state"], out_keys=["action"])

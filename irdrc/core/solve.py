@@ -8,6 +8,7 @@ exactly with its two-phase chain.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -16,6 +17,7 @@ import torch
 
 from irdrc.core.metrics import Metrics
 from irdrc.core.model import ExactModel
+from irdrc.core.params import Params
 
 Schedule = list[torch.Tensor]
 
@@ -171,7 +173,19 @@ def metrics_from_occupancy(model: ExactModel, occupancy: torch.Tensor) -> Metric
         radar_fraction=float(occ[1].sum()),
         drop_rate=float((occ * model.dropped).sum()),
         mean_queue=float((occ.sum(0) * model.queue).sum()),
+        false_alarm_rate=false_alarm_rate(occ, model.event, model.false_alarms, model.params),
     )
+
+
+def false_alarm_rate(
+    occ: torch.Tensor, event: torch.Tensor, false_alarms: torch.Tensor, params: Params
+) -> float:
+    """Expected false alarms over expected radar steps without an event, under the occupancy
+    ``occ`` [2, S]; NaN when the scenario has no false alarms (P_fa = 0) or no such step."""
+    if params.env.false_alarm_prob == 0.0:
+        return math.nan
+    quiet = float((occ[1] * (1.0 - event)).sum())
+    return float((occ * false_alarms).sum()) / quiet if quiet > 0 else math.nan
 
 
 def stationary_occupancy(model: ExactModel, policy) -> torch.Tensor:

@@ -115,10 +115,10 @@ def numpy_single_env(params: Params, seed: int):
         s = state["s"]
         f = s & 31
         u = rng.random(7)
-        ev = bool(u[0] < event[f & 15])
+        ev = bool(u[0] < event[f])
         arrivals = int(np.searchsorted(cdf, u[1], side="right"))
         f2 = int((weights * (u[2:] < next1[a * 32 + f])).sum())
-        nu = int(capacity[a * 2 + (f >> 4)])
+        nu = int(capacity[a * 32 + f])
         total = (s >> 5) + arrivals
         sent = min(total, nu)
         d2 = min(total - sent, D)

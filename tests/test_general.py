@@ -1,0 +1,351 @@
+"""The general model (MODEL.md § B.1–B.3): multi-level factors with their own matrices, the radar
+reaction on levels, bursty (Markov-modulated Poisson) arrivals, imperfect radar (P_d, P_fa, r5).
+
+The simulator is checked against the dense exact model by Pearson χ² on next-state counts and by
+binomial / normal bounds at 5 standard deviations on events, misses, false alarms, packets and
+rewards (see ``conftest.assert_chi2`` and ``test_env_stats``: a correct simulator fails one such
+comparison with probability below ~1e-6, and the seeds are fixed). The dense model is checked
+against the factored operator to 1e-9 and against hand-computed rewards.
+"""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from conftest import assert_chi2, one_step
+
+from irdrc import Params
+from irdrc.core.env import decode_state, state_index
+from irdrc.core.factored import (
+    build_factored,
+    stationary_metrics_factored,
+    value_iteration_factored,
+)
+from irdrc.core.gym import DFRCGymEnv
+from irdrc.core.model import build_model
+from irdrc.core.solve import stationary_metrics, value_iteration
+
+SPEED3 = {
+    "levels": ["low", "medium", "high"],
+    "transition": [[0.7, 0.3, 0.0], [0.2, 0.6, 0.2], [0.1, 0.3, 0.6]],
+    "event": [0.01, 0.1, 0.3],
+}
+OBJECT3 = {
+    "levels": ["none", "one", "many"],
+    "transition": [[0.6, 0.3, 0.1], [0.3, 0.5, 0.2], [0.2, 0.3, 0.5]],
+    "event": [0.02, 0.15, 0.4],
+}
+CHANNEL3 = {
+    "levels": ["good", "fair", "bad"],
+    "transition": [[0.8, 0.15, 0.05], [0.3, 0.5, 0.2], [0.1, 0.3, 0.6]],
+    "packets": [4, 3, 1],
+    "comm_reward": [2.0, 1.5, 0.5],
+}
+BURSTY = {"rates": [0.5, 3.0], "transition": [[0.9, 0.1], [0.3, 0.7]]}
+
+FEATURES = {
+    "levels": {"factors": {"speed": SPEED3, "channel": CHANNEL3}},
+    "reaction": {"factors": {"object": OBJECT3, "speed": SPEED3}, "reaction_clear": 0.7},
+    "bursty": {"bursty": BURSTY, "arrival_rate": None},
+    "imperfect_radar": {"detection_prob": 0.8, "false_alarm_prob": 0.1, "r5": 7.0},
+    "everything": {
+        "factors": {"speed": SPEED3, "object": OBJECT3, "channel": CHANNEL3},
+        "bursty": BURSTY,
+        "arrival_rate": None,
+        "detection_prob": 0.8,
+        "false_alarm_prob": 0.1,
+        "r5": 7.0,
+        "event_model": "sum",
+        "reaction_clear": 0.6,
+    },
+}
+
+
+def params_of(feature: str, queue: int = 3) -> Params:
+    return Params.from_overrides({**FEATURES[feature], "queue_capacity": queue})
+
+
+def test_v1_spelled_as_factors_is_v1():
+    """The general path on v1's own numbers gives v1's model (to float64 rounding)."""
+    v1 = Params()
+    T = [[0.9, 0.1], [0.9, 0.1]]
+    spelled = Params.from_overrides(
+        {
+            "factors": {
+                "channel": {"transition": T, "packets": [4, 2], "comm_reward": [2.0, 1.0]},
+                "road": {"transition": T, "event": [0.005, 0.05]},
+                "weather": {"transition": T, "event": [0.005, 0.046]},
+                "speed": {"transition": T, "event": [0.005, 0.1]},
+                "object": {"transition": T, "event": [0.005, 0.05]},
+            }
+        }
+    )
+    assert not spelled.env.is_v1 and spelled.env.levels == v1.env.levels
+    a, b = build_model(v1), build_model(spelled)
+    for key in ("P", "R", "event", "sent", "dropped", "capacity", "missed", "false_alarms"):
+        assert torch.allclose(getattr(a, key), getattr(b, key), rtol=0, atol=1e-15), key
+
+
+def test_state_index_is_mixed_radix():
+    p = params_of("everything")
+    levels = p.env.levels
+    assert levels == (3, 2, 2, 3, 3, 2)
+    s = torch.arange(p.env.num_states)
+    cols = decode_state(s, levels)
+    assert cols.shape == (p.env.num_states, 7)
+    assert torch.equal(state_index(*cols.unbind(-1), levels=levels), s)
+    assert (
+        state_index(2, 1, 0, 1, 2, 1, 1, levels=levels)
+        == (((((2 * 3 + 1) * 2 + 0) * 2 + 1) * 3 + 2) * 3 + 1) * 2 + 1
+    )
+    # v1's index is unchanged by the general formula
+    assert state_index(3, 1, 0, 1, 0, 1, 0, levels=(2, 2, 2, 2, 2, 1)) == state_index(
+        3, 1, 0, 1, 0, 1
+    )
+
+
+@pytest.mark.parametrize("feature", list(FEATURES))
+def test_simulated_transitions_match_the_exact_model(feature):
+    """χ² of next states, and 5-σ bounds on events, misses, false alarms, packets and reward,
+    from a spread of states under both actions."""
+    p = params_of(feature)
+    m = build_model(p)
+    S, n = m.num_states, 12_000
+    gen = torch.Generator().manual_seed(0)
+    starts = torch.randperm(S, generator=gen)[:6]
+    rows = torch.stack([starts, starts]).T.reshape(-1)  # (state, action) pairs
+    acts = torch.tensor([0, 1]).repeat(len(starts))
+    nxt = one_step(p, rows.repeat_interleave(n), acts.repeat_interleave(n), seed=1)
+    counts = torch.zeros(len(rows), S, dtype=torch.float64)
+    counts.scatter_add_(
+        1, nxt["state"].view(len(rows), n), torch.ones(len(rows), n, dtype=torch.float64)
+    )
+    expected = torch.stack([m.P[a, s] for s, a in zip(rows, acts, strict=True)]) * n
+    assert_chi2(counts, expected)
+    for key, table in (
+        ("event", m.event[None].expand(2, -1)),
+        ("missed", m.missed),
+        ("false_alarm", m.false_alarms),
+    ):
+        freq = nxt[key].double().view(len(rows), n).mean(1)
+        prob = torch.stack([table[a, s] for s, a in zip(rows, acts, strict=True)])
+        sigma = torch.sqrt(prob * (1 - prob) / n)
+        assert bool(((freq - prob).abs() <= 5 * sigma + 1e-12).all()), (key, freq, prob)
+    for key, table in (("reward", m.R), ("sent", m.sent), ("capacity", m.capacity)):
+        x = nxt[key].double().view(len(rows), n)
+        mean = torch.stack([table[a, s] for s, a in zip(rows, acts, strict=True)])
+        se = x.std(1) / math.sqrt(n)
+        assert bool(((x.mean(1) - mean).abs() <= 5 * se + 1e-9).all()), (key, x.mean(1), mean)
+
+
+def test_bursty_arrivals_follow_the_phase():
+    """Arrivals are Poisson with the rate of the step's phase (mean and variance per phase)."""
+    p = params_of("bursty", queue=60)
+    levels = p.env.levels
+    n = 40_000
+    for phase, rate in enumerate(BURSTY["rates"]):
+        s = state_index(0, 0, 0, 0, 0, 0, phase, levels=levels)
+        nxt = one_step(p, torch.full((n,), s), 1, seed=2 + phase)  # radar: nothing leaves
+        assert bool((nxt["phase"] == phase).all())
+        a = decode_state(nxt["state"], levels)[:, 0].double()  # d′ = A (queue 60 never fills)
+        # Poisson: mean = variance = rate; 5 standard errors of the mean
+        assert abs(float(a.mean()) - rate) <= 5 * math.sqrt(rate / n)
+        assert abs(float(a.var()) - rate) <= 0.1 * rate
+    td = one_step(p, torch.zeros(4, dtype=torch.int64), 0)
+    assert td["observation"].shape == (4, 7)
+
+
+def test_imperfect_radar_rewards_by_hand():
+    """R for radar with P_d = 0.8, P_fa = 0.1, r5 = 7 in one state, computed by hand."""
+    p = Params.from_overrides(
+        {
+            "detection_prob": 0.8,
+            "false_alarm_prob": 0.1,
+            "r5": 7.0,
+            "queue_capacity": 2,
+            "p1": {"road": 0.2, "weather": 0.3, "speed": 0.4, "object": 0.1},
+        }
+    )
+    m = build_model(p)
+    s = state_index(1, 0, 1, 1, 0, 0)  # road and weather bad: b = 2
+    e = 1 - (1 - 0.2) * (1 - 0.3) * (1 - 0.005) * (1 - 0.005)
+    want_radar = e * (0.8 * 5 * 3 - 0.2 * 50) - (1 - e) * 0.1 * 7
+    want_comm = (1 - e) * 2 - e * 50
+    assert math.isclose(float(m.R[1, s]), want_radar, rel_tol=1e-12)
+    assert math.isclose(float(m.R[0, s]), want_comm, rel_tol=1e-12)
+    assert math.isclose(float(m.missed[1, s]), 0.2 * e, rel_tol=1e-12)
+    assert math.isclose(float(m.false_alarms[1, s]), 0.1 * (1 - e), rel_tol=1e-12)
+    # always radar: false alarms / radar steps without an event = P_fa exactly
+    met = stationary_metrics(m, torch.ones(m.num_states, dtype=torch.int64))
+    assert math.isclose(met.false_alarm_rate, 0.1, rel_tol=1e-9)
+    assert math.isclose(met.miss_detection, 0.2, rel_tol=1e-9)
+
+
+def test_multilevel_detection_reward_and_comm_reward_by_hand():
+    p = params_of("levels")
+    m = build_model(p)
+    levels = p.env.levels
+    s = state_index(2, 2, 1, 0, 2, 0, levels=levels)  # bad channel, slippery road, high speed
+    e = 1 - (1 - 0.05) * (1 - 0.005) * (1 - 0.3) * (1 - 0.005)
+    assert math.isclose(float(m.event[s]), e, rel_tol=1e-12)
+    assert math.isclose(float(m.R[1, s]), e * 5 * (1 + 1 + 2), rel_tol=1e-12)  # b = 1 + 2
+    assert math.isclose(float(m.R[0, s]), (1 - e) * 0.5 - e * 50, rel_tol=1e-12)
+    assert float(m.capacity[0, s]) == 1.0
+
+
+def test_gym_single_env_matches_the_exact_model():
+    """The gymnasium env (its own per-step code) on the general model: χ² of next states."""
+    p = params_of("everything", queue=2)
+    m = build_model(p)
+    env = DFRCGymEnv(p)
+    starts = [5, 301, 600]
+    n = 4_000
+    counts = torch.zeros(2 * len(starts), m.num_states, dtype=torch.float64)
+    env.reset(seed=0)
+    for i, (s, a) in enumerate((s, a) for s in starts for a in (0, 1)):
+        for _ in range(n):
+            env.reset(options={"state": s})
+            _, _, _, _, info = env.step(a)
+            counts[i, info["state"]] += 1
+    expected = torch.stack([m.P[a, s] for s in starts for a in (0, 1)]) * n
+    assert_chi2(counts, expected)
+
+
+def _random_params(seed: int) -> Params:
+    g = torch.Generator().manual_seed(seed)
+
+    def stochastic(n: int) -> list[list[float]]:
+        x = torch.rand(n, n, generator=g, dtype=torch.float64) + 0.05
+        x = x / x.sum(1, keepdim=True)
+        x[:, -1] = 1 - x[:, :-1].sum(1)
+        return x.tolist()
+
+    def probs(n: int) -> list[float]:
+        return (torch.rand(n, generator=g, dtype=torch.float64) * 0.3).tolist()
+
+    lv = [2 + int(x) for x in torch.randint(0, 2, (5,), generator=g)]
+    factors = {
+        "channel": {
+            "transition": stochastic(lv[0]),
+            "packets": torch.randint(0, 5, (lv[0],), generator=g).tolist(),
+            "comm_reward": (torch.rand(lv[0], generator=g) * 3).tolist(),
+        }
+    }
+    for name, n in zip(("road", "weather", "speed", "object"), lv[1:], strict=True):
+        factors[name] = {"transition": stochastic(n), "event": probs(n)}
+    return Params.from_overrides(
+        {
+            "factors": factors,
+            "bursty": {"rates": [0.3, 2.5], "transition": stochastic(2)},
+            "arrival_rate": None,
+            "queue_capacity": 4,
+            "detection_prob": 0.85,
+            "false_alarm_prob": 0.07,
+            "r5": 3.0,
+            "event_model": ("noisy_or", "sum")[seed % 2],
+            "reaction_clear": 0.5,
+        }
+    )
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_factored_equals_dense_with_every_feature_on(seed):
+    p = _random_params(seed)
+    dense, fac = build_model(p), build_factored(p)
+    S = dense.num_states
+    gen = torch.Generator().manual_seed(seed)
+    V = torch.randn(S, generator=gen, dtype=torch.float64)
+    x = torch.rand(S, generator=gen, dtype=torch.float64)
+    for a in (0, 1):
+        assert torch.allclose(fac.expect(V, a), dense.P[a] @ V, rtol=0, atol=1e-9)
+        assert torch.allclose(fac.push(x, a), x @ dense.P[a], rtol=0, atol=1e-9)
+    for key, table in fac.tables().items():
+        assert torch.allclose(table, getattr(dense, key), rtol=0, atol=1e-9), key
+    sol_d, sol_f = value_iteration(dense), value_iteration_factored(fac, tol=1e-10)
+    assert torch.allclose(sol_d.values, sol_f.values, rtol=0, atol=1e-6)
+    met_d = stationary_metrics(dense, sol_d.policy).as_dict()
+    met_f = stationary_metrics_factored(fac, sol_d.policy).as_dict()
+    assert set(met_d) == set(met_f) and "false_alarm_rate" in met_d
+    for k, v in met_d.items():
+        assert math.isclose(v, met_f[k], rel_tol=1e-9, abs_tol=1e-9), k
+
+
+@pytest.mark.parametrize(
+    ("overrides", "match"),
+    [
+        ({"factors": {"speed": {"transition": [[0.5, 0.6], [0.5, 0.5]], "event": [0, 0]}}}, "sum"),
+        ({"factors": {"speed": {"transition": [[1.0, 0.0], [0.5, 0.5]]}}}, r"speed\.event"),
+        ({"factors": {"speed": {**SPEED3, "event": [0.1, 0.2]}}}, "3 values"),
+        ({"factors": {"speed": {**SPEED3, "levels": ["a", "b"]}}}, "levels"),
+        ({"factors": {"speed": {**SPEED3, "packets": [1, 2, 3]}}}, "only the channel"),
+        ({"factors": {"channel": {**CHANNEL3, "event": [0, 0, 0]}}}, "drives no event"),
+        ({"factors": {"speeed": SPEED3}}, "did you mean"),
+        ({"factors": {"speed": {**SPEED3, "matrix": 1}}}, "unknown key"),
+        ({"factors": {"speed": SPEED3}, "p1": {"speed": 0.5}}, r"env\.p1\.speed=0\.5 is not used"),
+        ({"factors": {"channel": CHANNEL3}, "r1": 3.0}, r"reward\.r1=3\.0 is not used"),
+        ({"bursty": BURSTY}, "arrival_rate=null"),
+        ({"arrival_rate": None}, "needs env.bursty"),
+        ({"bursty": {"rates": [1.0, 2.0]}, "arrival_rate": None}, "both rates and transition"),
+        ({"bursty": {**BURSTY, "rates": [1.0, -2.0]}, "arrival_rate": None}, "rates"),
+        ({"detection_prob": 1.5}, "detection_prob"),
+        ({"false_alarm_prob": -0.1}, "false_alarm_prob"),
+        ({"r5": -1}, r"reward\.r5"),
+    ],
+)
+def test_bad_general_configs_are_rejected(overrides, match):
+    with pytest.raises(ValueError, match=match):
+        Params.from_overrides(overrides)
+
+
+def test_v1_configs_keep_their_keys():
+    """The general keys at their defaults stay out of v1's config (run names, caches, hashes)."""
+    d = Params().to_dict()
+    for key in ("factors", "bursty", "detection_prob", "false_alarm_prob"):
+        assert key not in d["env"]
+    assert "r5" not in d["reward"]
+    p = params_of("everything")
+    assert Params.from_config(p.to_dict()) == p
+
+
+def test_factor_levels_follow_their_own_matrices():
+    """Each factor's next level against its configured matrix row, read from the config (not from
+    the model's tables), and the radar reaction on levels: v′ = 0, m′ = 0 w.p. reaction_clear,
+    else m′ = m."""
+    p = params_of("everything")
+    levels = p.env.levels
+    n = 30_000
+    start = (1, 2, 1, 0, 2, 2, 1)  # d, c, r, w, v, m, phase
+    T = p.env.factor
+    rows = {
+        1: CHANNEL3["transition"][2],
+        2: T("road").transition[1],
+        3: T("weather").transition[0],
+        4: SPEED3["transition"][2],
+        5: OBJECT3["transition"][2],
+        6: BURSTY["transition"][1],
+    }
+    comm = decode_state(
+        one_step(p, torch.full((n,), state_index(*start, levels=levels)), 0)["state"], levels
+    )
+    for col, row in rows.items():
+        freq = torch.bincount(comm[:, col], minlength=len(row)).double() / n
+        prob = torch.tensor(row, dtype=torch.float64)
+        sigma = torch.sqrt(prob * (1 - prob) / n)
+        assert bool(((freq - prob).abs() <= 5 * sigma + 1e-12).all()), (col, freq, prob)
+    radar = decode_state(
+        one_step(p, torch.full((n,), state_index(*start, levels=levels)), 1, seed=5)["state"],
+        levels,
+    )
+    assert bool((radar[:, 4] == 0).all())  # v′ = 0
+    m_next = torch.bincount(radar[:, 5], minlength=3).double() / n
+    clear = FEATURES["everything"]["reaction_clear"]
+    prob = torch.tensor([clear, 0.0, 1 - clear], dtype=torch.float64)
+    sigma = torch.sqrt(prob * (1 - prob) / n)
+    assert bool(((m_next - prob).abs() <= 5 * sigma + 1e-12).all()), m_next
+    for col in (1, 2, 3, 6):  # the others follow their chains under radar too
+        freq = torch.bincount(radar[:, col], minlength=len(rows[col])).double() / n
+        prob = torch.tensor(rows[col], dtype=torch.float64)
+        sigma = torch.sqrt(prob * (1 - prob) / n)
+        assert bool(((freq - prob).abs() <= 5 * sigma + 1e-12).all()), (col, freq, prob)

@@ -96,7 +96,7 @@ def test_solve_recipe_switches_to_the_factored_operator(tmp_path):
             sys.executable,
             str(ROOT / "recipes" / "solve.py"),
             "env=large",
-            "env.queue_capacity=311",
+            "env.queue_capacity=69",
             f"hydra.run.dir={tmp_path}",
         ],
         capture_output=True,
@@ -105,13 +105,13 @@ def test_solve_recipe_switches_to_the_factored_operator(tmp_path):
         cwd=ROOT,
     )
     assert res.returncode == 0, res.stderr
-    assert "S = 9984 states, factored value iteration" in res.stdout
+    assert "S = 10080 states, factored value iteration" in res.stdout
     assert "C×" in res.stdout or "R×" in res.stdout or "radar" in res.stdout
     import json
 
     s = json.loads((tmp_path / "summary.json").read_text())
-    assert s["solver"] == "factored" and s["num_states"] == 9984
-    assert 0 < s["metrics"]["throughput"] <= 1.5
+    assert s["solver"] == "factored" and s["num_states"] == 10080
+    assert 0 < s["metrics"]["throughput"] <= 1.125 + 1e-9  # the mean of the bursty arrivals
 
 
 def test_scale_benchmark_table(tmp_path):

@@ -349,3 +349,46 @@ def test_factor_levels_follow_their_own_matrices():
         prob = torch.tensor(rows[col], dtype=torch.float64)
         sigma = torch.sqrt(prob * (1 - prob) / n)
         assert bool(((freq - prob).abs() <= 5 * sigma + 1e-12).all()), (col, freq, prob)
+
+
+ROOT = __import__("pathlib").Path(__file__).resolve().parents[1]
+
+
+@pytest.mark.parametrize(
+    ("args", "states"),
+    [
+        (["env=multilevel"], 792),
+        (["env=imperfect_radar", "reward=imperfect_radar"], 352),
+        (["+env.detection_prob=0.8", "+env.false_alarm_prob=0.1", "+reward.r5=3"], 352),
+    ],
+)
+def test_solve_recipe_on_the_named_scenarios(tmp_path, args, states):
+    import json
+    import subprocess
+    import sys
+
+    res = subprocess.run(
+        [
+            sys.executable,
+            str(ROOT / "recipes" / "solve.py"),
+            *args,
+            "eval.mc_episodes=0",
+            f"hydra.run.dir={tmp_path}",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=600,
+        cwd=ROOT,
+    )
+    assert res.returncode == 0, res.stderr
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert f"{states} states" in res.stdout or f"of {states} states" in res.stdout
+    fa = summary["metrics"].get("false_alarm_rate")
+    if "multilevel" in args[0]:
+        assert fa is None and "false_alarm_rate" not in res.stdout
+    else:
+        # radar steps without an event raise an alarm w.p. P_fa, whatever the policy
+        p_fa = 0.05 if "imperfect" in args[0] else 0.1
+        assert fa == pytest.approx(p_fa, rel=1e-9) and "false_alarm_rate" in res.stdout
+    header = (tmp_path / "policy.csv").read_text().splitlines()[0]
+    assert header == "d,c,r,w,v,m,action,p_radar"

@@ -468,12 +468,17 @@ def _stationary_power(
 
 
 def stationary_metrics_factored(
-    model: FactoredModel, policy: torch.Tensor, tol: float = 1e-13
+    model: FactoredModel,
+    policy: torch.Tensor,
+    tol: float = 1e-13,
+    mu: torch.Tensor | None = None,
 ) -> Metrics:
     """Exact long-run metrics of a stationary policy ([S] actions or [S, 2] probabilities), the
-    factored counterpart of ``irdrc.core.solve.stationary_metrics``."""
+    factored counterpart of ``irdrc.core.solve.stationary_metrics``; ``mu``: its stationary
+    distribution when already computed (``stationary_distribution_factored``)."""
     p = _p_radar(model, policy)
-    mu, _ = stationary_distribution_factored(model, p, tol=tol)
+    if mu is None:
+        mu, _ = stationary_distribution_factored(model, p, tol=tol)
     occ = torch.stack([mu * (1 - p), mu * p])
     t = model.tables()
     horizon = model.params.env.horizon

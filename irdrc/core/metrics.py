@@ -67,16 +67,27 @@ def _fmt(x: float) -> str:
 
 def format_table(
     rows: dict[str, Metrics | dict[str, float]],
-    names: tuple[str, ...] = METRIC_NAMES,
+    names: tuple[str, ...] | None = None,
     errors: dict[str, dict[str, float]] | None = None,
 ) -> str:
     """Side-by-side table: one row per method, one column per metric.
 
     Args:
         rows: method name → its metrics.
-        names: metric columns, in order.
+        names: metric columns, in order; default ``METRIC_NAMES``, and ``false_alarm_rate`` when
+            a row has it.
         errors: method name → metric → half-width of a confidence interval, shown as ``± x``.
     """
+    if names is None:
+        names = METRIC_NAMES
+        if any(
+            not math.isnan(
+                (m.as_dict() if isinstance(m, Metrics) else m).get("false_alarm_rate", math.nan)
+                or math.nan
+            )
+            for m in rows.values()
+        ):
+            names = (*METRIC_NAMES, "false_alarm_rate")
     header = ["method", *names]
     body = []
     for method, m in rows.items():

@@ -11,7 +11,6 @@ from omegaconf import DictConfig, OmegaConf
 
 from irdrc.agents import dqn
 from irdrc.agents.base import Hooks
-from irdrc.core.env import decode_state
 from irdrc.core.model import build_model
 from irdrc.core.params import Params, to_plain
 from irdrc.core.solve import ExactScorer, stationary_occupancy
@@ -21,6 +20,7 @@ from irdrc.experiments.results import (
     atomic_write_text,
     policy_differences,
     read_policy_csv,
+    state_label,
     write_rows_csv,
 )
 from irdrc.experiments.results import read_csv_rows as read_csv
@@ -60,11 +60,10 @@ def comm_states(scorer: ExactScorer) -> list[dict[str, Any]]:
     for s in (opt.policy == 0).nonzero().flatten().tolist():
         flipped = opt.policy.clone()
         flipped[s] = 1
-        d, c, r, w, v, m = (int(x) for x in decode_state(torch.tensor(s)).tolist())
         out.append(
             {
                 "state": s,
-                "label": f"d={d} c={c} r={r} w={w} v={v} m={m}",
+                "label": state_label(s, model.params.env.levels),
                 "visit_frequency": float(visits[s]),
                 "true_gap": float(opt.q[0, s] - opt.q[1, s]),
                 "ratio_if_radar_here": scorer.ratio(flipped),

@@ -42,9 +42,18 @@ COLUMNS = (
 )
 
 
-def _queue_for(states: int) -> int:
-    """The queue capacity D whose S = (D + 1)·32 is the smallest ≥ ``states``."""
-    return max(1, math.ceil(states / 32) - 1)
+def _queue_for(states: int, configs: int = 32) -> int:
+    """The queue capacity D whose S = (D + 1)·F is the smallest ≥ ``states`` (F = ``configs``,
+    the scenario's factor configurations)."""
+    return max(1, math.ceil(states / configs) - 1)
+
+
+def _configs(scenario: str) -> int:
+    """F = Π L of a scenario (v1: 32)."""
+    from irdrc.core.params import Params
+    from irdrc.experiments.config import compose
+
+    return math.prod(Params.from_config(compose("solve", [f"env={scenario}"])).env.levels)
 
 
 def measure_once(scenario: str, queue: int, solver: str, device: str, tol: float) -> dict:
@@ -80,8 +89,8 @@ def measure_once(scenario: str, queue: int, solver: str, device: str, tol: float
 
         model = build_factored(params, device=device)
         sol = value_iteration_factored(model, tol=tol)
-        _, steps = stationary_distribution_factored(model, sol.policy)
-        m = stationary_metrics_factored(model, sol.policy)
+        mu, steps = stationary_distribution_factored(model, sol.policy)
+        m = stationary_metrics_factored(model, sol.policy, mu=mu)
         sweeps = sol.iterations
         if device != "cpu":
             torch.cuda.synchronize()
@@ -129,9 +138,10 @@ def run_bench_scale(cfg: DictConfig, out: Path) -> int:
     skipped: list[str] = []
     for scenario in to_plain(cfg.scenarios):
         slow = False
+        configs = _configs(scenario)
         for states in to_plain(cfg.states):
-            queue = _queue_for(int(states))
-            S = (queue + 1) * 32
+            queue = _queue_for(int(states), configs)
+            S = (queue + 1) * configs
             if slow:
                 skipped.append(f"{scenario} at S = {S:,}")
                 print(

@@ -17,7 +17,6 @@ from omegaconf import DictConfig, OmegaConf
 from irdrc.agents import lagrangian
 from irdrc.agents.base import PROGRESS_FIELDS, Hooks
 from irdrc.core.cmdp import CMDPSolution, solve_cmdp
-from irdrc.core.env import decode_state
 from irdrc.core.metrics import format_table
 from irdrc.core.model import build_model
 from irdrc.core.params import Params, to_plain
@@ -28,6 +27,7 @@ from irdrc.experiments.guard import RunInterrupted, stop_on_signals
 from irdrc.experiments.progress import RunProgress
 from irdrc.experiments.results import (
     atomic_write_text,
+    state_label,
     summary_dict,
     write_policy_csv,
     write_rows_csv,
@@ -53,13 +53,13 @@ def constraint_kwargs(cfg: DictConfig) -> dict[str, Any]:
     }
 
 
-def describe_randomised(sol: CMDPSolution) -> list[str]:
-    """One line per randomised state: its factors and P(radar)."""
+def describe_randomised(sol: CMDPSolution, levels=None) -> list[str]:
+    """One line per randomised state: its factors and P(radar) (``levels`` as in
+    ``Params.env.levels``; None: v1)."""
     lines = []
     for s in sol.randomised:
-        d, c, r, w, v, m = (int(x) for x in decode_state(torch.tensor(s)).tolist())
         lines.append(
-            f"  d={d} c={c} r={r} w={w} v={v} m={m}: radar with probability "
+            f"  {state_label(s, levels)}: radar with probability "
             f"{float(sol.p_radar[s]):.4f} (this state is {float(sol.occupancy[:, s].sum()):.4f} "
             "of the time)"
         )
@@ -97,7 +97,7 @@ def run_constrained(cfg: DictConfig, out: Path, scenario: str | None = None) -> 
         f"optimum: {sol.objective} {sol.value:.6g} per step; randomises in "
         f"{len(sol.randomised)} state(s); {len(sol.unvisited)} state(s) never visited (radar there)"
     )
-    for line in describe_randomised(sol):
+    for line in describe_randomised(sol, model.params.env.levels):
         print(line)
     rows = {"constrained optimum (LP)": sol.metrics, "reward-optimal (value iteration)": reward_opt}
     print("\nexact long-run metrics:\n")
@@ -120,7 +120,7 @@ def run_constrained(cfg: DictConfig, out: Path, scenario: str | None = None) -> 
         table=table_dict(rows, {}),
     )
     write_summary(out / "summary.json", summary)
-    write_policy_csv(out / "policy.csv", sol.policy)
+    write_policy_csv(out / "policy.csv", sol.policy, model.params.env.levels)
     print(f"\nwrote {out / 'summary.json'} and {out / 'policy.csv'}")
     return summary
 
@@ -226,7 +226,7 @@ def run_constrained_learned(
         table=table_dict(rows, {}),
     )
     write_summary(out / "summary.json", summary)
-    write_policy_csv(out / "policy.csv", record.policy[0])
+    write_policy_csv(out / "policy.csv", record.policy[0], model.params.env.levels)
     log_scalars(
         logger,
         {"final/objective_ratio": ratio, "final/miss_detection": learned.miss_detection},

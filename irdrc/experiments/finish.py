@@ -58,7 +58,7 @@ def finish_run(
     write_rows_csv(out / "episode_rewards.csv", record.episode_rewards, EPISODE_FIELDS)
     write_rows_csv(out / "learners.csv", learners)
     greedy = record.greedy[0].cpu()
-    write_policy_csv(out / "policy.csv", greedy)
+    write_policy_csv(out / "policy.csv", greedy, scenarios[0].env.levels)
     plot_learning_curve(record, out / "learning_curve.png", title=f"{name} on {scenario}")
 
     model, opt = scorers[0].model, scorers[0].optimal_metrics

@@ -121,8 +121,18 @@ chosen: 0 = communication, 1 = radar; the likelier one for a randomised policy) 
 (the probability of radar: 0 or 1 for a deterministic policy)."""
 
 
-def write_policy_csv(path: Path, policy: torch.Tensor) -> None:
-    """``policy.csv`` (see ``POLICY_COLUMNS``) from an [S] action table or [S, 2] probabilities."""
+def state_label(s: int, levels: Sequence[int] | None = None) -> str:
+    """``d=3 c=0 r=1 w=0 v=2 m=0`` (and ``phase=1`` with bursty arrivals) for state index ``s``;
+    ``levels`` as in ``Params.env.levels`` (None: v1)."""
+    cols = decode_state(torch.tensor(int(s)), levels).tolist()
+    names = ("d", "c", "r", "w", "v", "m", "phase")
+    return " ".join(f"{n}={int(x)}" for n, x in zip(names, cols, strict=False))
+
+
+def write_policy_csv(path: Path, policy: torch.Tensor, levels: Sequence[int] | None = None) -> None:
+    """``policy.csv`` (see ``POLICY_COLUMNS``; a ``phase`` column after ``m`` with bursty arrivals)
+    from an [S] action table or [S, 2] probabilities; ``levels`` as in ``Params.env.levels``
+    (None: v1)."""
     policy = torch.as_tensor(policy).cpu()
     if policy.ndim == 2:
         p_radar = policy[:, 1].double()
@@ -130,8 +140,11 @@ def write_policy_csv(path: Path, policy: torch.Tensor) -> None:
     else:
         actions = policy.long()
         p_radar = actions.double()
-    cols = decode_state(torch.arange(actions.numel()))
-    lines = [",".join(POLICY_COLUMNS)]
+    cols = decode_state(torch.arange(actions.numel()), levels)
+    header = list(POLICY_COLUMNS)
+    if cols.shape[-1] == 7:
+        header.insert(6, "phase")
+    lines = [",".join(header)]
     lines += [
         ",".join(map(str, [*c.tolist(), int(a), _prob(float(p))]))
         for c, a, p in zip(cols, actions, p_radar, strict=True)
@@ -203,10 +216,11 @@ def policy_table(model: ExactModel, actions: torch.Tensor) -> str:
     (``C×5 R×3120``). ``model`` is an ``ExactModel`` or a ``FactoredModel``.
     """
     D = model.params.env.queue_capacity
-    acts = torch.as_tensor(actions).long().view(D + 1, 32)
-    lines = ["c r w v m  b  P(event)  mode (by d = 0 … D when it varies)"]
-    for f in range(32):
-        bits = [(f >> s) & 1 for s in (4, 3, 2, 1, 0)]
+    labels = _config_labels(model.params)
+    acts = torch.as_tensor(actions).long().view(D + 1, len(labels))
+    phase = " phase" if model.params.env.levels[-1] > 1 else ""
+    lines = [f"c r w v m{phase}  b  P(event)  mode (by d = 0 … D when it varies)"]
+    for f, (bits, b) in enumerate(labels):
         col = acts[:, f]
         if bool((col == col[0]).all()):
             mode = "radar" if int(col[0]) else "comm"
@@ -220,28 +234,35 @@ def policy_table(model: ExactModel, actions: torch.Tensor) -> str:
                 f"{'R' if int(col[a]) else 'C'}×{b - a}" for a, b in zip(starts, ends, strict=True)
             )
         pe = float(model.event[f])
-        lines.append(f"{' '.join(map(str, bits))}  {sum(bits[1:])}  {pe:8.4f}  {mode}")
+        lines.append(f"{bits}  {b}  {pe:8.4f}  {mode}")
     return "\n".join(lines)
+
+
+def _config_labels(params) -> list[tuple[str, int]]:
+    """Per factor configuration f: its levels as ``c r w v m[ phase]`` and b (MODEL.md § B.1)."""
+    levels = params.env.levels
+    cols = decode_state(torch.arange(math.prod(levels)), levels)[:, 1:].tolist()
+    return [(" ".join(map(str, c)), sum(c[1:5])) for c in cols]
 
 
 def policy_differences(model: ExactModel, actions: torch.Tensor, optimal: torch.Tensor) -> str:
     """In words, where a policy differs from the optimum: one line per factor combination (c, r, w,
     v, m) with a difference, each policy's mode by queue length (C = comm, R = radar, d = 0 … D)."""
     D = model.params.env.queue_capacity
-    acts = torch.as_tensor(actions).long().view(D + 1, 32)
-    opt = torch.as_tensor(optimal).long().view(D + 1, 32)
+    labels = _config_labels(model.params)
+    acts = torch.as_tensor(actions).long().view(D + 1, len(labels))
+    opt = torch.as_tensor(optimal).long().view(D + 1, len(labels))
     n_diff = int((acts != opt).sum())
     if n_diff == 0:
         return f"the learned policy equals the optimum in all {model.num_states} states"
     lines = [
         f"the learned policy differs from the optimum in {n_diff} of {model.num_states} states "
         "(mode by queue length d = 0 … D; C = comm, R = radar):",
-        "  c r w v m  P(event)  learned       optimum",
+        f"  c r w v m{' phase' if model.params.env.levels[-1] > 1 else ''}  P(event)  learned       optimum",
     ]
-    for f in range(32):
+    for f, (bits, _) in enumerate(labels):
         if bool((acts[:, f] == opt[:, f]).all()):
             continue
-        bits = " ".join(str((f >> s) & 1) for s in (4, 3, 2, 1, 0))
 
         def mode(col: torch.Tensor) -> str:
             if bool((col == col[0]).all()):

@@ -105,7 +105,7 @@ def run_solve(cfg: DictConfig, out: Path, scenario: str | None = None) -> dict[s
         table=table_dict(rows, errs),
     )
     write_summary(out / "summary.json", summary)
-    write_policy_csv(out / "policy.csv", sol.policy)
+    write_policy_csv(out / "policy.csv", sol.policy, model.params.env.levels)
     print(f"\nwrote {out / 'summary.json'} and {out / 'policy.csv'}")
     return summary
 
@@ -160,7 +160,7 @@ def run_solve_factored(cfg: DictConfig, out: Path, scenario: str | None = None) 
         table=table_dict(rows, {}),
     )
     write_summary(out / "summary.json", summary)
-    write_policy_csv(out / "policy.csv", sol.policy)
+    write_policy_csv(out / "policy.csv", sol.policy, model.params.env.levels)
     print(f"\nwrote {out / 'summary.json'} and {out / 'policy.csv'}")
     return summary
 

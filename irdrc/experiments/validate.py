@@ -40,6 +40,17 @@ SOLVES_LIMIT = 5_000
 """The trade-off's bisection check solves every grid point below its answer: at most this many."""
 
 
+GENERAL_MODEL_KEYS = (
+    "env.factors",
+    "env.bursty",
+    "env.detection_prob",
+    "env.false_alarm_prob",
+    "reward.r5",
+)
+"""Optional keys of the general model (MODEL.md § B): absent from v1 scenarios, so a command line
+adds them with ``+`` (``+env.detection_prob=0.9``); ``Params`` validates them."""
+
+
 def config_groups() -> list[str]:
     """Config groups a command line may choose (``env=…``, ``algo=…``, …)."""
     return sorted(["env", *(p.name for p in CONF_DIR.iterdir() if p.is_dir())])
@@ -83,6 +94,8 @@ def check_overrides(config_name: str, overrides: list[str]) -> None:
         key = override_key(o)
         if key.startswith("hydra.") or key == "hydra" or key in keys:
             continue
+        if "env" in keys and any(key == g or key.startswith(g + ".") for g in GENERAL_MODEL_KEYS):
+            continue  # the general model's optional keys (checked with the model's own errors)
         close = difflib.get_close_matches(key, sorted(keys | set(groups)), n=1, cutoff=0.5)
         hint = f"; did you mean {close[0]}?" if close else ""
         raise ValueError(
@@ -142,7 +155,7 @@ def check_params(cfg: DictConfig, factored: bool = False) -> Params:
             f"env.queue_capacity={params.env.queue_capacity}: the exact model has S = {S} states "
             f"and its dense transition tensor would take {dense / 2**30:.1f} GiB (limit "
             f"{DENSE_MODEL_LIMIT_BYTES / 2**30:.1f} GiB); use env.queue_capacity ≤ "
-            f"{int(math.sqrt(DENSE_MODEL_LIMIT_BYTES / 16) // 32) - 1}"
+            f"{int(math.sqrt(DENSE_MODEL_LIMIT_BYTES / 16) // math.prod(params.env.levels)) - 1}"
         )
     rw = params.reward
     if rw.r1 == rw.r2 == rw.r3 == rw.r4 == 0:

@@ -392,3 +392,25 @@ def test_solve_recipe_on_the_named_scenarios(tmp_path, args, states):
         assert fa == pytest.approx(p_fa, rel=1e-9) and "false_alarm_rate" in res.stdout
     header = (tmp_path / "policy.csv").read_text().splitlines()[0]
     assert header == "d,c,r,w,v,m,action,p_radar"
+
+
+def test_the_lp_on_sparse_factored_transitions_equals_the_dense_lp():
+    """MODEL.md § B.4: the CMDP LP's flow constraints built sparse from the factors give the dense
+    model's matrices (to rounding) and the same constrained optimum."""
+    from irdrc.core.cmdp import solve_cmdp, sparse_transitions
+
+    for p, sparse_enough in ((_random_params(0), False), (params_of("levels", queue=30), True)):
+        dense, fac = build_model(p), build_factored(p)
+        for a in (0, 1):
+            sp = sparse_transitions(fac, a)
+            assert sp.nnz <= int((dense.P[a] > 0).sum())  # arrivals past 1e-17 are folded in
+            if sparse_enough:  # O(S · fan-out): arrivals kept × the factors' row support
+                fan_out = fac.pmf.shape[-1] * int((fac.F[a] > 0).sum(1).max())
+                assert sp.nnz <= dense.num_states * fan_out < dense.P[a].numel()
+            assert float(abs(sp.toarray() - dense.P[a].numpy()).max()) < 1e-15
+    small = Params.from_overrides({**FEATURES["imperfect_radar"], "queue_capacity": 4})
+    sd = solve_cmdp(build_model(small), 0.25)
+    sf = solve_cmdp(build_factored(small), 0.25)
+    assert sf.value == pytest.approx(sd.value, rel=1e-8)
+    assert sf.metrics.miss_detection <= 0.25
+    assert sf.metrics.false_alarm_rate == pytest.approx(0.1, rel=1e-9)

@@ -18,6 +18,7 @@ import contextlib
 import dataclasses
 import math
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import torch
@@ -98,11 +99,108 @@ class CMDPSolution:
         return self.policy[:, 1]
 
 
-def solve_lp(
-    P: torch.Tensor, objective: torch.Tensor, constraints: list[Constraint] = ()
-) -> LPResult:
-    """The average-criterion LP over occupation measures for transitions ``P`` [2, S, S] and a
-    per-(action, state) ``objective`` [2, S], maximised subject to ``constraints``.
+@dataclass(frozen=True)
+class LPModel:
+    """What the LP needs of a model, dense or factored: per-action sparse transition matrices and
+    the [2, S] (or [S]) expectation tables, under ``ExactModel``'s names."""
+
+    params: Any
+    P: tuple  # two scipy.sparse CSR matrices [S, S]
+    R: torch.Tensor
+    event: torch.Tensor
+    missed: torch.Tensor
+    sent: torch.Tensor
+    dropped: torch.Tensor
+    capacity: torch.Tensor
+    source: Any  # the ExactModel or FactoredModel it came from
+
+    @property
+    def num_states(self) -> int:
+        """S."""
+        return int(self.R.shape[-1])
+
+    def metrics(self, policy: torch.Tensor) -> Metrics:
+        """Exact stationary metrics of ``policy`` on the source model."""
+        from irdrc.core.factored import FactoredModel, stationary_metrics_factored
+
+        if isinstance(self.source, FactoredModel):
+            return stationary_metrics_factored(self.source, policy)
+        return stationary_metrics(self.source, policy)
+
+
+def lp_model(model: Any) -> LPModel:
+    """The LP's view of an ``ExactModel`` or a ``irdrc.core.factored.FactoredModel``. For the
+    factored one the transition matrices are built sparse from its factors (MODEL.md § B.4:
+    O(S · fan-out) non-zeros, never S × S dense)."""
+    from scipy import sparse
+
+    from irdrc.core.factored import FactoredModel
+
+    if isinstance(model, LPModel):
+        return model
+    if isinstance(model, FactoredModel):
+        t = {k: v.cpu() for k, v in model.tables().items()}
+        P = tuple(sparse_transitions(model, a) for a in (0, 1))
+        return LPModel(
+            model.params,
+            P,
+            t["R"],
+            t["event"],
+            t["missed"],
+            t["sent"],
+            t["dropped"],
+            t["capacity"],
+            model,
+        )
+    P = tuple(sparse.csr_matrix(model.P[a].numpy()) for a in (0, 1))
+    return LPModel(
+        model.params,
+        P,
+        model.R,
+        model.event,
+        model.missed,
+        model.sent,
+        model.dropped,
+        model.capacity,
+        model,
+    )
+
+
+def sparse_transitions(model: Any, a: int):
+    """P_a of a factored model as a SciPy CSR matrix: P[(d, f), (d′, f′)] = Q(d′ | d, ν, λ)·F[a, f,
+    f′], the queue's arrivals (``model.pmf``, tail folded into the last entry) clamped at 0 and D."""
+    from scipy import sparse
+
+    D1, nf = model.queue_capacity + 1, model.num_configs
+    F = model.F[a].cpu().numpy()
+    rows, cols, vals = [], [], []
+    d = np.arange(D1)
+    for sel, nu, prow in model._cols[a]:
+        pmf = model.pmf[prow].cpu().numpy()
+        keep = np.nonzero(pmf)[0]
+        dn = np.clip(d[:, None] + keep[None, :] - nu, 0, D1 - 1)  # [D + 1, K]
+        q = sparse.coo_matrix(
+            (np.broadcast_to(pmf[keep], dn.shape).ravel(), (np.repeat(d, keep.size), dn.ravel())),
+            shape=(D1, D1),
+        ).tocsr()  # duplicates (the clamped ends) summed
+        q = q.tocoo()
+        fsel = np.arange(nf)[sel.cpu().numpy() if isinstance(sel, torch.Tensor) else sel]
+        fr, fc = np.nonzero(F[fsel])
+        fv = F[fsel][fr, fc]
+        fr = fsel[fr]
+        rows.append((q.row[:, None] * nf + fr[None, :]).ravel())
+        cols.append((q.col[:, None] * nf + fc[None, :]).ravel())
+        vals.append((q.data[:, None] * fv[None, :]).ravel())
+    S = D1 * nf
+    return sparse.csr_matrix(
+        (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(S, S)
+    )
+
+
+def solve_lp(P: Any, objective: torch.Tensor, constraints: list[Constraint] = ()) -> LPResult:
+    """The average-criterion LP over occupation measures for transitions ``P`` (a dense [2, S, S]
+    tensor or two SciPy sparse matrices) and a per-(action, state) ``objective`` [2, S], maximised
+    subject to ``constraints``.
 
     Raises:
         InfeasibleTarget: when HiGHS finds no feasible occupancy.
@@ -111,11 +209,11 @@ def solve_lp(
     from scipy import sparse
     from scipy.optimize import linprog
 
-    S = P.shape[-1]
+    S = P[0].shape[-1]
     # Variables x(a, s) in order a·S + s. Flow rows: x(·, s′) summed over a, minus inflow.
     blocks = []
     for a in range(2):
-        Pa = sparse.csr_matrix(P[a].numpy())
+        Pa = P[a] if sparse.issparse(P[a]) else sparse.csr_matrix(P[a].numpy())
         blocks.append(sparse.identity(S, format="csr") - Pa.T)
     A_flow = sparse.hstack(blocks, format="csr")
     A_eq = sparse.vstack([A_flow[1:], sparse.csr_matrix(np.ones((1, 2 * S)))], format="csr")
@@ -196,7 +294,7 @@ def build_constraints(
     return out
 
 
-def _explain_infeasible(model: ExactModel, constraints: list[Constraint]) -> str:
+def _explain_infeasible(model: LPModel, constraints: list[Constraint]) -> str:
     """Which constraint no policy can meet alone (its best achievable value), or that they
     conflict only together."""
     for c in constraints:
@@ -208,7 +306,7 @@ def _explain_infeasible(model: ExactModel, constraints: list[Constraint]) -> str
 
 
 def solve_cmdp(
-    model: ExactModel,
+    model: Any,
     target_miss: float,
     objective: str = "throughput",
     max_drop: float | None = None,
@@ -217,10 +315,14 @@ def solve_cmdp(
     """The best stationary randomised policy for ``objective`` with miss detection ≤
     ``target_miss`` (and optionally drop rate ≤ ``max_drop``, radar fraction ≥ ``min_radar``).
 
+    ``model``: an ``ExactModel`` or a factored one (``irdrc.core.factored.build_factored``, whose
+    transitions go to the LP as sparse matrices built from its factors).
+
     Raises:
         ValueError: on a bad value (named).
         InfeasibleTarget: when no policy meets the constraints (the message says which).
     """
+    model = lp_model(model)
     table = objective_table(model, objective)
     build_constraints(model, target_miss, max_drop, min_radar)  # checks the values as given
     margin = MISS_MARGIN
@@ -237,7 +339,7 @@ def solve_cmdp(
 
 
 def _solve_once(
-    model: ExactModel,
+    model: LPModel,
     table: torch.Tensor,
     objective: str,
     target_miss: float,
@@ -259,7 +361,7 @@ def _solve_once(
         lp = solve_lp(model.P, -model.missed.to(torch.float64), [*constraints, keep])
     mass = lp.occupancy.sum(0)
     randomised = ((lp.policy > RANDOMISED_TOL).all(-1) & (mass > 0)).nonzero().flatten().tolist()
-    metrics = stationary_metrics(model, lp.policy)
+    metrics = model.metrics(lp.policy)
     achieved = {"miss_detection": (metrics.miss_detection, float(target_miss))}
     if max_drop is not None:
         achieved["drop_rate"] = (metrics.drop_rate, float(max_drop))

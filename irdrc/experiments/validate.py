@@ -372,9 +372,10 @@ def _bench_env(cfg: DictConfig) -> None:
 
 def _constrained(cfg: DictConfig) -> None:
     from irdrc.core.cmdp import OBJECTIVES, solve_cmdp
-    from irdrc.core.model import build_model
 
-    params = check_common(cfg)
+    # the LP runs on the factored model (sparse flow constraints) where the dense one is too large;
+    # the learner's exact scorer needs the dense one
+    params = check_common(cfg, factored=cfg.get("learner", "lp") == "lp")
     check_choice("objective", cfg.objective, OBJECTIVES)
     check_number("target_miss", cfg.target_miss, 0, 1)
     if cfg.max_drop is not None:
@@ -420,9 +421,9 @@ def _constrained(cfg: DictConfig) -> None:
         check_number(f"frontier_grid.targets[{i}]", t, 0, 1)
     if params is not None and not cfg.frontier:
         # Feasibility is the LP itself: refused here, before the run directory exists.
-        from irdrc.experiments.constrained import constraint_kwargs
+        from irdrc.experiments.constrained import constraint_kwargs, lp_exact_model
 
-        solve_cmdp(build_model(params), **constraint_kwargs(cfg))
+        solve_cmdp(lp_exact_model(params), **constraint_kwargs(cfg))
 
 
 VALIDATORS: dict[str, Callable[[DictConfig], None]] = {

@@ -1,9 +1,11 @@
 """The exact model of MODEL.md: P[a, s, s′], R[a, s] and per-step expectations, in float64.
 
-Built from the same ``Params`` as the simulator but written independently of its step code (per-factor
-2×2 chains combined by Kronecker products, the queue summed over Poisson arrivals exactly), so that
-comparing the two can catch a bug in either. State indexing is the one of ``irdrc.core.env``:
-s = d·32 + c·16 + r·8 + w·4 + v·2 + m.
+Built from the same per-configuration tables as the simulator (``irdrc.core.tables``: the factor
+chains as a Kronecker product, events, rewards), with the queue summed over Poisson arrivals exactly
+here rather than sampled, so comparing the two catches a bug in either's queue or sampling; the
+tables themselves are checked against the config and hand-computed values (tests/test_general.py,
+tests/test_exact.py). State indexing is the one of ``irdrc.core.env``: s = d·F + f (v1:
+s = d·32 + c·16 + r·8 + w·4 + v·2 + m).
 """
 
 from __future__ import annotations
@@ -67,57 +69,6 @@ def _poisson_pmf(rate: float, k: int) -> float:
     if rate == 0.0:
         return 1.0 if k == 0 else 0.0
     return math.exp(k * math.log(rate) - rate - math.lgamma(k + 1))
-
-
-def _factor_chain(stay_good: float, stay_bad: float) -> torch.Tensor:
-    """2×2 transition matrix of one factor: rows current condition, columns next."""
-    return torch.tensor(
-        [[stay_good, 1.0 - stay_good], [1.0 - stay_bad, stay_bad]], dtype=torch.float64
-    )
-
-
-def _factor_transitions(params: Params) -> torch.Tensor:
-    """[2, 32, 32]: P(factors′ | a, factors) over the 5 Markov factors (c, r, w, v, m)."""
-    env = params.env
-    chains = [
-        _factor_chain(g, h)
-        for g, h in zip(env.stay_good.as_tuple(), env.stay_bad.as_tuple(), strict=True)
-    ]
-    # Kronecker product in (c, r, w, v, m) order gives index c·16 + r·8 + w·4 + v·2 + m.
-    base = chains[0]
-    for ch in chains[1:]:
-        base = torch.kron(base, ch)
-    radar = base.clone()
-    if env.radar_reaction:
-        # a = 1 and m = 1: v′ = 0 surely, m′ = 0 w.p. reaction_clear; c, r, w follow their chains.
-        crw = torch.kron(torch.kron(chains[0], chains[1]), chains[2])  # [8, 8]
-        clear = env.reaction_clear
-        vm_next = torch.tensor([clear, 1.0 - clear, 0.0, 0.0], dtype=torch.float64)  # (v′, m′)
-        for f in range(32):
-            if f & 1:  # m = 1
-                radar[f] = torch.kron(crw[f >> 2], vm_next)
-    return torch.stack([base, radar])
-
-
-def event_and_reward(params: Params, s: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """[len(s)] event probability and [2, len(s)] expected reward (eq. (3)) of states ``s`` (only
-    their factor bits s mod 32 matter), float64."""
-    env, rw = params.env, params.reward
-    c = (s // 16) % 2
-    rwvm = [(s // 8) % 2, (s // 4) % 2, (s // 2) % 2, s % 2]
-    b = sum(x.to(torch.float64) for x in rwvm)
-    # Every table is float64 from the parameters on: a Python float given to ``torch.where`` would
-    # become a float32 scalar tensor and round the probabilities (e.g. 0.5212 → 0.5212000111).
-    p0 = torch.tensor(env.p0.as_tuple(), dtype=torch.float64)
-    p1 = torch.tensor(env.p1.as_tuple(), dtype=torch.float64)
-    per = [torch.where(x == 1, p1[i], p0[i]) for i, x in enumerate(rwvm)]
-    if env.event_model == "noisy_or":
-        event = 1.0 - math.prod(1.0 - p for p in per)
-    else:
-        event = torch.clamp(sum(per), max=1.0)
-    r12 = torch.tensor([rw.r1, rw.r2], dtype=torch.float64)
-    R = torch.stack([(1.0 - event) * r12[c] - event * rw.r3, event * rw.r4 * (b + 1.0)])
-    return event, R
 
 
 DENSE_MODEL_LIMIT_BYTES = 2**29

@@ -9,6 +9,14 @@ import torch
 from tensordict import TensorDict
 
 from irdrc import DFRCEnv, Params
+from irdrc.core.factored import (
+    build_factored,
+    stationary_distribution_factored,
+    stationary_metrics_factored,
+    value_iteration_factored,
+)
+from irdrc.core.model import build_model
+from irdrc.core.solve import stationary_metrics, value_iteration
 
 torch.set_num_threads(1)
 
@@ -48,3 +56,32 @@ def assert_chi2(counts: torch.Tensor, expected: torch.Tensor) -> None:
     dof += int(keep.sum())
     assert stat < dof + 5 * math.sqrt(2 * dof), (stat, dof)
     assert float(counts[expected == 0].sum()) == 0.0
+
+
+def assert_factored_equals_dense(params, seed: int) -> None:
+    """Every operator and table to 1e-9 (observed: ≤ 1e-11), value iteration's policy and values,
+    and exact stationary metrics of the optimum and of a randomised policy by both methods."""
+    dense, fac = build_model(params), build_factored(params)
+    S = dense.num_states
+    gen = torch.Generator().manual_seed(seed)
+    V = torch.randn(S, generator=gen, dtype=torch.float64)
+    x = torch.rand(S, generator=gen, dtype=torch.float64)
+    for a in (0, 1):
+        assert torch.allclose(fac.expect(V, a), dense.P[a] @ V, rtol=0, atol=1e-9)
+        assert torch.allclose(fac.push(x, a), x @ dense.P[a], rtol=0, atol=1e-9)
+    for key, table in fac.tables().items():
+        assert torch.allclose(table, getattr(dense, key), rtol=0, atol=1e-9), key
+    opt, fopt = value_iteration(dense), value_iteration_factored(fac, tol=1e-9)
+    assert torch.equal(opt.policy, fopt.policy)
+    assert torch.allclose(fopt.values, opt.values, rtol=0, atol=1e-8)
+    mixed = torch.rand(S, 2, generator=gen, dtype=torch.float64)
+    mixed = mixed / mixed.sum(-1, keepdim=True)
+    for policy in (opt.policy, mixed):
+        want = stationary_metrics(dense, policy).as_dict()
+        for method in ("gmres", "power"):
+            mu, _ = stationary_distribution_factored(fac, policy, method=method)
+            assert mu.shape == (S,) and abs(float(mu.sum()) - 1) < 1e-12
+        got = stationary_metrics_factored(fac, policy).as_dict()
+        assert set(got) == set(want)  # false_alarm_rate in both, or in neither
+        for k in want:
+            assert got[k] == pytest.approx(want[k], rel=1e-9, abs=1e-9), k

@@ -14,18 +14,16 @@ import math
 
 import pytest
 import torch
-from conftest import assert_chi2, one_step
+from conftest import assert_chi2, assert_factored_equals_dense, one_step
 
 from irdrc import Params
 from irdrc.core.env import decode_state, state_index
 from irdrc.core.factored import (
     build_factored,
-    stationary_metrics_factored,
-    value_iteration_factored,
 )
 from irdrc.core.gym import DFRCGymEnv
 from irdrc.core.model import build_model
-from irdrc.core.solve import stationary_metrics, value_iteration
+from irdrc.core.solve import stationary_metrics
 
 SPEED3 = {
     "levels": ["low", "medium", "high"],
@@ -253,23 +251,8 @@ def _random_params(seed: int) -> Params:
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_factored_equals_dense_with_every_feature_on(seed):
     p = _random_params(seed)
-    dense, fac = build_model(p), build_factored(p)
-    S = dense.num_states
-    gen = torch.Generator().manual_seed(seed)
-    V = torch.randn(S, generator=gen, dtype=torch.float64)
-    x = torch.rand(S, generator=gen, dtype=torch.float64)
-    for a in (0, 1):
-        assert torch.allclose(fac.expect(V, a), dense.P[a] @ V, rtol=0, atol=1e-9)
-        assert torch.allclose(fac.push(x, a), x @ dense.P[a], rtol=0, atol=1e-9)
-    for key, table in fac.tables().items():
-        assert torch.allclose(table, getattr(dense, key), rtol=0, atol=1e-9), key
-    sol_d, sol_f = value_iteration(dense), value_iteration_factored(fac, tol=1e-10)
-    assert torch.allclose(sol_d.values, sol_f.values, rtol=0, atol=1e-6)
-    met_d = stationary_metrics(dense, sol_d.policy).as_dict()
-    met_f = stationary_metrics_factored(fac, sol_d.policy).as_dict()
-    assert set(met_d) == set(met_f) and "false_alarm_rate" in met_d
-    for k, v in met_d.items():
-        assert math.isclose(v, met_f[k], rel_tol=1e-9, abs_tol=1e-9), k
+    assert p.env.false_alarm_prob > 0 and p.env.bursty is not None
+    assert_factored_equals_dense(p, seed)
 
 
 @pytest.mark.parametrize(

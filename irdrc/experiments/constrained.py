@@ -67,12 +67,13 @@ def describe_randomised(sol: CMDPSolution, levels=None) -> list[str]:
 
 
 def lp_exact_model(params: Params):
-    """The exact model the LP runs on: dense up to ``DENSE_MAX_STATES`` states, else the factored
-    one (its transitions reach the LP as sparse matrices built from the factors)."""
+    """The exact model the LP runs on: dense while its transition tensor fits
+    ``DENSE_MODEL_LIMIT_BYTES`` (the limit ``recipes/solve.py`` switches at), else the factored one
+    (its transitions reach the LP as sparse matrices built from the factors)."""
     from irdrc.core.factored import build_factored
-    from irdrc.core.model import DENSE_MAX_STATES
+    from irdrc.core.model import DENSE_MODEL_LIMIT_BYTES
 
-    if params.env.num_states <= DENSE_MAX_STATES:
+    if 16 * params.env.num_states**2 <= DENSE_MODEL_LIMIT_BYTES:
         return build_model(params)
     return build_factored(params)
 

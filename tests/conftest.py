@@ -78,10 +78,10 @@ def assert_factored_equals_dense(params, seed: int) -> None:
     mixed = mixed / mixed.sum(-1, keepdim=True)
     for policy in (opt.policy, mixed):
         want = stationary_metrics(dense, policy).as_dict()
-        for method in ("gmres", "power"):
+        for method in ("auto", "gmres", "iad", "power"):
             mu, _ = stationary_distribution_factored(fac, policy, method=method)
             assert mu.shape == (S,) and abs(float(mu.sum()) - 1) < 1e-12
-        got = stationary_metrics_factored(fac, policy).as_dict()
-        assert set(got) == set(want)  # false_alarm_rate in both, or in neither
-        for k in want:
-            assert got[k] == pytest.approx(want[k], rel=1e-9, abs=1e-9), k
+            got = stationary_metrics_factored(fac, policy, mu=mu).as_dict()
+            assert set(got) == set(want)  # false_alarm_rate in both, or in neither
+            for k in want:
+                assert got[k] == pytest.approx(want[k], rel=1e-9, abs=1e-9), (method, k)

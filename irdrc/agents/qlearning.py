@@ -191,16 +191,11 @@ def train(
 
     def evaluate(episodes: int) -> None:
         greedy = q.view(N, S, 2).argmax(-1).cpu()
-        wall = time.perf_counter() - t0
+        scored = [scorers[group_of[n]].metrics(greedy[n]) for n in range(N)]
+        wall = time.perf_counter() - t0  # evaluations included, as DQN's
         records = [
             progress_record(
-                n,
-                episodes * T,
-                episodes,
-                wall,
-                episodes * T,
-                scorers[group_of[n]].metrics(greedy[n]),
-                optima[group_of[n]],
+                n, episodes * T, episodes, wall, episodes * T, scored[n], optima[group_of[n]]
             )
             for n in range(N)
         ]

@@ -21,7 +21,7 @@ import torch
 
 from irdrc.core.metrics import Metrics
 from irdrc.core.params import Params
-from irdrc.core.solve import false_alarm_rate
+from irdrc.core.solve import DEFAULT_OPTIMUM_GAMMA, ExactScorer, false_alarm_rate
 from irdrc.core.tables import model_tables
 
 NEGLIGIBLE_MASS = 1e-30
@@ -573,3 +573,29 @@ def stationary_metrics_factored(
         mean_queue=float((occ.sum(0) * t["queue"]).sum()),
         false_alarm_rate=false_alarm_rate(occ, t["event"], t["false_alarms"], model.params),
     )
+
+
+class FactoredScorer(ExactScorer):
+    """``ExactScorer`` on the factored model: the optimum by ``value_iteration_factored`` (to
+    ``tol``), a table's metrics by ``stationary_metrics_factored``; for S beyond the dense model."""
+
+    def __init__(
+        self, model: FactoredModel, gamma: float = DEFAULT_OPTIMUM_GAMMA, tol: float = 1e-6
+    ) -> None:
+        self.model = model
+        self.optimal = value_iteration_factored(model, gamma=gamma, tol=tol)
+        self.optimal_metrics = stationary_metrics_factored(model, self.optimal.policy)
+        self._cache = {}
+
+    def _evaluate(self, table: torch.Tensor) -> Metrics:
+        return stationary_metrics_factored(self.model, table.to(self.model.device))
+
+
+def exact_scorer(params: Params, gamma: float = DEFAULT_OPTIMUM_GAMMA) -> ExactScorer:
+    """The exact scorer of ``params``: on the dense model up to ``DENSE_MODEL_LIMIT_BYTES`` (the
+    size ``recipes/solve.py`` switches at), else on the factored one."""
+    from irdrc.core.model import DENSE_MODEL_LIMIT_BYTES, build_model
+
+    if 16 * params.env.num_states**2 <= DENSE_MODEL_LIMIT_BYTES:
+        return ExactScorer(build_model(params), gamma)
+    return FactoredScorer(build_factored(params), gamma)

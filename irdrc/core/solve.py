@@ -275,8 +275,11 @@ class ExactScorer:
         """Exact stationary ``Metrics`` of the deterministic policy ``table`` ([S] actions)."""
         key = table.to(torch.uint8).cpu().numpy().tobytes()
         if key not in self._cache:
-            self._cache[key] = stationary_metrics(self.model, table.cpu())
+            self._cache[key] = self._evaluate(table.cpu())
         return self._cache[key]
+
+    def _evaluate(self, table: torch.Tensor):
+        return stationary_metrics(self.model, table)
 
     def ratio(self, table: torch.Tensor) -> float:
         """Average reward of ``table`` over the optimal average reward (both stationary)."""

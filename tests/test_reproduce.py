@@ -336,3 +336,28 @@ def test_learner_block_is_the_benchmark_table(tmp_path):
     (tmp_path / "bench_constrained.md").write_text("| a |\n|---|\n| 1 |\n")
     block = learner_block(tmp_path)
     assert block.startswith("| a |\n|---|\n| 1 |") and "2 runs, 3 min" in block
+
+
+def test_study_block_is_the_study_table(tmp_path):
+    """The report's study block is the study's own table file, its optima and its total time."""
+    from irdrc.paper.report import study_block
+
+    (tmp_path / "study.md").write_text("| a |\n|---|\n| 1 |\n")
+    summary = {
+        "scenarios": {
+            "paper": {
+                "states": 352,
+                "solver": "ExactScorer",
+                "solve_seconds": 0.7,
+                "avg_reward": 0.89851,
+                "radar_fraction": 0.1,
+            }
+        },
+        "learners": ["dqn"],
+        "seeds": [100, 101],
+        "wall_seconds": 600.0,
+    }
+    (tmp_path / "summary.json").write_text(json.dumps(summary))
+    block = study_block(tmp_path)
+    assert block.startswith("| a |\n|---|\n| 1 |")
+    assert "Seeds 100, 101. paper: S = 352, optimum 0.8985" in block and "10 min" in block

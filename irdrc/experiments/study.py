@@ -28,7 +28,7 @@ from irdrc.core.factored import exact_scorer
 from irdrc.core.metrics import Metrics
 from irdrc.core.params import Params
 from irdrc.core.solve import ExactScorer
-from irdrc.experiments.config import compose
+from irdrc.experiments.config import compose, list_scenarios
 from irdrc.experiments.results import atomic_write_text, write_rows_csv
 from irdrc.experiments.runs import LEARNERS
 
@@ -78,6 +78,10 @@ def check_study(cfg: DictConfig) -> None:
         )
     if not cfg.scenarios or not cfg.seeds:
         raise ValueError("scenarios and seeds must be non-empty lists")
+    known = list_scenarios()
+    bad = [str(s) for s in cfg.scenarios if str(s) not in known]
+    if bad:
+        raise ValueError(f"scenarios {bad} are not named scenarios ({', '.join(known)})")
     for s in cfg.scenarios:
         if int(_evals(cfg, str(s))) < 1:
             raise ValueError(f"evals for {s} must be >= 1")

@@ -46,10 +46,11 @@ def write_report(
     command: str,
     frontier_dir: Path | None = None,
     learner_dir: Path | None = None,
+    study_dir: Path | None = None,
 ) -> None:
     """Copy the figures into ``docs_dir/figures`` and fill the generated blocks of
     ``docs_dir/REPRODUCTION.md`` from a figure2 run, a tradeoff run and (when given) a
-    ``constrained.py frontier=true`` run and a ``bench_constrained.py`` run."""
+    ``constrained.py frontier=true`` run, a ``bench_constrained.py`` run and a ``study.py`` run."""
     figure_dir, tradeoff_dir, docs_dir = Path(figure_dir), Path(tradeoff_dir), Path(docs_dir)
     fig_out = docs_dir / "figures"
     fig_out.mkdir(parents=True, exist_ok=True)
@@ -117,6 +118,8 @@ def write_report(
         report = _block(report, "design", design_block(Path(frontier_dir)))
     if learner_dir is not None:
         report = _block(report, "design_learner", learner_block(Path(learner_dir)))
+    if study_dir is not None:
+        report = _block(report, "study", study_block(Path(study_dir)))
     atomic_write_text(docs_dir / "REPRODUCTION.md", report)
 
 
@@ -127,6 +130,21 @@ def learner_block(bench_dir: Path) -> str:
     return (
         (bench_dir / "bench_constrained.md").read_text().strip()
         + f"\n\n{len(rows)} runs, {total / 60:.0f} min of run time in all (2 at a time here)."
+    )
+
+
+def study_block(study_dir: Path) -> str:
+    """The study's table (``study.md``), each scenario's optimum and solver, and its total time."""
+    summary = json.loads((study_dir / "summary.json").read_text())
+    optima = "; ".join(
+        f"{name}: S = {o['states']}, optimum {o['avg_reward']:.4f} reward/step "
+        f"({o['solver']}, {o['solve_seconds']:.1f} s)"
+        for name, o in summary["scenarios"].items()
+    )
+    return (
+        (study_dir / "study.md").read_text().strip()
+        + f"\n\nSeeds {', '.join(map(str, summary['seeds']))}. {optima}. "
+        + f"The whole study: {summary['wall_seconds'] / 60:.0f} min."
     )
 
 

@@ -1,0 +1,84 @@
+"""recipes/study.py (irdrc.experiments.study): every (scenario, learner, seed) scored exactly, the
+scoring time kept apart from training, bad studies refused before work."""
+
+from __future__ import annotations
+
+import csv
+import json
+
+import pytest
+import torch
+from omegaconf import OmegaConf
+
+from irdrc.core.model import build_model
+from irdrc.core.params import Params
+from irdrc.core.solve import ExactScorer
+from irdrc.experiments.config import compose
+from irdrc.experiments.study import TimedScorer, check_study, run_study
+
+
+def study_cfg(**kw):
+    cfg = compose("study", [])
+    OmegaConf.set_struct(cfg, False)  # a key the command line would refuse reaches the check
+    base = {
+        "scenarios": ["paper"],
+        "seeds": [0, 1],
+        "evals": {"default": 2},
+        "overrides": {"dqn": ["algo.total_frames=640"], "qlearning": ["algo.episodes=2"]},
+    }
+    base.update(kw)
+    return OmegaConf.merge(cfg, base)
+
+
+def test_study_rows_and_table(tmp_path):
+    assert run_study(study_cfg(), tmp_path) == 0
+    rows = list(csv.DictReader((tmp_path / "study.csv").open()))
+    assert [(r["learner"], r["seed"]) for r in rows] == [
+        ("dqn", "0"),
+        ("dqn", "1"),
+        ("qlearning", "0"),
+        ("qlearning", "1"),
+    ]
+    # Q-learning's seeds are learners of one batched run; DQN runs once per seed
+    assert {r["run_seed"] for r in rows if r["learner"] == "qlearning"} == {"0"}
+    assert [r["learners_in_run"] for r in rows] == ["1", "1", "2", "2"]
+    for r in rows:
+        assert r["budget_env_steps"] == ("640" if r["learner"] == "dqn" else "800")
+        assert int(r["evaluations"]) == 3  # at 0, half-way, end
+        assert float(r["train_seconds"]) >= 0 and float(r["scoring_seconds"]) >= 0
+        assert float(r["best_ratio"]) >= float(r["final_ratio"])
+        for pct in (95, 99):
+            if r[f"env_steps_to_{pct}"]:
+                assert float(r[f"train_seconds_to_{pct}"]) <= float(r["train_seconds"]) + 1e-9
+    # the final ratio is the exact ratio of the final greedy policy: Q-learning's budget of 2
+    # episodes cannot have left the all-comm start for every state, so it is below the optimum
+    assert all(float(r["final_ratio"]) < 0.999 for r in rows if r["learner"] == "qlearning")
+    table = (tmp_path / "study.md").read_text().splitlines()
+    assert len(table) == 2 + 2 and table[2].startswith("| paper (352) | dqn | 640 |")
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["scenarios"]["paper"]["solver"] == "ExactScorer"
+
+
+def test_timed_scorer_counts_every_call():
+    scorer = ExactScorer(build_model(Params.from_config(compose("solve", []))))
+    timed = TimedScorer(scorer)
+    table = scorer.optimal.policy
+    assert timed.metrics(table).avg_reward == scorer.optimal_metrics.avg_reward
+    timed.metrics(torch.ones_like(table))
+    assert len(timed.after) == 2 and timed.after[0] <= timed.after[1] == timed.seconds
+
+
+@pytest.mark.parametrize(
+    "kw, match",
+    [
+        ({"learners": ["ppo"]}, "learners"),
+        ({"learners": []}, "learners"),
+        ({"seeds": []}, "non-empty"),
+        ({"scenarios": ["paper", "nowhere"]}, "nowhere"),
+        ({"evals": {"default": 0}}, "evals"),
+        ({"overrides": {"sac": []}}, "overrides.sac"),
+    ],
+)
+def test_bad_studies_refused(kw, match):
+    with pytest.raises(ValueError, match=match):
+        check_study(study_cfg(**kw))

@@ -91,6 +91,13 @@ class FactoredModel:
                 per.append((sel, *self.groups[g]))
             cols.append(tuple(per))
         object.__setattr__(self, "_cols", tuple(cols))
+        # each row's probabilities as floats, without the padding zeros (the shifts to add up)
+        weights = []
+        for r in self.pmf.cpu().tolist():
+            while len(r) > 1 and r[-1] == 0.0:
+                r.pop()
+            weights.append(tuple(r))
+        object.__setattr__(self, "_weights", tuple(weights))
 
     @property
     def num_configs(self) -> int:
@@ -146,18 +153,17 @@ class FactoredModel:
         D1 = W.shape[0]
         out = torch.empty_like(W)
         for cols, nu, row in self._cols[a]:
-            pmf = self.pmf[row]
-            K = pmf.shape[0]
-            w = W[:, cols].T[:, None, :]  # [n, 1, D + 1]
+            pmf = self._weights[row]
+            K = len(pmf)
+            w = W[:, cols]  # [D + 1, n]
             # Pad so that index d + k − ν is clamped: ν copies of row 0 before, K copies of row D
-            # after; then a correlation with the pmf.
-            left = w[..., :1].expand(-1, -1, nu)
-            right = w[..., -1:].expand(-1, -1, K)
-            padded = torch.cat([left, w, right], -1)
-            # windows of K consecutive entries times the pmf (a float64 conv1d takes a slow path)
-            win = padded[:, 0, : D1 + K - 1].unfold(-1, K, 1)  # [n, D + 1, K]
-            conv = (win.reshape(-1, K) @ pmf).view(win.shape[:2])  # [n, D + 1]
-            out[:, cols] = conv.T
+            # after; then out[d] = Σ_k pmf[k]·padded[d + k], one shifted add per k (cheaper than a
+            # float64 conv1d or materialised windows at every size measured).
+            padded = torch.cat([w[:1].expand(nu, -1), w, w[-1:].expand(K, -1)])
+            acc = padded[:D1] * pmf[0]
+            for k in range(1, K):
+                acc.add_(padded[k : k + D1], alpha=pmf[k])
+            out[:, cols] = acc
         return out
 
     def expect(self, V: torch.Tensor, a: int) -> torch.Tensor:
@@ -177,16 +183,17 @@ class FactoredModel:
         n = X.shape[0]
         Z = torch.empty_like(X)
         for cols, nu, row in self._cols[a]:
-            pmf = self.pmf[row]
+            pmf = self._weights[row]
+            K = len(pmf)
+            x = X[:, cols]  # [n, m]
             # full[j] = Σ_k pmf[k]·X[j − k]: mass at d + k; its queue is clamp(j − ν, 0, n − 1).
-            K = pmf.shape[0]
-            xs = torch.nn.functional.pad(X[:, cols].T, (K - 1, K - 1))  # [m, n + 2K − 2]
-            win = xs.unfold(-1, K, 1)  # [m, n + K − 1, K]
-            full = (win.reshape(-1, K) @ pmf.flip(0)).view(win.shape[:2])  # [m, n + K − 1]
-            z = full[:, nu : nu + n].clone()
-            z[:, 0] += full[:, :nu].sum(-1)
-            z[:, -1] += full[:, nu + n :].sum(-1)
-            Z[:, cols] = z.T
+            full = x.new_zeros(n + K - 1, x.shape[1])
+            for k in range(K):
+                full[k : k + n].add_(x, alpha=pmf[k])
+            z = full[nu : nu + n].clone()
+            z[0] += full[:nu].sum(0)
+            z[-1] += full[nu + n :].sum(0)
+            Z[:, cols] = z
         return Z @ self.F[a]
 
     def step_measure(self, x: torch.Tensor, p_radar: torch.Tensor) -> torch.Tensor:
@@ -264,7 +271,6 @@ def build_factored(params: Params, device: str | torch.device = "cpu") -> Factor
         s_, d_ = _queue_expectations(rates[row], D, nu, nu_max)
         sent.append(s_)
         dropped.append(d_)
-    # Each row's conv1d runs over its own length: trailing zeros would only add work.
     return FactoredModel(
         params=params,
         F=t.F.to(dev),

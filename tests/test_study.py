@@ -76,6 +76,7 @@ def test_timed_scorer_counts_every_call():
         ({"seeds": []}, "non-empty"),
         ({"scenarios": ["paper", "nowhere"]}, "nowhere"),
         ({"evals": {"default": 0}}, "evals"),
+        ({"evals": {"default": 2, "larg": 3}}, "evals.larg"),
         ({"overrides": {"sac": []}}, "overrides.sac"),
     ],
 )

@@ -479,9 +479,7 @@ def _stationary_iad(
     return X.reshape(-1), max_iter, False
 
 
-def _stationary_gmres(
-    model: FactoredModel, p: torch.Tensor, start: torch.Tensor | None = None
-) -> tuple[torch.Tensor | None, int]:
+def _stationary_gmres(model: FactoredModel, p: torch.Tensor) -> tuple[torch.Tensor | None, int]:
     import numpy as np
     from scipy.sparse.linalg import LinearOperator, gmres
 
@@ -495,11 +493,10 @@ def _stationary_gmres(
         xt = torch.from_numpy(np.asarray(x, dtype=np.float64).reshape(-1))
         return (xt - model.step_measure(xt, pc) + xt.sum() / S).numpy()
 
-    if start is None:
-        start = torch.zeros(S, dtype=torch.float64)
-        nf = model.num_configs
-        d0 = _start_queue(model, pc.reshape(-1, nf))
-        start[d0 * nf : (d0 + 1) * nf] = 1.0 / nf
+    start = torch.zeros(S, dtype=torch.float64)
+    nf = model.num_configs
+    d0 = _start_queue(model, pc.reshape(-1, nf))
+    start[d0 * nf : (d0 + 1) * nf] = 1.0 / nf
     A = LinearOperator((S, S), matvec=matvec, dtype=np.float64)
     b = np.full(S, 1.0 / S)
     x, info = gmres(

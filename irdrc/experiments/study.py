@@ -25,7 +25,7 @@ from omegaconf import DictConfig
 
 from irdrc.agents.base import Hooks
 from irdrc.core.factored import exact_scorer
-from irdrc.core.metrics import Metrics
+from irdrc.core.metrics import Metrics, first_reaching
 from irdrc.core.params import Params
 from irdrc.core.solve import ExactScorer
 from irdrc.experiments.config import compose, list_scenarios
@@ -82,6 +82,9 @@ def check_study(cfg: DictConfig) -> None:
     bad = [str(s) for s in cfg.scenarios if str(s) not in known]
     if bad:
         raise ValueError(f"scenarios {bad} are not named scenarios ({', '.join(known)})")
+    stray = [str(k) for k in cfg.evals if str(k) != "default" and str(k) not in known]
+    if stray:
+        raise ValueError(f"evals.{stray[0]}: not a named scenario ({', '.join(known)}) or default")
     for s in cfg.scenarios:
         if int(_evals(cfg, str(s))) < 1:
             raise ValueError(f"evals for {s} must be >= 1")
@@ -93,13 +96,6 @@ def check_study(cfg: DictConfig) -> None:
 def _evals(cfg: DictConfig, scenario: str) -> int:
     evals = cfg.evals
     return int(evals.get(scenario, evals.get("default", 20)))
-
-
-def _first(curve: list[dict[str, Any]], key: str, threshold: float) -> Any:
-    for e in curve:
-        if e["optimality_ratio"] >= threshold:
-            return e[key]
-    return None
 
 
 BATCHED = ("qlearning",)
@@ -157,8 +153,8 @@ def run_seeds(
             }
             for th in THRESHOLDS:
                 pct = round(th * 100)
-                row[f"env_steps_to_{pct}"] = _first(curve, "env_steps", th)
-                secs = _first(curve, "train_seconds", th)
+                row[f"env_steps_to_{pct}"] = first_reaching(curve, th)
+                secs = first_reaching(curve, th, at="train_seconds")
                 row[f"train_seconds_to_{pct}"] = None if secs is None else round(secs, 2)
             row["final_ratio"] = curve[-1]["optimality_ratio"]
             row["best_ratio"] = max(e["optimality_ratio"] for e in curve)

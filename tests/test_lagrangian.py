@@ -43,6 +43,8 @@ def test_yaml_profile_equals_the_dataclass_defaults():
         ("measure_envs", 1),
         ("measure_max_blocks", 0),
         ("bogus", 1),
+        ("average_tau", 0.01),  # DQN options the Lagrangian loop does not implement
+        ("reward_centering", 0.001),
     ],
 )
 def test_bad_settings_named(key, value):

@@ -114,6 +114,12 @@ class DQNConfig:
         average_tau: 0, or the rate of a Polyak average of the online network (updated after every
             gradient update) whose greedy actions are the evaluated and the final policy; acting
             stays with the online network.
+        reward_centering: 0 (off), or the rate per env step of an exponential average r̄ of the
+            collected rewards, subtracted from every sampled reward before the loss (reward
+            centering, Naik et al. 2024). Without terminal states this shifts every Q-value by
+            r̄/(1 − γ) and leaves the greedy policy unchanged, but the network no longer has to
+            grow its outputs to that offset — which, with γ = 0.99 and a soft target, takes far
+            longer than a run — and fits only the differences between states and actions.
         prioritized: proportional prioritised replay with exponent ``alpha`` and importance
             exponent annealed from ``beta_start`` to 1 over ``total_frames``.
         sampler: ``auto`` (TorchRL's when its extension loads, else ours), ``torchrl``, ``torch``.
@@ -141,6 +147,7 @@ class DQNConfig:
     tau: float = 0.01
     target_update_every_updates: int = 500
     average_tau: float = 0.0
+    reward_centering: float = 0.0
     prioritized: bool = True
     alpha: float = 0.6
     beta_start: float = 1.0
@@ -170,6 +177,7 @@ class DQNConfig:
         num("gamma", 0, 1, open_hi=True)
         for key in ("eps_start", "eps_end", "tau", "beta_start", "average_tau"):
             num(key, 0, 1)
+        num("reward_centering", 0, 1, open_hi=True)
         num("alpha", 0, 10)
         check_choice("algo.loss_function", self.loss_function, ("l2", "l1", "smooth_l1"))
         check_choice("algo.target_update", self.target_update, ("soft", "hard"))
@@ -323,6 +331,37 @@ def make_exploration(env: DFRCEnv, cfg: DQNConfig) -> EGreedyModule:
     )
 
 
+class RewardCenter:
+    """The running average r̄ of collected rewards that reward centering subtracts (see
+    ``DQNConfig.reward_centering``): the first batch's mean, then an exponential average at
+    ``rate`` per env step (so a batch of n steps moves it by 1 − (1 − rate)^n)."""
+
+    def __init__(self, rate: float, value: float | None = None) -> None:
+        self.rate = float(rate)
+        self.value = value
+
+    @property
+    def on(self) -> bool:
+        """Whether centering is enabled (``rate`` > 0)."""
+        return self.rate > 0
+
+    def update(self, reward: torch.Tensor) -> None:
+        """Fold in one collected batch of rewards (any shape)."""
+        if not self.on:
+            return
+        mean = float(reward.double().mean())
+        if self.value is None:
+            self.value = mean
+        else:
+            self.value += (1.0 - (1.0 - self.rate) ** reward.numel()) * (mean - self.value)
+
+    def center(self, sample: TensorDictBase) -> TensorDictBase:
+        """``sample`` with r̄ subtracted from its ``("next", "reward")`` (unchanged when off)."""
+        if self.on and self.value is not None:
+            sample.set(("next", "reward"), sample["next", "reward"] - self.value)
+        return sample
+
+
 def make_buffer(cfg: DQNConfig):
     """Replay buffer: prioritised (see ``irdrc.agents.replay``) or uniform. Returns (buffer, sampler)."""
     if cfg.prioritized:
@@ -420,7 +459,8 @@ def train(
     )
     hooks.start(dict(record.info))
 
-    start_frames = _restore(resume, loss, optimizer, exploration, record, average)
+    center = RewardCenter(cfg.reward_centering)
+    start_frames = _restore(resume, loss, optimizer, exploration, record, average, center)
     remaining = cfg.total_frames - start_frames
     if remaining <= 0:
         raise ValueError(
@@ -465,11 +505,12 @@ def train(
         _track_episodes(data, ep_total, frames, record.episode_rewards)
         data = data.reshape(-1)
         rb.extend(data)
+        center.update(data["next", "reward"])
         frames += data.numel()
         exploration.step(data.numel())
         _anneal(cfg, optimizer, sampler, frames)
         if len(rb) >= learn_from:
-            last_loss = _learn(cfg, rb, loss, optimizer, target, (average, qnet))
+            last_loss = _learn(cfg, rb, loss, optimizer, target, (average, qnet), center)
             record.updates += cfg.updates_per_batch
         hooks.batch(
             {
@@ -487,7 +528,7 @@ def train(
             next_eval = (frames // eval_every_frames + 1) * eval_every_frames
         if hooks.checkpoint_due(frames - data.numel(), frames) and frames < cfg.total_frames:
             wall = time.perf_counter() - t0
-            hooks.on_checkpoint(_checkpoint(loss, optimizer, record, frames, wall, average))
+            hooks.on_checkpoint(_checkpoint(loss, optimizer, record, frames, wall, average, center))
         if stop:
             record.interrupted = True
             break
@@ -497,7 +538,9 @@ def train(
     record.wall_seconds = time.perf_counter() - t0
     record.greedy = greedy_table(greedy_net, env)[None]
     record.q = action_values(greedy_net, env)[None]
-    record.state = _checkpoint(loss, optimizer, record, frames, record.wall_seconds, average)
+    record.state = _checkpoint(
+        loss, optimizer, record, frames, record.wall_seconds, average, center
+    )
     return record
 
 
@@ -527,11 +570,17 @@ def _checkpoint(
     frames: int,
     wall: float,
     average: QValueActor | None = None,
+    center: RewardCenter | None = None,
 ) -> dict:
     """The resumable state at ``frames`` env steps: networks (the averaged one too, when there is
-    one), optimiser, counters, history so far."""
+    one), optimiser, counters, history so far, and the reward centre r̄ when centering is on."""
     return {
         **({"average": average.state_dict()} if average is not None else {}),
+        **(
+            {"reward_center": center.value}
+            if center is not None and center.on and center.value is not None
+            else {}
+        ),
         "loss": loss.state_dict(),
         "optimizer": optimizer.state_dict(),
         "frames": frames,
@@ -549,11 +598,14 @@ def _restore(
     exploration: EGreedyModule,
     record: RunRecord,
     average: QValueActor | None = None,
+    center: RewardCenter | None = None,
 ) -> int:
     """Load a checkpoint into the components and the record; returns its env steps (0 if none)."""
     if resume is None:
         return 0
     loss.load_state_dict(resume["loss"])
+    if center is not None and center.on and resume.get("reward_center") is not None:
+        center.value = float(resume["reward_center"])
     if average is not None:
         average.load_state_dict(resume["average"])
     optimizer.load_state_dict(resume["optimizer"])
@@ -580,12 +632,16 @@ def _learn(
     optimizer: torch.optim.Optimizer,
     target,
     average: tuple[QValueActor | None, QValueActor] | None = None,
+    center: RewardCenter | None = None,
 ) -> float:
     """``updates_per_batch`` gradient updates from replay (each followed by the target update and,
-    with ``average`` = (average, online network), the policy average's); returns the last loss."""
+    with ``average`` = (average, online network), the policy average's; rewards centred by
+    ``center``); returns the last loss."""
     last = math.nan
     for _ in range(cfg.updates_per_batch):
         sample = rb.sample()
+        if center is not None:
+            sample = center.center(sample)
         out = loss(sample)
         optimizer.zero_grad(set_to_none=True)
         out["loss"].backward()

@@ -141,6 +141,13 @@ class LagrangianConfig:
         num("mix_steps", 0, 60, integer=True)
         if not isinstance(self.dqn, DQNConfig):
             raise ValueError(f"dqn={self.dqn!r} must be a DQNConfig")
+        # DQN options this learner's loop does not implement: refused rather than ignored.
+        for key in ("average_tau", "reward_centering"):
+            if getattr(self.dqn, key) != 0:
+                raise ValueError(
+                    f"algo.{key}={getattr(self.dqn, key)!r}: the Lagrangian DQN does not implement "
+                    f"it (set algo.{key}=0)"
+                )
 
     @classmethod
     def from_dict(

@@ -82,3 +82,30 @@ def test_centering_learns_the_long_horizon_optimum_at_p1_1_r4_50(seed):
     )
     run = train(params, DQNConfig(reward_centering=0.001), seed=seed, eval_every_frames=5000)
     assert run.history[-1]["optimality_ratio"] >= 0.99
+
+
+def test_value_slope_in_the_queue_is_exact_and_shift_invariant():
+    from irdrc.experiments.bench import value_slope
+
+    queue = torch.arange(11).repeat_interleave(32)
+    values = 3.0 * queue + torch.linspace(0, 1, 32).repeat(11)  # 3 per packet, factors aside
+    assert value_slope(values, queue) == pytest.approx(3.0)
+    assert value_slope(values + 1e3, queue) == pytest.approx(3.0)  # centering shifts, not tilts
+
+
+def test_gap_trace_records_the_learned_and_true_value_slope():
+    from irdrc.core.model import build_model
+    from irdrc.core.solve import ExactScorer
+    from irdrc.experiments.bench import _gap_tracer, comm_states
+
+    scorer = ExactScorer(build_model(Params()))
+    states = comm_states(scorer)
+    rows: list[dict] = []
+    hook = _gap_tracer(states, "dqn", 0, rows, scorer)
+    queue = scorer.model.queue.float()
+    q = torch.stack([2.0 * queue, 2.0 * queue - 1.0], -1)[None]  # comm better by 1 everywhere
+    hook(100, q)
+    assert len(rows) == len(states)
+    assert rows[0]["learned_value_slope"] == pytest.approx(2.0)
+    assert abs(rows[0]["true_value_slope"]) < 1e-9  # the paper's optimum ignores the queue
+    assert rows[0]["learned_gap"] == pytest.approx(1.0)

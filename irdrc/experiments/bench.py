@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import statistics
 from pathlib import Path
 from typing import Any
@@ -72,10 +73,32 @@ def comm_states(scorer: ExactScorer) -> list[dict[str, Any]]:
     return out
 
 
-def _gap_tracer(states: list[dict[str, Any]], profile: str, seed: int, rows: list[dict[str, Any]]):
-    """An ``on_values`` hook appending the learned gap at ``states`` to ``rows``."""
+def value_slope(values: torch.Tensor, queue: torch.Tensor) -> float:
+    """Least-squares slope of ``values`` [S] against the queue length ``queue`` [S] (value per
+    packet queued). The paper's reward does not depend on the queue, so the optimum's is 0; a
+    shift of every value (reward centering) leaves it unchanged."""
+    d = queue.double() - queue.double().mean()
+    v = values.double() - values.double().mean()
+    return float((d * v).sum() / (d * d).sum())
+
+
+def _gap_tracer(
+    states: list[dict[str, Any]],
+    profile: str,
+    seed: int,
+    rows: list[dict[str, Any]],
+    scorer: ExactScorer | None = None,
+):
+    """An ``on_values`` hook appending the learned gap at ``states`` to ``rows``, and with
+    ``scorer`` the learned and the true slope of V = max_a Q in the queue length."""
+    true_slope = learned_slope = math.nan
+    if scorer is not None:
+        true_slope = value_slope(scorer.optimal.values, scorer.model.queue)
 
     def on_values(env_steps: int, q: torch.Tensor) -> None:
+        nonlocal learned_slope
+        if scorer is not None:
+            learned_slope = value_slope(q[0].max(-1).values, scorer.model.queue)
         for st in states:
             gap = float(q[0, st["state"], 0] - q[0, st["state"], 1])
             rows.append(
@@ -88,6 +111,8 @@ def _gap_tracer(states: list[dict[str, Any]], profile: str, seed: int, rows: lis
                     "ratio_if_radar_here": st["ratio_if_radar_here"],
                     "true_gap": st["true_gap"],
                     "learned_gap": gap,
+                    "learned_value_slope": learned_slope,
+                    "true_value_slope": true_slope,
                 }
             )
 
@@ -112,7 +137,7 @@ def run_bench_dqn(cfg: DictConfig, out: Path) -> int:
         config = profile_config(name, extra)
         for seed in cfg.seeds:
             hooks = Hooks(
-                on_values=_gap_tracer(states, name, int(seed), gap_rows) if trace else None
+                on_values=_gap_tracer(states, name, int(seed), gap_rows, scorer) if trace else None
             )
             rec = dqn.train(
                 params,
@@ -153,6 +178,12 @@ def run_bench_dqn(cfg: DictConfig, out: Path) -> int:
             )
             if trace:
                 final = gap_rows[-len(states) :]
+                if final:
+                    print(
+                        f"    final learned slope of V in the queue length: "
+                        f"{final[-1]['learned_value_slope']:+.3f} per packet (true "
+                        f"{final[-1]['true_value_slope']:+.3f})"
+                    )
                 print(
                     "    final learned gap (true "
                     + ", ".join(sorted({f"{st['true_gap']:.3f}" for st in states}))

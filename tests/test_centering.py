@@ -109,3 +109,5 @@ def test_gap_trace_records_the_learned_and_true_value_slope():
     assert rows[0]["learned_value_slope"] == pytest.approx(2.0)
     assert abs(rows[0]["true_value_slope"]) < 1e-9  # the paper's optimum ignores the queue
     assert rows[0]["learned_gap"] == pytest.approx(1.0)
+    assert rows[0]["learned_value_mean"] == pytest.approx(float(2.0 * queue.mean()))
+    assert rows[0]["true_value_mean"] == pytest.approx(float(scorer.optimal.values.mean()))

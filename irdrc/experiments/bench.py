@@ -90,15 +90,19 @@ def _gap_tracer(
     scorer: ExactScorer | None = None,
 ):
     """An ``on_values`` hook appending the learned gap at ``states`` to ``rows``, and with
-    ``scorer`` the learned and the true slope of V = max_a Q in the queue length."""
-    true_slope = learned_slope = math.nan
+    ``scorer`` the learned and the true mean and slope in the queue length of V = max_a Q (with
+    reward centering the learned mean is V's shifted by −r̄/(1 − γ); the slope is not)."""
+    true_slope = learned_slope = true_mean = learned_mean = math.nan
     if scorer is not None:
         true_slope = value_slope(scorer.optimal.values, scorer.model.queue)
+        true_mean = float(scorer.optimal.values.mean())
 
     def on_values(env_steps: int, q: torch.Tensor) -> None:
-        nonlocal learned_slope
+        nonlocal learned_slope, learned_mean
         if scorer is not None:
-            learned_slope = value_slope(q[0].max(-1).values, scorer.model.queue)
+            v = q[0].max(-1).values
+            learned_slope = value_slope(v, scorer.model.queue)
+            learned_mean = float(v.double().mean())
         for st in states:
             gap = float(q[0, st["state"], 0] - q[0, st["state"], 1])
             rows.append(
@@ -113,6 +117,8 @@ def _gap_tracer(
                     "learned_gap": gap,
                     "learned_value_slope": learned_slope,
                     "true_value_slope": true_slope,
+                    "learned_value_mean": learned_mean,
+                    "true_value_mean": true_mean,
                 }
             )
 
@@ -182,7 +188,9 @@ def run_bench_dqn(cfg: DictConfig, out: Path) -> int:
                     print(
                         f"    final learned slope of V in the queue length: "
                         f"{final[-1]['learned_value_slope']:+.3f} per packet (true "
-                        f"{final[-1]['true_value_slope']:+.3f})"
+                        f"{final[-1]['true_value_slope']:+.3f}); mean of V "
+                        f"{final[-1]['learned_value_mean']:.1f} (true "
+                        f"{final[-1]['true_value_mean']:.1f})"
                     )
                 print(
                     "    final learned gap (true "

@@ -15,6 +15,7 @@ from irdrc.agents import lagrangian as L
 from irdrc.agents.base import Hooks
 from irdrc.agents.dqn import DQNConfig
 from irdrc.core.cmdp import solve_cmdp
+from irdrc.core.env import DFRCEnv
 from irdrc.core.evaluate import long_run
 from irdrc.core.model import build_model
 from irdrc.core.params import Params
@@ -43,8 +44,7 @@ def test_yaml_profile_equals_the_dataclass_defaults():
         ("measure_envs", 1),
         ("measure_max_blocks", 0),
         ("bogus", 1),
-        ("average_tau", 0.01),  # DQN options the Lagrangian loop does not implement
-        ("reward_centering", 0.001),
+        ("average_tau", 0.01),  # a DQN option the Lagrangian loop does not implement
     ],
 )
 def test_bad_settings_named(key, value):
@@ -203,3 +203,47 @@ def test_meets_a_loose_target():
         m = stationary_metrics(model, rec.policy[0])
         assert m.miss_detection <= 0.16, (seed, m.miss_detection)
         assert m.throughput >= 0.95 * lp.value, (seed, m.throughput)
+
+
+def test_objective_centering_shifts_the_objective_signal_only():
+    params = Params()
+    env = DFRCEnv(params, batch_size=[1])
+    heads, _, _ = L.make_network(env, L.LagrangianConfig())
+    loss = L.LagrangianDQNLoss(
+        heads, torch.tensor(1.0), gamma=0.99, objective_key="sent", target_miss=0.05
+    )
+    td = TensorDict(
+        {
+            ("next", "sent"): torch.tensor([[3.0], [0.0]]),
+            ("next", "missed"): torch.tensor([[False], [True]]),
+            ("next", "event"): torch.tensor([[False], [True]]),
+        },
+        batch_size=[2],
+    )
+    plain = loss.signals(td)
+    loss.objective_center = 0.75
+    centred = loss.signals(td)
+    assert torch.allclose(centred[:, 0], plain[:, 0] - 0.75)
+    assert torch.equal(centred[:, 1], plain[:, 1])  # the cost signal is untouched
+
+
+def test_centering_runs_and_tracks_the_objective_mean(monkeypatch):
+    seen = []
+    original = L.RewardCenter.update
+
+    def spy(self, reward):
+        original(self, reward)
+        seen.append(self.value)
+
+    monkeypatch.setattr(L.RewardCenter, "update", spy)
+    dqn = L.DQNConfig(
+        total_frames=256,
+        init_random_frames=64,
+        buffer_size=256,
+        batch_size=32,
+        reward_centering=0.01,
+        name=L.NAME,
+    )
+    cfg = L.LagrangianConfig(dqn=dqn, measure_envs=4, measure_steps=20, measure_burn_in=0)
+    L.train(Params(), cfg, seed=0, eval_every_frames=128)
+    assert len(seen) == 256 // 32 and all(0.0 <= v <= 4.0 for v in seen)  # packets sent per step

@@ -43,6 +43,7 @@ from torchrl.objectives import LossModule, SoftUpdate
 from irdrc.agents.base import Hooks, RunRecord, make_scorers, progress_record, scenario_list
 from irdrc.agents.dqn import (
     DQNConfig,
+    RewardCenter,
     _anneal,
     _track_episodes,
     make_buffer,
@@ -142,7 +143,7 @@ class LagrangianConfig:
         if not isinstance(self.dqn, DQNConfig):
             raise ValueError(f"dqn={self.dqn!r} must be a DQNConfig")
         # DQN options this learner's loop does not implement: refused rather than ignored.
-        for key in ("average_tau", "reward_centering"):
+        for key in ("average_tau",):
             if getattr(self.dqn, key) != 0:
                 raise ValueError(
                     f"algo.{key}={getattr(self.dqn, key)!r}: the Lagrangian DQN does not implement "
@@ -237,11 +238,14 @@ class LagrangianDQNLoss(LossModule):
         self.objective_key = objective_key
         self.target_miss = float(target_miss)
         self.loss_function = loss_function
+        self.objective_center = 0.0
 
     def signals(self, td: TensorDictBase) -> torch.Tensor:
-        """[B, 2] per-step (objective, cost) of a batch of transitions."""
+        """[B, 2] per-step (objective, cost) of a batch of transitions; the objective less
+        ``objective_center`` (reward centering: a constant shift, so Q_J − μ·Q_C ranks actions
+        the same at every μ)."""
         nxt = td["next"]
-        j = nxt[self.objective_key].reshape(-1).to(torch.float32)
+        j = nxt[self.objective_key].reshape(-1).to(torch.float32) - self.objective_center
         c = nxt["missed"].reshape(-1).float() - self.target_miss * nxt["event"].reshape(-1).float()
         return torch.stack([j, c], -1)
 
@@ -492,6 +496,7 @@ def train(
     )
     hooks.start(dict(record.info))
     learn_from = max(dq.batch_size, dq.init_random_frames)
+    center = RewardCenter(dq.reward_centering)  # on the objective signal
     collector = Collector(
         env,
         policy,
@@ -542,6 +547,9 @@ def train(
         data = data.reshape(-1)
         n = data.numel()
         rb.extend(data)
+        center.update(data["next", loss.objective_key])
+        if center.on and center.value is not None:
+            loss.objective_center = center.value
         frames += n
         exploration.step(n)
         _anneal(dq, optimizer, sampler, frames)

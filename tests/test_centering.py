@@ -111,3 +111,32 @@ def test_gap_trace_records_the_learned_and_true_value_slope():
     assert rows[0]["learned_gap"] == pytest.approx(1.0)
     assert rows[0]["learned_value_mean"] == pytest.approx(float(2.0 * queue.mean()))
     assert rows[0]["true_value_mean"] == pytest.approx(float(scorer.optimal.values.mean()))
+
+
+def test_samples_to_resolve_matches_the_exact_one_step_variance():
+    """At the paper's all-favourable state (d = 0) the event does not move the next state, so
+    Var[r + γ·V*(s′)] = Var[r] + γ²·Var[V*(s′)] exactly: comm's reward is r1 or −r3, radar's r4
+    or 0, each with the event probability e. The sampled σ (20 000 draws) must match within 10 %:
+    the relative standard error of a sample σ of a Bernoulli-dominated variable with e ≈ 0.02 is
+    √((κ − 1)/(4n)) ≈ 2.4 % (κ ≈ 1/(e(1 − e)) − 3 its kurtosis), so 10 % is four of them."""
+    from irdrc.core.model import build_model
+    from irdrc.core.solve import value_iteration
+    from irdrc.experiments.bench import samples_to_resolve
+
+    params = Params()
+    model = build_model(params)
+    sol = value_iteration(model, 0.99)
+    s = 0  # d = 0, c = r = w = v = m = 0
+    (row,) = samples_to_resolve(model, sol.q, sol.values, [s], 0.99, seed=1)
+    e = float(model.event[s])
+    rw = params.reward
+    for a, spread in ((0, rw.r1 + rw.r3), (1, rw.r4)):
+        p = model.P[a, s]
+        var_v = float(p @ sol.values**2 - (p @ sol.values) ** 2)
+        exact = math.sqrt(spread**2 * e * (1 - e) + 0.99**2 * var_v)
+        got = row["sigma_comm" if a == 0 else "sigma_radar"]
+        assert got == pytest.approx(exact, rel=0.1), (a, got, exact)
+    gap = float(sol.q[0, s] - sol.q[1, s])
+    assert row["true_gap"] == pytest.approx(gap)
+    expected = (2.326 * math.hypot(row["sigma_comm"], row["sigma_radar"]) / abs(gap)) ** 2
+    assert row["samples_per_action"] == pytest.approx(expected)

@@ -228,6 +228,7 @@ def test_bench_robust_recipe(tmp_path):
             assert (
                 f"seed={r['seed']}: final" in out.stdout
                 and "differs from the optimum" in out.stdout
+                and "samples of each action" in out.stdout
             )
     bad = run_recipe("bench_robust.py", "p1_speed=[1.5]", f"hydra.run.dir={tmp_path / 'x'}")
     assert bad.returncode == 2 and "p1_speed[0]=1.5" in bad.stderr

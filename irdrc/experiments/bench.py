@@ -12,7 +12,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from irdrc.agents import dqn
 from irdrc.agents.base import Hooks
-from irdrc.core.model import build_model
+from irdrc.core.model import ExactModel, build_model
 from irdrc.core.params import Params, to_plain
 from irdrc.core.solve import ExactScorer, stationary_occupancy
 from irdrc.experiments.config import compose
@@ -80,6 +80,53 @@ def value_slope(values: torch.Tensor, queue: torch.Tensor) -> float:
     d = queue.double() - queue.double().mean()
     v = values.double() - values.double().mean()
     return float((d * v).sum() / (d * d).sum())
+
+
+def samples_to_resolve(
+    model: ExactModel,
+    q: torch.Tensor,
+    values: torch.Tensor,
+    states: list[int],
+    gamma: float,
+    *,
+    draws: int = 20_000,
+    z: float = 2.326,
+    seed: int = 0,
+) -> list[dict[str, float]]:
+    """How much data telling the better action apart takes at each of ``states``: the true gap
+    Q*(s, comm) − Q*(s, radar) (``q`` [2, S], ``values`` V* [S]), the standard deviation σ_a of the
+    one-step target r + γ·V*(s′) under each action (``draws`` simulated steps each), and
+    n = (z·√(σ_comm² + σ_radar²) / |gap|)², the samples *of each action* after which the difference
+    of two sample means has the gap's sign with probability Φ(z) (z = 2.326: 99 %). A learner that
+    pools states sharing the same value (e.g. every queue length, where the reward ignores the
+    queue) needs n divided by at most the number it pools. Diagnostic only: it scores, it steers
+    nothing."""
+    from irdrc.core.env import Dynamics
+
+    if not states:
+        return []
+    dyn = Dynamics(model.params)
+    gen = torch.Generator().manual_seed(int(seed))
+    idx = torch.tensor(states, dtype=torch.int64).repeat_interleave(draws)
+    sigma = []
+    for a in (0, 1):
+        out = dyn.step(idx, torch.full_like(idx, a), gen)
+        target = out.reward.double() + gamma * values.double()[out.state]
+        sigma.append(target.view(len(states), draws).std(1))
+    rows = []
+    for i, st in enumerate(states):
+        gap = float(q[0, st] - q[1, st])
+        spread = math.hypot(float(sigma[0][i]), float(sigma[1][i]))
+        rows.append(
+            {
+                "state": st,
+                "true_gap": gap,
+                "sigma_comm": float(sigma[0][i]),
+                "sigma_radar": float(sigma[1][i]),
+                "samples_per_action": (z * spread / abs(gap)) ** 2 if gap != 0 else math.inf,
+            }
+        )
+    return rows
 
 
 def _gap_tracer(
@@ -314,12 +361,25 @@ def run_bench_robust(cfg: DictConfig, out: Path, scenario: list[str] | None = No
         model = build_model(Params.from_config(OmegaConf.create(p["cfg"])))
         tdir = Path(out) / "trials" / p["point_id"]
         learned = read_policy_csv(tdir / "policy.csv", model.num_states)
-        optimal = ExactScorer(model, float(cfg.optimum_gamma)).optimal.policy
+        solution = ExactScorer(model, float(cfg.optimum_gamma)).optimal
+        optimal = solution.policy
         label = " ".join(f"{k}={v}" for k, v in p["point"].items())
         print(
             f"\n{label}: final {row['final_ratio']:.4f}; "
             + policy_differences(model, learned, optimal)
         )
+        differ = (learned != optimal).nonzero().flatten().tolist()
+        need = samples_to_resolve(
+            model, solution.q, solution.values, differ, float(cfg.optimum_gamma)
+        )
+        if need:
+            gaps = [abs(r["true_gap"]) for r in need]
+            ns = [r["samples_per_action"] for r in need]
+            print(
+                f"  where it differs, |true gap| {min(gaps):.3g}–{max(gaps):.3g}; telling the "
+                f"actions apart at 99 % takes {min(ns):.3g}–{max(ns):.3g} samples of each action "
+                "per state (samples_to_resolve)"
+            )
     return code
 
 

@@ -4,18 +4,35 @@ the checkpoint, and — slow — the scenario it was introduced for."""
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import pytest
 import torch
+from omegaconf import OmegaConf
 from tensordict import TensorDict
 
 from irdrc import Params
 from irdrc.agents.dqn import DQNConfig, RewardCenter, train
+from irdrc.agents.lagrangian import LagrangianConfig
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def _sample(rewards: list[float]) -> TensorDict:
     r = torch.tensor(rewards, dtype=torch.float32).reshape(-1, 1)
     return TensorDict({("next", "reward"): r}, batch_size=[len(rewards)])
+
+
+def test_default_profile_centres_the_lagrangian_and_paper_profiles_do_not():
+    """``algo=dqn`` (yaml and dataclass) centres at 0.001; the paper profile and the Lagrangian
+    learner, whose benchmarks were measured without it, keep rewards as they are."""
+    conf = ROOT / "recipes" / "conf" / "algo"
+    assert DQNConfig().reward_centering == 0.001
+    assert DQNConfig.from_dict(OmegaConf.load(conf / "dqn.yaml")) == DQNConfig()
+    assert OmegaConf.load(conf / "dqn_paper.yaml").algo.reward_centering == 0.0
+    assert LagrangianConfig().dqn.reward_centering == 0.0
+    assert LagrangianConfig.from_dict({}).dqn.reward_centering == 0.0
+    assert LagrangianConfig.from_dict({"reward_centering": 0.01}).dqn.reward_centering == 0.01
 
 
 def test_center_starts_at_the_first_batch_mean_then_averages_per_env_step():

@@ -114,8 +114,8 @@ class DQNConfig:
         average_tau: 0, or the rate of a Polyak average of the online network (updated after every
             gradient update) whose greedy actions are the evaluated and the final policy; acting
             stays with the online network.
-        reward_centering: 0 (off), or the rate per env step of an exponential average r̄ of the
-            collected rewards, subtracted from every sampled reward before the loss (reward
+        reward_centering: 0 (off), or (default 0.001) the rate per env step of an exponential
+            average r̄ of the collected rewards, subtracted from every sampled reward before the loss (reward
             centering, Naik et al. 2024). Without terminal states this shifts every Q-value by
             r̄/(1 − γ) and leaves the greedy policy unchanged, but the network no longer has to
             grow its outputs to that offset — which, with γ = 0.99 and a soft target, takes far
@@ -147,7 +147,7 @@ class DQNConfig:
     tau: float = 0.01
     target_update_every_updates: int = 500
     average_tau: float = 0.0
-    reward_centering: float = 0.0
+    reward_centering: float = 0.001
     prioritized: bool = True
     alpha: float = 0.6
     beta_start: float = 1.0

@@ -29,6 +29,7 @@ from torchrl.objectives import DQNLoss, HardUpdate, SoftUpdate
 
 from irdrc.agents.base import Hooks, RunRecord, make_scorers, progress_record, scenario_list
 from irdrc.agents.replay import make_prioritized_sampler
+from irdrc.agents.select import Snapshots, choose_final
 from irdrc.core.env import DFRCEnv
 from irdrc.core.params import (
     Params,
@@ -120,6 +121,13 @@ class DQNConfig:
             r̄/(1 − γ) and leaves the greedy policy unchanged, but the network no longer has to
             grow its outputs to that offset — which, with γ = 0.99 and a soft target, takes far
             longer than a run — and fits only the differences between states and actions.
+        select_every_frames: 0 (off), or the period, in env steps, of snapshots of the greedy
+            policy taken from ``select_after_frames`` on; at the end the final policy is the
+            snapshot whose mean reward, measured on the simulator by ``select_envs`` chains of
+            ``select_burn_in`` + ``select_steps`` steps with common random numbers, beats the last
+            network's by more than ``select_z`` standard errors of the paired difference (the
+            last network's when none does; ``irdrc.agents.select``). The measurement steps are
+            counted in the run's env steps.
         prioritized: proportional prioritised replay with exponent ``alpha`` and importance
             exponent annealed from ``beta_start`` to 1 over ``total_frames``.
         sampler: ``auto`` (TorchRL's when its extension loads, else ours), ``torchrl``, ``torch``.
@@ -148,6 +156,12 @@ class DQNConfig:
     target_update_every_updates: int = 500
     average_tau: float = 0.0
     reward_centering: float = 0.001
+    select_every_frames: int = 0
+    select_after_frames: int = 10_000
+    select_envs: int = 64
+    select_steps: int = 1_000
+    select_burn_in: int = 200
+    select_z: float = 2.58
     prioritized: bool = True
     alpha: float = 0.6
     beta_start: float = 1.0
@@ -178,6 +192,12 @@ class DQNConfig:
         for key in ("eps_start", "eps_end", "tau", "beta_start", "average_tau"):
             num(key, 0, 1)
         num("reward_centering", 0, 1, open_hi=True)
+        num("select_every_frames", 0, 10**12, integer=True)
+        num("select_after_frames", 0, 10**12, integer=True)
+        num("select_envs", 2, 10**7, integer=True)
+        num("select_steps", 1, 10**9, integer=True)
+        num("select_burn_in", 0, 10**9, integer=True)
+        num("select_z", 0, 100)
         num("alpha", 0, 10)
         check_choice("algo.loss_function", self.loss_function, ("l2", "l1", "smooth_l1"))
         check_choice("algo.target_update", self.target_update, ("soft", "hard"))
@@ -200,6 +220,12 @@ class DQNConfig:
         if self.buffer_size < self.batch_size:
             raise ValueError(
                 f"algo.buffer_size={self.buffer_size} must be >= algo.batch_size={self.batch_size}"
+            )
+        if self.select_every_frames and self.select_after_frames >= self.total_frames:
+            raise ValueError(
+                f"algo.select_after_frames={self.select_after_frames} must be < "
+                f"algo.total_frames={self.total_frames} when algo.select_every_frames > 0 (there "
+                "would be nothing to choose from)"
             )
         if self.frames_per_batch > self.total_frames:
             raise ValueError(
@@ -460,7 +486,9 @@ def train(
     hooks.start(dict(record.info))
 
     center = RewardCenter(cfg.reward_centering)
+    snapshots = Snapshots(cfg.select_every_frames, cfg.select_after_frames)
     start_frames = _restore(resume, loss, optimizer, exploration, record, average, center)
+    snapshots.load(resume.get("snapshots") if resume is not None else None)
     remaining = cfg.total_frames - start_frames
     if remaining <= 0:
         raise ValueError(
@@ -512,6 +540,8 @@ def train(
         if len(rb) >= learn_from:
             last_loss = _learn(cfg, rb, loss, optimizer, target, (average, qnet), center)
             record.updates += cfg.updates_per_batch
+        if snapshots.due(frames - data.numel(), frames) and frames < cfg.total_frames:
+            snapshots.take(frames, greedy_table(greedy_net, env), action_values(greedy_net, env))
         hooks.batch(
             {
                 "env_steps": frames,
@@ -528,20 +558,60 @@ def train(
             next_eval = (frames // eval_every_frames + 1) * eval_every_frames
         if hooks.checkpoint_due(frames - data.numel(), frames) and frames < cfg.total_frames:
             wall = time.perf_counter() - t0
-            hooks.on_checkpoint(_checkpoint(loss, optimizer, record, frames, wall, average, center))
+            state = _checkpoint(loss, optimizer, record, frames, wall, average, center)
+            hooks.on_checkpoint({**state, **_snapshot_state(snapshots)})
         if stop:
             record.interrupted = True
             break
     collector.shutdown()
     record.env_steps = frames
     record.episodes = len(record.episode_rewards)
-    record.wall_seconds = time.perf_counter() - t0
     record.greedy = greedy_table(greedy_net, env)[None]
     record.q = action_values(greedy_net, env)[None]
-    record.state = _checkpoint(
-        loss, optimizer, record, frames, record.wall_seconds, average, center
-    )
+    record.state = _checkpoint(loss, optimizer, record, frames, 0.0, average, center)
+    record.state.update(_snapshot_state(snapshots))
+    if snapshots.on and not record.interrupted:
+        _select_final(record, snapshots, params, cfg, seed, scorer, optimal)
+    record.wall_seconds = time.perf_counter() - t0
+    record.state["wall_seconds"] = record.wall_seconds
     return record
+
+
+def _snapshot_state(snapshots: Snapshots) -> dict[str, Any]:
+    """The snapshots' checkpoint entry (none when selection is off)."""
+    return {"snapshots": snapshots.state()} if snapshots.on else {}
+
+
+def _select_final(
+    record: RunRecord,
+    snapshots: Snapshots,
+    params: Params,
+    cfg: DQNConfig,
+    seed: int,
+    scorer: ExactScorer,
+    optimal: float,
+) -> None:
+    """Replace the record's final greedy table by the one ``choose_final`` picks among the
+    snapshots and the last table (measurement steps added to ``env_steps``); the last network's
+    exact score stays in ``history``, the chosen table's is ``info["selected_ratio"]``."""
+    snapshots.take(record.env_steps, record.greedy[0], record.q[0])
+    index, facts = choose_final(
+        params,
+        snapshots,
+        envs=cfg.select_envs,
+        steps=cfg.select_steps,
+        burn_in=cfg.select_burn_in,
+        z=cfg.select_z,
+        seed=seed + 104_729,
+    )
+    record.greedy = snapshots.tables[index].to(record.greedy.device)[None]
+    record.q = snapshots.values[index].to(record.q.device)[None]
+    snapshots.pop()
+    record.info["training_env_steps"] = record.env_steps
+    record.env_steps += int(facts["select_env_steps"])
+    # Scoring only (never steering): the exact ratio of what was chosen, for benchmarks.
+    record.info["selected_ratio"] = float(scorer.metrics(record.greedy[0]).avg_reward / optimal)
+    record.info.update(facts)
 
 
 def _make_average(qnet: QValueActor, cfg: DQNConfig) -> QValueActor | None:

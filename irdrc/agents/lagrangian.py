@@ -146,7 +146,7 @@ class LagrangianConfig:
         if not isinstance(self.dqn, DQNConfig):
             raise ValueError(f"dqn={self.dqn!r} must be a DQNConfig")
         # DQN options this learner's loop does not implement: refused rather than ignored.
-        for key in ("average_tau",):
+        for key in ("average_tau", "select_every_frames"):
             if getattr(self.dqn, key) != 0:
                 raise ValueError(
                     f"algo.{key}={getattr(self.dqn, key)!r}: the Lagrangian DQN does not implement "

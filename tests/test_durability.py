@@ -56,6 +56,7 @@ def steps_of(path: Path) -> list[int]:
     return [int(r["env_steps"]) for r in csv.DictReader(path.open())]
 
 
+@pytest.mark.e2e
 def test_sigterm_saves_and_resume_continues_without_lost_or_duplicated_rows(tmp_path):
     out = tmp_path / "run"
     proc = dqn(out, wait=False)
@@ -81,6 +82,7 @@ def test_sigterm_saves_and_resume_continues_without_lost_or_duplicated_rows(tmp_
     assert after[-1] == 4000 and all(s % 320 == 0 or s == 4000 for s in after[len(before) :])
 
 
+@pytest.mark.e2e
 def test_kill_9_during_training_leaves_a_resumable_checkpoint(tmp_path):
     out = tmp_path / "run"
     proc = dqn(out, wait=False)

@@ -90,6 +90,7 @@ def test_solve_recipe_switches_to_the_factored_operator(tmp_path):
     assert 0 < s["metrics"]["throughput"] <= 1.125 + 1e-9  # the mean of the bursty arrivals
 
 
+@pytest.mark.e2e
 def test_scale_benchmark_table(tmp_path):
     res = subprocess.run(
         [

@@ -178,6 +178,7 @@ def test_qlearning_recipe_rejects_bad_algo_key(tmp_path):
     assert out.returncode != 0 and "algo.bogus" in out.stderr
 
 
+@pytest.mark.e2e
 def test_cli_lists_and_dispatches(tmp_path):
     listing = subprocess.run(
         [sys.executable, "-m", "irdrc"], capture_output=True, text=True, cwd=ROOT
@@ -222,7 +223,11 @@ def test_bench_robust_recipe(tmp_path):
     rows = list(csv.DictReader((tmp_path / "bench_robust.csv").open()))
     assert [r["seed"] for r in rows] == ["5", "6"] and all(int(r["env_steps"]) == 640 for r in rows)
     assert all(-2 < float(r["final_ratio"]) <= 1 + 1e-9 for r in rows)
+    # Without selection the final policy is the last network's and nothing is measured.
+    assert all(r["final_ratio"] == r["last_network_ratio"] for r in rows)
+    assert all(r["select_env_steps"] == "0" for r in rows)
     assert "runs end ≥ 0.99 of their optimum" in out.stdout
+    assert "their last networks" not in out.stdout
     for r in rows:  # every failing run is explained state by state
         if r["holds"] == "False":
             assert (
@@ -230,5 +235,26 @@ def test_bench_robust_recipe(tmp_path):
                 and "differs from the optimum" in out.stdout
                 and "samples of each action" in out.stdout
             )
+    sel = run_recipe(
+        "bench_robust.py",
+        "seeds=[5]",
+        "p1_speed=[0.1]",
+        "r4=[5]",
+        "overrides=['algo.total_frames=640','algo.init_random_frames=128','algo.batch_size=32',"
+        "'algo.select_every_frames=64','algo.select_after_frames=320','algo.select_envs=4',"
+        "'algo.select_steps=20','algo.select_burn_in=0']",
+        "eval.every_frames=320",
+        "executor=local",
+        f"hydra.run.dir={tmp_path / 'sel'}",
+    )
+    assert sel.returncode == 0, sel.stderr[-2000:]
+    (row,) = csv.DictReader((tmp_path / "sel" / "bench_robust.csv").open())
+    summary = json.loads(next((tmp_path / "sel" / "trials").glob("*/summary.json")).read_text())
+    # The final ratio is the selected policy's, the last network's is reported beside it.
+    assert float(row["final_ratio"]) == pytest.approx(summary["selected_ratio"])
+    assert int(row["select_env_steps"]) == summary["select_env_steps"]
+    assert summary["select_env_steps"] in {0, summary["select_candidates"] * 4 * 20}
+    if summary["select_env_steps"]:
+        assert "their last networks" in sel.stdout
     bad = run_recipe("bench_robust.py", "p1_speed=[1.5]", f"hydra.run.dir={tmp_path / 'x'}")
     assert bad.returncode == 2 and "p1_speed[0]=1.5" in bad.stderr

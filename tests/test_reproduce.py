@@ -242,6 +242,7 @@ def tiny_tradeoff(tmp_path_factory) -> tuple[Path, subprocess.CompletedProcess]:
     )
 
 
+@pytest.mark.e2e
 def test_figure2_end_to_end_tiny_local(tiny_figure):
     out, r = tiny_figure
     assert r.returncode == 0, (r.stdout[-3000:], r.stderr[-3000:])
@@ -277,6 +278,7 @@ def _unshare_works() -> bool:
         return False
 
 
+@pytest.mark.e2e
 @pytest.mark.skipif(not _unshare_works(), reason="Ray may only start in a loopback-only namespace")
 def test_figure2_end_to_end_tiny_on_ray(tmp_path):
     pytest.importorskip("ray")
@@ -285,6 +287,7 @@ def test_figure2_end_to_end_tiny_on_ray(tmp_path):
     _check_figure(tmp_path)
 
 
+@pytest.mark.e2e
 def test_tradeoff_end_to_end_tiny(tiny_tradeoff):
     out, r = tiny_tradeoff
     assert r.returncode == 0, (r.stdout[-3000:], r.stderr[-3000:])
@@ -299,6 +302,7 @@ def test_tradeoff_end_to_end_tiny(tiny_tradeoff):
     assert "smallest r4 meeting miss detection ≤ 0.05" in r.stdout
 
 
+@pytest.mark.e2e
 def test_report_fills_every_generated_block(tiny_figure, tiny_tradeoff, tmp_path):
     """ci/reproduce.sh's last step: figures copied, every generated block of the report filled."""
     from irdrc.paper.report import FIGURES, write_report

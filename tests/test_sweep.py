@@ -109,6 +109,7 @@ def test_bad_grid_is_refused_before_ray_starts(overrides, msg):
 TINY_DQN = "sweep.base=['algo.total_frames=640','algo.init_random_frames=128','algo.buffer_size=640','algo.batch_size=32','eval.every_frames=320','eval.mc_episodes=0']"
 
 
+@pytest.mark.e2e
 @needs_ray_netns
 def test_dqn_grid_2x2(tmp_path):
     r = sweep(tmp_path, "method=dqn", "sweep.grid={reward.r4: [5,50], seed: [0,1]}", TINY_DQN)
@@ -131,6 +132,7 @@ def test_dqn_grid_2x2(tmp_path):
     assert r.stdout.count("→ DONE") == 4 and "ETA" in r.stdout
 
 
+@pytest.mark.e2e
 @needs_ray_netns
 def test_crash_marks_error_and_resume_reruns_only_it(tmp_path):
     grid = "sweep.grid={reward.r4: [5,50], seed: [0,1]}"
@@ -154,6 +156,7 @@ def test_crash_marks_error_and_resume_reruns_only_it(tmp_path):
     assert {p: p.stat().st_mtime_ns for p in done_files} == done_files  # untouched
 
 
+@pytest.mark.e2e
 def test_local_executor_crash_resume_and_mixed_plans(tmp_path):
     """executor=local: same files and statuses as under Ray, without Ray (so no namespace)."""
     grid = "sweep.grid={reward.r4: [5,50]}"
@@ -272,6 +275,7 @@ SLOW_GRID = (
 )
 
 
+@pytest.mark.e2e
 @needs_ray_netns
 def test_driver_killed_mid_sweep_keeps_finished_trials_and_resume_runs_the_rest(tmp_path):
     """kill -9 of the driver after the first trial: its files are already stored (they are written
@@ -299,6 +303,7 @@ def test_driver_killed_mid_sweep_keeps_finished_trials_and_resume_runs_the_rest(
     assert {t["status"] for t in rows(tmp_path / "summary.csv")} == {"DONE"}
 
 
+@pytest.mark.e2e
 @needs_ray_netns
 def test_ctrl_c_leaves_a_valid_summary_with_incomplete_rows(tmp_path):
     import os

@@ -235,6 +235,14 @@ def test_bench_robust_recipe(tmp_path):
                 and "differs from the optimum" in out.stdout
                 and "samples of each action" in out.stdout
             )
+    bad = run_recipe("bench_robust.py", "p1_speed=[1.5]", f"hydra.run.dir={tmp_path / 'x'}")
+    assert bad.returncode == 2 and "p1_speed[0]=1.5" in bad.stderr
+
+
+@pytest.mark.e2e
+def test_bench_robust_recipe_with_final_policy_selection(tmp_path):
+    """With ``algo.select_every_frames`` the table's final ratio is the selected policy's and the
+    last network's is reported beside it, with the measurement steps."""
     sel = run_recipe(
         "bench_robust.py",
         "seeds=[5]",
@@ -245,16 +253,14 @@ def test_bench_robust_recipe(tmp_path):
         "'algo.select_steps=20','algo.select_burn_in=0']",
         "eval.every_frames=320",
         "executor=local",
-        f"hydra.run.dir={tmp_path / 'sel'}",
+        f"hydra.run.dir={tmp_path}",
     )
     assert sel.returncode == 0, sel.stderr[-2000:]
-    (row,) = csv.DictReader((tmp_path / "sel" / "bench_robust.csv").open())
-    summary = json.loads(next((tmp_path / "sel" / "trials").glob("*/summary.json")).read_text())
+    (row,) = csv.DictReader((tmp_path / "bench_robust.csv").open())
+    summary = json.loads(next((tmp_path / "trials").glob("*/summary.json")).read_text())
     # The final ratio is the selected policy's, the last network's is reported beside it.
     assert float(row["final_ratio"]) == pytest.approx(summary["selected_ratio"])
     assert int(row["select_env_steps"]) == summary["select_env_steps"]
     assert summary["select_env_steps"] in {0, summary["select_candidates"] * 4 * 20}
     if summary["select_env_steps"]:
         assert "their last networks" in sel.stdout
-    bad = run_recipe("bench_robust.py", "p1_speed=[1.5]", f"hydra.run.dir={tmp_path / 'x'}")
-    assert bad.returncode == 2 and "p1_speed[0]=1.5" in bad.stderr

@@ -24,7 +24,7 @@ from torchrl.collectors import Collector
 from torchrl.data import Composite, LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.data.replay_buffers.samplers import RandomSampler
 from torchrl.envs.utils import ExplorationType, exploration_type
-from torchrl.modules import MLP, EGreedyModule, QValueActor
+from torchrl.modules import MLP, EGreedyModule, MultiAgentMLP, QValueActor
 from torchrl.objectives import DQNLoss, HardUpdate, SoftUpdate
 
 from irdrc.agents.base import Hooks, RunRecord, make_scorers, progress_record, scenario_list
@@ -128,6 +128,14 @@ class DQNConfig:
             network's by more than ``select_z`` standard errors of the paired difference (the
             last network's when none does; ``irdrc.agents.select``). The measurement steps are
             counted in the run's env steps.
+        ensemble: 1 (one Q-network), or the number K of independently initialised Q-networks
+            (heads; TorchRL's ``MultiAgentMLP`` with one unshared MLP per head) trained on the
+            same replay samples, each against its own double-DQN target; acting, evaluation and
+            the final policy are greedy in their mean Q. Averaging heads averages out the
+            extrapolation errors in which they differ (README, "DQN across seeds").
+        ensemble_mask: with ``ensemble`` > 1, the probability that a sampled transition trains a
+            given head (bootstrapped DQN, Osband et al. 2016); 1 (default): every head sees every
+            sample.
         prioritized: proportional prioritised replay with exponent ``alpha`` and importance
             exponent annealed from ``beta_start`` to 1 over ``total_frames``.
         sampler: ``auto`` (TorchRL's when its extension loads, else ours), ``torchrl``, ``torch``.
@@ -162,6 +170,8 @@ class DQNConfig:
     select_steps: int = 1_000
     select_burn_in: int = 200
     select_z: float = 2.58
+    ensemble: int = 1
+    ensemble_mask: float = 1.0
     prioritized: bool = True
     alpha: float = 0.6
     beta_start: float = 1.0
@@ -199,6 +209,8 @@ class DQNConfig:
         num("select_burn_in", 0, 10**9, integer=True)
         num("select_z", 0, 100)
         num("alpha", 0, 10)
+        num("ensemble", 1, 1024, integer=True)
+        num("ensemble_mask", 0, 1, open_lo=True)
         check_choice("algo.loss_function", self.loss_function, ("l2", "l1", "smooth_l1"))
         check_choice("algo.target_update", self.target_update, ("soft", "hard"))
         check_choice("algo.sampler", self.sampler, ("auto", "torchrl", "torch"))
@@ -304,6 +316,63 @@ def make_qnet(env: DFRCEnv, net: NetworkConfig) -> QValueActor:
     Q-value per action out."""
     module = make_mlp(env, net, env.action_spec_unbatched.space.n)
     return QValueActor(module=module, in_keys=["observation"], spec=env.action_spec_unbatched)
+
+
+class _Heads(nn.Module):
+    """K unshared MLPs (TorchRL's ``MultiAgentMLP``, one "agent" per head) behind the observation
+    encoding. ``forward`` takes observations [..., K, n] (head k reads row k) and returns
+    [..., K, actions]."""
+
+    def __init__(self, env: DFRCEnv, net: NetworkConfig, heads: int) -> None:
+        super().__init__()
+        obs_spec = env.observation_spec["observation"]
+        high = obs_spec.space.high.reshape(-1, obs_spec.shape[-1])[0].to(torch.float32)
+        self.encode = (_OneHot(high) if net.encoding == "onehot" else _Scale(high)).to(env.device)
+        size = self.encode.size if net.encoding == "onehot" else obs_spec.shape[-1]
+        self.heads = heads
+        self.mlp = MultiAgentMLP(
+            n_agent_inputs=size,
+            n_agent_outputs=env.action_spec_unbatched.space.n,
+            n_agents=heads,
+            centralized=False,
+            share_params=False,
+            num_cells=list(net.hidden),
+            activation_class=ACTIVATIONS[net.activation],
+            device=env.device,
+        )
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.mlp(self.encode(x))
+
+
+class _MeanOfHeads(nn.Module):
+    """Observations [..., n] to the heads' mean Q [..., actions] (the acting and greedy values)."""
+
+    def __init__(self, heads: _Heads) -> None:
+        super().__init__()
+        self.body = heads
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        shape = (*x.shape[:-1], self.body.heads, x.shape[-1])
+        return self.body(x.unsqueeze(-2).expand(shape)).mean(-2)
+
+
+def make_qnets(env: DFRCEnv, net: NetworkConfig, heads: int) -> tuple[QValueActor, QValueActor]:
+    """The acting network and the network the loss trains, sharing parameters.
+
+    With ``heads`` = 1 both are ``make_qnet``'s actor. With ``heads`` = K > 1 the loss's actor maps
+    observations [B, K, n] to per-head values [B, K, actions] (its TD targets per head, each head
+    with its own target copy), and the acting actor maps [..., n] to the heads' mean [..., actions]
+    and acts greedily in it.
+    """
+    if heads == 1:
+        qnet = make_qnet(env, net)
+        return qnet, qnet
+    body = _Heads(env, net, heads)
+    spec = env.action_spec_unbatched
+    per_head = QValueActor(module=body, in_keys=["observation"], spec=spec)
+    mean = QValueActor(module=_MeanOfHeads(body), in_keys=["observation"], spec=spec)
+    return mean, per_head
 
 
 class EZGreedyModule(EGreedyModule):
@@ -470,11 +539,11 @@ def train(
     env = DFRCEnv(params, batch_size=[cfg.num_envs], device=device, seed=seed)
 
     # Components in a fixed order: model → exploration → buffer → loss → target → optimiser.
-    qnet = make_qnet(env, cfg.network)
+    qnet, trained = make_qnets(env, cfg.network, cfg.ensemble)
     exploration = make_exploration(env, cfg)
     policy = TensorDictSequential(qnet, exploration)
     rb, sampler = make_buffer(cfg)
-    loss = make_loss(qnet, env, cfg)
+    loss = make_loss(trained, env, cfg)
     target = make_target_updater(loss, cfg)
     optimizer = torch.optim.Adam(loss.parameters(), lr=cfg.lr)
     average = _make_average(qnet, cfg)
@@ -712,6 +781,8 @@ def _learn(
         sample = rb.sample()
         if center is not None:
             sample = center.center(sample)
+        if cfg.ensemble > 1:
+            sample = _per_head(sample, cfg)
         out = loss(sample)
         optimizer.zero_grad(set_to_none=True)
         out["loss"].backward()
@@ -722,10 +793,27 @@ def _learn(
         if average is not None:
             _update_average(*average, cfg.average_tau)
         if cfg.prioritized:
-            # DQNLoss writes the squared TD error; proportional PER uses |δ|.
-            rb.update_priority(sample["index"], sample["td_error"].detach().sqrt().reshape(-1))
+            # DQNLoss writes the squared TD error; proportional PER uses |δ| (heads: their mean).
+            delta = sample["td_error"].detach().sqrt()
+            if cfg.ensemble > 1:
+                delta, index = delta.mean(-2), sample["index"][:, 0]
+            else:
+                index = sample["index"]
+            rb.update_priority(index, delta.reshape(-1))
         last = float(out["loss"].detach())
     return last
+
+
+def _per_head(sample: TensorDictBase, cfg: DQNConfig) -> TensorDictBase:
+    """A replay sample [B] as [B, K]: every head gets the same transitions, each kept for a head
+    with probability ``ensemble_mask`` (a 0/1 factor on its importance weight)."""
+    out = sample.unsqueeze(-1).expand(*sample.batch_size, cfg.ensemble).clone(False)
+    if cfg.ensemble_mask < 1:
+        keep = torch.rand(out.batch_size, device=out.device) < cfg.ensemble_mask
+        weight = out.get("priority_weight", None)
+        weight = torch.ones(out.batch_size, device=out.device) if weight is None else weight
+        out.set("priority_weight", weight * keep.to(weight.dtype))
+    return out
 
 
 def _track_episodes(

@@ -24,8 +24,14 @@ from torchrl.collectors import Collector
 from torchrl.data import Composite, LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.data.replay_buffers.samplers import RandomSampler
 from torchrl.envs.utils import ExplorationType, exploration_type
-from torchrl.modules import MLP, EGreedyModule, MultiAgentMLP, QValueActor
-from torchrl.objectives import DQNLoss, HardUpdate, SoftUpdate
+from torchrl.modules import (
+    MLP,
+    DistributionalQValueActor,
+    EGreedyModule,
+    MultiAgentMLP,
+    QValueActor,
+)
+from torchrl.objectives import DistributionalDQNLoss, DQNLoss, HardUpdate, SoftUpdate
 
 from irdrc.agents.base import Hooks, RunRecord, make_scorers, progress_record, scenario_list
 from irdrc.agents.replay import make_prioritized_sampler
@@ -133,6 +139,13 @@ class DQNConfig:
             same replay samples, each against its own double-DQN target; acting, evaluation and
             the final policy are greedy in their mean Q. Averaging heads averages out the
             extrapolation errors in which they differ (README, "DQN across seeds").
+        distributional: learn the distribution of the (centred) discounted return on a fixed
+            support of ``atoms`` points (C51, Bellemare et al. 2017: TorchRL's
+            ``DistributionalQValueActor`` and ``DistributionalDQNLoss``, a cross-entropy to the
+            projected double-DQN target, so ``loss_function`` is unused) instead of its mean; the
+            greedy action maximises the distribution's mean. The support spans
+            ±``support_span`` × the largest |reward| of the env's reward table.
+        atoms, support_span: the distributional support (see ``distributional``).
         ensemble_mask: with ``ensemble`` > 1, the probability that a sampled transition trains a
             given head (bootstrapped DQN, Osband et al. 2016); 1 (default): every head sees every
             sample.
@@ -172,6 +185,9 @@ class DQNConfig:
     select_z: float = 2.58
     ensemble: int = 1
     ensemble_mask: float = 1.0
+    distributional: bool = False
+    atoms: int = 51
+    support_span: float = 6.0
     prioritized: bool = True
     alpha: float = 0.6
     beta_start: float = 1.0
@@ -211,6 +227,19 @@ class DQNConfig:
         num("alpha", 0, 10)
         num("ensemble", 1, 1024, integer=True)
         num("ensemble_mask", 0, 1, open_lo=True)
+        num("atoms", 2, 100_000, integer=True)
+        num("support_span", 0, 1e6, open_lo=True)
+        check_bool("algo.distributional", self.distributional)
+        if self.distributional and self.ensemble > 1:
+            raise ValueError(
+                f"algo.distributional=true with algo.ensemble={self.ensemble}: the distributional "
+                "loss trains one network (set algo.ensemble=1)"
+            )
+        if self.distributional and not self.double_dqn:
+            raise ValueError(
+                "algo.distributional=true needs algo.double_dqn=true (TorchRL's distributional "
+                "loss always picks the next action with the online network)"
+            )
         check_choice("algo.loss_function", self.loss_function, ("l2", "l1", "smooth_l1"))
         check_choice("algo.target_update", self.target_update, ("soft", "hard"))
         check_choice("algo.sampler", self.sampler, ("auto", "torchrl", "torch"))
@@ -357,6 +386,34 @@ class _MeanOfHeads(nn.Module):
         return self.body(x.unsqueeze(-2).expand(shape)).mean(-2)
 
 
+class _Atoms(nn.Module):
+    """[..., atoms · actions] to [..., atoms, actions] (the layout of TorchRL's distributional
+    actor)."""
+
+    def __init__(self, atoms: int, actions: int) -> None:
+        super().__init__()
+        self.shape = (atoms, actions)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return x.unflatten(-1, self.shape)
+
+
+def make_distributional_qnet(
+    env: DFRCEnv, net: NetworkConfig, atoms: int, span: float
+) -> DistributionalQValueActor:
+    """C51's actor: log-probabilities [..., atoms, actions] of the return on ``atoms`` evenly
+    spaced points over ±``span`` × the largest |reward| of the env's reward table; the action
+    maximises the mean."""
+    dyn = env.dynamics
+    r_max = max(float(dyn.reward.abs().max()), float(dyn.miss_reward.abs().max()), 1e-6)
+    support = torch.linspace(-span * r_max, span * r_max, atoms, device=env.device)
+    n = env.action_spec_unbatched.space.n
+    module = nn.Sequential(make_mlp(env, net, atoms * n), _Atoms(atoms, n))
+    return DistributionalQValueActor(
+        module=module, support=support, in_keys=["observation"], spec=env.action_spec_unbatched
+    )
+
+
 def make_qnets(env: DFRCEnv, net: NetworkConfig, heads: int) -> tuple[QValueActor, QValueActor]:
     """The acting network and the network the loss trains, sharing parameters.
 
@@ -471,8 +528,11 @@ def make_buffer(cfg: DQNConfig):
     return rb, sampler
 
 
-def make_loss(qnet: QValueActor, env: DFRCEnv, cfg: DQNConfig) -> DQNLoss:
-    """DQNLoss with a target network, the chosen distance and γ."""
+def make_loss(qnet: QValueActor, env: DFRCEnv, cfg: DQNConfig) -> DQNLoss | DistributionalDQNLoss:
+    """DQNLoss with a target network, the chosen distance and γ (``DistributionalDQNLoss`` with
+    ``cfg.distributional``)."""
+    if cfg.distributional:
+        return DistributionalDQNLoss(qnet, gamma=cfg.gamma, delay_value=True)
     loss = DQNLoss(
         qnet,
         loss_function=cfg.loss_function,
@@ -503,8 +563,12 @@ def greedy_table(qnet: QValueActor, env: DFRCEnv) -> torch.Tensor:
 
 
 def action_values(qnet: QValueActor, env: DFRCEnv) -> torch.Tensor:
-    """The Q-network's action values in every state ([S, 2], comm then radar)."""
-    return _all_states(qnet, env)["action_value"].reshape(-1, 2).float().cpu()
+    """The Q-network's action values in every state ([S, 2], comm then radar); a distributional
+    network's are its distributions' means."""
+    values = _all_states(qnet, env)["action_value"]
+    if isinstance(qnet, DistributionalQValueActor):
+        values = (values.exp() * qnet.support.to(values)[:, None]).sum(-2)
+    return values.reshape(-1, 2).float().cpu()
 
 
 def train(
@@ -539,7 +603,10 @@ def train(
     env = DFRCEnv(params, batch_size=[cfg.num_envs], device=device, seed=seed)
 
     # Components in a fixed order: model → exploration → buffer → loss → target → optimiser.
-    qnet, trained = make_qnets(env, cfg.network, cfg.ensemble)
+    if cfg.distributional:
+        qnet = trained = make_distributional_qnet(env, cfg.network, cfg.atoms, cfg.support_span)
+    else:
+        qnet, trained = make_qnets(env, cfg.network, cfg.ensemble)
     exploration = make_exploration(env, cfg)
     policy = TensorDictSequential(qnet, exploration)
     rb, sampler = make_buffer(cfg)
@@ -793,8 +860,10 @@ def _learn(
         if average is not None:
             _update_average(*average, cfg.average_tau)
         if cfg.prioritized:
-            # DQNLoss writes the squared TD error; proportional PER uses |δ| (heads: their mean).
-            delta = sample["td_error"].detach().sqrt()
+            # DQNLoss writes the squared TD error; proportional PER uses |δ| (heads: their mean);
+            # the distributional loss writes its per-sample cross-entropy, used as it is.
+            delta = sample["td_error"].detach()
+            delta = delta if cfg.distributional else delta.sqrt()
             if cfg.ensemble > 1:
                 delta, index = delta.mean(-2), sample["index"][:, 0]
             else:

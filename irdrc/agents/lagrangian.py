@@ -146,7 +146,12 @@ class LagrangianConfig:
         if not isinstance(self.dqn, DQNConfig):
             raise ValueError(f"dqn={self.dqn!r} must be a DQNConfig")
         # DQN options this learner's loop does not implement: refused rather than ignored.
-        for key, off in (("average_tau", 0), ("select_every_frames", 0), ("ensemble", 1)):
+        for key, off in (
+            ("average_tau", 0),
+            ("select_every_frames", 0),
+            ("ensemble", 1),
+            ("distributional", False),
+        ):
             if getattr(self.dqn, key) != off:
                 raise ValueError(
                     f"algo.{key}={getattr(self.dqn, key)!r}: the Lagrangian DQN does not implement "

@@ -85,3 +85,27 @@ def assert_factored_equals_dense(params, seed: int) -> None:
             assert set(got) == set(want)  # false_alarm_rate in both, or in neither
             for k in want:
                 assert got[k] == pytest.approx(want[k], rel=1e-9, abs=1e-9), (method, k)
+
+
+def assert_dqn_trains_and_resumes(**options) -> None:
+    """A tiny DQN run with ``options`` (DQNConfig keys) counts its updates and evaluations,
+    returns a policy and values for every state, and resumes from its checkpoint to a longer run."""
+    from irdrc.agents.dqn import DQNConfig, NetworkConfig, train
+
+    base = dict(
+        total_frames=320,
+        init_random_frames=64,
+        buffer_size=320,
+        batch_size=16,
+        updates_per_batch=2,
+        network=NetworkConfig(hidden=(16,)),
+    )
+    cfg = DQNConfig(**base, **options)
+    run = train(Params(), cfg, seed=0, eval_every_frames=160)
+    # learning starts at 64 frames: (320 − 32)/32 = 9 batches × 2 updates
+    assert run.updates == 18 and run.greedy.shape == (1, 352) and run.q.shape == (1, 352, 2)
+    assert [e["env_steps"] for e in run.history] == [0, 160, 320]
+    longer = DQNConfig(**{**base, "total_frames": 480}, **options)
+    resumed = train(Params(), longer, seed=0, eval_every_frames=160, resume=run.state)
+    assert resumed.env_steps == 480 and resumed.updates == 18 + 5 * 2
+    assert [e["env_steps"] for e in resumed.history] == [0, 160, 320, 480]

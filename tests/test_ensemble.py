@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import pytest
 import torch
+from conftest import assert_dqn_trains_and_resumes
 from tensordict import TensorDict
 
 from irdrc import DFRCEnv, Params
@@ -16,7 +17,6 @@ from irdrc.agents.dqn import (
     greedy_table,
     make_loss,
     make_qnets,
-    train,
 )
 
 SMALL = Params.from_overrides(queue_capacity=5)
@@ -109,23 +109,7 @@ def test_invalid_ensemble_config(kwargs, key):
 
 
 def test_ensemble_trains_checkpoints_and_resumes():
-    cfg = DQNConfig(
-        total_frames=320,
-        init_random_frames=64,
-        buffer_size=320,
-        batch_size=16,
-        updates_per_batch=2,
-        ensemble=3,
-        ensemble_mask=0.5,
-        network=NetworkConfig(hidden=(16,)),
-    )
-    run = train(Params(), cfg, seed=0, eval_every_frames=160)
-    assert run.updates == 18 and run.greedy.shape == (1, 352)
-    assert [e["env_steps"] for e in run.history] == [0, 160, 320]
-    longer = DQNConfig(**{**cfg.__dict__, "total_frames": 480})
-    resumed = train(Params(), longer, seed=0, eval_every_frames=160, resume=run.state)
-    assert resumed.env_steps == 480 and resumed.updates == 18 + 5 * 2
-    assert [e["env_steps"] for e in resumed.history] == [0, 160, 320, 480]
+    assert_dqn_trains_and_resumes(ensemble=3, ensemble_mask=0.5)
 
 
 def test_the_lagrangian_learner_refuses_an_ensemble():

@@ -324,20 +324,28 @@ class _OneHot(nn.Module):
         return out.scatter_(-1, index, 1.0)
 
 
+def _encoder(env: DFRCEnv, net: NetworkConfig) -> tuple[nn.Module, int]:
+    """The observation encoding chosen by ``net.encoding``, on the env's device, and its width."""
+    obs_spec = env.observation_spec["observation"]
+    high = obs_spec.space.high.reshape(-1, obs_spec.shape[-1])[0].to(torch.float32)
+    if net.encoding == "onehot":
+        encode = _OneHot(high)
+        return encode.to(env.device), encode.size
+    return _Scale(high).to(env.device), obs_spec.shape[-1]
+
+
 def make_mlp(env: DFRCEnv, net: NetworkConfig, out_features: int) -> nn.Sequential:
     """The network body sized from the env's observation spec: observation (encoded by
     ``net.encoding``) in, ``out_features`` out."""
-    obs_spec = env.observation_spec["observation"]
-    high = obs_spec.space.high.reshape(-1, obs_spec.shape[-1])[0].to(torch.float32)
-    encode = _OneHot(high) if net.encoding == "onehot" else _Scale(high)
+    encode, size = _encoder(env, net)
     mlp = MLP(
-        in_features=encode.size if net.encoding == "onehot" else obs_spec.shape[-1],
+        in_features=size,
         out_features=out_features,
         num_cells=list(net.hidden),
         activation_class=ACTIVATIONS[net.activation],
         device=env.device,
     )
-    return nn.Sequential(encode.to(env.device), mlp)
+    return nn.Sequential(encode, mlp)
 
 
 def make_qnet(env: DFRCEnv, net: NetworkConfig) -> QValueActor:
@@ -354,10 +362,7 @@ class _Heads(nn.Module):
 
     def __init__(self, env: DFRCEnv, net: NetworkConfig, heads: int) -> None:
         super().__init__()
-        obs_spec = env.observation_spec["observation"]
-        high = obs_spec.space.high.reshape(-1, obs_spec.shape[-1])[0].to(torch.float32)
-        self.encode = (_OneHot(high) if net.encoding == "onehot" else _Scale(high)).to(env.device)
-        size = self.encode.size if net.encoding == "onehot" else obs_spec.shape[-1]
+        self.encode, size = _encoder(env, net)
         self.heads = heads
         self.mlp = MultiAgentMLP(
             n_agent_inputs=size,

@@ -81,7 +81,7 @@ def test_updates_move_the_mean_towards_the_reward_and_set_priorities():
     assert len(seen) == cfg.updates_per_batch and all(p.shape == (32,) for p in seen)
     # the priorities are the per-sample cross-entropies the loss writes, not their square roots
     fixed = rb.sample()
-    rb.sample = lambda: fixed
+    rb.sample = lambda *args, **kwargs: fixed
     seen.clear()
     one = DQNConfig(**{**cfg.__dict__, "updates_per_batch": 1})
     _learn(one, rb, loss, optimizer, make_target_updater(loss, one))
@@ -113,3 +113,32 @@ def test_the_lagrangian_learner_refuses_distributional():
 
     with pytest.raises(ValueError, match=r"algo\.distributional"):
         LagrangianConfig.from_dict({"distributional": True})
+
+
+def test_default_profile_is_distributional_the_paper_and_lagrangian_profiles_are_not():
+    """``algo=dqn`` (yaml and dataclass) is C51; the paper profile (the authors' DQN) and the
+    Lagrangian learner, which does not implement it, learn expected values."""
+    from pathlib import Path
+
+    from omegaconf import OmegaConf
+
+    from irdrc.agents.lagrangian import LagrangianConfig
+
+    conf = Path(__file__).resolve().parents[1] / "recipes" / "conf" / "algo"
+    assert DQNConfig().distributional is True
+    assert DQNConfig.from_dict(OmegaConf.load(conf / "dqn.yaml")).distributional is True
+    assert OmegaConf.load(conf / "dqn_paper.yaml").algo.distributional is False
+    assert LagrangianConfig().dqn.distributional is False
+    assert LagrangianConfig.from_dict({}).dqn.distributional is False
+    assert (
+        LagrangianConfig.from_node(
+            OmegaConf.create(
+                {
+                    "algo": OmegaConf.load(conf / "dqn_lagrangian.yaml"),
+                    "network": {},
+                    "target_miss": 0.05,
+                }
+            )
+        ).dqn.distributional
+        is False
+    )

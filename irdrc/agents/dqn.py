@@ -104,7 +104,10 @@ class DQNConfig:
         total_frames: env steps of the whole run.
         init_random_frames: env steps with uniformly random actions before learning starts.
         buffer_size: replay capacity, in transitions.
-        batch_size: transitions per gradient update.
+        batch_size: transitions per gradient update …
+        batch_size_end: … 0 (default): constant; > 0: the batch grows (or shrinks) linearly in
+            env steps from ``batch_size`` to this over ``total_frames`` (larger late batches: less
+            gradient noise once the learning rate has annealed).
         updates_per_batch: gradient updates after each collected batch.
         lr: Adam learning rate at the start …
         lr_end: … annealed linearly to this over ``total_frames`` (equal to ``lr``: constant).
@@ -161,6 +164,7 @@ class DQNConfig:
     init_random_frames: int = 512
     buffer_size: int = 20_000
     batch_size: int = 256
+    batch_size_end: int = 0
     updates_per_batch: int = 4
     lr: float = 5e-4
     lr_end: float = 1e-5
@@ -204,6 +208,7 @@ class DQNConfig:
         # Sizes are capped where a larger value could only exhaust memory or time on any machine.
         for key in ("num_envs", "frames_per_batch", "batch_size"):
             num(key, 1, 10**7, integer=True)
+        num("batch_size_end", 0, 10**7, integer=True)
         num("total_frames", 1, 10**12, integer=True)
         num("buffer_size", 1, 10**9, integer=True)
         num("updates_per_batch", 1, 10**6, integer=True)  # 0 would never learn
@@ -261,6 +266,11 @@ class DQNConfig:
         if self.buffer_size < self.batch_size:
             raise ValueError(
                 f"algo.buffer_size={self.buffer_size} must be >= algo.batch_size={self.batch_size}"
+            )
+        if self.buffer_size < self.batch_size_end:
+            raise ValueError(
+                f"algo.buffer_size={self.buffer_size} must be >= "
+                f"algo.batch_size_end={self.batch_size_end}"
             )
         if self.select_every_frames and self.select_after_frames >= self.total_frames:
             raise ValueError(
@@ -527,10 +537,22 @@ def make_buffer(cfg: DQNConfig):
         )
     else:
         sampler = RandomSampler()
+    # A growing batch is passed to every sample() (TorchRL warns when both name a size).
     rb = TensorDictReplayBuffer(
-        storage=LazyTensorStorage(cfg.buffer_size), sampler=sampler, batch_size=cfg.batch_size
+        storage=LazyTensorStorage(cfg.buffer_size),
+        sampler=sampler,
+        batch_size=None if cfg.batch_size_end else cfg.batch_size,
     )
     return rb, sampler
+
+
+def batch_size_at(cfg: DQNConfig, frames: int) -> int:
+    """Transitions per update after ``frames`` env steps: ``batch_size``, or with
+    ``batch_size_end`` > 0 linear from ``batch_size`` to it over ``total_frames``."""
+    if not cfg.batch_size_end:
+        return cfg.batch_size
+    progress = min(1.0, frames / cfg.total_frames)
+    return round(cfg.batch_size + (cfg.batch_size_end - cfg.batch_size) * progress)
 
 
 def make_loss(qnet: QValueActor, env: DFRCEnv, cfg: DQNConfig) -> DQNLoss | DistributionalDQNLoss:
@@ -678,8 +700,9 @@ def train(
         frames += data.numel()
         exploration.step(data.numel())
         _anneal(cfg, optimizer, sampler, frames)
-        if len(rb) >= learn_from:
-            last_loss = _learn(cfg, rb, loss, optimizer, target, (average, qnet), center)
+        batch = batch_size_at(cfg, frames)
+        if len(rb) >= max(learn_from, batch):
+            last_loss = _learn(cfg, rb, loss, optimizer, target, (average, qnet), center, batch)
             record.updates += cfg.updates_per_batch
         if snapshots.due(frames - data.numel(), frames) and frames < cfg.total_frames:
             snapshots.take(frames, greedy_table(greedy_net, env), action_values(greedy_net, env))
@@ -844,13 +867,15 @@ def _learn(
     target,
     average: tuple[QValueActor | None, QValueActor] | None = None,
     center: RewardCenter | None = None,
+    batch: int | None = None,
 ) -> float:
-    """``updates_per_batch`` gradient updates from replay (each followed by the target update and,
-    with ``average`` = (average, online network), the policy average's; rewards centred by
-    ``center``); returns the last loss."""
+    """``updates_per_batch`` gradient updates from replay, of ``batch`` transitions each
+    (default ``cfg.batch_size``; each update followed by the target update and, with ``average`` =
+    (average, online network), the policy average's; rewards centred by ``center``); returns the
+    last loss."""
     last = math.nan
     for _ in range(cfg.updates_per_batch):
-        sample = rb.sample()
+        sample = rb.sample(batch or cfg.batch_size)
         if center is not None:
             sample = center.center(sample)
         if cfg.ensemble > 1:

@@ -154,6 +154,7 @@ class LagrangianConfig:
             ("select_every_frames", 0),
             ("ensemble", 1),
             ("distributional", False),
+            ("batch_size_end", 0),
         ):
             if getattr(self.dqn, key) != off:
                 raise ValueError(

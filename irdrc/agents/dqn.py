@@ -189,7 +189,7 @@ class DQNConfig:
     select_z: float = 2.58
     ensemble: int = 1
     ensemble_mask: float = 1.0
-    distributional: bool = True
+    distributional: bool = False
     atoms: int = 51
     support_span: float = 6.0
     prioritized: bool = True

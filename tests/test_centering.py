@@ -159,3 +159,57 @@ def test_samples_to_resolve_matches_the_exact_one_step_variance():
     assert row["true_gap"] == pytest.approx(gap)
     expected = (2.326 * math.hypot(row["sigma_comm"], row["sigma_radar"]) / abs(gap)) ** 2
     assert row["samples_per_action"] == pytest.approx(expected)
+
+
+def test_fixed_reward_scale_multiplies_what_the_loss_sees(monkeypatch):
+    """``algo.reward_scale``: the loss sees (r − r̄)·scale, with or without centering."""
+    both = RewardCenter(0.5, value=1.5, scale=0.02)
+    got = both.center(_sample([2.0, -48.0]))["next", "reward"].flatten().tolist()
+    assert got == pytest.approx([0.01, -0.99])
+    only = RewardCenter(0.0, scale=0.02)
+    assert only.center(_sample([-50.0]))["next", "reward"].item() == pytest.approx(-1.0)
+    # Through training: every reward the DQN loss receives is its raw sample, centred and scaled.
+    from torchrl.objectives import DQNLoss
+
+    raw: list[torch.Tensor] = []
+    seen: list[tuple[torch.Tensor, float | None]] = []
+    original_center, original_forward = RewardCenter.center, DQNLoss.forward
+
+    def center_spy(self, sample):
+        raw.append(sample["next", "reward"].clone())
+        return original_center(self, sample)
+
+    def forward_spy(self, sample):
+        seen.append(sample["next", "reward"].clone())
+        return original_forward(self, sample)
+
+    monkeypatch.setattr(RewardCenter, "center", center_spy)
+    monkeypatch.setattr(DQNLoss, "forward", forward_spy)
+    cfg = DQNConfig(
+        total_frames=256,
+        init_random_frames=64,
+        buffer_size=256,
+        batch_size=32,
+        reward_scale=0.02,
+        reward_centering=0.0,
+    )
+    train(Params(), cfg, seed=0)
+    assert len(raw) == len(seen) > 0
+    for r, s in zip(raw, seen, strict=True):
+        torch.testing.assert_close(s, r * 0.02)
+    assert float(torch.cat(raw).abs().max()) > 1.5  # real rewards, not already scaled
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"reward_scale": 0.0}, r"algo\.reward_scale"),
+        ({"reward_scale": -1.0}, r"algo\.reward_scale"),
+        ({"reward_scale": 0.5, "distributional": True}, r"algo\.reward_scale=0\.5"),
+    ],
+)
+def test_reward_scale_checked(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        DQNConfig(**kwargs)
+    with pytest.raises(ValueError, match=r"algo\.reward_scale"):
+        LagrangianConfig.from_dict({"reward_scale": 0.5})

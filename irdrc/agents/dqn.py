@@ -130,6 +130,9 @@ class DQNConfig:
             r̄/(1 − γ) and leaves the greedy policy unchanged, but the network no longer has to
             grow its outputs to that offset — which, with γ = 0.99 and a soft target, takes far
             longer than a run — and fits only the differences between states and actions.
+        reward_scale: a fixed factor on every sampled (centred) reward before the loss (1: off;
+            e.g. 0.02 = 1/r3 puts the paper's −50 penalty at −1). A positive factor scales every
+            Q-value and leaves the greedy policy unchanged; the learned values are in scaled units.
         select_every_frames: 0 (off), or the period, in env steps, of snapshots of the greedy
             policy taken from ``select_after_frames`` on; at the end the final policy is the
             snapshot whose mean reward, measured on the simulator by ``select_envs`` chains of
@@ -181,6 +184,7 @@ class DQNConfig:
     target_update_every_updates: int = 500
     average_tau: float = 0.0
     reward_centering: float = 0.001
+    reward_scale: float = 1.0
     select_every_frames: int = 0
     select_after_frames: int = 10_000
     select_envs: int = 64
@@ -223,6 +227,7 @@ class DQNConfig:
         for key in ("eps_start", "eps_end", "tau", "beta_start", "average_tau"):
             num(key, 0, 1)
         num("reward_centering", 0, 1, open_hi=True)
+        num("reward_scale", 0, 1e6, open_lo=True)
         num("select_every_frames", 0, 10**12, integer=True)
         num("select_after_frames", 0, 10**12, integer=True)
         num("select_envs", 2, 10**7, integer=True)
@@ -239,6 +244,12 @@ class DQNConfig:
             raise ValueError(
                 f"algo.distributional=true with algo.ensemble={self.ensemble}: the distributional "
                 "loss trains one network (set algo.ensemble=1)"
+            )
+        if self.distributional and self.reward_scale != 1:
+            raise ValueError(
+                f"algo.distributional=true with algo.reward_scale={self.reward_scale}: the "
+                "distributional support is already scaled to the reward table (set "
+                "algo.reward_scale=1)"
             )
         if self.distributional and not self.double_dqn:
             raise ValueError(
@@ -501,11 +512,13 @@ def make_exploration(env: DFRCEnv, cfg: DQNConfig) -> EGreedyModule:
 class RewardCenter:
     """The running average r̄ of collected rewards that reward centering subtracts (see
     ``DQNConfig.reward_centering``): the first batch's mean, then an exponential average at
-    ``rate`` per env step (so a batch of n steps moves it by 1 − (1 − rate)^n)."""
+    ``rate`` per env step (so a batch of n steps moves it by 1 − (1 − rate)^n); sampled rewards
+    are then multiplied by ``scale`` (``DQNConfig.reward_scale``)."""
 
-    def __init__(self, rate: float, value: float | None = None) -> None:
+    def __init__(self, rate: float, value: float | None = None, scale: float = 1.0) -> None:
         self.rate = float(rate)
         self.value = value
+        self.scale = float(scale)
 
     @property
     def on(self) -> bool:
@@ -523,9 +536,12 @@ class RewardCenter:
             self.value += (1.0 - (1.0 - self.rate) ** reward.numel()) * (mean - self.value)
 
     def center(self, sample: TensorDictBase) -> TensorDictBase:
-        """``sample`` with r̄ subtracted from its ``("next", "reward")`` (unchanged when off)."""
+        """``sample`` with r̄ subtracted from its ``("next", "reward")`` and the result multiplied
+        by ``scale`` (unchanged when both are off)."""
         if self.on and self.value is not None:
             sample.set(("next", "reward"), sample["next", "reward"] - self.value)
+        if self.scale != 1.0:
+            sample.set(("next", "reward"), sample["next", "reward"] * self.scale)
         return sample
 
 
@@ -648,7 +664,7 @@ def train(
     )
     hooks.start(dict(record.info))
 
-    center = RewardCenter(cfg.reward_centering)
+    center = RewardCenter(cfg.reward_centering, scale=cfg.reward_scale)
     snapshots = Snapshots(cfg.select_every_frames, cfg.select_after_frames)
     start_frames = _restore(resume, loss, optimizer, exploration, record, average, center)
     snapshots.load(resume.get("snapshots") if resume is not None else None)

@@ -155,6 +155,7 @@ class LagrangianConfig:
             ("ensemble", 1),
             ("distributional", False),
             ("batch_size_end", 0),
+            ("reward_scale", 1.0),
         ):
             if getattr(self.dqn, key) != off:
                 raise ValueError(

@@ -98,8 +98,7 @@ def test_centering_learns_the_long_horizon_optimum_at_p1_1_r4_50(seed):
     params = Params.from_config(
         {"env": {"p1": {"speed": 1.0}}, "reward": {"r4": 50.0}}, strict=False
     )
-    cfg = DQNConfig(reward_centering=0.001, distributional=False)  # the expected-value learner
-    run = train(params, cfg, seed=seed, eval_every_frames=5000)
+    run = train(params, DQNConfig(reward_centering=0.001), seed=seed, eval_every_frames=5000)
     assert run.history[-1]["optimality_ratio"] >= 0.99
 
 
@@ -172,7 +171,7 @@ def test_fixed_reward_scale_multiplies_what_the_loss_sees(monkeypatch):
     from torchrl.objectives import DQNLoss
 
     raw: list[torch.Tensor] = []
-    seen: list[tuple[torch.Tensor, float | None]] = []
+    seen: list[torch.Tensor] = []
     original_center, original_forward = RewardCenter.center, DQNLoss.forward
 
     def center_spy(self, sample):

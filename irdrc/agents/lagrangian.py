@@ -106,11 +106,8 @@ class LagrangianConfig:
     """
 
     # Centering is off here (unlike DQN's default): on the constrained benchmark it did not help.
-    # The two heads learn expected values: the distributional default of DQN is off.
     dqn: DQNConfig = field(
-        default_factory=lambda: DQNConfig(
-            total_frames=80_000, reward_centering=0.0, distributional=False, name=NAME
-        )
+        default_factory=lambda: DQNConfig(total_frames=80_000, reward_centering=0.0, name=NAME)
     )
     target_miss: float = 0.05
     objective: str = "throughput"
@@ -177,9 +174,7 @@ class LagrangianConfig:
         dqn_keys = {f.name for f in fields(DQNConfig) if f.name not in ("network", "name")}
         reject_unknown_keys("algo.", data, dqn_keys | set(LAGRANGIAN_KEYS))
         own = {k: data.pop(k) for k in LAGRANGIAN_KEYS if k in data}
-        dqn = DQNConfig.from_dict(
-            {"reward_centering": 0.0, "distributional": False, **data, "name": NAME}, network
-        )
+        dqn = DQNConfig.from_dict({"reward_centering": 0.0, **data, "name": NAME}, network)
         return cls(dqn=dqn, target_miss=target_miss, objective=objective, **own)
 
     @classmethod

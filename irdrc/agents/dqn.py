@@ -133,6 +133,13 @@ class DQNConfig:
         reward_scale: a fixed factor on every sampled (centred) reward before the loss (1: off;
             e.g. 0.02 = 1/r3 puts the paper's −50 penalty at −1). A positive factor scales every
             Q-value and leaves the greedy policy unchanged; the learned values are in scaled units.
+        popart: 0 (off), or the rate β of PopArt (van Hasselt et al. 2016: adaptive target
+            normalisation that preserves outputs). The network's last layer predicts normalised
+            values n, and Q = σ·n + μ, where μ and σ are running estimates of the mean and standard
+            deviation of the TD targets (a plain average over the first 1/β updates, then an
+            exponential average at rate β per update); each update first moves μ, σ and rescales
+            the last layer of the online and target networks so that every Q-value is unchanged,
+            then takes its gradient step on the loss divided by σ² (the loss in normalised units).
         select_every_frames: 0 (off), or the period, in env steps, of snapshots of the greedy
             policy taken from ``select_after_frames`` on; at the end the final policy is the
             snapshot whose mean reward, measured on the simulator by ``select_envs`` chains of
@@ -185,6 +192,7 @@ class DQNConfig:
     average_tau: float = 0.0
     reward_centering: float = 0.001
     reward_scale: float = 1.0
+    popart: float = 0.0
     select_every_frames: int = 0
     select_after_frames: int = 10_000
     select_envs: int = 64
@@ -228,6 +236,7 @@ class DQNConfig:
             num(key, 0, 1)
         num("reward_centering", 0, 1, open_hi=True)
         num("reward_scale", 0, 1e6, open_lo=True)
+        num("popart", 0, 1, open_hi=True)
         num("select_every_frames", 0, 10**12, integer=True)
         num("select_after_frames", 0, 10**12, integer=True)
         num("select_envs", 2, 10**7, integer=True)
@@ -251,6 +260,18 @@ class DQNConfig:
                 "distributional support is already scaled to the reward table (set "
                 "algo.reward_scale=1)"
             )
+        if self.popart:
+            for key, off in (
+                ("distributional", False),
+                ("ensemble", 1),
+                ("average_tau", 0.0),
+                ("reward_scale", 1.0),
+            ):
+                if getattr(self, key) != off:
+                    raise ValueError(
+                        f"algo.popart={self.popart} with algo.{key}={getattr(self, key)!r}: PopArt "
+                        f"normalises one expected-value network's outputs (set algo.{key}={off})"
+                    )
         if self.distributional and not self.double_dqn:
             raise ValueError(
                 "algo.distributional=true needs algo.double_dqn=true (TorchRL's distributional "
@@ -369,11 +390,90 @@ def make_mlp(env: DFRCEnv, net: NetworkConfig, out_features: int) -> nn.Sequenti
     return nn.Sequential(encode, mlp)
 
 
-def make_qnet(env: DFRCEnv, net: NetworkConfig) -> QValueActor:
+class PopArt(nn.Module):
+    """The output layer of PopArt (``DQNConfig.popart``): Q = σ·n + μ for the normalised values n
+    of the layer before it. μ, ν (the second moment) and σ = √(ν − μ²) are buffers, so the target
+    network and checkpoints carry them; ``count`` is the number of statistics updates so far."""
+
+    def __init__(self, device: torch.device | str | None = None) -> None:
+        super().__init__()
+        for name, value in (("mu", 0.0), ("nu", 1.0), ("sigma", 1.0), ("count", 0.0)):
+            self.register_buffer(name, torch.tensor(value, dtype=torch.float32, device=device))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return x * self.sigma + self.mu
+
+
+POPART_SIGMA_MIN = 1e-4
+"""σ's floor: targets that are (nearly) constant would otherwise divide the last layer by zero."""
+
+
+def make_qnet(env: DFRCEnv, net: NetworkConfig, popart: bool = False) -> QValueActor:
     """Q-value actor sized from the env's specs: observation (encoded by ``net.encoding``) in, one
-    Q-value per action out."""
+    Q-value per action out (through a ``PopArt`` output layer when ``popart``)."""
     module = make_mlp(env, net, env.action_spec_unbatched.space.n)
+    if popart:
+        module = nn.Sequential(module, PopArt(env.device))
     return QValueActor(module=module, in_keys=["observation"], spec=env.action_spec_unbatched)
+
+
+def _popart_keys(qnet: nn.Module) -> tuple[tuple[str, ...], tuple[str, ...]]:
+    """The parameter-tree paths (as in a loss's ``value_network_params``) of ``qnet``'s last
+    ``nn.Linear`` (the normalised values) and of its ``PopArt`` layer."""
+    linears = [name for name, m in qnet.named_modules() if isinstance(m, nn.Linear)]
+    layers = [name for name, m in qnet.named_modules() if isinstance(m, PopArt)]
+    if not linears or len(layers) != 1:
+        raise ValueError("the network has no PopArt output layer (algo.popart=0 when it was built)")
+    return tuple(linears[-1].split(".")), tuple(layers[0].split("."))
+
+
+def td_targets(loss: DQNLoss, sample: TensorDictBase, gamma: float) -> torch.Tensor:
+    """The TD targets r + γ·(1 − terminated)·Q_target(s′, a′) that ``loss`` regresses on, for a
+    replay ``sample`` [B] (a′ greedy in the online network with double DQN, else in the target
+    network); no gradient."""
+    with torch.no_grad():
+        nxt = sample["next"].select("observation").clone(False)
+        with loss.target_value_network_params.to_module(loss.value_network):
+            target_q = loss.value_network(nxt.clone(False))["action_value"]
+        if loss.double_dqn:
+            with loss.value_network_params.data.to_module(loss.value_network):
+                action = loss.value_network(nxt.clone(False))["action_value"].argmax(-1)
+        else:
+            action = target_q.argmax(-1)
+        value = target_q.gather(-1, action.unsqueeze(-1)).squeeze(-1)
+        reward = sample["next", "reward"].reshape(value.shape)
+        done = sample["next", "terminated"].reshape(value.shape).to(value.dtype)
+        return reward + gamma * (1.0 - done) * value
+
+
+def popart_update(
+    loss: DQNLoss, targets: torch.Tensor, rate: float, weights: torch.Tensor | None = None
+) -> float:
+    """Fold a batch of TD ``targets`` into PopArt's μ, ν, σ (step max(rate, 1/t) at the t-th
+    update; a mean weighted by ``weights``, the replay's importance weights, so that prioritised
+    sampling does not bias them) and rescale the last layer of the online and the target network
+    so that their outputs are unchanged (ART); returns the new σ."""
+    linear, layer = _popart_keys(loss.value_network)
+    online = loss.value_network_params.data
+    with torch.no_grad():
+        # Both networks hold the same statistics: read them from the online network.
+        mu, nu = float(online[(*layer, "mu")]), float(online[(*layer, "nu")])
+        count = float(online[(*layer, "count")])
+        targets = targets.double().reshape(-1)
+        w = torch.ones_like(targets) if weights is None else weights.double().reshape(-1)
+        w = w / w.sum()
+        step = max(rate, 1.0 / (count + 1.0))
+        mu_new = (1.0 - step) * mu + step * float((w * targets).sum())
+        nu_new = (1.0 - step) * nu + step * float((w * targets.pow(2)).sum())
+        sigma_new = math.sqrt(max(nu_new - mu_new**2, POPART_SIGMA_MIN**2))
+        for params in (online, loss.target_value_network_params):
+            sigma, old_mu = float(params[(*layer, "sigma")]), float(params[(*layer, "mu")])
+            params[(*linear, "weight")].mul_(sigma / sigma_new)
+            params[(*linear, "bias")].mul_(sigma).add_(old_mu - mu_new).div_(sigma_new)
+            for key, value in (("mu", mu_new), ("nu", nu_new), ("sigma", sigma_new)):
+                params[(*layer, key)].fill_(value)
+            params[(*layer, "count")].fill_(count + 1.0)
+    return sigma_new
 
 
 class _Heads(nn.Module):
@@ -440,17 +540,22 @@ def make_distributional_qnet(
     )
 
 
-def make_qnets(env: DFRCEnv, net: NetworkConfig, heads: int) -> tuple[QValueActor, QValueActor]:
+def make_qnets(
+    env: DFRCEnv, net: NetworkConfig, heads: int, popart: bool = False
+) -> tuple[QValueActor, QValueActor]:
     """The acting network and the network the loss trains, sharing parameters.
 
-    With ``heads`` = 1 both are ``make_qnet``'s actor. With ``heads`` = K > 1 the loss's actor maps
+    With ``heads`` = 1 both are ``make_qnet``'s actor (with a ``PopArt`` output layer when
+    ``popart``). With ``heads`` = K > 1 the loss's actor maps
     observations [B, K, n] to per-head values [B, K, actions] (its TD targets per head, each head
     with its own target copy), and the acting actor maps [..., n] to the heads' mean [..., actions]
     and acts greedily in it.
     """
     if heads == 1:
-        qnet = make_qnet(env, net)
+        qnet = make_qnet(env, net, popart)
         return qnet, qnet
+    if popart:
+        raise ValueError("PopArt normalises one network's outputs (algo.ensemble=1)")
     body = _Heads(env, net, heads)
     spec = env.action_spec_unbatched
     per_head = QValueActor(module=body, in_keys=["observation"], spec=spec)
@@ -649,7 +754,7 @@ def train(
     if cfg.distributional:
         qnet = trained = make_distributional_qnet(env, cfg.network, cfg.atoms, cfg.support_span)
     else:
-        qnet, trained = make_qnets(env, cfg.network, cfg.ensemble)
+        qnet, trained = make_qnets(env, cfg.network, cfg.ensemble, popart=cfg.popart > 0)
     exploration = make_exploration(env, cfg)
     policy = TensorDictSequential(qnet, exploration)
     rb, sampler = make_buffer(cfg)
@@ -887,8 +992,9 @@ def _learn(
 ) -> float:
     """``updates_per_batch`` gradient updates from replay, of ``batch`` transitions each
     (default ``cfg.batch_size``; each update followed by the target update and, with ``average`` =
-    (average, online network), the policy average's; rewards centred by ``center``); returns the
-    last loss."""
+    (average, online network), the policy average's; rewards centred by ``center``; with
+    ``cfg.popart`` the PopArt statistics are updated and the loss is divided by σ²); returns the
+    last loss (in the values' own units)."""
     last = math.nan
     for _ in range(cfg.updates_per_batch):
         sample = rb.sample(batch or cfg.batch_size)
@@ -896,9 +1002,16 @@ def _learn(
             sample = center.center(sample)
         if cfg.ensemble > 1:
             sample = _per_head(sample, cfg)
+        scale = 1.0
+        if cfg.popart:
+            # Statistics and ART first (outputs unchanged), then the loss in normalised units.
+            targets = td_targets(loss, sample, cfg.gamma)
+            weights = sample.get("priority_weight", None) if cfg.prioritized else None
+            sigma = popart_update(loss, targets, cfg.popart, weights)
+            scale = 1.0 / sigma**2
         out = loss(sample)
         optimizer.zero_grad(set_to_none=True)
-        out["loss"].backward()
+        (out["loss"] * scale if scale != 1.0 else out["loss"]).backward()
         if cfg.max_grad_norm > 0:
             nn.utils.clip_grad_norm_(loss.parameters(), cfg.max_grad_norm)
         optimizer.step()

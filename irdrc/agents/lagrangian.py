@@ -153,6 +153,7 @@ class LagrangianConfig:
             ("distributional", False),
             ("batch_size_end", 0),
             ("reward_scale", 1.0),
+            ("popart", 0.0),
         ):
             if getattr(self.dqn, key) != off:
                 raise ValueError(

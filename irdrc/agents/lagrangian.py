@@ -52,7 +52,14 @@ from irdrc.agents.dqn import (
 )
 from irdrc.core.env import DFRCEnv
 from irdrc.core.evaluate import long_run
-from irdrc.core.params import Params, check_choice, check_number, reject_unknown_keys, to_plain
+from irdrc.core.params import (
+    Params,
+    check_bool,
+    check_choice,
+    check_number,
+    reject_unknown_keys,
+    to_plain,
+)
 from irdrc.core.solve import ExactScorer
 
 NAME = "dqn_lagrangian"
@@ -71,6 +78,7 @@ LAGRANGIAN_KEYS = (
     "measure_burn_in",
     "measure_max_blocks",
     "mix_steps",
+    "confirm",
 )
 
 SEARCH_FLOOR = 1e-6
@@ -103,6 +111,11 @@ class LagrangianConfig:
             ``measure_burn_in`` steps, then blocks of ``measure_steps`` until two consecutive
             blocks agree (at most ``measure_max_blocks``; ``irdrc.core.evaluate.long_run``).
         mix_steps: bisection steps on the log-odds of the final policy's randomisation.
+        confirm: re-measure the search's result on fresh random numbers before the final choice
+            (``final_policy``): the search keeps the tables whose measured miss detection happened
+            to fall below the target, so its own measurements of them are biased low (the
+            winner's curse); the confirmation moves up the path while the fresh measurement is
+            above the target, and the randomisation is found on the fresh measurements.
     """
 
     # Centering is off here (unlike DQN's default): on the constrained benchmark it did not help.
@@ -122,6 +135,7 @@ class LagrangianConfig:
     measure_burn_in: int = 2_000
     measure_max_blocks: int = 8
     mix_steps: int = 10
+    confirm: bool = True
     name: str = field(default=NAME, compare=False)
 
     def __post_init__(self) -> None:
@@ -143,6 +157,7 @@ class LagrangianConfig:
         num("measure_burn_in", 0, 10**9, integer=True)
         num("measure_max_blocks", 1, 10**6, integer=True)
         num("mix_steps", 0, 60, integer=True)
+        check_bool("algo.confirm", self.confirm)
         if not isinstance(self.dqn, DQNConfig):
             raise ValueError(f"dqn={self.dqn!r} must be a DQNConfig")
         # DQN options this learner's loop does not implement: refused rather than ignored.
@@ -331,6 +346,10 @@ def path_index(breaks: list[float], mu: float) -> int:
     return bisect.bisect_right(breaks, mu)
 
 
+CONFIRM_SEED_OFFSET = 104_729
+"""The confirmation's random numbers: the search's seed plus this (independent of the search's)."""
+
+
 def final_policy(
     q: torch.Tensor, params: Params, mu: float, cfg: LagrangianConfig, seed: int
 ) -> tuple[torch.Tensor, dict[str, Any]]:
@@ -344,23 +363,27 @@ def final_policy(
     target, down the path (multipliers ÷ ``search_span`` at a time) while tables meet it and
     their measured objective grows; if not, up to ``mu``·``search_span`` and then the safest end.
     A bisection between the last table above the target and the first at or below it finds
-    neighbours on either side of it; the final policy randomises in the one state where they
-    differ, with the probability found by bisection (on its log-odds) on measured miss
-    detection.
+    neighbours on either side of it. With ``cfg.confirm`` the table found is measured again on
+    fresh random numbers, and while that measurement is above the target the search climbs the
+    path (doubling its steps, then bisecting) on the fresh numbers. The final policy randomises
+    in the one state where the two neighbours differ, with the probability found by bisection (on
+    its log-odds) on measured miss detection (the fresh numbers' with ``cfg.confirm``).
     """
     breaks, tables = greedy_path(q)
     target = cfg.target_miss
+    last = len(tables) - 1
     steps = 0
-    seen: dict[bytes, tuple[float, float]] = {}
+    seen: dict[tuple[bool, bytes], tuple[float, float]] = {}
 
     metric = {"sent": "throughput", "reward": "avg_reward", "capacity": "link_capacity"}[
         OBJECTIVE_KEYS[cfg.objective]
     ]
 
-    def rates(p_radar: torch.Tensor) -> tuple[float, float]:
-        """Measured (miss detection, objective) of a policy (each policy measured once)."""
+    def rates(p_radar: torch.Tensor, fresh: bool = False) -> tuple[float, float]:
+        """Measured (miss detection, objective) of a policy (each policy measured once per
+        stream: the search's, or with ``fresh`` the confirmation's)."""
         nonlocal steps
-        key = p_radar.double().numpy().tobytes()
+        key = (fresh, p_radar.double().numpy().tobytes())
         if key not in seen:
             ev = long_run(
                 params,
@@ -369,29 +392,43 @@ def final_policy(
                 steps=cfg.measure_steps,
                 burn_in=cfg.measure_burn_in,
                 max_blocks=cfg.measure_max_blocks,
-                seed=seed + 7919,
+                seed=seed + 7919 + (CONFIRM_SEED_OFFSET if fresh else 0),
             )
             steps += ev.steps
             seen[key] = (float(ev.metrics.miss_detection), float(getattr(ev.metrics, metric)))
         return seen[key]
 
-    def miss(p_radar: torch.Tensor) -> float:
-        return rates(p_radar)[0]
+    def miss(p_radar: torch.Tensor, fresh: bool = False) -> float:
+        return rates(p_radar, fresh)[0]
 
     def table(k: int) -> torch.Tensor:
         return tables[k].double()
 
-    def done(p_radar: torch.Tensor, **extra: Any) -> tuple[torch.Tensor, dict[str, Any]]:
+    def done(
+        p_radar: torch.Tensor, fresh: bool = False, **extra: Any
+    ) -> tuple[torch.Tensor, dict[str, Any]]:
         facts = {
             "path_tables": len(tables),
-            "measured_final_miss": miss(p_radar),
+            "measured_final_miss": miss(p_radar, fresh),
             "measurements": len(seen),
             "measure_env_steps": steps,
+            "confirmed": fresh,
             **extra,
         }
         return torch.stack([1 - p_radar.double(), p_radar.double()], -1), facts
 
+    def bracket(lo: int, hi: int, fresh: bool) -> tuple[int, int]:
+        """Bisection to neighbours: miss(lo) > target ≥ miss(hi) on entry and on return."""
+        while hi - lo > 1:
+            mid = (lo + hi) // 2
+            if miss(table(mid), fresh) > target:
+                lo = mid
+            else:
+                hi = mid
+        return lo, hi
+
     k0 = path_index(breaks, mu)
+    lo: int | None
     if miss(table(k0)) <= target:
         # Down the path (more data) by factors of search_span while the tables stay within the
         # target and their measured objective grows; the first one above the target brackets.
@@ -408,20 +445,29 @@ def final_policy(
             if rates(table(k))[1] <= rates(table(hi))[1]:
                 break  # no more data lower down: the heads' differences there are noise
             hi = k
-        if lo is None:
-            return done(table(hi), switch_state=None, p_switch=None)
     else:
         lo, hi = k0, path_index(breaks, mu * cfg.search_span)
         if miss(table(hi)) > target:
-            hi = len(tables) - 1  # beyond the range: the safest tables of the path
+            hi = last  # beyond the range: the safest tables of the path
             if hi == lo or miss(table(hi)) > target:
                 return done(table(hi), switch_state=None, p_switch=None)
-    while hi - lo > 1:  # invariant: miss(lo) > target ≥ miss(hi)
-        mid = (lo + hi) // 2
-        if miss(table(mid)) > target:
-            lo = mid
-        else:
-            hi = mid
+    if lo is not None:
+        lo, hi = bracket(lo, hi, fresh=False)
+    fresh = cfg.confirm
+    if fresh and miss(table(hi), fresh) > target:
+        # The search's measurements of the table it kept are biased low (it kept it because they
+        # fell below the target): climb the path on fresh numbers until a table meets it.
+        step, lo = 1, hi
+        while True:
+            k = min(hi + step, last)
+            if miss(table(k), fresh) <= target:
+                lo, hi = bracket(lo, k, fresh)
+                break
+            if k == last:
+                return done(table(last), fresh, switch_state=None, p_switch=None)
+            lo, step = k, 2 * step
+    if lo is None:
+        return done(table(hi), fresh, switch_state=None, p_switch=None)
     s = int((tables[lo] != tables[hi]).nonzero().flatten()[0])
     a_lo, a_hi = float(tables[lo][s]), float(tables[hi][s])
 
@@ -434,19 +480,19 @@ def final_policy(
     # Bisection on the log-odds z of the weight: miss(mixed(z)) falls as z grows.
     span = math.log(max(2.0, cfg.measure_steps / MIXING_STEPS_PER_BLOCK))
     z_lo, z_hi = -span, span
-    if miss(mixed(z_hi)) > target:
-        return done(table(hi), switch_state=s, p_switch=float(table(hi)[s]))
-    if miss(mixed(z_lo)) <= target:
+    if miss(mixed(z_hi), fresh) > target:
+        return done(table(hi), fresh, switch_state=s, p_switch=float(table(hi)[s]))
+    if miss(mixed(z_lo), fresh) <= target:
         z_hi = z_lo
     else:
         for _ in range(cfg.mix_steps):
             z = 0.5 * (z_lo + z_hi)
-            if miss(mixed(z)) > target:
+            if miss(mixed(z), fresh) > target:
                 z_lo = z
             else:
                 z_hi = z
     p = mixed(z_hi)
-    return done(p, switch_state=s, p_switch=float(p[s]), mu_switch=breaks[lo])
+    return done(p, fresh, switch_state=s, p_switch=float(p[s]), mu_switch=breaks[lo])
 
 
 def train(

@@ -112,10 +112,10 @@ class LagrangianConfig:
             blocks agree (at most ``measure_max_blocks``; ``irdrc.core.evaluate.long_run``).
         mix_steps: bisection steps on the log-odds of the final policy's randomisation.
         confirm: re-measure the search's result on fresh random numbers before the final choice
-            (``final_policy``): the search keeps the tables whose measured miss detection happened
-            to fall below the target, so its own measurements of them are biased low (the
-            winner's curse); the confirmation moves up the path while the fresh measurement is
-            above the target, and the randomisation is found on the fresh measurements.
+            (``final_policy``): the search keeps the tables whose measured miss detection fell at
+            or below the target, so a table whose measurement read low by chance is kept
+            (selection on noise); the confirmation moves up the path while the fresh measurement
+            is above the target, and the randomisation is found on the fresh measurements.
     """
 
     # Centering is off here (unlike DQN's default): on the constrained benchmark it did not help.
@@ -455,8 +455,8 @@ def final_policy(
         lo, hi = bracket(lo, hi, fresh=False)
     fresh = cfg.confirm
     if fresh and miss(table(hi), fresh) > target:
-        # The search's measurements of the table it kept are biased low (it kept it because they
-        # fell below the target): climb the path on fresh numbers until a table meets it.
+        # The search kept this table because its measurement fell at or below the target, which
+        # noise alone can do: climb the path on fresh numbers until a table meets it.
         step, lo = 1, hi
         while True:
             k = min(hi + step, last)

@@ -432,7 +432,7 @@ def td_targets(loss: DQNLoss, sample: TensorDictBase, gamma: float) -> torch.Ten
     replay ``sample`` [B] (a′ greedy in the online network with double DQN, else in the target
     network); no gradient."""
     with torch.no_grad():
-        nxt = sample["next"].select("observation").clone(False)
+        nxt = sample["next"].select("observation")
         with loss.target_value_network_params.to_module(loss.value_network):
             target_q = loss.value_network(nxt.clone(False))["action_value"]
         if loss.double_dqn:
@@ -1011,7 +1011,7 @@ def _learn(
             scale = 1.0 / sigma**2
         out = loss(sample)
         optimizer.zero_grad(set_to_none=True)
-        (out["loss"] * scale if scale != 1.0 else out["loss"]).backward()
+        (out["loss"] * scale).backward()
         if cfg.max_grad_norm > 0:
             nn.utils.clip_grad_norm_(loss.parameters(), cfg.max_grad_norm)
         optimizer.step()

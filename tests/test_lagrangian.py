@@ -4,6 +4,7 @@ policy's measured search, the long-run measurement it relies on, its config, and
 from __future__ import annotations
 
 import itertools
+import json
 import math
 
 import pytest
@@ -16,10 +17,10 @@ from irdrc.agents.base import Hooks
 from irdrc.agents.dqn import DQNConfig
 from irdrc.core.cmdp import solve_cmdp
 from irdrc.core.env import DFRCEnv
-from irdrc.core.evaluate import long_run
+from irdrc.core.evaluate import COMM_SUMS, long_run
 from irdrc.core.model import build_model
 from irdrc.core.params import Params
-from irdrc.core.solve import stationary_metrics
+from irdrc.core.solve import stationary_metrics, stationary_occupancy
 from tests.test_constrained_recipe import ROOT
 
 
@@ -45,6 +46,7 @@ def test_yaml_profile_equals_the_dataclass_defaults():
         ("measure_max_blocks", 0),
         ("bogus", 1),
         ("average_tau", 0.01),  # a DQN option the Lagrangian loop does not implement
+        ("prune", "maybe"),
     ],
 )
 def test_bad_settings_named(key, value):
@@ -170,6 +172,124 @@ def _path_heads(paper) -> torch.Tensor:
     return q
 
 
+def _exact_long_run(paper, low_seed: int | None = None, low: float = 0.0):
+    """A stand-in for ``long_run`` that measures exactly: the stationary metrics of the policy,
+    and per-state sums (``by_state``) from its exact occupancy over 10⁶ steps; miss detection
+    reads ``low`` low on the stream seeded ``low_seed``."""
+    import dataclasses
+    import types
+
+    def fake(params, p_radar, *, seed, by_state=False, **kw):
+        probs = torch.stack([1 - p_radar, p_radar], -1)
+        occ = stationary_occupancy(paper, probs)[0] * 1e6  # comm steps per state
+        m = stationary_metrics(paper, probs)
+        if seed == low_seed:
+            m = dataclasses.replace(m, miss_detection=m.miss_detection - low)
+        sums = {
+            "visits": occ,
+            "sent": occ * paper.sent[0],
+            "capacity": occ * paper.capacity[0],
+            "reward": occ * paper.R[0],
+            "event": occ * paper.event,
+            "missed": occ * paper.missed[0],
+        }
+        return types.SimpleNamespace(metrics=m, steps=1000, by_state=sums if by_state else None)
+
+    return fake
+
+
+def _misordered_heads(paper) -> tuple[torch.Tensor, list[int]]:
+    """Heads that order the path by event probability (riskier states radar first) except six
+    risky states at queue length 8, which they hold to comm longest, and those states."""
+    event = paper.event.to(torch.float64)
+    q = torch.zeros(paper.num_states, 2, 2, dtype=torch.float64)
+    q[:, 0, 0] = 1.0
+    q[:, 1, 0] = event + 1e-6 * torch.arange(paper.num_states)
+    bad = [s for s in range(paper.num_states) if s >> 5 == 8 and float(event[s]) > 0.05][:6]
+    q[bad, 1, 0] = 1e-4
+    return q, bad
+
+
+@pytest.mark.parametrize("prune", [True, False])
+def test_prune_recovers_what_misordered_heads_lose(paper, monkeypatch, prune):
+    """Six risky states the heads keep in comm longest (``_misordered_heads``) spoil the path near
+    a 5 % target: with them in comm, a table that sends anywhere lets the queue fall to 8, where
+    they miss, so the path's neighbours straddle radar-always. Measured exactly
+    (``_exact_long_run``), the path alone ends at no data at all (0.0 of the LP's, computed when
+    this was written), while the prune, which gives those states to radar first by their measured
+    data per missed event, reaches 0.962 of the LP; 0.95 leaves room for the bisections."""
+    monkeypatch.setattr(L, "long_run", _exact_long_run(paper))
+    q, bad = _misordered_heads(paper)
+    cfg = L.LagrangianConfig(target_miss=0.05, mix_steps=12, prune=prune)
+    breaks, _ = L.greedy_path(q)
+    policy, facts = L.final_policy(q, Params(), breaks[len(breaks) // 2], cfg, seed=0)
+    exact = stationary_metrics(paper, policy)
+    lp = solve_cmdp(paper, 0.05).metrics.throughput
+    assert exact.miss_detection <= 0.05 + 1e-9
+    if prune:
+        assert facts["pruned"] is True and facts["prune_promise"] > facts["path_promise"]
+        json.dumps(facts, allow_nan=False)  # the summary's JSON takes them
+        assert exact.throughput >= 0.95 * lp, (exact.throughput / lp, facts)
+        assert bool((policy[bad, 1] == 1).all())  # the misordered states watch the road
+    else:
+        assert facts["pruned"] is None
+        assert exact.throughput <= 0.5 * lp, (exact.throughput / lp, facts)
+
+
+def test_prune_keeps_the_path_where_it_promises_as_much(paper, monkeypatch):
+    """With heads that order the path well (``_path_heads``) the prune finds nothing better and
+    the final policy is the path's, bit for bit; for the average-reward objective (radar earns
+    reward too, so comm's data per missed event is not the trade) the prune is not tried."""
+    monkeypatch.setattr(L, "long_run", _exact_long_run(paper))
+    q = _path_heads(paper)
+    breaks, _ = L.greedy_path(q)
+    mu = breaks[len(breaks) // 2]
+    runs = {
+        prune: L.final_policy(q, Params(), mu, L.LagrangianConfig(target_miss=0.1, prune=prune), 0)
+        for prune in (True, False)
+    }
+    assert runs[True][1]["pruned"] is False
+    assert torch.equal(runs[True][0], runs[False][0])
+    cfg = L.LagrangianConfig(target_miss=0.1, objective="avg_reward")
+    assert L.final_policy(q, Params(), mu, cfg, 0)[1]["pruned"] is None
+
+
+def test_prune_order_is_data_per_missed_event_over_comm_states():
+    table = torch.tensor([0.0, 1.0, 0.0, 0.0, 0.0])  # state 1 watches the road
+    sums = {
+        "sent": torch.tensor([400.0, 999.0, 100.0, 400.0, 0.0]),
+        "missed": torch.tensor([9.0, 0.0, 4.0, 1.0, 0.0]),
+    }
+    # 400/10 = 40, 100/5 = 20, 400/2 = 200, 0/1 = 0 (never seen: first)
+    assert L.prune_order(sums, table, "sent") == [4, 2, 0, 3]
+
+
+def test_long_run_counts_comm_steps_per_state(paper):
+    """``by_state`` leaves the random numbers, and so the metrics, as they were, and its sums
+    agree with the model: over the measured steps the comm visits are the comm fraction, and in
+    the two most visited comm states data per comm step and events per comm step are within 4
+    binomial standard errors (≈ 8σ over the per-step spread; chains are not independent
+    samples, so a loose bound) of the model's."""
+    sol = solve_cmdp(paper, 0.05)
+    kw = dict(envs=64, steps=1000, burn_in=500, seed=3)
+    plain = long_run(Params(), sol.p_radar, **kw)
+    ev = long_run(Params(), sol.p_radar, by_state=True, **kw)
+    for key in ("miss_detection", "throughput", "radar_fraction", "mean_queue"):
+        assert getattr(plain.metrics, key) == getattr(ev.metrics, key), key
+    assert plain.by_state is None
+    b = ev.by_state
+    assert set(b) == set(COMM_SUMS)
+    assert float(b["visits"].sum()) == pytest.approx((1 - ev.metrics.radar_fraction) * 64_000)
+    assert float(b["sent"].sum()) == pytest.approx(ev.metrics.throughput * 64_000)
+    for s in b["visits"].topk(2).indices.tolist():
+        n = float(b["visits"][s])
+        assert n > 500
+        assert float(b["sent"][s]) / n == pytest.approx(float(paper.sent[0, s]), abs=0.05)
+        e = float(paper.event[s])
+        assert abs(float(b["event"][s]) / n - e) <= 4 * math.sqrt(e * (1 - e) / n) + 1e-9
+        assert float(b["missed"][s]) == float(b["event"][s])  # comm misses every event
+
+
 @pytest.mark.parametrize("confirm", [True, False])
 def test_confirmation_undoes_a_search_measured_low(paper, monkeypatch, confirm):
     """A measurement whose random numbers happen to read 0.02 low for every policy (the search's
@@ -178,19 +298,7 @@ def test_confirmation_undoes_a_search_measured_low(paper, monkeypatch, confirm):
     metrics plus that offset, so the outcome is exact: without the confirmation the final policy
     misses ≈ target + 0.02 (as the search measured it, 0.02 low); with it, the fresh measurements
     climb the path to neighbours on either side of the target and the mixture lands on it."""
-    import dataclasses
-    import types
-
-    search_seed = 0 + 7919
-
-    def fake_long_run(params, p_radar, *, seed, **kw):
-        probs = torch.stack([1 - p_radar, p_radar], -1)
-        m = stationary_metrics(paper, probs)
-        low = 0.02 if seed == search_seed else 0.0
-        m = dataclasses.replace(m, miss_detection=m.miss_detection - low)
-        return types.SimpleNamespace(metrics=m, steps=1000)
-
-    monkeypatch.setattr(L, "long_run", fake_long_run)
+    monkeypatch.setattr(L, "long_run", _exact_long_run(paper, low_seed=0 + 7919, low=0.02))
     q = _path_heads(paper)
     cfg = L.LagrangianConfig(target_miss=0.1, mix_steps=12, confirm=confirm)
     breaks, _ = L.greedy_path(q)

@@ -20,7 +20,11 @@ The final policy is chosen the way a vehicle could: along that path of tables, a
 measured miss detection (Monte-Carlo episodes on the simulator, counted in ``env_steps``) finds the
 two neighbouring tables on either side of the target; they differ in one state, and the final
 policy randomises there with the probability found by bisection on measured rates — the same shape
-as the exact LP optimum. The exact model only scores (``history``, the final metrics).
+as the exact LP optimum. The heads can misorder states they seldom see (a risky state at a long
+queue kept in comm after better ones went to radar); the prune (``algo.prune``) finds a second pair
+of neighbours by giving the comm states of the path's upper neighbour to radar in the order of
+their measured data per missed event, and the pair that promises more is kept. The exact model
+only scores (``history``, the final metrics).
 """
 
 from __future__ import annotations
@@ -79,6 +83,7 @@ LAGRANGIAN_KEYS = (
     "measure_max_blocks",
     "mix_steps",
     "confirm",
+    "prune",
 )
 
 SEARCH_FLOOR = 1e-6
@@ -116,6 +121,11 @@ class LagrangianConfig:
             or below the target, so a table whose measurement read low by chance is kept
             (selection on noise); the confirmation moves up the path while the fresh measurement
             is above the target, and the randomisation is found on the fresh measurements.
+        prune: also look for the final neighbours by giving the comm states of the path's
+            neighbour above the target to radar in the order of their measured objective per
+            missed event (``prune_order``), and keep whichever pair promises more at the target
+            (objectives ``throughput`` and ``link_capacity``; ``final_policy``). The heads'
+            ordering of rarely visited states can be wrong where a state's measured rates are not.
     """
 
     # Centering is off here (unlike DQN's default): on the constrained benchmark it did not help.
@@ -136,6 +146,7 @@ class LagrangianConfig:
     measure_max_blocks: int = 8
     mix_steps: int = 10
     confirm: bool = True
+    prune: bool = True
     name: str = field(default=NAME, compare=False)
 
     def __post_init__(self) -> None:
@@ -158,6 +169,7 @@ class LagrangianConfig:
         num("measure_max_blocks", 1, 10**6, integer=True)
         num("mix_steps", 0, 60, integer=True)
         check_bool("algo.confirm", self.confirm)
+        check_bool("algo.prune", self.prune)
         if not isinstance(self.dqn, DQNConfig):
             raise ValueError(f"dqn={self.dqn!r} must be a DQNConfig")
         # DQN options this learner's loop does not implement: refused rather than ignored.
@@ -350,11 +362,21 @@ CONFIRM_SEED_OFFSET = 104_729
 """The confirmation's random numbers: the search's seed plus this (independent of the search's)."""
 
 
+def prune_order(by_state: dict[str, torch.Tensor], table: torch.Tensor, key: str) -> list[int]:
+    """The states where ``table`` (1 = radar) communicates, in the order the prune gives them to
+    radar: ascending measured objective per missed event in their comm steps, Σ``key`` / (Σmissed
+    + 1) over ``by_state`` (``long_run(..., by_state=True)``). The + 1 keeps states seen too
+    seldom to have missed an event from looking best: they go early, which costs little data."""
+    comm = (table == 0).nonzero().flatten().tolist()
+    score = by_state[key].double() / (by_state["missed"].double() + 1.0)
+    return sorted(comm, key=lambda s: (float(score[s]), s))
+
+
 def final_policy(
     q: torch.Tensor, params: Params, mu: float, cfg: LagrangianConfig, seed: int
 ) -> tuple[torch.Tensor, dict[str, Any]]:
     """The final [S, 2] policy from the learned heads ``q`` [S, 2, 2] and the trained multiplier
-    ``mu``, chosen by measured miss detection alone (long-run Monte-Carlo runs on the simulator,
+    ``mu``, chosen by measured rates alone (long-run Monte-Carlo runs on the simulator,
     ``irdrc.core.evaluate.long_run``, all with the same random numbers so that measurements of
     neighbouring policies compare like with like). Returns (policy, facts); facts include the
     measurement env steps (``measure_env_steps``) and the measured rates of the final policy.
@@ -365,26 +387,35 @@ def final_policy(
     A bisection between the last table above the target and the first at or below it finds
     neighbours on either side of it. With ``cfg.confirm`` the table found is measured again on
     fresh random numbers, and while that measurement is above the target the search climbs the
-    path (doubling its steps, then bisecting) on the fresh numbers. The final policy randomises
-    in the one state where the two neighbours differ, with the probability found by bisection (on
-    its log-odds) on measured miss detection (the fresh numbers' with ``cfg.confirm``).
+    path (doubling its steps, then bisecting) on the fresh numbers.
+
+    With ``cfg.prune`` (objectives ``throughput`` and ``link_capacity``) a second pair of
+    neighbours comes from the measurements instead of the heads' ordering: the comm states of the
+    path's neighbour above the target go to radar one at a time in ``prune_order`` (from that
+    table's own per-state measurement), and a bisection on their number finds the two tables on
+    either side of the target. The pair whose measured (miss, objective) promise more at the
+    target, by linear interpolation between its two tables, is kept (the path's on a tie).
+
+    The final policy randomises in the one state where the kept neighbours differ, with the
+    probability found by bisection (on its log-odds) on measured miss detection (the fresh
+    numbers' with ``cfg.confirm``).
     """
     breaks, tables = greedy_path(q)
     target = cfg.target_miss
     last = len(tables) - 1
     steps = 0
     seen: dict[tuple[bool, bytes], tuple[float, float]] = {}
+    per_state: dict[tuple[bool, bytes], dict[str, torch.Tensor]] = {}
 
-    metric = {"sent": "throughput", "reward": "avg_reward", "capacity": "link_capacity"}[
-        OBJECTIVE_KEYS[cfg.objective]
-    ]
+    key = OBJECTIVE_KEYS[cfg.objective]
+    metric = {"sent": "throughput", "reward": "avg_reward", "capacity": "link_capacity"}[key]
 
     def rates(p_radar: torch.Tensor, fresh: bool = False) -> tuple[float, float]:
         """Measured (miss detection, objective) of a policy (each policy measured once per
         stream: the search's, or with ``fresh`` the confirmation's)."""
         nonlocal steps
-        key = (fresh, p_radar.double().numpy().tobytes())
-        if key not in seen:
+        k = (fresh, p_radar.double().numpy().tobytes())
+        if k not in seen:
             ev = long_run(
                 params,
                 p_radar.double(),
@@ -393,10 +424,12 @@ def final_policy(
                 burn_in=cfg.measure_burn_in,
                 max_blocks=cfg.measure_max_blocks,
                 seed=seed + 7919 + (CONFIRM_SEED_OFFSET if fresh else 0),
+                by_state=True,
             )
             steps += ev.steps
-            seen[key] = (float(ev.metrics.miss_detection), float(getattr(ev.metrics, metric)))
-        return seen[key]
+            seen[k] = (float(ev.metrics.miss_detection), float(getattr(ev.metrics, metric)))
+            per_state[k] = ev.by_state
+        return seen[k]
 
     def miss(p_radar: torch.Tensor, fresh: bool = False) -> float:
         return rates(p_radar, fresh)[0]
@@ -417,63 +450,123 @@ def final_policy(
         }
         return torch.stack([1 - p_radar.double(), p_radar.double()], -1), facts
 
-    def bracket(lo: int, hi: int, fresh: bool) -> tuple[int, int]:
+    def bracket(lo: int, hi: int, fresh: bool, miss_of=lambda k, f: miss(table(k), f)):
         """Bisection to neighbours: miss(lo) > target ≥ miss(hi) on entry and on return."""
         while hi - lo > 1:
             mid = (lo + hi) // 2
-            if miss(table(mid), fresh) > target:
+            if miss_of(mid, fresh) > target:
                 lo = mid
             else:
                 hi = mid
         return lo, hi
 
-    k0 = path_index(breaks, mu)
-    lo: int | None
-    if miss(table(k0)) <= target:
-        # Down the path (more data) by factors of search_span while the tables stay within the
-        # target and their measured objective grows; the first one above the target brackets.
-        lo, hi = None, k0
-        m = mu
-        while hi > 0 and m > mu * SEARCH_FLOOR:
-            m /= cfg.search_span
-            k = path_index(breaks, m)
-            if k == hi:
-                continue
-            if miss(table(k)) > target:
-                lo = k
-                break
-            if rates(table(k))[1] <= rates(table(hi))[1]:
-                break  # no more data lower down: the heads' differences there are noise
-            hi = k
-    else:
-        lo, hi = k0, path_index(breaks, mu * cfg.search_span)
-        if miss(table(hi)) > target:
-            hi = last  # beyond the range: the safest tables of the path
-            if hi == lo or miss(table(hi)) > target:
-                return done(table(hi), switch_state=None, p_switch=None)
-    if lo is not None:
-        lo, hi = bracket(lo, hi, fresh=False)
-    fresh = cfg.confirm
-    if fresh and miss(table(hi), fresh) > target:
-        # The search kept this table because its measurement fell at or below the target, which
-        # noise alone can do: climb the path on fresh numbers until a table meets it.
-        step, lo = 1, hi
-        while True:
-            k = min(hi + step, last)
-            if miss(table(k), fresh) <= target:
-                lo, hi = bracket(lo, k, fresh)
-                break
-            if k == last:
-                return done(table(last), fresh, switch_state=None, p_switch=None)
-            lo, step = k, 2 * step
-    if lo is None:
-        return done(table(hi), fresh, switch_state=None, p_switch=None)
-    s = int((tables[lo] != tables[hi]).nonzero().flatten()[0])
-    a_lo, a_hi = float(tables[lo][s]), float(tables[hi][s])
+    def path_search() -> tuple[torch.Tensor | None, torch.Tensor, bool, float | None]:
+        """The path's neighbours (above the target or None, at or below it — or the safest end
+        of the path when no table meets the target), the stream that decides, and the
+        multiplier of the switch."""
+        k0 = path_index(breaks, mu)
+        lo: int | None
+        if miss(table(k0)) <= target:
+            # Down the path (more data) by factors of search_span while the tables stay within
+            # the target and their measured objective grows; the first one above it brackets.
+            lo, hi = None, k0
+            m = mu
+            while hi > 0 and m > mu * SEARCH_FLOOR:
+                m /= cfg.search_span
+                k = path_index(breaks, m)
+                if k == hi:
+                    continue
+                if miss(table(k)) > target:
+                    lo = k
+                    break
+                if rates(table(k))[1] <= rates(table(hi))[1]:
+                    break  # no more data lower down: the heads' differences there are noise
+                hi = k
+        else:
+            lo, hi = k0, path_index(breaks, mu * cfg.search_span)
+            if miss(table(hi)) > target:
+                hi = last  # beyond the range: the safest tables of the path
+                if hi == lo or miss(table(hi)) > target:
+                    return None, table(hi), cfg.confirm, None
+        if lo is not None:
+            lo, hi = bracket(lo, hi, fresh=False)
+        fresh = cfg.confirm
+        if fresh and miss(table(hi), fresh) > target:
+            # The search kept this table because its measurement fell at or below the target,
+            # which noise alone can do: climb the path on fresh numbers until a table meets it.
+            step, lo = 1, hi
+            while True:
+                k = min(hi + step, last)
+                if miss(table(k), fresh) <= target:
+                    lo, hi = bracket(lo, k, fresh)
+                    break
+                if k == last:
+                    return None, table(last), True, None
+                lo, step = k, 2 * step
+        if lo is None:
+            return None, table(hi), fresh, None
+        return table(lo), table(hi), fresh, breaks[lo]
+
+    def promise(t_lo: torch.Tensor | None, t_hi: torch.Tensor, fresh: bool) -> float:
+        """The objective a mixture of the pair promises at the target, from their measured
+        rates by linear interpolation in miss detection (−∞ when neither meets it)."""
+        m_hi, j_hi = rates(t_hi, fresh)
+        if t_lo is None:
+            return j_hi if m_hi <= target else -math.inf
+        m_lo, j_lo = rates(t_lo, fresh)
+        if m_hi > target:
+            return -math.inf
+        if m_lo <= target:
+            return max(j_lo, j_hi)
+        w = (m_lo - target) / (m_lo - m_hi)  # the weight of t_hi that lands on the target
+        return (1 - w) * j_lo + w * j_hi
+
+    def prune_search(
+        top: torch.Tensor, fresh: bool
+    ) -> tuple[torch.Tensor | None, torch.Tensor, int, int]:
+        """Neighbours on either side of the target among ``top`` with its first k comm states
+        (``prune_order``) given to radar; also k (of the upper neighbour) and how many there are."""
+        rates(top, fresh)
+        order = prune_order(per_state[(fresh, top.numpy().tobytes())], top, key)
+
+        def pruned(k: int) -> torch.Tensor:
+            t = top.clone()
+            t[order[:k]] = 1.0
+            return t
+
+        n = len(order)
+        if miss(top, fresh) <= target:
+            return None, top, 0, n
+        if miss(pruned(n), fresh) > target:
+            return None, pruned(n), n, n
+        lo, hi = bracket(0, n, fresh, miss_of=lambda k, f: miss(pruned(k), f))
+        return pruned(lo), pruned(hi), hi, n
+
+    t_lo, t_hi, fresh, mu_switch = path_search()
+    extra: dict[str, Any] = {"pruned": None}
+    if cfg.prune and key != "reward" and (t_lo is not None or miss(t_hi, fresh) > target):
+        top = t_lo if t_lo is not None else t_hi
+        p_lo, p_hi, k, n = prune_search(top, fresh)
+        path_promise, prune_promise = promise(t_lo, t_hi, fresh), promise(p_lo, p_hi, fresh)
+        won = prune_promise > path_promise
+        extra = {
+            "pruned": won,
+            "prune_states": k,
+            "prune_candidates": n,
+            # −∞ (neither table of the pair meets the target) is written as None
+            "path_promise": path_promise if math.isfinite(path_promise) else None,
+            "prune_promise": prune_promise if math.isfinite(prune_promise) else None,
+        }
+        if won:
+            t_lo, t_hi, mu_switch = p_lo, p_hi, None
+    if t_lo is None:
+        return done(t_hi, fresh, switch_state=None, p_switch=None, **extra)
+    s = int((t_lo != t_hi).nonzero().flatten()[0])
+    a_lo, a_hi = float(t_lo[s]), float(t_hi[s])
 
     def mixed(z: float) -> torch.Tensor:
-        w = 1.0 / (1.0 + math.exp(-z))  # weight of tables[hi]'s action in s
-        p = table(hi).clone()
+        w = 1.0 / (1.0 + math.exp(-z))  # weight of t_hi's action in s
+        p = t_hi.clone()
         p[s] = w * a_hi + (1 - w) * a_lo
         return p
 
@@ -481,7 +574,7 @@ def final_policy(
     span = math.log(max(2.0, cfg.measure_steps / MIXING_STEPS_PER_BLOCK))
     z_lo, z_hi = -span, span
     if miss(mixed(z_hi), fresh) > target:
-        return done(table(hi), fresh, switch_state=s, p_switch=float(table(hi)[s]))
+        return done(t_hi, fresh, switch_state=s, p_switch=float(t_hi[s]), **extra)
     if miss(mixed(z_lo), fresh) <= target:
         z_hi = z_lo
     else:
@@ -492,7 +585,7 @@ def final_policy(
             else:
                 z_hi = z
     p = mixed(z_hi)
-    return done(p, fresh, switch_state=s, p_switch=float(p[s]), mu_switch=breaks[lo])
+    return done(p, fresh, switch_state=s, p_switch=float(p[s]), mu_switch=mu_switch, **extra)
 
 
 def train(

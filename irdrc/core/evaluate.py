@@ -55,12 +55,15 @@ class Evaluation:
             independent; NaN when fewer than two episodes or no event).
         episodes: episodes evaluated.
         steps: env steps evaluated.
+        by_state: ``long_run(..., by_state=True)`` only: per-state sums [S] (float64) over every
+            measured step (burn-in excluded) of ``COMM_SUMS``, counted in comm steps only.
     """
 
     metrics: Metrics
     ci95: dict[str, float]
     episodes: int
     steps: int
+    by_state: dict[str, torch.Tensor] | None = None
 
 
 def ratio_ci(x: torch.Tensor, y: torch.Tensor, z: float = 1.959964) -> tuple[float, float]:
@@ -131,6 +134,10 @@ def evaluate(policy, env: DFRCEnv, episodes: int | None = None) -> Evaluation:
     )
 
 
+COMM_SUMS = ("visits", "sent", "capacity", "reward", "event", "missed")
+"""What ``long_run(..., by_state=True)`` sums per state over the comm steps taken there: the
+visits and the step's signals of ``irdrc.core.env`` (``Step``)."""
+
 STATIONARITY_KEYS = ("miss_detection", "throughput", "mean_queue")
 """Rates that two consecutive blocks of ``long_run`` must agree on (it checks stationarity)."""
 
@@ -146,6 +153,7 @@ def long_run(
     max_blocks: int = 1,
     seed: int = 0,
     device: str = "cpu",
+    by_state: bool = False,
 ) -> Evaluation:
     """Long-run (stationary) Monte-Carlo metrics of the stationary policy ``p_radar`` ([S]
     probability of radar per state) on the simulator: ``envs`` independent chains from uniform
@@ -158,7 +166,10 @@ def long_run(
     95 % half-width), at most ``max_blocks`` blocks: a policy that drifts slowly towards a
     trap (e.g. a full queue it never empties) is then measured after the drift, not during it.
     The result describes the last block; ``steps`` counts every step run. Confidence
-    half-widths treat each chain as one independent sample (delta method).
+    half-widths treat each chain as one independent sample (delta method). With ``by_state`` the
+    result also carries, per state, the sums of ``COMM_SUMS`` over the comm steps taken there in
+    every measured block (``Evaluation.by_state``); the random numbers, and so the metrics, are
+    the same either way.
     """
     from irdrc.core.env import Dynamics
 
@@ -173,6 +184,11 @@ def long_run(
         raise ValueError(f"p_radar must be {dyn.num_states} probabilities in [0, 1]")
     gen = torch.Generator(device=dyn.device).manual_seed(int(seed))
     state = dyn.reset_states(envs, gen)
+    per_state = (
+        {k: torch.zeros(dyn.num_states, dtype=torch.float64, device=dyn.device) for k in COMM_SUMS}
+        if by_state
+        else None
+    )
 
     def run(n: int, sums: dict[str, torch.Tensor] | None) -> torch.Tensor:
         nonlocal state
@@ -187,6 +203,11 @@ def long_run(
                     sums[k] += getattr(out, k).double()
                 sums["alarm"] += out.false_alarm.double()
                 sums["quiet"] += ((action == 1) & ~out.event).double()
+                if per_state is not None:
+                    comm = (action == 0).double()
+                    per_state["visits"].index_add_(0, state, comm)
+                    for k in COMM_SUMS[1:]:
+                        per_state[k].index_add_(0, state, comm * getattr(out, k).double())
             state = out.state
         return state
 
@@ -229,6 +250,7 @@ def long_run(
         ci95=ci95,
         episodes=envs,
         steps=envs * (burn_in + blocks * steps),
+        by_state=None if per_state is None else {k: v.cpu() for k, v in per_state.items()},
     )
 
 

@@ -443,6 +443,7 @@ def run_bench_constrained(cfg: DictConfig, out: Path, scenario: list[str] | None
                 "objective_ok": float(s["objective_ratio"]) >= share,
                 "mu": learner["mu"],
                 "randomised_state": learner.get("switch_state"),
+                "pruned": learner.get("pruned"),
                 "training_env_steps": learner["training_env_steps"],
                 "measure_env_steps": learner["measure_env_steps"],
                 "wall_seconds": s["wall_seconds"],

@@ -140,7 +140,7 @@ class LagrangianConfig:
     mu_max: float = 1e5
     cost_window_frames: int = 4_000
     search_span: float = 4.0
-    measure_envs: int = 128
+    measure_envs: int = 2048
     measure_steps: int = 2_000
     measure_burn_in: int = 2_000
     measure_max_blocks: int = 8

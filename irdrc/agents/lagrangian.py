@@ -509,7 +509,8 @@ def final_policy(
 
     def promise(t_lo: torch.Tensor | None, t_hi: torch.Tensor, fresh: bool) -> float:
         """The objective a mixture of the pair promises at the target, from their measured
-        rates by linear interpolation in miss detection (−∞ when neither meets it)."""
+        rates by linear interpolation in miss detection (−∞ when its safer table ``t_hi`` does
+        not meet it)."""
         m_hi, j_hi = rates(t_hi, fresh)
         if t_lo is None:
             return j_hi if m_hi <= target else -math.inf

@@ -409,6 +409,7 @@ def final_policy(
 
     key = OBJECTIVE_KEYS[cfg.objective]
     metric = {"sent": "throughput", "reward": "avg_reward", "capacity": "link_capacity"}[key]
+    prune = cfg.prune and key != "reward"  # radar earns reward too: no per-comm-step trade
 
     def rates(p_radar: torch.Tensor, fresh: bool = False) -> tuple[float, float]:
         """Measured (miss detection, objective) of a policy (each policy measured once per
@@ -424,7 +425,7 @@ def final_policy(
                 burn_in=cfg.measure_burn_in,
                 max_blocks=cfg.measure_max_blocks,
                 seed=seed + 7919 + (CONFIRM_SEED_OFFSET if fresh else 0),
-                by_state=True,
+                by_state=prune,  # the per-state sums the prune orders by
             )
             steps += ev.steps
             seen[k] = (float(ev.metrics.miss_detection), float(getattr(ev.metrics, metric)))
@@ -545,7 +546,7 @@ def final_policy(
 
     t_lo, t_hi, fresh, mu_switch = path_search()
     extra: dict[str, Any] = {"pruned": None}
-    if cfg.prune and key != "reward" and (t_lo is not None or miss(t_hi, fresh) > target):
+    if prune and (t_lo is not None or miss(t_hi, fresh) > target):
         top = t_lo if t_lo is not None else t_hi
         p_lo, p_hi, k, n = prune_search(top, fresh)
         path_promise, prune_promise = promise(t_lo, t_hi, fresh), promise(p_lo, p_hi, fresh)

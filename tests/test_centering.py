@@ -98,8 +98,7 @@ def test_centering_learns_the_long_horizon_optimum_at_p1_1_r4_50(seed):
     params = Params.from_config(
         {"env": {"p1": {"speed": 1.0}}, "reward": {"r4": 50.0}}, strict=False
     )
-    cfg = DQNConfig(reward_centering=0.001, distributional=False, lr=5e-4)  # expected values
-    run = train(params, cfg, seed=seed, eval_every_frames=5000)
+    run = train(params, DQNConfig(reward_centering=0.001), seed=seed, eval_every_frames=5000)
     assert run.history[-1]["optimality_ratio"] >= 0.99
 
 
@@ -192,7 +191,6 @@ def test_fixed_reward_scale_multiplies_what_the_loss_sees(monkeypatch):
         batch_size=32,
         reward_scale=0.02,
         reward_centering=0.0,
-        distributional=False,
     )
     train(Params(), cfg, seed=0)
     assert len(raw) == len(seen) > 0

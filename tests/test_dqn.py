@@ -210,11 +210,9 @@ def test_default_profile_reaches_99_percent(seed):
 def test_default_profile_holds_on_unseen_seeds():
     """Seeds outside every benchmark (25–28) on the paper scenario: the final greedy policy of the
     default profile is ≥ 0.99 of the optimum in at least 3 of 4 runs. Training is seeded, so this is
-    deterministic on one machine: the default (distributional, lr 2.5e-4) ends at 1.000, 0.9986,
-    0.9983, 1.000 (the expected-value learner before it at 0.9998, 1.000, 1.000, 1.000). The
-    robustness benchmark measured 20 of 20 runs ≥ 0.99 on this scenario (17 of 20 for the
-    expected-value learner; README), so the bound allows one failing seed and catches a change
-    that breaks two."""
+    deterministic on one machine: with reward centering (the default) they end at 0.9998, 1.000,
+    1.000, 1.000. The robustness benchmark measured 17 of 20 runs ≥ 0.99 on this scenario (README),
+    so the bound allows one failing seed and catches a change that breaks two."""
     finals = []
     for seed in (25, 26, 27, 28):
         run = train(Params(), DQNConfig(), seed=seed, eval_every_frames=5000)

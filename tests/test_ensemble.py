@@ -52,7 +52,7 @@ def test_loss_trains_each_head_against_its_own_target():
     own squared TD errors (each head's double-DQN target from its own networks)."""
     torch.manual_seed(1)
     env = DFRCEnv(SMALL, batch_size=[2])
-    cfg = DQNConfig(ensemble=3, gamma=0.9, distributional=False)
+    cfg = DQNConfig(ensemble=3, gamma=0.9)
     _, trained = make_qnets(env, NetworkConfig(hidden=(8,)), 3)
     loss = make_loss(trained, env, cfg)
     obs = env.dynamics.obs
@@ -84,7 +84,7 @@ def test_loss_trains_each_head_against_its_own_target():
 
 
 def test_bootstrap_mask_keeps_the_set_fraction():
-    cfg = DQNConfig(ensemble=4, ensemble_mask=0.3, distributional=False)
+    cfg = DQNConfig(ensemble=4, ensemble_mask=0.3)
     td = TensorDict({"priority_weight": torch.full((5000,), 2.0)}, batch_size=[5000])
     out = _per_head(td, cfg)
     weight = out["priority_weight"]
@@ -96,9 +96,7 @@ def test_bootstrap_mask_keeps_the_set_fraction():
     out = _per_head(TensorDict({}, batch_size=[100]), cfg)
     assert set(out["priority_weight"].unique().tolist()) <= {0.0, 1.0}
     # mask 1: no weight key is added
-    assert "priority_weight" not in _per_head(
-        TensorDict({}, batch_size=[3]), DQNConfig(ensemble=2, distributional=False)
-    )
+    assert "priority_weight" not in _per_head(TensorDict({}, batch_size=[3]), DQNConfig(ensemble=2))
 
 
 @pytest.mark.parametrize(
@@ -111,7 +109,7 @@ def test_invalid_ensemble_config(kwargs, key):
 
 
 def test_ensemble_trains_checkpoints_and_resumes():
-    assert_dqn_trains_and_resumes(ensemble=3, ensemble_mask=0.5, distributional=False)
+    assert_dqn_trains_and_resumes(ensemble=3, ensemble_mask=0.5)
 
 
 def test_the_lagrangian_learner_refuses_an_ensemble():

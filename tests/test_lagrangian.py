@@ -325,7 +325,7 @@ def test_dual_step_is_relative_and_bounded():
 
 def test_short_run_reports_mu_measured_miss_and_a_probability_policy():
     cfg = L.LagrangianConfig(
-        dqn=DQNConfig(total_frames=1024, init_random_frames=256, distributional=False, name=L.NAME),
+        dqn=DQNConfig(total_frames=1024, init_random_frames=256, name=L.NAME),
         measure_envs=8,
         measure_steps=50,
         measure_burn_in=10,
@@ -395,7 +395,6 @@ def test_centering_runs_and_tracks_the_objective_mean(monkeypatch):
         buffer_size=256,
         batch_size=32,
         reward_centering=0.01,
-        distributional=False,
         name=L.NAME,
     )
     cfg = L.LagrangianConfig(dqn=dqn, measure_envs=4, measure_steps=20, measure_burn_in=0)

@@ -22,7 +22,7 @@ ROOT = Path(__file__).resolve().parents[1]
 def _setup(seed: int = 0) -> tuple[DFRCEnv, D.QValueActor, D.DQNLoss]:
     torch.manual_seed(seed)
     env = DFRCEnv(Params(), batch_size=[2], seed=seed)
-    cfg = D.DQNConfig(popart=0.1, distributional=False, network=D.NetworkConfig(hidden=(16, 16)))
+    cfg = D.DQNConfig(popart=0.1, network=D.NetworkConfig(hidden=(16, 16)))
     qnet, _ = D.make_qnets(env, cfg.network, 1, popart=True)
     loss = D.make_loss(qnet, env, cfg)
     # A target network that differs from the online one, as it does during training.
@@ -136,12 +136,7 @@ def test_the_gradient_step_is_the_loss_divided_by_sigma_squared(monkeypatch):
     monkeypatch.setattr(D.DQNLoss, "forward", spy)
     env, _, loss = _setup()
     cfg = D.DQNConfig(
-        popart=0.1,
-        distributional=False,
-        updates_per_batch=1,
-        batch_size=32,
-        max_grad_norm=0.0,
-        prioritized=False,
+        popart=0.1, updates_per_batch=1, batch_size=32, max_grad_norm=0.0, prioritized=False
     )
     rb, _ = D.make_buffer(cfg)
     rb.extend(_sample(env, n=64))
@@ -161,7 +156,6 @@ def test_training_keeps_the_statistics_in_the_checkpoint_and_resumes_them():
         buffer_size=480,
         batch_size=32,
         popart=0.01,
-        distributional=False,
         network=D.NetworkConfig(hidden=(16,)),
     )
     run = D.train(Params(), D.DQNConfig(**base), seed=0, eval_every_frames=160)
@@ -181,7 +175,7 @@ def test_off_by_default_and_listed_in_the_config():
     conf = ROOT / "recipes" / "conf" / "algo"
     assert D.DQNConfig().popart == 0.0
     assert OmegaConf.load(conf / "dqn.yaml").popart == 0.0
-    assert D.DQNConfig.from_dict({"popart": 0.001, "distributional": False}).popart == 0.001
+    assert D.DQNConfig.from_dict({"popart": 0.001}).popart == 0.001
 
 
 @pytest.mark.parametrize(
@@ -189,10 +183,10 @@ def test_off_by_default_and_listed_in_the_config():
     [
         ({"popart": -0.1}, r"algo\.popart"),
         ({"popart": 1.0}, r"algo\.popart"),
-        ({"popart": 0.01}, r"algo\.distributional=false"),  # the default is distributional
-        ({"popart": 0.01, "distributional": False, "ensemble": 3}, r"algo\.ensemble"),
-        ({"popart": 0.01, "distributional": False, "average_tau": 0.01}, r"algo\.average_tau"),
-        ({"popart": 0.01, "distributional": False, "reward_scale": 0.5}, r"algo\.reward_scale"),
+        ({"popart": 0.01, "distributional": True}, r"algo\.distributional"),
+        ({"popart": 0.01, "ensemble": 3}, r"algo\.ensemble"),
+        ({"popart": 0.01, "average_tau": 0.01}, r"algo\.average_tau"),
+        ({"popart": 0.01, "reward_scale": 0.5}, r"algo\.reward_scale"),
     ],
 )
 def test_popart_checked(kwargs, match):

@@ -198,13 +198,12 @@ def test_the_lagrangian_learner_refuses_selection():
 
 @pytest.mark.slow
 def test_selection_recovers_a_run_whose_last_network_collapsed():
-    """Paper scenario, seed 18 (a robustness-benchmark seed): the expected-value learner's last network
+    """Paper scenario, seed 18 (a robustness-benchmark seed): the default profile's last network
     ends at 0.7607 of the optimum (it watches too often and drops 37.5 % of the packets), while its
     greedy policy at 13 024 steps was 0.9911; measured returns pick that one.
     Deterministic on one machine; the bound is the benchmark's threshold."""
     params = Params()
-    cfg = DQNConfig(select_every_frames=1000, distributional=False, lr=5e-4)
-    run = train(params, cfg, seed=18, eval_every_frames=5000)
+    run = train(params, DQNConfig(select_every_frames=1000), seed=18, eval_every_frames=5000)
     assert run.info["selected_ratio"] >= 0.99, run.info
     assert run.info["selected_ratio"] >= run.history[-1]["optimality_ratio"]
     assert run.env_steps == 20_000 + run.info["select_env_steps"]

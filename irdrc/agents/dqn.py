@@ -109,7 +109,7 @@ class DQNConfig:
             env steps from ``batch_size`` to this over ``total_frames`` (larger late batches: less
             gradient noise once the learning rate has annealed).
         updates_per_batch: gradient updates after each collected batch.
-        lr: Adam learning rate at the start (default 2.5e-4) …
+        lr: Adam learning rate at the start …
         lr_end: … annealed linearly to this over ``total_frames`` (equal to ``lr``: constant).
         max_grad_norm: gradient clipping (0 = off).
         gamma: discount γ.
@@ -152,14 +152,12 @@ class DQNConfig:
             same replay samples, each against its own double-DQN target; acting, evaluation and
             the final policy are greedy in their mean Q. Averaging heads averages out the
             extrapolation errors in which they differ (README, "DQN across seeds").
-        distributional: (default true) learn the distribution of the (centred) discounted
-            return on a fixed support of ``atoms`` points (C51, Bellemare et al. 2017: TorchRL's
+        distributional: learn the distribution of the (centred) discounted return on a fixed
+            support of ``atoms`` points (C51, Bellemare et al. 2017: TorchRL's
             ``DistributionalQValueActor`` and ``DistributionalDQNLoss``, a cross-entropy to the
             projected double-DQN target, so ``loss_function`` is unused) instead of its mean; the
             greedy action maximises the distribution's mean. The support spans
-            ±``support_span`` × the largest |reward| of the env's reward table. With ``lr``
-            2.5e-4 it ends ≥ 0.99 of the optimum in more of the robustness benchmark's and
-            Figure 2's runs than the expected-value learner (README, "DQN across seeds").
+            ±``support_span`` × the largest |reward| of the env's reward table.
         atoms, support_span: the distributional support (see ``distributional``).
         ensemble_mask: with ``ensemble`` > 1, the probability that a sampled transition trains a
             given head (bootstrapped DQN, Osband et al. 2016); 1 (default): every head sees every
@@ -178,7 +176,7 @@ class DQNConfig:
     batch_size: int = 256
     batch_size_end: int = 0
     updates_per_batch: int = 4
-    lr: float = 2.5e-4
+    lr: float = 5e-4
     lr_end: float = 1e-5
     max_grad_norm: float = 10.0
     gamma: float = 0.99
@@ -203,7 +201,7 @@ class DQNConfig:
     select_z: float = 2.58
     ensemble: int = 1
     ensemble_mask: float = 1.0
-    distributional: bool = True
+    distributional: bool = False
     atoms: int = 51
     support_span: float = 6.0
     prioritized: bool = True
@@ -254,14 +252,13 @@ class DQNConfig:
         if self.distributional and self.ensemble > 1:
             raise ValueError(
                 f"algo.distributional=true with algo.ensemble={self.ensemble}: the distributional "
-                "loss trains one network (set algo.ensemble=1, or algo.distributional=false for an "
-                "ensemble of expected-value heads)"
+                "loss trains one network (set algo.ensemble=1)"
             )
         if self.distributional and self.reward_scale != 1:
             raise ValueError(
                 f"algo.distributional=true with algo.reward_scale={self.reward_scale}: the "
                 "distributional support is already scaled to the reward table (set "
-                "algo.reward_scale=1, or algo.distributional=false to scale expected values)"
+                "algo.reward_scale=1)"
             )
         if self.popart:
             for key, off in (
@@ -273,8 +270,7 @@ class DQNConfig:
                 if getattr(self, key) != off:
                     raise ValueError(
                         f"algo.popart={self.popart} with algo.{key}={getattr(self, key)!r}: PopArt "
-                        "normalises one expected-value network's outputs (set "
-                        f"algo.{key}={str(off).lower()})"
+                        f"normalises one expected-value network's outputs (set algo.{key}={off})"
                     )
         if self.distributional and not self.double_dqn:
             raise ValueError(

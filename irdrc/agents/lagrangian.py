@@ -129,16 +129,8 @@ class LagrangianConfig:
     """
 
     # Centering is off here (unlike DQN's default): on the constrained benchmark it did not help.
-    # The two heads learn expected values at the learning rate the benchmark measured (DQN's
-    # default is distributional at half that rate).
     dqn: DQNConfig = field(
-        default_factory=lambda: DQNConfig(
-            total_frames=80_000,
-            lr=5e-4,
-            reward_centering=0.0,
-            distributional=False,
-            name=NAME,
-        )
+        default_factory=lambda: DQNConfig(total_frames=80_000, reward_centering=0.0, name=NAME)
     )
     target_miss: float = 0.05
     objective: str = "throughput"
@@ -210,8 +202,7 @@ class LagrangianConfig:
         dqn_keys = {f.name for f in fields(DQNConfig) if f.name not in ("network", "name")}
         reject_unknown_keys("algo.", data, dqn_keys | set(LAGRANGIAN_KEYS))
         own = {k: data.pop(k) for k in LAGRANGIAN_KEYS if k in data}
-        base = {"lr": 5e-4, "reward_centering": 0.0, "distributional": False}
-        dqn = DQNConfig.from_dict({**base, **data, "name": NAME}, network)
+        dqn = DQNConfig.from_dict({"reward_centering": 0.0, **data, "name": NAME}, network)
         return cls(dqn=dqn, target_miss=target_miss, objective=objective, **own)
 
     @classmethod

@@ -147,6 +147,33 @@ def test_qlearning_recipe(tmp_path):
     }
 
 
+@pytest.mark.parametrize(
+    ("recipe", "tiny"),
+    [
+        ("dqn.py", ["algo.total_frames=640", "algo.init_random_frames=128", "algo.batch_size=32"]),
+        ("qlearning.py", ["algo.episodes=2"]),
+    ],
+)
+def test_learner_recipes_on_a_scenario_with_false_alarms(tmp_path, recipe, tiny):
+    """With radar false alarms the metrics gain ``false_alarm_rate``: ``metrics.csv`` (written at
+    the end, and beside DQN's checkpoint) carries it as a last column instead of failing the run."""
+    out = run_recipe(
+        recipe,
+        "env=imperfect_radar",
+        "reward=imperfect_radar",
+        *tiny,
+        "eval.every_frames=320",
+        "progress=false",
+        f"hydra.run.dir={tmp_path}",
+    )
+    assert out.returncode == 0, out.stderr[-2000:]
+    s = json.loads((tmp_path / "summary.json").read_text())
+    hist = list(csv.DictReader((tmp_path / "metrics.csv").open()))
+    assert list(hist[0])[-2:] == ["mean_queue", "false_alarm_rate"]
+    final = s["metrics"]["false_alarm_rate"]
+    assert 0 <= final <= 1 and float(hist[-1]["false_alarm_rate"]) == pytest.approx(final)
+
+
 def test_qlearning_recipe_batch_grid(tmp_path):
     out = run_recipe(
         "qlearning.py",

@@ -13,7 +13,7 @@ Learners know nothing of files or loggers: they report through ``Hooks`` and ret
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -33,8 +33,18 @@ PROGRESS_FIELDS = (
     "optimality_ratio",
     *METRIC_NAMES,
 )
-"""One exact evaluation of one learner's greedy policy: the columns of every ``metrics.csv``.
+"""One exact evaluation of one learner's greedy policy: the columns of every ``metrics.csv``
+(``false_alarm_rate`` joins them in a scenario with radar false alarms: ``progress_fields``).
 ``env_steps`` and ``episodes`` count this learner's own interaction; metrics are exact stationary."""
+
+
+def progress_fields(rows: Iterable[dict[str, Any]]) -> tuple[str, ...]:
+    """The columns of a ``metrics.csv`` holding ``rows``: ``PROGRESS_FIELDS``, and
+    ``false_alarm_rate`` after them when a row has it (a scenario with radar false alarms,
+    ``Metrics.as_dict``)."""
+    extra = any("false_alarm_rate" in r for r in rows)
+    return (*PROGRESS_FIELDS, "false_alarm_rate") if extra else PROGRESS_FIELDS
+
 
 EPISODE_FIELDS = ("learner", "episode", "env_steps", "reward")
 """One finished training episode (exploration included): the columns of ``episode_rewards.csv``."""

@@ -15,7 +15,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from irdrc.agents import lagrangian
-from irdrc.agents.base import PROGRESS_FIELDS, Hooks
+from irdrc.agents.base import Hooks, progress_fields
 from irdrc.core.cmdp import CMDPSolution, solve_cmdp
 from irdrc.core.metrics import format_table
 from irdrc.core.model import build_model
@@ -204,7 +204,7 @@ def run_constrained_learned(
         )
         progress.close()
     mu_trace = record.info.pop("mu_trace")
-    write_rows_csv(out / "metrics.csv", record.history, PROGRESS_FIELDS)
+    write_rows_csv(out / "metrics.csv", record.history, progress_fields(record.history))
     write_rows_csv(out / "mu.csv", mu_trace, MU_FIELDS)
     if record.interrupted:
         raise RunInterrupted(

@@ -18,7 +18,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 from omegaconf import DictConfig, OmegaConf
 
-from irdrc.agents.base import EPISODE_FIELDS, PROGRESS_FIELDS, RunRecord
+from irdrc.agents.base import EPISODE_FIELDS, RunRecord, progress_fields
 from irdrc.core.env import DFRCEnv
 from irdrc.core.evaluate import evaluate
 from irdrc.core.metrics import Metrics, format_table
@@ -54,7 +54,7 @@ def finish_run(
     learners = learner_rows(record, scorers, points, num_learners)
     if record.state is not None:
         save_checkpoint(out, record.state, OmegaConf.to_container(cfg, resolve=True))
-    write_rows_csv(out / "metrics.csv", record.history, PROGRESS_FIELDS)
+    write_rows_csv(out / "metrics.csv", record.history, progress_fields(record.history))
     write_rows_csv(out / "episode_rewards.csv", record.episode_rewards, EPISODE_FIELDS)
     write_rows_csv(out / "learners.csv", learners)
     greedy = record.greedy[0].cpu()

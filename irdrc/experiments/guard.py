@@ -13,7 +13,7 @@ from typing import Any
 
 import torch
 
-from irdrc.agents.base import EPISODE_FIELDS, PROGRESS_FIELDS
+from irdrc.agents.base import EPISODE_FIELDS, progress_fields
 from irdrc.experiments.results import atomic_write, write_rows_csv
 
 RESUME_MAY_DIFFER = (
@@ -81,7 +81,8 @@ def check_resume(path: Path, state: dict[str, Any], current: dict[str, Any]) -> 
 def save_checkpoint(out: Path, state: dict[str, Any], config: dict[str, Any]) -> None:
     """``checkpoint.pt`` (atomically), with the run's metrics and episodes so far beside it."""
     # The checkpoint last: once it exists, the files it goes with exist too.
-    write_rows_csv(out / "metrics.csv", state.get("history", []), PROGRESS_FIELDS)
+    history = state.get("history", [])
+    write_rows_csv(out / "metrics.csv", history, progress_fields(history))
     write_rows_csv(out / "episode_rewards.csv", state.get("episode_rewards", []), EPISODE_FIELDS)
     buf = io.BytesIO()
     torch.save({**state, "config": config}, buf)

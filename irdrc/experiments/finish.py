@@ -1,6 +1,6 @@
 """How every learner's run finishes: the run files, the printout, the learning-curve figure.
 
-``finish_run`` writes ``metrics.csv`` (one schema: ``irdrc.agents.base.PROGRESS_FIELDS``),
+``finish_run`` writes ``metrics.csv`` (one schema: ``irdrc.agents.base.progress_fields``),
 ``episode_rewards.csv``, ``learners.csv``, ``policy.csv``, ``summary.json`` (every row of the
 printed table), ``learning_curve.png`` and ``checkpoint.pt`` for learners that checkpoint, then
 prints the table, the final ratio and the states where the policy differs from the optimum.

@@ -3,7 +3,7 @@
 Each ``run_*`` takes a composed config (the recipe's Hydra config, or the same composed by a sweep
 for one grid point) and an output directory, writes the run's files there, prints its table, and
 returns the ``summary.json`` record. Every learner finishes the same way (``finish_run``):
-``metrics.csv`` (one schema: ``irdrc.agents.base.PROGRESS_FIELDS``), ``episode_rewards.csv``,
+``metrics.csv`` (one schema: ``irdrc.agents.base.progress_fields``), ``episode_rewards.csv``,
 ``learners.csv``, ``policy.csv``, ``summary.json`` (every row of the printed table), and
 ``checkpoint.pt`` for learners that checkpoint.
 """

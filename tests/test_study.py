@@ -54,7 +54,8 @@ def test_study_rows_and_table(tmp_path):
     # episodes cannot have left the all-comm start for every state, so it is below the optimum
     assert all(float(r["final_ratio"]) < 0.999 for r in rows if r["learner"] == "qlearning")
     table = (tmp_path / "study.md").read_text().splitlines()
-    assert len(table) == 2 + 2 and table[2].startswith("| paper (352) | dqn | 640 |")
+    assert len(table) == 2 + 2 + 2 and table[2].startswith("| paper (352) | dqn | 640 |")
+    assert table[-1].startswith("Measured on ")  # where and when, once under the table
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert summary["scenarios"]["paper"]["solver"] == "ExactScorer"
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import statistics
+import time
 from pathlib import Path
 from typing import Any
 
@@ -18,11 +19,11 @@ from irdrc.core.solve import ExactScorer, stationary_occupancy
 from irdrc.experiments.config import compose
 from irdrc.experiments.grid import parse_grid
 from irdrc.experiments.results import (
-    atomic_write_text,
     policy_differences,
     read_policy_csv,
     state_label,
     write_rows_csv,
+    write_table_md,
 )
 from irdrc.experiments.results import read_csv_rows as read_csv
 
@@ -404,6 +405,7 @@ def run_bench_constrained(cfg: DictConfig, out: Path, scenario: list[str] | None
     learner=dqn_lagrangian`` run through the sweep engine, scored exactly against the LP: per cell,
     the runs whose miss detection is ≤ target + ``miss_tolerance`` and those whose objective is
     ≥ ``objective_share`` of the LP optimum, with env steps (training + measurement) and seconds."""
+    start = time.perf_counter()
     import json
 
     from irdrc.experiments.sweep import execute, plan
@@ -456,7 +458,7 @@ def run_bench_constrained(cfg: DictConfig, out: Path, scenario: list[str] | None
         f"target + {tol:g}, objective ≥ {share:g} of the LP optimum"
     )
     print(table)
-    atomic_write_text(Path(out) / "bench_constrained.md", table + "\n")
+    write_table_md(Path(out) / "bench_constrained.md", table, time.perf_counter() - start)
     print(f"\nwrote {Path(out) / cfg.csv} and {Path(out) / 'bench_constrained.md'}")
     return code
 

@@ -15,7 +15,7 @@ from omegaconf import DictConfig
 
 from irdrc.core.env import DFRCEnv, Dynamics
 from irdrc.core.params import Params
-from irdrc.experiments.results import write_rows_csv
+from irdrc.experiments.results import md_table, write_rows_csv, write_table_md
 
 MODES = ("dynamics", "step", "rollout", "gym_vec")
 """Batched modes, measured at every N: bare ``Dynamics.step``; ``env.step_and_maybe_reset`` (what a
@@ -158,6 +158,7 @@ def _row(n: int, threads: int, mode: str, iters: int, repeats: int, times: list[
 def run_bench_env(cfg: DictConfig, out: Path) -> int:
     """Print the throughput table (batched modes at every N and thread count; single-env modes
     with their ratio to the numpy baseline measured in the same run) and write it as CSV."""
+    start = time.perf_counter()
     params = Params.from_config(cfg)
     bad = [m for m in cfg.modes if m not in MODES + SINGLE_MODES]
     if bad:
@@ -211,5 +212,41 @@ def run_bench_env(cfg: DictConfig, out: Path) -> int:
             f"(N={best['num_envs']}, threads={best['threads']}, mode={best['mode']})"
         )
     write_rows_csv(Path(out) / cfg.csv, rows)
-    print(f"wrote {Path(out) / cfg.csv}")
+    write_table_md(Path(out) / "bench_env.md", bench_env_table(rows), time.perf_counter() - start)
+    print(f"wrote {Path(out) / cfg.csv} and {Path(out) / 'bench_env.md'}")
     return 0
+
+
+def bench_env_table(rows: list[dict]) -> str:
+    """The benchmark as Markdown: batched modes in M steps/s (median over repeats) with N and
+    threads as rows, then each single-env mode in k steps/s with its ratio to the numpy baseline
+    of the same run."""
+    parts = []
+    batched = [r for r in rows if r["mode"] in MODES]
+    if batched:
+        modes = [m for m in MODES if any(r["mode"] == m for r in batched)]
+        keys = sorted({(r["threads"], r["num_envs"]) for r in batched})
+        rate = {(r["threads"], r["num_envs"], r["mode"]): r["median_steps_per_s"] for r in batched}
+        parts.append(
+            md_table(
+                ["N envs", "threads", *(f"{m} (M steps/s)" for m in modes)],
+                [
+                    [f"{n:,}".replace(",", " "), t]
+                    + [f"{rate[(t, n, m)] / 1e6:.3g}" if (t, n, m) in rate else "" for m in modes]
+                    for t, n in keys
+                ],
+            )
+        )
+    single = {r["mode"]: r["median_steps_per_s"] for r in rows if r["mode"] in SINGLE_MODES}
+    if single:
+        base = single.get("numpy_single")
+        parts.append(
+            md_table(
+                ["single env, one thread", "k steps/s", "ratio to numpy_single (this run)"],
+                [
+                    [m, f"{v / 1e3:.1f}", f"{v / base:.2f}" if base else "n/a"]
+                    for m, v in single.items()
+                ],
+            )
+        )
+    return "\n\n".join(parts)

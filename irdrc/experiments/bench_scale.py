@@ -21,7 +21,7 @@ from typing import Any
 from omegaconf import DictConfig
 
 from irdrc.core.params import to_plain
-from irdrc.experiments.results import atomic_write_text, write_rows_csv
+from irdrc.experiments.results import write_rows_csv, write_table_md
 
 COLUMNS = (
     "scenario",
@@ -122,6 +122,7 @@ def _child(scenario: str, queue: int, solver: str, device: str, tol: float, time
 def run_bench_scale(cfg: DictConfig, out: Path) -> int:
     """Every (scenario, S, solver[, device]) of ``cfg``: ``repeats`` fresh-process solves, median
     wall time, peak memory; the table printed and written as CSV and Markdown."""
+    start = time.perf_counter()
     import torch
 
     from irdrc.core.model import DENSE_MODEL_LIMIT_BYTES
@@ -204,7 +205,7 @@ def run_bench_scale(cfg: DictConfig, out: Path) -> int:
             + "; ".join(skipped)
             + "."
         )
-    atomic_write_text(out / "bench_scale.md", "\n".join(lines) + "\n")
+    write_table_md(out / "bench_scale.md", "\n".join(lines), time.perf_counter() - start)
     print(f"\nwrote {out / cfg.csv} and {out / 'bench_scale.md'}")
     return 0
 

@@ -82,6 +82,49 @@ def atomic_write_text(path: Path, text: str) -> None:
     atomic_write(path, lambda f: f.write(data))
 
 
+def md_table(header: Sequence[str], rows: Sequence[Sequence[Any]]) -> str:
+    """A Markdown table (GitHub style) of ``rows`` under ``header``."""
+    lines = ["| " + " | ".join(str(h) for h in header) + " |", "|" + "---|" * len(header)]
+    lines += ["| " + " | ".join(str(c) for c in r) + " |" for r in rows]
+    return "\n".join(lines)
+
+
+def machine_description() -> str:
+    """This machine in a few words: CPU model, cores, torch version (and the GPU when one is
+    used), for the one line under each generated table that says where it was measured."""
+    import platform
+
+    cpu = platform.processor() or platform.machine()
+    try:
+        with open("/proc/cpuinfo") as f:
+            cpu = next(
+                (line.split(":", 1)[1].strip() for line in f if line.startswith("model name")),
+                cpu,
+            )
+    except OSError:
+        pass
+    gpu = f", {torch.cuda.get_device_name(0)}" if torch.cuda.is_available() else ""
+    return f"{os.cpu_count()} cores ({cpu}){gpu}, torch {torch.__version__}"
+
+
+def measured_line(wall_seconds: float | None = None) -> str:
+    """``Measured on DATE on MACHINE[, in N s].``: the one line a generated table carries about where
+    and when it was measured (``machine_description``)."""
+    import datetime
+
+    date = datetime.date.today().isoformat()
+    took = ""
+    if wall_seconds is not None:
+        took = ", in " + f"{wall_seconds:,.0f}".replace(",", " ") + " s"
+    return f"Measured on {date} on {machine_description()}{took}."
+
+
+def write_table_md(path: Path, table: str, wall_seconds: float | None = None) -> None:
+    """Write a benchmark's Markdown table with its ``measured_line`` under it (atomically): the
+    file ``python -m irdrc.paper.docs`` embeds in docs/."""
+    atomic_write_text(Path(path), table.rstrip() + "\n\n" + measured_line(wall_seconds) + "\n")
+
+
 def summary_dict(
     *,
     method: str,

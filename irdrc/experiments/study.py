@@ -29,7 +29,7 @@ from irdrc.core.metrics import Metrics, first_reaching
 from irdrc.core.params import Params
 from irdrc.core.solve import ExactScorer
 from irdrc.experiments.config import compose, list_scenarios
-from irdrc.experiments.results import atomic_write_text, write_rows_csv
+from irdrc.experiments.results import atomic_write_text, write_rows_csv, write_table_md
 from irdrc.experiments.runs import LEARNERS
 
 THRESHOLDS = (0.95, 0.99)
@@ -262,7 +262,7 @@ def run_study(cfg: DictConfig, out: Path) -> int:
                 )
     table = study_table(rows)
     write_rows_csv(out / str(cfg.csv), rows)
-    atomic_write_text(out / "study.md", table + "\n")
+    write_table_md(out / "study.md", table, time.perf_counter() - t_start)
     summary = {
         "scenarios": optima,
         "learners": [str(x) for x in cfg.learners],

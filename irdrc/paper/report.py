@@ -6,29 +6,14 @@ from __future__ import annotations
 import json
 import math
 import shutil
-from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from irdrc.experiments.results import atomic_write_text
+from irdrc.experiments.results import atomic_write_text, md_table
+from irdrc.paper.docs import replace_block
 from irdrc.paper.figures import read_csv, same_value
 
 FIGURES = ("panel_a.png", "panel_b.png", "panel_c.png", "panel_d.png")
-
-
-def _block(text: str, name: str, body: str) -> str:
-    """Replace the body between ``<!-- generated:NAME -->`` and ``<!-- /generated:NAME -->``."""
-    start, end = f"<!-- generated:{name} -->", f"<!-- /generated:{name} -->"
-    i, j = text.find(start), text.find(end)
-    if i < 0 or j < i:
-        raise ValueError(f"the report has no block {start} … {end}")
-    return text[: i + len(start)] + "\n" + body.rstrip() + "\n" + text[j:]
-
-
-def _md_table(header: Sequence[str], rows: Sequence[Sequence[Any]]) -> str:
-    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
-    lines += ["| " + " | ".join(str(c) for c in r) + " |" for r in rows]
-    return "\n".join(lines)
 
 
 def _fmt(x: Any, digits: int = 4) -> str:
@@ -63,8 +48,8 @@ def write_report(
         raise ValueError(f"{figure_dir} was resumed: its wall time is not the whole run's")
 
     report = (docs_dir / "REPRODUCTION.md").read_text()
-    report = _block(report, "command", f"```bash\n{command}\n```")
-    report = _block(
+    report = replace_block(report, "command", f"```bash\n{command}\n```")
+    report = replace_block(
         report,
         "timing",
         f"Measured on this 2-core machine: **{summary['wall_seconds'] / 60:.1f} min** "
@@ -80,10 +65,10 @@ def write_report(
         rows.append([name, "never" if ep is None else f"{ep:g}", f"{final:.1f}"])
     rows.append(["optimal (exact)", "—", f"{summary['optimum_episode_reward']:.1f}"])
     rows.append(["round-robin (exact)", "—", f"{summary['round_robin_episode_reward']:.1f}"])
-    report = _block(
+    report = replace_block(
         report,
         "panel_a",
-        _md_table(
+        md_table(
             [
                 "method",
                 "first training episode with mean ≥ 95 % of the optimum",
@@ -110,16 +95,16 @@ def write_report(
         [s] + [vals.get(f"{m}_{t}", "") for m in metrics for t in ("lo", "hi")]
         for s, vals in table.items()
     ]
-    report = _block(report, "panels_bcd", _md_table(header, rows))
-    report = _block(report, "claims", (figure_dir / "claims.md").read_text())
-    report = _block(report, "tradeoff", _tradeoff_block(tradeoff_dir, trade))
+    report = replace_block(report, "panels_bcd", md_table(header, rows))
+    report = replace_block(report, "claims", (figure_dir / "claims.md").read_text())
+    report = replace_block(report, "tradeoff", _tradeoff_block(tradeoff_dir, trade))
     if frontier_dir is not None:
         shutil.copyfile(Path(frontier_dir) / "frontier.png", fig_out / "frontier.png")
-        report = _block(report, "design", design_block(Path(frontier_dir)))
+        report = replace_block(report, "design", design_block(Path(frontier_dir)))
     if learner_dir is not None:
-        report = _block(report, "design_learner", learner_block(Path(learner_dir)))
+        report = replace_block(report, "design_learner", learner_block(Path(learner_dir)))
     if study_dir is not None:
-        report = _block(report, "study", study_block(Path(study_dir)))
+        report = replace_block(report, "study", study_block(Path(study_dir)))
     atomic_write_text(docs_dir / "REPRODUCTION.md", report)
 
 
@@ -166,7 +151,7 @@ def design_block(frontier_dir: Path) -> str:
         )
     summary = json.loads((frontier_dir / "summary.json").read_text())
     return (
-        _md_table(
+        md_table(
             [
                 "p^v_1",
                 "target miss detection",
@@ -194,7 +179,7 @@ def _tradeoff_block(tradeoff_dir: Path, trade: dict[str, Any]) -> str:
         ]
         for r in read_csv(tradeoff_dir / "tradeoff.csv")
     ]
-    body = _md_table(
+    body = md_table(
         ["p^v_1", "r4", "radar states (of 352)", "miss detection", "throughput", "link capacity"],
         rows,
     )

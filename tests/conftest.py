@@ -93,6 +93,8 @@ def assert_dqn_trains_and_resumes(**options) -> None:
     from irdrc.agents.dqn import DQNConfig, NetworkConfig, train
 
     base = dict(
+        num_envs=8,
+        frames_per_batch=32,
         total_frames=320,
         init_random_frames=64,
         buffer_size=320,

@@ -80,6 +80,8 @@ def test_learner_run_writes_its_exact_score_beside_the_lp(tmp_path):
         tmp_path,
         "learner=dqn_lagrangian",
         "target_miss=0.15",
+        "algo.num_envs=8",
+        "algo.frames_per_batch=32",
         "algo.total_frames=1024",
         "algo.init_random_frames=256",
         "algo.measure_envs=8",

@@ -12,11 +12,14 @@ import pytest
 import torch
 
 from irdrc import DFRCEnv, Params
-from irdrc.agents.dqn import DQNConfig, NetworkConfig, greedy_table, make_qnet, train
+from irdrc.agents.dqn import DQNConfig, NetworkConfig, train
+from irdrc.agents.offpolicy import greedy_table, make_qnet
 from irdrc.experiments.tracking import resolve_wandb_mode
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = [
+    "algo.num_envs=8",
+    "algo.frames_per_batch=32",
     "algo.total_frames=640",
     "algo.init_random_frames=128",
     "algo.buffer_size=640",
@@ -87,6 +90,8 @@ def test_qnet_sized_from_specs_and_greedy_table():
 
 def test_train_function_counts_and_history():
     cfg = DQNConfig(
+        num_envs=8,
+        frames_per_batch=32,
         total_frames=320,
         init_random_frames=64,
         buffer_size=320,
@@ -105,26 +110,34 @@ def test_train_function_counts_and_history():
 
 
 def test_training_episode_rewards_tracked_across_batches():
-    """Episodes that straddle collector batches are summed whole, each env on its own."""
+    """Episodes that straddle collector batches are summed whole, each env row on its own, in the
+    order they end; a row that ends two episodes in one batch counts each from its own start."""
     from tensordict import TensorDict
 
-    from irdrc.agents.dqn import _track_episodes
+    from irdrc.agents.base import RunRecord
+    from irdrc.agents.offpolicy import EpisodeTracker
 
     def batch(rewards, dones):
         r = torch.tensor(rewards, dtype=torch.float32)[..., None]
         d = torch.tensor(dones)[..., None]
         return TensorDict({"next": {"reward": r, "done": d}}, batch_size=r.shape[:2])
 
-    total, out = torch.zeros(2, dtype=torch.float64), []
-    # env 0 ends an episode at its 2nd step; env 1 runs on into the next batch
-    _track_episodes(batch([[1, 2, 4], [10, 20, 40]], [[0, 1, 0], [0, 0, 0]]), total, 0, out)
-    _track_episodes(batch([[8, 16, 0], [80, 0, 0]], [[0, 1, 0], [1, 0, 0]]), total, 6, out)
-    assert out == [
+    record = RunRecord(method="t", greedy=torch.zeros(1, 1, dtype=torch.int64))
+    tracker = EpisodeTracker(2, record)
+    # row 0 ends an episode at its 2nd step; row 1 runs on into the next batch
+    tracker.add(batch([[1, 2, 4], [10, 20, 40]], [[0, 1, 0], [0, 0, 0]]), 0)
+    # row 1 ends first (1st step), then row 0 (2nd step); row 0 also starts a new one with 0
+    tracker.add(batch([[8, 16, 0], [80, 0, 0]], [[0, 1, 0], [1, 0, 0]]), 6)
+    assert record.episode_rewards == [
         {"learner": 0, "episode": 1, "env_steps": 4, "reward": 3.0},
         {"learner": 0, "episode": 2, "env_steps": 8, "reward": 150.0},
         {"learner": 0, "episode": 3, "env_steps": 10, "reward": 28.0},
     ]
-    assert total.tolist() == [0.0, 0.0]
+    assert tracker.total.tolist() == [0.0, 0.0]
+    # two ends in one batch on one row
+    tracker.add(batch([[1, 2, 3, 4], [0, 0, 0, 0]], [[1, 0, 1, 0], [0, 0, 0, 0]]), 12)
+    assert [e["reward"] for e in record.episode_rewards[3:]] == [1.0, 5.0]
+    assert tracker.total.tolist() == [4.0, 0.0]
 
 
 def test_recipe_end_to_end_and_resume(tmp_path):

@@ -18,6 +18,8 @@ from irdrc.experiments.results import FILE_MODE, atomic_write, atomic_write_text
 ROOT = Path(__file__).resolve().parents[1]
 # 4 000 env steps, a checkpoint every 640 (about a second apart here)
 RUN = [
+    "algo.num_envs=8",
+    "algo.frames_per_batch=32",
     "algo.total_frames=4000",
     "algo.init_random_frames=128",
     "algo.buffer_size=1000",

@@ -14,7 +14,7 @@ from tensordict import TensorDict
 
 from irdrc.agents import lagrangian as L
 from irdrc.agents.base import Hooks
-from irdrc.agents.dqn import DQNConfig
+from irdrc.agents.offpolicy import OffPolicyConfig
 from irdrc.core.cmdp import solve_cmdp
 from irdrc.core.env import DFRCEnv
 from irdrc.core.evaluate import COMM_SUMS, long_run
@@ -325,7 +325,9 @@ def test_dual_step_is_relative_and_bounded():
 
 def test_short_run_reports_mu_measured_miss_and_a_probability_policy():
     cfg = L.LagrangianConfig(
-        dqn=DQNConfig(total_frames=1024, init_random_frames=256, name=L.NAME),
+        dqn=OffPolicyConfig(
+            num_envs=8, frames_per_batch=32, total_frames=1024, init_random_frames=256, name=L.NAME
+        ),
         measure_envs=8,
         measure_steps=50,
         measure_burn_in=10,
@@ -333,7 +335,7 @@ def test_short_run_reports_mu_measured_miss_and_a_probability_policy():
     )
     seen = []
     rec = L.train(Params(), cfg, seed=0, eval_every_frames=512, hooks=Hooks(on_batch=seen.append))
-    assert {"mu", "measured_miss", "epsilon", "loss"} <= set(seen[-1])
+    assert {"mu", "measured_miss", "loss"} <= set(seen[-1])
     assert rec.policy.shape == (1, 352, 2)
     assert torch.allclose(rec.policy.sum(-1), torch.ones(1, 352, dtype=torch.float64))
     assert rec.env_steps == rec.info["training_env_steps"] + rec.info["measure_env_steps"]
@@ -389,7 +391,9 @@ def test_centering_runs_and_tracks_the_objective_mean(monkeypatch):
         seen.append(self.value)
 
     monkeypatch.setattr(L.RewardCenter, "update", spy)
-    dqn = L.DQNConfig(
+    dqn = L.OffPolicyConfig(
+        num_envs=8,
+        frames_per_batch=32,
         total_frames=256,
         init_random_frames=64,
         buffer_size=256,

@@ -150,7 +150,16 @@ def test_qlearning_recipe(tmp_path):
 @pytest.mark.parametrize(
     ("recipe", "tiny"),
     [
-        ("dqn.py", ["algo.total_frames=640", "algo.init_random_frames=128", "algo.batch_size=32"]),
+        (
+            "dqn.py",
+            [
+                "algo.num_envs=8",
+                "algo.frames_per_batch=32",
+                "algo.total_frames=640",
+                "algo.init_random_frames=128",
+                "algo.batch_size=32",
+            ],
+        ),
         ("qlearning.py", ["algo.episodes=2"]),
     ],
 )
@@ -241,7 +250,7 @@ def test_bench_robust_recipe(tmp_path):
         "seeds=[5,6]",
         "p1_speed=[0.1]",
         "r4=[5]",
-        "overrides=['algo=dqn','algo.total_frames=640','algo.init_random_frames=128','algo.batch_size=32']",
+        "overrides=['algo=dqn','algo.num_envs=8','algo.frames_per_batch=32','algo.total_frames=640','algo.init_random_frames=128','algo.batch_size=32']",
         "eval.every_frames=320",
         "executor=local",
         f"hydra.run.dir={tmp_path}",
@@ -275,7 +284,7 @@ def test_bench_robust_recipe_with_final_policy_selection(tmp_path):
         "seeds=[5]",
         "p1_speed=[0.1]",
         "r4=[5]",
-        "overrides=['algo.total_frames=640','algo.init_random_frames=128','algo.batch_size=32',"
+        "overrides=['algo.num_envs=8','algo.frames_per_batch=32','algo.total_frames=640','algo.init_random_frames=128','algo.batch_size=32',"
         "'algo.select_every_frames=64','algo.select_after_frames=320','algo.select_envs=4',"
         "'algo.select_steps=20','algo.select_burn_in=0']",
         "eval.every_frames=320",

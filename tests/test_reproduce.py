@@ -179,7 +179,7 @@ TINY_FIGURE = [
     "seeds=[0,1]",
     "p1_speed=[0.1,1.0]",
     "env.horizon=100",
-    "learners.dqn.overrides=['algo=dqn','eval.every_frames=400','algo.total_frames=800','algo.init_random_frames=128','algo.batch_size=32']",
+    "learners.dqn.overrides=['algo=dqn','eval.every_frames=400','algo.num_envs=8','algo.frames_per_batch=32','algo.total_frames=800','algo.init_random_frames=128','algo.batch_size=32']",
     "learners.dqn_paper.overrides=['algo=dqn_paper','algo.total_frames=400']",
     "learners.qlearning.overrides=['algo=qlearning','algo.episodes=4','eval.every_frames=200']",
     "learners.qlearning_paper.overrides=['algo=qlearning_paper','algo.episodes=4','eval.every_frames=200']",
@@ -237,7 +237,7 @@ def tiny_tradeoff(tmp_path_factory) -> tuple[Path, subprocess.CompletedProcess]:
         "search.hi=100",
         "dqn.r4=[5]",
         "dqn.seeds=[0,1]",
-        "dqn.overrides=['algo=dqn','algo.total_frames=320','algo.init_random_frames=64','algo.batch_size=16','eval.every_frames=320']",
+        "dqn.overrides=['algo=dqn','algo.num_envs=8','algo.frames_per_batch=32','algo.total_frames=320','algo.init_random_frames=64','algo.batch_size=16','eval.every_frames=320']",
         "executor=local",
     )
 

@@ -132,9 +132,10 @@ def test_one_distinct_table_costs_no_measurement(paper):
 
 
 SHORT = {
+    "num_envs": 8,
+    "frames_per_batch": 32,
     "total_frames": 1_024,
     "init_random_frames": 256,
-    "eps_anneal_frames": 256,
     "buffer_size": 1_024,
     "batch_size": 64,
     "select_every_frames": 128,
@@ -183,7 +184,7 @@ def test_selection_off_by_default_and_resumed_runs_keep_their_snapshots(paper):
         ({"select_envs": 1}, "select_envs"),
         ({"select_steps": 0}, "select_steps"),
         ({"select_z": -1.0}, "select_z"),
-        ({"select_every_frames": 100, "select_after_frames": 20_000}, "select_after_frames"),
+        ({"select_every_frames": 100, "select_after_frames": 600_000}, "select_after_frames"),
     ],
 )
 def test_bad_selection_settings_are_refused(kwargs, match):
@@ -194,16 +195,3 @@ def test_bad_selection_settings_are_refused(kwargs, match):
 def test_the_lagrangian_learner_refuses_selection():
     with pytest.raises(ValueError, match="select_every_frames"):
         LagrangianConfig.from_dict({"select_every_frames": 1000})
-
-
-@pytest.mark.slow
-def test_selection_recovers_a_run_whose_last_network_collapsed():
-    """Paper scenario, seed 18 (a robustness-benchmark seed): the default profile's last network
-    ends at 0.7607 of the optimum (it watches too often and drops 37.5 % of the packets), while its
-    greedy policy at 13 024 steps was 0.9911; measured returns pick that one.
-    Deterministic on one machine; the bound is the benchmark's threshold."""
-    params = Params()
-    run = train(params, DQNConfig(select_every_frames=1000), seed=18, eval_every_frames=5000)
-    assert run.info["selected_ratio"] >= 0.99, run.info
-    assert run.info["selected_ratio"] >= run.history[-1]["optimality_ratio"]
-    assert run.env_steps == 20_000 + run.info["select_env_steps"]

@@ -24,7 +24,10 @@ def study_cfg(**kw):
         "scenarios": ["paper"],
         "seeds": [0, 1],
         "evals": {"default": 2},
-        "overrides": {"dqn": ["algo.total_frames=640"], "qlearning": ["algo.episodes=2"]},
+        "overrides": {
+            "dqn": ["algo.num_envs=8", "algo.frames_per_batch=32", "algo.total_frames=640"],
+            "qlearning": ["algo.episodes=2"],
+        },
     }
     base.update(kw)
     return OmegaConf.merge(cfg, base)

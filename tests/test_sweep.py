@@ -106,7 +106,7 @@ def test_bad_grid_is_refused_before_ray_starts(overrides, msg):
         run_sweep(cfg, Path("/nonexistent"))  # plans (composes every point) before any trial
 
 
-TINY_DQN = "sweep.base=['algo.total_frames=640','algo.init_random_frames=128','algo.buffer_size=640','algo.batch_size=32','eval.every_frames=320','eval.mc_episodes=0']"
+TINY_DQN = "sweep.base=['algo.num_envs=8','algo.frames_per_batch=32','algo.total_frames=640','algo.init_random_frames=128','algo.buffer_size=640','algo.batch_size=32','eval.every_frames=320','eval.mc_episodes=0']"
 
 
 @pytest.mark.e2e

@@ -33,26 +33,31 @@ import bisect
 import math
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 from typing import Any
 
 import torch
 from tensordict import TensorDict, TensorDictBase, TensorDictParams
 from tensordict.nn import TensorDictSequential
 from torch import nn
-from torchrl.collectors import Collector
 from torchrl.modules import QValueActor
-from torchrl.objectives import LossModule, SoftUpdate
+from torchrl.objectives import LossModule
 
 from irdrc.agents.base import Hooks, RunRecord, make_scorers, progress_record, scenario_list
-from irdrc.agents.dqn import (
-    DQNConfig,
+from irdrc.agents.offpolicy import (
+    STORED_KEYS,
+    OffPolicyConfig,
+    OffPolicyLoop,
     RewardCenter,
-    _anneal,
-    _track_episodes,
+    clip_and_step,
+    greedy_table,
     make_buffer,
+    make_collector,
     make_exploration,
     make_mlp,
+    make_optimizer,
+    make_target_updater,
+    policy_view,
 )
 from irdrc.core.env import DFRCEnv
 from irdrc.core.evaluate import long_run
@@ -86,6 +91,12 @@ LAGRANGIAN_KEYS = (
     "prune",
 )
 
+DQN_VARIANT_KEYS = frozenset(
+    {"distributional", "atoms", "support_span"}
+    | {f"select_{k}" for k in ("every_frames", "after_frames", "envs", "steps", "burn_in", "z")}
+)
+"""DQN's variant keys (``irdrc.agents.dqn_variants``): refused here, rather than ignored."""
+
 SEARCH_FLOOR = 1e-6
 """The final search goes down the path no further than this fraction of the trained μ."""
 
@@ -101,7 +112,8 @@ class LagrangianConfig:
     """The Lagrangian DQN (config group ``algo: dqn_lagrangian``): DQN's keys plus these.
 
     Attributes:
-        dqn: the DQN machinery's hyperparameters (every ``DQNConfig`` key; 80 000 env steps).
+        dqn: the machinery's hyperparameters (every ``OffPolicyConfig`` key; DQN's variants are
+            refused, and so are n-step returns: the two heads learn TD(0)).
         target_miss: m*, miss detection ≤ this (the recipe's top-level ``target_miss``).
         objective: what is maximised (the recipe's top-level ``objective``).
         mu_init: the multiplier at the start.
@@ -129,8 +141,19 @@ class LagrangianConfig:
     """
 
     # Centering is off here (unlike DQN's default): on the constrained benchmark it did not help.
-    dqn: DQNConfig = field(
-        default_factory=lambda: DQNConfig(total_frames=80_000, reward_centering=0.0, name=NAME)
+    dqn: OffPolicyConfig = field(
+        default_factory=lambda: OffPolicyConfig(
+            num_envs=8,
+            frames_per_batch=32,
+            total_frames=80_000,
+            init_random_frames=512,
+            buffer_size=20_000,
+            batch_size=256,
+            lr=5e-4,
+            tau=0.01,
+            reward_centering=0.0,
+            name=NAME,
+        )
     )
     target_miss: float = 0.05
     objective: str = "throughput"
@@ -170,23 +193,13 @@ class LagrangianConfig:
         num("mix_steps", 0, 60, integer=True)
         check_bool("algo.confirm", self.confirm)
         check_bool("algo.prune", self.prune)
-        if not isinstance(self.dqn, DQNConfig):
-            raise ValueError(f"dqn={self.dqn!r} must be a DQNConfig")
-        # DQN options this learner's loop does not implement: refused rather than ignored.
-        for key, off in (
-            ("average_tau", 0),
-            ("select_every_frames", 0),
-            ("ensemble", 1),
-            ("distributional", False),
-            ("batch_size_end", 0),
-            ("reward_scale", 1.0),
-            ("popart", 0.0),
-        ):
-            if getattr(self.dqn, key) != off:
-                raise ValueError(
-                    f"algo.{key}={getattr(self.dqn, key)!r}: the Lagrangian DQN does not implement "
-                    f"it (set algo.{key}={off})"
-                )
+        if not isinstance(self.dqn, OffPolicyConfig):
+            raise ValueError(f"dqn={self.dqn!r} must be an OffPolicyConfig")
+        if self.dqn.n_steps != 1:
+            raise ValueError(
+                f"algo.n_steps={self.dqn.n_steps}: the Lagrangian DQN's two heads learn one-step "
+                "targets (set algo.n_steps=1)"
+            )
 
     @classmethod
     def from_dict(
@@ -199,10 +212,17 @@ class LagrangianConfig:
         """From the ``algo`` node (DQN's keys and ``LAGRANGIAN_KEYS``), the ``network`` node and
         the problem (``target_miss``, ``objective``); unknown keys are rejected."""
         data = {k: v for k, v in dict(to_plain(data)).items() if k != "name"}
-        dqn_keys = {f.name for f in fields(DQNConfig) if f.name not in ("network", "name")}
-        reject_unknown_keys("algo.", data, dqn_keys | set(LAGRANGIAN_KEYS))
+        variants = sorted(k for k in data if k in DQN_VARIANT_KEYS)
+        if variants:
+            raise ValueError(
+                f"algo.{variants[0]}: the Lagrangian DQN does not implement DQN's variants "
+                f"({', '.join(sorted(DQN_VARIANT_KEYS))}); remove it"
+            )
+        reject_unknown_keys(
+            "algo.", data, (OffPolicyConfig.keys() - {"name"}) | set(LAGRANGIAN_KEYS)
+        )
         own = {k: data.pop(k) for k in LAGRANGIAN_KEYS if k in data}
-        dqn = DQNConfig.from_dict({"reward_centering": 0.0, **data, "name": NAME}, network)
+        dqn = OffPolicyConfig.from_dict({"reward_centering": 0.0, **data, "name": NAME}, network)
         return cls(dqn=dqn, target_miss=target_miss, objective=objective, **own)
 
     @classmethod
@@ -598,15 +618,16 @@ def train(
     seed: int = 0,
     device: str = "cpu",
     scorers: ExactScorer | Sequence[ExactScorer] | None = None,
-    eval_every_frames: int = 1_000,
+    eval_every_frames: int = 25_000,
     hooks: Hooks | None = None,
     resume: dict[str, Any] | None = None,
     optimal_value: float | None = None,
 ) -> RunRecord:
     """Train the Lagrangian DQN and choose its final (possibly randomised) policy.
 
-    The interface of ``irdrc.agents.base``. ``hooks.on_batch`` gets ``env_steps``, ``episodes``,
-    ``epsilon``, ``loss``, ``mu`` (the multiplier), ``measured_miss`` (M̂), ``buffer``. Each exact
+    The interface of ``irdrc.agents.base``, on the machinery of ``irdrc.agents.offpolicy`` (the
+    same rows, ladder, replay and loop as DQN). ``hooks.on_batch`` gets ``env_steps``,
+    ``episodes``, ``loss``, ``mu`` (the multiplier), ``measured_miss`` (M̂), ``buffer``. Each exact
     evaluation scores the greedy table at the current μ; its ``optimality_ratio`` is the objective
     over ``optimal_value`` (the LP optimum, when given; else over the reward-optimal average
     reward). The record's ``policy`` is the final [1, S, 2] policy, ``greedy`` its most likely
@@ -627,84 +648,82 @@ def train(
     torch.manual_seed(seed)
     env = DFRCEnv(params, batch_size=[dq.num_envs], device=device, seed=seed)
 
+    # Components in DQN's order: model → exploration → buffer → loss → target → optimiser.
     heads, combined, actor = make_network(env, cfg)
     exploration = make_exploration(env, dq)
-    policy = TensorDictSequential(actor, exploration)
-    rb, sampler = make_buffer(dq)
+    buffer, sampler = make_buffer(dq)
     mu = combined.mu
+    objective_key = OBJECTIVE_KEYS[cfg.objective]
     loss = LagrangianDQNLoss(
         heads,
         mu,
         gamma=dq.gamma,
-        objective_key=OBJECTIVE_KEYS[cfg.objective],
+        objective_key=objective_key,
         target_miss=cfg.target_miss,
         loss_function=dq.loss_function,
     )
-    target_net = SoftUpdate(loss, tau=dq.tau)
-    optimizer = torch.optim.Adam(loss.parameters(), lr=dq.lr)
+    target = make_target_updater(loss, dq)
+    optimizer = make_optimizer(loss, dq)
     record = RunRecord(method=cfg.name, greedy=torch.zeros(1, env.num_states, dtype=torch.int64))
     record.info["replay_sampler"] = type(sampler).__name__ + (
         " (prioritised)" if dq.prioritized else " (uniform)"
     )
     hooks.start(dict(record.info))
-    learn_from = max(dq.batch_size, dq.init_random_frames)
-    center = RewardCenter(dq.reward_centering)  # on the objective signal
-    collector = Collector(
-        env,
-        policy,
-        frames_per_batch=dq.frames_per_batch,
-        total_frames=dq.total_frames,
-        init_random_frames=dq.init_random_frames,
-        device=device,
-        auto_register_policy_transforms=False,
+    center = RewardCenter(dq.reward_centering, dq.gamma)  # on the objective signal
+    collector = make_collector(
+        env, TensorDictSequential(actor, exploration), dq, dq.total_frames, seed
     )
-    collector.set_seed(seed)
+    signals = (("next", objective_key), ("next", "missed"), ("next", "event"))
+    keys = tuple(dict.fromkeys((*STORED_KEYS, *signals)))
+    loop = OffPolicyLoop(
+        dq,
+        collector,
+        buffer,
+        sampler,
+        optimizer,
+        center,
+        record,
+        hooks,
+        keys=keys,
+        center_key=("next", objective_key),
+    )
+
+    def update(sample) -> float:
+        out = loss(sample)
+        value = clip_and_step(loss, optimizer, dq.max_grad_norm, out["loss"])
+        target.step()
+        if dq.prioritized:
+            buffer.update_priority(sample["index"], sample["td_error"].detach().reshape(-1))
+        return value
+
     t0 = time.perf_counter()
-    frames = 0
-    next_eval = eval_every_frames
-    obj_name = {"sent": "throughput", "reward": "avg_reward", "capacity": "link_capacity"}[
-        OBJECTIVE_KEYS[cfg.objective]
-    ]
-    reference = optimal_value if optimal_value is not None else None
+    metric = {"sent": "throughput", "reward": "avg_reward", "capacity": "link_capacity"}
+    obj_name = metric[objective_key]
 
     def evaluate_now() -> None:
-        with torch.no_grad():
-            table = actor(
-                TensorDict({"observation": env.dynamics.obs}, batch_size=[env.num_states])
-            )["action"].reshape(-1)
-        m = scorer.metrics(table.long().cpu())
-        wall = time.perf_counter() - t0
+        with policy_view(loss, dq):
+            m = scorer.metrics(greedy_table(actor, env))
         entry = progress_record(
             0,
-            frames,
+            loop.frames,
             len(record.episode_rewards),
-            wall,
-            record.updates,
+            time.perf_counter() - t0,
+            loop.updates,
             m,
             scorer.optimal_metrics.avg_reward,
         )
-        if reference is not None:
-            entry["optimality_ratio"] = getattr(m, obj_name) / reference
+        if optimal_value is not None:
+            entry["optimality_ratio"] = getattr(m, obj_name) / optimal_value
         record.history.append(entry)
         hooks.eval([entry])
 
     evaluate_now()
-    last_loss = math.nan
+    next_eval = eval_every_frames
     missed_avg = event_avg = 0.0
     measured = math.nan
-    ep_total = torch.zeros(dq.num_envs, dtype=torch.float64)
     mu_trace: list[dict[str, float]] = []
-    for data in collector:
-        _track_episodes(data, ep_total, frames, record.episode_rewards)
-        data = data.reshape(-1)
+    for data in loop.batches():
         n = data.numel()
-        rb.extend(data)
-        center.update(data["next", loss.objective_key])
-        if center.on and center.value is not None:
-            loss.objective_center = center.value
-        frames += n
-        exploration.step(n)
-        _anneal(dq, optimizer, sampler, frames)
         # The learner's own measured constraint: missed / event on the steps where it acted
         # greedily (exploration's random comm steps would bias it), exponentially averaged.
         keep = math.exp(-n / cfg.cost_window_frames)
@@ -715,34 +734,32 @@ def train(
             missed_avg += float((data["next", "missed"].reshape(-1) & greedy).sum())
             event_avg += float((data["next", "event"].reshape(-1) & greedy).sum())
         measured = missed_avg / event_avg if event_avg > 0 else math.nan
-        if len(rb) >= learn_from:
-            last_loss = _learn(dq, rb, loss, optimizer, target_net)
-            record.updates += dq.updates_per_batch
-            if not math.isnan(measured):  # dual ascent on the measured constraint
-                mu.fill_(dual_step(float(mu), measured, n, cfg))
-        info = {
-            "env_steps": frames,
-            "episodes": len(record.episode_rewards),
-            "epsilon": float(exploration.eps),
-            "loss": last_loss,
-            "mu": float(mu),
-            "measured_miss": measured,
-            "buffer": len(rb),
-        }
-        mu_trace.append({"env_steps": frames, "mu": float(mu), "measured_miss": measured})
-        hooks.batch(info)
-        stop = hooks.stop_requested()
-        if frames >= next_eval or frames >= dq.total_frames or stop:
+        if loop.learn(update) is not None and not math.isnan(measured):
+            mu.fill_(dual_step(float(mu), measured, n, cfg))  # dual ascent
+        mu_trace.append({"env_steps": loop.frames, "mu": float(mu), "measured_miss": measured})
+        hooks.batch(
+            {
+                "env_steps": loop.frames,
+                "episodes": len(record.episode_rewards),
+                "loss": loop.last_loss,
+                "mu": float(mu),
+                "measured_miss": measured,
+                "buffer": len(buffer),
+            }
+        )
+        stop = loop.stop_due()
+        if loop.frames >= next_eval or loop.frames >= dq.total_frames or stop:
             evaluate_now()
-            next_eval = (frames // eval_every_frames + 1) * eval_every_frames
+            next_eval = (loop.frames // eval_every_frames + 1) * eval_every_frames
         if stop:
             record.interrupted = True
             break
-    collector.shutdown()
-    record.env_steps = frames
+    loop.shutdown()
+    record.env_steps = loop.frames
     record.episodes = len(record.episode_rewards)
     # The final policy, from measurements on a separate batch of envs (counted in env_steps).
-    q = heads_table(heads, env)
+    with policy_view(loss, dq):
+        q = heads_table(heads, env)
     probs, facts = final_policy(q, params, float(mu), cfg, seed)
     record.env_steps += int(facts["measure_env_steps"])
     record.wall_seconds = time.perf_counter() - t0
@@ -753,7 +770,7 @@ def train(
         {
             "mu": float(mu),
             "measured_miss": measured,
-            "training_env_steps": frames,
+            "training_env_steps": loop.frames,
             **facts,
         }
     )
@@ -769,21 +786,3 @@ def dual_step(mu: float, measured: float, frames: int, cfg: LagrangianConfig) ->
     err = (measured - cfg.target_miss) / max(cfg.target_miss, 0.01)
     err = min(1.0, max(-1.0, err))
     return min(cfg.mu_max, max(cfg.mu_min, mu * math.exp(cfg.mu_lr * err * frames / 1000.0)))
-
-
-def _learn(dq: DQNConfig, rb, loss: LagrangianDQNLoss, optimizer, target) -> float:
-    """``updates_per_batch`` gradient updates from replay, each followed by the target update."""
-    last = math.nan
-    for _ in range(dq.updates_per_batch):
-        sample = rb.sample()
-        out = loss(sample)
-        optimizer.zero_grad(set_to_none=True)
-        out["loss"].backward()
-        if dq.max_grad_norm > 0:
-            nn.utils.clip_grad_norm_(loss.parameters(), dq.max_grad_norm)
-        optimizer.step()
-        target.step()
-        if dq.prioritized:
-            rb.update_priority(sample["index"], sample["td_error"].detach().reshape(-1))
-        last = float(out["loss"].detach())
-    return last

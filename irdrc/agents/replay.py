@@ -69,6 +69,7 @@ class TorchPrioritizedSampler(Sampler):
         if value < 0:
             raise ValueError(f"alpha={value!r} must be >= 0")
         self._alpha = float(value)
+        self._refresh()
 
     @property
     def beta(self) -> float:
@@ -95,9 +96,16 @@ class TorchPrioritizedSampler(Sampler):
     def _empty(self) -> None:
         self._raw = torch.zeros(self._max_capacity, dtype=torch.float64)
         self._max_priority = 1.0
+        self._refresh()
+
+    def _refresh(self) -> None:
+        """Recompute every (pᵢ + ε)^α (after α or ε change, or a load)."""
+        self._powered = (self._raw + self._eps) ** self._alpha
 
     def _weights(self, n: int) -> torch.Tensor:
-        return (self._raw[:n] + self._eps) ** self._alpha
+        # (pᵢ + ε)^α is kept up to date by ``update_priority``: recomputing it over the whole
+        # buffer on every draw cost more than the draw itself (1 ms at 2^18 items).
+        return self._powered[:n]
 
     def sample(self, storage, batch_size: int) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         """``batch_size`` indices drawn with replacement, and their normalised importance weights."""
@@ -123,7 +131,9 @@ class TorchPrioritizedSampler(Sampler):
             raise ValueError("priorities must be non-negative numbers")
         if index.numel() == 0:
             return
-        self._raw[index.cpu()] = priority
+        index = index.cpu()
+        self._raw[index] = priority
+        self._powered[index] = (self._raw[index] + self._eps) ** self._alpha  # duplicates: as _raw
         self._max_priority = max(self._max_priority, float(priority.max()))
 
     def mark_update(self, index: int | torch.Tensor, *, storage=None) -> None:
@@ -151,6 +161,7 @@ class TorchPrioritizedSampler(Sampler):
         self._max_priority = float(state_dict["max_priority"])
         self._alpha, self._beta = float(state_dict["alpha"]), float(state_dict["beta"])
         self._eps = float(state_dict["eps"])
+        self._refresh()
 
     def dumps(self, path) -> None:
         """Save to ``path/sampler.pt``."""

@@ -4,9 +4,13 @@ from __future__ import annotations
 
 import csv
 import json
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
+
+import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -98,7 +102,8 @@ def test_learner_run_writes_its_exact_score_beside_the_lp(tmp_path):
     assert s["objective_ratio"] == s["value"] / s["optimal_value"]
     assert s["metrics"]["throughput"] == s["value"]
     learner = s["learner"]
-    assert s["env_steps"] == learner["training_env_steps"] + learner["measure_env_steps"]
+    assert s["env_steps"] == s["training_env_steps"] + s["measurement_env_steps"]
+    assert s["measurement_env_steps"] == learner["measure_env_steps"] > 0
     rows = list(csv.DictReader((tmp_path / "policy.csv").open()))
     assert list(rows[-1]) == ["d", "c", "r", "w", "v", "m", "action", "p_radar"]
     mu = list(csv.DictReader((tmp_path / "mu.csv").open()))
@@ -143,3 +148,39 @@ def test_benchmark_table_from_local_runs(tmp_path):
     rows = list(csv.DictReader((tmp_path / "bench_constrained.csv").open()))
     assert len(rows) == 1 and rows[0]["target_miss"] == "0.15"
     assert "| 1 | 0.15 | 1 |" in res.stdout
+
+
+@pytest.mark.e2e
+def test_learner_stopped_by_sigterm_exits_with_its_signal(tmp_path):
+    """SIGTERM stops the Lagrangian learner after its batch, writes the files so far and exits
+    with 128 + 15, naming the signal (as DQN does)."""
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            str(ROOT / "recipes" / "constrained.py"),
+            "learner=dqn_lagrangian",
+            "algo.total_frames=10000000",
+            "progress=false",
+            "logger=none",
+            f"hydra.run.dir={tmp_path}",
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=ROOT,
+    )
+    try:
+        t0 = time.monotonic()
+        while not (tmp_path / "config.yaml").exists():  # written just before the LP and training
+            assert proc.poll() is None, proc.communicate()
+            assert time.monotonic() - t0 < 120
+            time.sleep(0.1)
+        time.sleep(8)  # the LP takes about a second: well inside training by now
+        proc.send_signal(signal.SIGTERM)
+        _, stderr = proc.communicate(timeout=120)
+        assert proc.returncode == 128 + signal.SIGTERM, stderr[-2000:]
+        assert "stopped by SIGTERM" in stderr and "Traceback" not in stderr
+    finally:  # a failed assertion must not leave the run behind
+        if proc.poll() is None:
+            proc.kill()
+    assert (tmp_path / "metrics.csv").is_file()

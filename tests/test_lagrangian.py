@@ -338,7 +338,11 @@ def test_short_run_reports_mu_measured_miss_and_a_probability_policy():
     assert {"mu", "measured_miss", "loss"} <= set(seen[-1])
     assert rec.policy.shape == (1, 352, 2)
     assert torch.allclose(rec.policy.sum(-1), torch.ones(1, 352, dtype=torch.float64))
-    assert rec.env_steps == rec.info["training_env_steps"] + rec.info["measure_env_steps"]
+    assert rec.env_steps == rec.training_env_steps + rec.measurement_env_steps
+    assert (
+        rec.measurement_env_steps == rec.info["measure_env_steps"]
+        and rec.training_env_steps == 1024
+    )
     assert len(rec.info["mu_trace"]) == 1024 // 32
     assert math.isfinite(rec.info["mu"]) and rec.info["mu"] >= 0
     with pytest.raises(ValueError, match="resume"):

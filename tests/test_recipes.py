@@ -245,34 +245,45 @@ def test_cli_lists_and_dispatches(tmp_path):
 
 
 def test_bench_robust_recipe(tmp_path):
+    tiny = "'algo.num_envs=8','algo.frames_per_batch=32','algo.total_frames=640','algo.init_random_frames=128','algo.batch_size=32'"
     out = run_recipe(
         "bench_robust.py",
         "seeds=[5,6]",
         "p1_speed=[0.1]",
         "r4=[5]",
-        "overrides=['algo=dqn','algo.num_envs=8','algo.frames_per_batch=32','algo.total_frames=640','algo.init_random_frames=128','algo.batch_size=32']",
+        f"candidates={{ladder: [{tiny}], plain: [{tiny},'algo.eps_duration_max=1']}}",
         "eval.every_frames=320",
         "executor=local",
         f"hydra.run.dir={tmp_path}",
     )
     assert out.returncode == 0, out.stderr[-2000:]
     rows = list(csv.DictReader((tmp_path / "bench_robust.csv").open()))
-    assert [r["seed"] for r in rows] == ["5", "6"] and all(int(r["env_steps"]) == 640 for r in rows)
+    assert [(r["candidate"], r["seed"]) for r in rows] == [
+        ("ladder", "5"),
+        ("ladder", "6"),
+        ("plain", "5"),
+        ("plain", "6"),
+    ]
+    assert all(int(r["env_steps"]) == int(r["training_env_steps"]) == 640 for r in rows)
     assert all(-2 < float(r["final_ratio"]) <= 1 + 1e-9 for r in rows)
     # Without selection the final policy is the last network's and nothing is measured.
     assert all(r["final_ratio"] == r["last_network_ratio"] for r in rows)
-    assert all(r["select_env_steps"] == "0" for r in rows)
-    assert "runs end ≥ 0.99 of their optimum" in out.stdout
-    assert "their last networks" not in out.stdout
-    for r in rows:  # every failing run is explained state by state
+    assert all(r["measurement_env_steps"] == "0" for r in rows)
+    table = (tmp_path / "bench_robust.md").read_text()
+    assert "| ladder | env.p1.speed = 0.1, reward.r4 = 5 | " in table
+    assert "| plain | env.p1.speed = 0.1, reward.r4 = 5 | " in table
+    assert "Measured on " in table and "ladder: `" in table
+    for r in rows:  # every failing run is explained state by state, in the table's file too
         if r["holds"] == "False":
-            assert (
-                f"seed={r['seed']}: final" in out.stdout
-                and "differs from the optimum" in out.stdout
-                and "samples of each action" in out.stdout
-            )
+            line = f"{r['candidate']} env.p1.speed=0.1 reward.r4=5.0 seed={r['seed']}: final"
+            assert line in out.stdout and line in table
+            assert "differs from the optimum" in table and "samples of each action" in table
     bad = run_recipe("bench_robust.py", "p1_speed=[1.5]", f"hydra.run.dir={tmp_path / 'x'}")
     assert bad.returncode == 2 and "p1_speed[0]=1.5" in bad.stderr
+    bad = run_recipe(
+        "bench_robust.py", "candidates={a: [nokey]}", f"hydra.run.dir={tmp_path / 'y'}"
+    )
+    assert bad.returncode == 2 and "candidates.a" in bad.stderr
 
 
 @pytest.mark.e2e
@@ -296,7 +307,6 @@ def test_bench_robust_recipe_with_final_policy_selection(tmp_path):
     summary = json.loads(next((tmp_path / "trials").glob("*/summary.json")).read_text())
     # The final ratio is the selected policy's, the last network's is reported beside it.
     assert float(row["final_ratio"]) == pytest.approx(summary["selected_ratio"])
-    assert int(row["select_env_steps"]) == summary["select_env_steps"]
+    assert int(row["measurement_env_steps"]) == summary["select_env_steps"]
     assert summary["select_env_steps"] in {0, summary["select_candidates"] * 4 * 20}
-    if summary["select_env_steps"]:
-        assert "their last networks" in sel.stdout
+    assert int(row["env_steps"]) == 640 + summary["select_env_steps"]

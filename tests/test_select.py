@@ -150,8 +150,8 @@ def test_training_with_selection_counts_its_steps_and_keeps_a_snapshot(paper):
     params, scorer = paper
     run = train(params, DQNConfig(**SHORT), seed=0, eval_every_frames=512)
     info = run.info
-    assert info["training_env_steps"] == 1_024
-    assert run.env_steps == 1_024 + info["select_env_steps"]
+    assert run.training_env_steps == 1_024
+    assert run.env_steps == 1_024 + info["select_env_steps"] == 1_024 + run.measurement_env_steps
     assert info["select_env_steps"] == info["select_candidates"] * 8 * 60 * (
         info["select_candidates"] > 1
     )

@@ -114,7 +114,10 @@ class RunRecord:
         greedy: [N, S] final greedy action per learner and state (ties → comm).
         history: progress records (``PROGRESS_FIELDS``) of every evaluation of every learner.
         episode_rewards: finished training episodes (``EPISODE_FIELDS``).
-        env_steps: env steps per learner.
+        env_steps: env steps per learner, all counted: training and ``measurement_env_steps``.
+        measurement_env_steps: of those, the steps spent measuring candidate final policies on
+            the simulator after training (final-policy selection, the Lagrangian search); 0 for
+            learners that do not.
         episodes: finished training episodes per learner.
         updates: learning updates (per learner).
         wall_seconds: training wall time, evaluations included.
@@ -133,6 +136,7 @@ class RunRecord:
     history: list[dict[str, Any]] = field(default_factory=list)
     episode_rewards: list[dict[str, Any]] = field(default_factory=list)
     env_steps: int = 0
+    measurement_env_steps: int = 0
     episodes: int = 0
     updates: int = 0
     wall_seconds: float = 0.0
@@ -142,6 +146,11 @@ class RunRecord:
     state: dict[str, Any] | None = None
     interrupted: bool = False
     policy: torch.Tensor | None = None
+
+    @property
+    def training_env_steps(self) -> int:
+        """Env steps of training (``env_steps`` less the measurement steps)."""
+        return self.env_steps - self.measurement_env_steps
 
     @property
     def num_learners(self) -> int:

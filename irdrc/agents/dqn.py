@@ -192,6 +192,7 @@ def train(
             return greedy_table(qnet, env), variants.values(qnet, env)
 
     def evaluate_now() -> None:
+        start = time.perf_counter()
         table, q = policy()
         m = scorer.metrics(table)
         wall = time.perf_counter() - t0
@@ -201,6 +202,9 @@ def train(
         record.history.append(entry)
         hooks.eval([entry])
         hooks.values(loop.frames, q[None])
+        record.info["seconds_evaluate"] = (
+            record.info.get("seconds_evaluate", 0.0) + time.perf_counter() - start
+        )
 
     if resume is None:
         evaluate_now()

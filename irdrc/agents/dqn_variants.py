@@ -111,7 +111,7 @@ class Selection:
         self, record: RunRecord, params: Params, seed: int, scorer: ExactScorer, optimal: float
     ) -> None:
         """Replace the record's final table by the chosen one; the measurement steps join
-        ``env_steps`` (``info``: ``training_env_steps``, ``select_*``, and ``selected_ratio``, the
+        ``env_steps`` as ``measurement_env_steps`` (``info``: ``select_*``, and ``selected_ratio``, the
         chosen table's exact score, for benchmarks; the exact model never steers the choice)."""
         cfg, snaps = self.cfg, self.snapshots
         snaps.take(record.env_steps, record.greedy[0], record.q[0])
@@ -127,7 +127,7 @@ class Selection:
         record.greedy = snaps.tables[index].to(record.greedy.device)[None]
         record.q = snaps.values[index].to(record.q.device)[None]
         snaps.pop()
-        record.info["training_env_steps"] = record.env_steps
-        record.env_steps += int(facts["select_env_steps"])
+        record.measurement_env_steps = int(facts["select_env_steps"])
+        record.env_steps += record.measurement_env_steps
         record.info["selected_ratio"] = float(scorer.metrics(record.greedy[0]).avg_reward / optimal)
         record.info.update(facts)

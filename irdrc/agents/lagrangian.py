@@ -761,7 +761,8 @@ def train(
     with policy_view(loss, dq):
         q = heads_table(heads, env)
     probs, facts = final_policy(q, params, float(mu), cfg, seed)
-    record.env_steps += int(facts["measure_env_steps"])
+    record.measurement_env_steps = int(facts["measure_env_steps"])
+    record.env_steps += record.measurement_env_steps
     record.wall_seconds = time.perf_counter() - t0
     record.policy = probs[None]
     record.greedy = (probs[:, 1] > 0.5).long()[None]
@@ -770,7 +771,6 @@ def train(
         {
             "mu": float(mu),
             "measured_miss": measured,
-            "training_env_steps": loop.frames,
             **facts,
         }
     )

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field, fields
 from typing import Any
@@ -581,10 +582,20 @@ class OffPolicyLoop:
         )
         self.multistep = MultiStepTransform(cfg.n_steps, cfg.gamma) if cfg.n_steps > 1 else None
         self.last_loss = math.nan
+        self.seconds = {"collect": 0.0, "store": 0.0, "learn": 0.0}
+        """Wall seconds spent collecting (policy and env steps), storing (episodes, centre,
+        replay), and learning (sampling, updates, priorities): where training time goes."""
 
     def batches(self) -> Iterator[TensorDictBase]:
         """Each collected batch [rows, steps], after it is stored in replay and counted."""
-        for data in self.collector:
+        batches = iter(self.collector)
+        while True:
+            t0 = time.perf_counter()
+            data = next(batches, None)
+            t1 = time.perf_counter()
+            self.seconds["collect"] += t1 - t0
+            if data is None:
+                return
             n = data.numel()
             self.episodes.add(data, self.frames)
             self.center.update(data.get(self.center_key))
@@ -595,6 +606,7 @@ class OffPolicyLoop:
                 self.buffer.extend(stored.reshape(-1))
             self.frames += n
             anneal(self.cfg, self.optimizer, self.sampler, self.frames)
+            self.seconds["store"] += time.perf_counter() - t1
             yield data
 
     def ready(self) -> bool:
@@ -606,11 +618,13 @@ class OffPolicyLoop:
         replay sample; returns the last loss (None when replay is not yet ready)."""
         if not self.ready():
             return None
+        t0 = time.perf_counter()
         for _ in range(self.cfg.updates_per_batch):
             sample = self.center.center(self.buffer.sample(), self.center_key)
             self.last_loss = update(sample)
             self.updates += 1
         self.record.updates = self.updates
+        self.seconds["learn"] += time.perf_counter() - t0
         return self.last_loss
 
     def stop_due(self) -> bool:
@@ -618,8 +632,11 @@ class OffPolicyLoop:
         return self.hooks.stop_requested()
 
     def shutdown(self) -> None:
-        """Stop the collector."""
+        """Stop the collector and put the time spent per phase into the record's ``info``
+        (``seconds_collect``, ``seconds_store``, ``seconds_learn``)."""
         self.collector.shutdown()
+        for phase, seconds in self.seconds.items():
+            self.record.info[f"seconds_{phase}"] = seconds
 
 
 @contextlib.contextmanager

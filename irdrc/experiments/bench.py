@@ -17,8 +17,9 @@ from irdrc.core.model import ExactModel, build_model
 from irdrc.core.params import Params, to_plain
 from irdrc.core.solve import ExactScorer, stationary_occupancy
 from irdrc.experiments.config import compose
-from irdrc.experiments.grid import parse_grid
+from irdrc.experiments.grid import candidate_overrides, parse_grid
 from irdrc.experiments.results import (
+    md_table,
     policy_differences,
     read_policy_csv,
     state_label,
@@ -269,15 +270,16 @@ def run_bench_dqn(cfg: DictConfig, out: Path) -> int:
 
 
 def run_bench_robust(cfg: DictConfig, out: Path, scenario: list[str] | None = None) -> int:
-    """Every (scenario, seed) of ``cfg`` as one DQN run through the sweep engine; per run and per
-    scenario: final ratio, env steps and seconds to the threshold, and the share of evaluations after
-    first reaching it that stay there. With final-policy selection on (``algo.select_every_frames``)
-    the final ratio is the selected policy's; the last network's (``last_network_ratio``) and the
-    measurement steps (``select_env_steps``) are reported beside it."""
+    """Every (candidate, scenario, seed) of ``cfg`` as one DQN run through the sweep engine; per
+    run and per (candidate, scenario): the final ratio, env steps and seconds to the threshold,
+    and the share of evaluations after first reaching it that stay there. Writes
+    ``bench_robust.csv`` (a row per run) and ``bench_robust.md`` (the table, then every run that
+    does not hold, with the states where it differs from the optimum)."""
     import json
 
     from irdrc.experiments.sweep import execute, plan
 
+    start = time.perf_counter()
     th = float(cfg.threshold)
     grid = {
         "env.p1.speed": [float(p) for p in to_plain(cfg.p1_speed)],
@@ -292,7 +294,12 @@ def run_bench_robust(cfg: DictConfig, out: Path, scenario: list[str] | None = No
         f"optimum_gamma={float(cfg.optimum_gamma)}",
         "checkpoint.every_frames=0",
     ]
-    planned = plan("dqn", parse_grid(grid), base)
+    candidates = candidate_overrides(cfg)
+    planned, owner = [], {}
+    for name, extra in candidates.items():
+        for p in plan("dqn", parse_grid(grid), [*base, *extra]):
+            planned.append(p)
+            owner[p["point_id"]] = name
     code = execute(cfg, planned, out)
     rows = []
     for p in planned:
@@ -307,11 +314,11 @@ def run_bench_robust(cfg: DictConfig, out: Path, scenario: list[str] | None = No
         final = float(summary["optimality_ratio"])  # the final policy's (selected, when on)
         rows.append(
             {
-                **{k: v for k, v in p["point"].items()},
+                "candidate": owner[p["point_id"]],
+                **dict(p["point"].items()),
                 "final_ratio": final,
                 "holds": final >= th,
                 "last_network_ratio": ratios[-1],
-                "select_env_steps": int(summary.get("select_env_steps", 0)),
                 "env_steps_to_threshold": int(hist[first]["env_steps"])
                 if first is not None
                 else None,
@@ -323,81 +330,126 @@ def run_bench_robust(cfg: DictConfig, out: Path, scenario: list[str] | None = No
                 else None,
                 "later_evals": len(later),
                 "later_evals_ok": sum(r >= th for r in later),
-                "env_steps": int(hist[-1]["env_steps"]),
-                "wall_seconds": float(hist[-1]["wall_seconds"]),
+                "training_env_steps": int(summary.get("training_env_steps", summary["env_steps"])),
+                "measurement_env_steps": int(summary.get("measurement_env_steps", 0)),
+                "env_steps": int(summary["env_steps"]),
+                "wall_seconds": float(summary["wall_seconds"]),
+                "point_id": p["point_id"],
             }
         )
     write_rows_csv(Path(out) / cfg.csv, rows)
     keys = [k for k in grid if k != "seed"]
-    print(f"\nfinal greedy policy ≥ {th} of the optimum, per scenario ({len(grid['seed'])} seeds):")
-    print(
-        "scenario                          runs  hold  worst final  median steps to th  "
-        "median s to th  later evals ≥ th (median, min)"
-    )
-    for point in parse_grid({k: grid[k] for k in keys}):
-        mine = [r for r in rows if all(r[k] == v for k, v in point.items())]
-        if not mine:
+    scenarios = parse_grid({k: grid[k] for k in keys})
+    table = robust_table(rows, candidates, scenarios, th, len(grid["seed"]))
+    print("\n" + table)
+    failures = []
+    for row in rows:
+        if row["holds"]:
             continue
-        steps = [
-            r["env_steps_to_threshold"] for r in mine if r["env_steps_to_threshold"] is not None
-        ]
-        secs = [r["seconds_to_threshold"] for r in mine if r["seconds_to_threshold"] is not None]
-        later = [
-            r["later_evals_at_threshold"] for r in mine if r["later_evals_at_threshold"] is not None
-        ]
-        label = " ".join(f"{k}={v}" for k, v in point.items())
-        print(
-            f"{label:<32}  {len(mine):>4}  {sum(r['holds'] for r in mine):>4}  "
-            f"{min(r['final_ratio'] for r in mine):>11.4f}  "
-            f"{statistics.median(steps) if steps else float('nan'):>18.0f}  "
-            f"{statistics.median(secs) if secs else float('nan'):>14.2f}  "
-            + (f"{statistics.median(later):.2f}, {min(later):.2f}" if later else "n/a")
-        )
-    held = sum(r["holds"] for r in rows)
-    n_later = sum(r["later_evals"] for r in rows)
-    ok_later = sum(r["later_evals_ok"] for r in rows)
-    print(
-        f"\n{held}/{len(rows)} runs end ≥ {th} of their optimum (worst "
-        f"{min((r['final_ratio'] for r in rows), default=float('nan')):.4f})"
-        + (
-            f"; their last networks: {sum(r['last_network_ratio'] >= th for r in rows)} (worst "
-            f"{min(r['last_network_ratio'] for r in rows):.4f}), the selection measured with "
-            f"{statistics.median(r['select_env_steps'] for r in rows):.0f} env steps per run "
-            "(median)"
-            if any(r["select_env_steps"] for r in rows)
-            else ""
-        )
-        + f"; of all evaluations after a run first reached {th}, {ok_later}/{n_later}"
-        + (f" ({ok_later / n_later:.3f})" if n_later else "")
-        + f" stay ≥ {th}; wrote {Path(out) / cfg.csv}"
-    )
-    for p in planned:
-        row = next((r for r in rows if all(r[k] == v for k, v in p["point"].items())), None)
-        if row is None or row["holds"]:
-            continue
+        p = next(q for q in planned if q["point_id"] == row["point_id"])
         model = build_model(Params.from_config(OmegaConf.create(p["cfg"])))
         tdir = Path(out) / "trials" / p["point_id"]
         learned = read_policy_csv(tdir / "policy.csv", model.num_states)
         solution = ExactScorer(model, float(cfg.optimum_gamma)).optimal
-        optimal = solution.policy
         label = " ".join(f"{k}={v}" for k, v in p["point"].items())
-        print(
-            f"\n{label}: final {row['final_ratio']:.4f}; "
-            + policy_differences(model, learned, optimal)
+        text = f"{row['candidate']} {label}: final {row['final_ratio']:.4f}; " + policy_differences(
+            model, learned, solution.policy
         )
-        differ = (learned != optimal).nonzero().flatten().tolist()
+        differ = (learned != solution.policy).nonzero().flatten().tolist()
         need = samples_to_resolve(
             model, solution.q, solution.values, differ, float(cfg.optimum_gamma)
         )
         if need:
             gaps = [abs(r["true_gap"]) for r in need]
             ns = [r["samples_per_action"] for r in need]
-            print(
-                f"  where it differs, |true gap| {min(gaps):.3g}–{max(gaps):.3g}; telling the "
+            text += (
+                f"\n  where it differs, |true gap| {min(gaps):.3g}–{max(gaps):.3g}; telling the "
                 f"actions apart at 99 % takes {min(ns):.3g}–{max(ns):.3g} samples of each action "
                 "per state (samples_to_resolve)"
             )
+        failures.append(text)
+        print("\n" + text)
+    if failures:
+        table += (
+            "\n\nRuns that do not hold, and where their final policy differs:\n\n"
+            + "\n\n".join("```\n" + f + "\n```" for f in failures)
+        )
+    write_table_md(Path(out) / "bench_robust.md", table, time.perf_counter() - start)
+    print(f"\nwrote {Path(out) / cfg.csv} and {Path(out) / 'bench_robust.md'}")
     return code
+
+
+def robust_table(
+    rows: list[dict[str, Any]],
+    candidates: dict[str, list[str]],
+    scenarios: list[dict[str, Any]],
+    th: float,
+    seeds: int,
+) -> str:
+    """The benchmark as Markdown: one row per (candidate, scenario) and one per candidate over all
+    its scenarios (medians over the runs; steps and seconds to the threshold over the runs that
+    reached it; later evaluations pooled)."""
+
+    def med(values: list) -> str:
+        values = [v for v in values if v is not None]
+        return f"{statistics.median(values):,.0f}".replace(",", " ") if values else "—"
+
+    def summary(mine: list[dict[str, Any]]) -> list[str]:
+        reached = [r for r in mine if r["env_steps_to_threshold"] is not None]
+        ok = sum(r["later_evals_ok"] for r in mine)
+        n = sum(r["later_evals"] for r in mine)
+        secs = [r["seconds_to_threshold"] for r in reached]
+        return [
+            f"{sum(r['holds'] for r in mine)}/{len(mine)}",
+            f"{min(r['final_ratio'] for r in mine):.4f}",
+            f"{statistics.median(r['final_ratio'] for r in mine):.4f}",
+            f"{len(reached)}/{len(mine)}",
+            med([r["env_steps_to_threshold"] for r in reached]),
+            f"{statistics.median(secs):.2f}" if secs else "—",
+            f"{ok}/{n} ({ok / n:.3f})" if n else "—",
+            med([r["training_env_steps"] for r in mine])
+            + (
+                " + " + med([r["measurement_env_steps"] for r in mine])
+                if any(r["measurement_env_steps"] for r in mine)
+                else ""
+            ),
+            f"{statistics.median(r['wall_seconds'] for r in mine):.1f}",
+        ]
+
+    body = []
+    for name in candidates:
+        theirs = [r for r in rows if r["candidate"] == name]
+        if not theirs:
+            continue
+        for point in scenarios:
+            mine = [r for r in theirs if all(r[k] == v for k, v in point.items())]
+            if mine:
+                label = ", ".join(f"{k} = {v:g}" for k, v in point.items())
+                body.append([name, label, *summary(mine)])
+        if len(scenarios) > 1:
+            body.append([f"**{name}**", "**all**", *summary(theirs)])
+    th_pct = f"{th:.0%}"
+    return (
+        md_table(
+            [
+                "candidate",
+                "scenario",
+                f"holds ≥ {th:g} at the end",
+                "worst final",
+                "median final",
+                f"reached {th_pct}",
+                f"median env steps to {th_pct}",
+                f"median s to {th_pct}",
+                f"later evaluations ≥ {th:g}",
+                "env steps per run (training + measurement)",
+                "median s per run",
+            ],
+            body,
+        )
+        + f"\n\n{seeds} seeds per scenario; each candidate's overrides: "
+        + "; ".join(f"{n}: `{' '.join(o) or '(none)'}`" for n, o in candidates.items())
+        + "."
+    )
 
 
 def run_bench_constrained(cfg: DictConfig, out: Path, scenario: list[str] | None = None) -> int:
@@ -446,8 +498,9 @@ def run_bench_constrained(cfg: DictConfig, out: Path, scenario: list[str] | None
                 "mu": learner["mu"],
                 "randomised_state": learner.get("switch_state"),
                 "pruned": learner.get("pruned"),
-                "training_env_steps": learner["training_env_steps"],
-                "measure_env_steps": learner["measure_env_steps"],
+                "training_env_steps": s["training_env_steps"],
+                "measurement_env_steps": s["measurement_env_steps"],
+                "env_steps": s["env_steps"],
                 "wall_seconds": s["wall_seconds"],
             }
         )
@@ -461,6 +514,13 @@ def run_bench_constrained(cfg: DictConfig, out: Path, scenario: list[str] | None
     write_table_md(Path(out) / "bench_constrained.md", table, time.perf_counter() - start)
     print(f"\nwrote {Path(out) / cfg.csv} and {Path(out) / 'bench_constrained.md'}")
     return code
+
+
+def _steps(n: float) -> str:
+    """Env steps in words a table reads at a glance: 80 000, 1.2 M, 279 M."""
+    if n >= 1e6:
+        return f"{n / 1e6:.3g} M"
+    return f"{n:,.0f}".replace(",", " ")
 
 
 def constrained_bench_table(
@@ -478,13 +538,15 @@ def constrained_bench_table(
         if not mine:
             continue
         train = statistics.median(r["training_env_steps"] for r in mine)
-        meas = statistics.median(r["measure_env_steps"] for r in mine)
+        meas = statistics.median(r["measurement_env_steps"] for r in mine)
+        total = statistics.median(r["env_steps"] for r in mine)
         lines.append(
             f"| {point['env.p1.speed']:g} | {point['target_miss']:g} | {len(mine)} | "
             f"{sum(r['miss_ok'] for r in mine)} | {sum(r['objective_ok'] for r in mine)} | "
             f"{max(r['miss_detection'] for r in mine):.4f} | "
             f"{min(r['objective_ratio'] for r in mine):.3f} | "
             f"{statistics.median(r['objective_ratio'] for r in mine):.3f} | "
-            f"{train:.0f} + {meas:.0f} | {statistics.median(r['wall_seconds'] for r in mine):.0f} |"
+            f"{_steps(train)} + {_steps(meas)} = {_steps(total)} | "
+            f"{statistics.median(r['wall_seconds'] for r in mine):.0f} |"
         )
     return "\n".join(lines)

@@ -6,6 +6,7 @@ the LP."""
 from __future__ import annotations
 
 import logging
+import signal
 import time
 import warnings
 from pathlib import Path
@@ -207,10 +208,11 @@ def run_constrained_learned(
     write_rows_csv(out / "metrics.csv", record.history, progress_fields(record.history))
     write_rows_csv(out / "mu.csv", mu_trace, MU_FIELDS)
     if record.interrupted:
+        signum = stop.signal or signal.SIGINT
         raise RunInterrupted(
-            f"stopped at {record.env_steps} env steps; the files so far are in {out}; "
-            f"{config.name} runs do not resume: start again",
-            code=130,
+            f"stopped by {signal.Signals(signum).name} at {record.env_steps} env steps; the files "
+            f"so far are in {out}; {config.name} runs do not resume: start again",
+            code=128 + int(signum),
         )
     learned = stationary_metrics(model, record.policy[0])
     reward_opt = stationary_metrics(
@@ -228,8 +230,8 @@ def run_constrained_learned(
     print(
         f"\n{config.name}: {sol.objective} {value:.4f} = {ratio:.3f} of the LP optimum, miss "
         f"detection {learned.miss_detection:.4f} (target {kwargs['target_miss']:g}); "
-        f"{record.info['training_env_steps']} training + {record.info['measure_env_steps']} "
-        f"measurement env steps, {record.wall_seconds:.0f} s"
+        f"{record.training_env_steps} training + {record.measurement_env_steps} measurement = "
+        f"{record.env_steps} env steps, {record.wall_seconds:.0f} s"
     )
     info = {k: v for k, v in record.info.items() if k != "replay_sampler"}
     summary = summary_dict(
@@ -240,6 +242,8 @@ def run_constrained_learned(
         wall_seconds=record.wall_seconds,
         metrics=learned,
         optimal=sol.metrics,
+        training_env_steps=record.training_env_steps,
+        measurement_env_steps=record.measurement_env_steps,
         target_miss=float(kwargs["target_miss"]),
         objective=sol.objective,
         value=value,

@@ -77,6 +77,8 @@ def finish_run(
 
     first99 = record.first_reaching(0.99)
     extra: dict[str, Any] = {
+        "training_env_steps": record.training_env_steps,
+        "measurement_env_steps": record.measurement_env_steps,
         "updates": record.updates,
         "env_steps_to_95": record.first_reaching(0.95),
         "env_steps_to_99": first99,
@@ -204,6 +206,9 @@ def learner_rows(
                 "learner": n,
                 "replicate": n % num_learners,
                 "final_ratio": curve[-1]["optimality_ratio"],
+                "training_env_steps": record.training_env_steps,
+                "measurement_env_steps": record.measurement_env_steps,
+                "env_steps": record.env_steps,
                 "env_steps_to_95": record.first_reaching(0.95, n),
                 "env_steps_to_99": record.first_reaching(0.99, n),
                 **{k: clean_number(v) for k, v in final.as_dict().items()},

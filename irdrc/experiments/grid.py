@@ -90,3 +90,16 @@ def scenario_of(overrides: list[str]) -> str:
     env = next((o.split("=", 1)[1] for o in overrides if o.startswith("env=")), "paper")
     extra = [o for o in overrides if is_scenario_key(o)]
     return f"{env}[{','.join(extra)}]" if extra else env
+
+
+def candidate_overrides(cfg: Any) -> dict[str, list[str]]:
+    """The candidates compared: name → overrides (``candidates``; one, the default, when unset)."""
+    raw = to_plain(cfg.get("candidates")) or {"dqn": []}
+    if not isinstance(raw, dict) or not raw:
+        raise ValueError("candidates must map names to lists of overrides, e.g. {dqn: []}")
+    out = {}
+    for name, extra in raw.items():
+        if not isinstance(extra, list) or not all(isinstance(o, str) and "=" in o for o in extra):
+            raise ValueError(f"candidates.{name} must be a list of overrides (key=value)")
+        out[str(name)] = list(extra)
+    return out

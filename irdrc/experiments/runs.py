@@ -22,7 +22,7 @@ from typing import Any
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from irdrc.agents import dqn, qlearning
+from irdrc.agents import dqn, pqn, qlearning
 from irdrc.agents.base import Hooks
 from irdrc.core.env import DFRCEnv
 from irdrc.core.evaluate import evaluate
@@ -52,7 +52,7 @@ from irdrc.experiments.results import (
 )
 from irdrc.experiments.tracking import log_scalars, make_logger, resolve_wandb_mode
 
-LEARNERS = {dqn.NAME: dqn, qlearning.NAME: qlearning}
+LEARNERS = {dqn.NAME: dqn, pqn.NAME: pqn, qlearning.NAME: qlearning}
 """Method name → learner module (``Config``, ``train``; see ``irdrc.agents.base``)."""
 
 
@@ -172,7 +172,8 @@ def run_qlearning(cfg: DictConfig, out: Path, scenario: str | None = None) -> di
 
 def run_dqn(cfg: DictConfig, out: Path, scenario: str | None = None) -> dict[str, Any]:
     """DQN from TorchRL parts (checkpoints; ``resume`` continues one)."""
-    return run_learner(dqn.NAME, cfg, out, scenario)
+    method = pqn.NAME if cfg.algo.get("name") == pqn.NAME else dqn.NAME  # algo=pqn: its learner
+    return run_learner(method, cfg, out, scenario)
 
 
 def _check_eval(cfg: DictConfig) -> None:

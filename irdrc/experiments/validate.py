@@ -20,11 +20,11 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
-from irdrc.agents import dqn, qlearning
+from irdrc.agents import dqn, pqn, qlearning
 from irdrc.core.model import DENSE_MODEL_LIMIT_BYTES
 from irdrc.core.params import Params, check_bool, check_choice, check_number, to_plain
 from irdrc.experiments.config import CONF_DIR, compose, list_scenarios
-from irdrc.experiments.grid import override_key, parse_grid
+from irdrc.experiments.grid import candidate_overrides, override_key, parse_grid
 from irdrc.experiments.guard import check_resume
 from irdrc.experiments.runs import RUNNERS, batch_points
 from irdrc.experiments.tracking import BACKENDS, WANDB_MODES
@@ -239,7 +239,8 @@ def _solve(cfg: DictConfig) -> None:
 
 def _dqn(cfg: DictConfig, explicit: frozenset[str] = frozenset()) -> None:
     params = check_common(cfg)
-    config = dqn.DQNConfig.from_node(cfg)
+    learner = pqn.PQNConfig if cfg.algo.get("name") == pqn.NAME else dqn.DQNConfig
+    config = learner.from_node(cfg)
     _check_eval_period(cfg, config.total_frames, explicit)
     if _opt(cfg, "checkpoint.every_frames") is not None:
         check_number(
@@ -333,6 +334,7 @@ def _bench_constrained(cfg: DictConfig) -> None:
             raise ValueError(f"{key}={values!r} must be a non-empty list")
         for i, v in enumerate(values):
             check_number(f"{key}[{i}]", v, lo, hi, integer=integer)
+    candidate_overrides(cfg)
     # every run's full config is composed and checked when the run plans them, before any trial
 
 

@@ -13,8 +13,10 @@ from omegaconf import OmegaConf
 from tensordict import TensorDict
 
 from irdrc.agents import lagrangian as L
+from irdrc.agents import policy_search
 from irdrc.agents.base import Hooks
 from irdrc.agents.offpolicy import OffPolicyConfig
+from irdrc.agents.policy_search import SearchConfig, greedy_path, path_index, prune_order
 from irdrc.core.cmdp import solve_cmdp
 from irdrc.core.env import DFRCEnv
 from irdrc.core.evaluate import COMM_SUMS, long_run
@@ -66,7 +68,7 @@ def test_greedy_path_is_greedy_at_every_multiplier():
     differ in exactly one state."""
     gen = torch.Generator().manual_seed(0)
     q = torch.randn(40, 2, 2, generator=gen, dtype=torch.float64)
-    breaks, tables = L.greedy_path(q)
+    breaks, tables = greedy_path(q)
     assert len(tables) == len(breaks) + 1
     assert breaks == sorted(breaks) and all(b > 0 for b in breaks)
     for a, b in itertools.pairwise(tables):
@@ -76,7 +78,7 @@ def test_greedy_path_is_greedy_at_every_multiplier():
         mu = 0.5 * (edges[k] + edges[k + 1])
         greedy = ((q[:, 0] - mu * q[:, 1]).argmax(-1) == 1).long()
         assert torch.equal(table, greedy), k
-        assert L.path_index(breaks, mu) == k
+        assert path_index(breaks, mu) == k
 
 
 def _batch(obs, action, nobs, sent, missed, event):
@@ -120,6 +122,18 @@ def test_loss_is_double_dqn_on_both_heads():
     want = (taken - target).pow(2).sum(-1).mean()
     assert float(out["loss"].detach()) == pytest.approx(float(want.detach()), rel=1e-5)
     assert td["td_error"].shape == (5,)
+    # algo.double_dqn=false: the next action is greedy in the target network itself
+    loss.double_dqn = False
+    with torch.no_grad():  # a target network that ranks the actions the other way round
+        for p in loss.target_value_network_params.values(True, True):
+            p.mul_(-1.0)
+    with loss.target_value_network_params.to_module(loss.value_network):
+        qt = loss.value_network(nobs)
+    best_t = (qt[:, 0] - 2.0 * qt[:, 1]).argmax(-1)
+    assert not torch.equal(best, best_t)  # the case tells the two apart
+    target_t = r + 0.9 * qt[torch.arange(5), :, best_t]
+    want_t = (taken - target_t).pow(2).sum(-1).mean()
+    assert float(loss(td)["loss"].detach()) == pytest.approx(float(want_t.detach()), rel=1e-5)
 
 
 def test_long_run_matches_the_exact_stationary_metrics(paper):
@@ -151,9 +165,10 @@ def test_final_policy_lands_on_the_target_by_measurement(paper):
     q[:, 0, 0] = 1.0
     q[:, 1, 0] = event * (11 - d) + 1e-6 * torch.arange(paper.num_states)  # distinct breakpoints
     cfg = L.LagrangianConfig(
-        target_miss=0.1, measure_envs=64, measure_steps=1500, measure_burn_in=300, mix_steps=6
+        target_miss=0.1,
+        search=SearchConfig(measure_envs=64, measure_steps=1500, measure_burn_in=300, mix_steps=6),
     )
-    breaks, _ = L.greedy_path(q)
+    breaks, _ = greedy_path(q)
     policy, facts = L.final_policy(q, Params(), breaks[len(breaks) // 2], cfg, seed=0)
     exact = stationary_metrics(paper, policy)
     assert abs(exact.miss_detection - 0.1) <= 0.01, (exact.miss_detection, facts)
@@ -218,10 +233,10 @@ def test_prune_recovers_what_misordered_heads_lose(paper, monkeypatch, prune):
     (``_exact_long_run``), the path alone ends at no data at all (0.0 of the LP's, computed when
     this was written), while the prune, which gives those states to radar first by their measured
     data per missed event, reaches 0.962 of the LP; 0.95 leaves room for the bisections."""
-    monkeypatch.setattr(L, "long_run", _exact_long_run(paper))
+    monkeypatch.setattr(policy_search, "long_run", _exact_long_run(paper))
     q, bad = _misordered_heads(paper)
-    cfg = L.LagrangianConfig(target_miss=0.05, mix_steps=12, prune=prune)
-    breaks, _ = L.greedy_path(q)
+    cfg = L.LagrangianConfig(target_miss=0.05, search=SearchConfig(mix_steps=12, prune=prune))
+    breaks, _ = greedy_path(q)
     policy, facts = L.final_policy(q, Params(), breaks[len(breaks) // 2], cfg, seed=0)
     exact = stationary_metrics(paper, policy)
     lp = solve_cmdp(paper, 0.05).metrics.throughput
@@ -240,12 +255,18 @@ def test_prune_keeps_the_path_where_it_promises_as_much(paper, monkeypatch):
     """With heads that order the path well (``_path_heads``) the prune finds nothing better and
     the final policy is the path's, bit for bit; for the average-reward objective (radar earns
     reward too, so comm's data per missed event is not the trade) the prune is not tried."""
-    monkeypatch.setattr(L, "long_run", _exact_long_run(paper))
+    monkeypatch.setattr(policy_search, "long_run", _exact_long_run(paper))
     q = _path_heads(paper)
-    breaks, _ = L.greedy_path(q)
+    breaks, _ = greedy_path(q)
     mu = breaks[len(breaks) // 2]
     runs = {
-        prune: L.final_policy(q, Params(), mu, L.LagrangianConfig(target_miss=0.1, prune=prune), 0)
+        prune: L.final_policy(
+            q,
+            Params(),
+            mu,
+            L.LagrangianConfig(target_miss=0.1, search=SearchConfig(prune=prune)),
+            0,
+        )
         for prune in (True, False)
     }
     assert runs[True][1]["pruned"] is False
@@ -261,7 +282,7 @@ def test_prune_order_is_data_per_missed_event_over_comm_states():
         "missed": torch.tensor([9.0, 0.0, 4.0, 1.0, 0.0]),
     }
     # 400/10 = 40, 100/5 = 20, 400/2 = 200, 0/1 = 0 (never seen: first)
-    assert L.prune_order(sums, table, "sent") == [4, 2, 0, 3]
+    assert prune_order(sums, table, "sent") == [4, 2, 0, 3]
 
 
 def test_long_run_counts_comm_steps_per_state(paper):
@@ -298,10 +319,12 @@ def test_confirmation_undoes_a_search_measured_low(paper, monkeypatch, confirm):
     metrics plus that offset, so the outcome is exact: without the confirmation the final policy
     misses ≈ target + 0.02 (as the search measured it, 0.02 low); with it, the fresh measurements
     climb the path to neighbours on either side of the target and the mixture lands on it."""
-    monkeypatch.setattr(L, "long_run", _exact_long_run(paper, low_seed=0 + 7919, low=0.02))
+    monkeypatch.setattr(
+        policy_search, "long_run", _exact_long_run(paper, low_seed=0 + 7919, low=0.02)
+    )
     q = _path_heads(paper)
-    cfg = L.LagrangianConfig(target_miss=0.1, mix_steps=12, confirm=confirm)
-    breaks, _ = L.greedy_path(q)
+    cfg = L.LagrangianConfig(target_miss=0.1, search=SearchConfig(mix_steps=12, confirm=confirm))
+    breaks, _ = greedy_path(q)
     policy, facts = L.final_policy(q, Params(), breaks[len(breaks) // 2], cfg, seed=0)
     exact = stationary_metrics(paper, policy).miss_detection
     assert facts["confirmed"] is confirm
@@ -328,10 +351,7 @@ def test_short_run_reports_mu_measured_miss_and_a_probability_policy():
         dqn=OffPolicyConfig(
             num_envs=8, frames_per_batch=32, total_frames=1024, init_random_frames=256, name=L.NAME
         ),
-        measure_envs=8,
-        measure_steps=50,
-        measure_burn_in=10,
-        mix_steps=2,
+        search=SearchConfig(measure_envs=8, measure_steps=50, measure_burn_in=10, mix_steps=2),
     )
     seen = []
     rec = L.train(Params(), cfg, seed=0, eval_every_frames=512, hooks=Hooks(on_batch=seen.append))
@@ -380,8 +400,9 @@ def test_objective_centering_shifts_the_objective_signal_only():
         batch_size=[2],
     )
     plain = loss.signals(td)
-    loss.objective_center = 0.75
-    centred = loss.signals(td)
+    # the shared loop centres the objective's key in every sample (``OffPolicyLoop.center_key``)
+    center = L.RewardCenter(0.01, 0.99, value=0.75)
+    centred = loss.signals(center.center(td.clone(), ("next", "sent")))
     assert torch.allclose(centred[:, 0], plain[:, 0] - 0.75)
     assert torch.equal(centred[:, 1], plain[:, 1])  # the cost signal is untouched
 
@@ -405,6 +426,8 @@ def test_centering_runs_and_tracks_the_objective_mean(monkeypatch):
         reward_centering=0.01,
         name=L.NAME,
     )
-    cfg = L.LagrangianConfig(dqn=dqn, measure_envs=4, measure_steps=20, measure_burn_in=0)
+    cfg = L.LagrangianConfig(
+        dqn=dqn, search=SearchConfig(measure_envs=4, measure_steps=20, measure_burn_in=0)
+    )
     L.train(Params(), cfg, seed=0, eval_every_frames=128)
     assert len(seen) == 256 // 32 and all(0.0 <= v <= 4.0 for v in seen)  # packets sent per step

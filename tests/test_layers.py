@@ -102,3 +102,28 @@ def test_the_checks_can_fail():
 def test_every_layer_says_what_it_holds_and_may_import(package):
     doc = ast.get_docstring(ast.parse((PKG / package / "__init__.py").read_text())) or ""
     assert "May import" in doc, package
+
+
+def test_every_learner_is_registered_with_one_train_signature():
+    """DQN, PQN, Q-learning and the Lagrangian DQN: one interface (``irdrc.agents.base``)."""
+    import inspect
+
+    from irdrc.agents.registry import LEARNERS
+
+    assert set(LEARNERS) == {"dqn", "pqn", "qlearning", "dqn_lagrangian"}
+    signatures = {name: inspect.signature(m.train) for name, m in LEARNERS.items()}
+    params = {name: list(s.parameters) for name, s in signatures.items()}
+    assert len({tuple(p) for p in params.values()}) == 1, params
+    assert params["dqn"] == [
+        "params",
+        "cfg",
+        "num_learners",
+        "seed",
+        "device",
+        "scorers",
+        "eval_every_frames",
+        "hooks",
+        "resume",
+    ]
+    for m in LEARNERS.values():
+        assert hasattr(m.Config, "from_node") and m.NAME

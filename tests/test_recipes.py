@@ -310,3 +310,29 @@ def test_bench_robust_recipe_with_final_policy_selection(tmp_path):
     assert int(row["measurement_env_steps"]) == summary["select_env_steps"]
     assert summary["select_env_steps"] in {0, summary["select_candidates"] * 4 * 20}
     assert int(row["env_steps"]) == 640 + summary["select_env_steps"]
+
+
+def test_bench_dqn_recipe_measures_speed_and_the_stacked_check(tmp_path):
+    tiny = "'algo.num_envs=8','algo.frames_per_batch=32','algo.init_random_frames=64','algo.batch_size=16'"
+    out = run_recipe(
+        "bench_dqn.py",
+        f"profiles={{a: ['algo=dqn',{tiny},'algo.total_frames=320'], b: ['algo=dqn',{tiny},'algo.total_frames=640']}}",
+        "seeds=[0]",
+        "stacked=[1,2]",
+        "eval.every_frames=160",
+        f"hydra.run.dir={tmp_path}",
+    )
+    assert out.returncode == 0, out.stderr[-2000:]
+    rows = list(csv.DictReader((tmp_path / "bench_dqn.csv").open()))
+    assert [(r["profile"], int(r["env_steps"])) for r in rows] == [("a", 320), ("b", 640)]
+    for r in rows:
+        shares = [float(r[f"share_{k}"]) for k in ("collect", "store", "learn")]
+        assert all(x > 0 for x in shares) and sum(shares) == pytest.approx(1, abs=0.01)
+        assert float(r["env_steps_per_second"]) > 0 and float(r["updates_per_second"]) > 0
+    table = (tmp_path / "bench_dqn.md").read_text()
+    assert "| a | 1 | 320 |" in table and "| b | 1 | 640 |" in table
+    assert "| 1 | " in table and "| 2 | " in table  # the stacked check's rows
+    bad = run_recipe(
+        "bench_dqn.py", "profiles={a: ['algo.lr=7']}", f"hydra.run.dir={tmp_path / 'x'}"
+    )
+    assert bad.returncode == 2 and "profiles.a" in bad.stderr and "algo.lr" in bad.stderr

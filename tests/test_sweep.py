@@ -91,6 +91,12 @@ def test_parse_grid_rejects(grid, match):
         (["sweep.grid={}"], "sweep.grid is empty"),
         (["sweep.grid={seed: 3}"], "sweep.grid.seed=3"),
         (["sweep.grid={env.p1.sped: [0.1]}"], "sped"),
+        # a misspelt key in the grid or the base gets the closest valid one, as on a command line
+        (
+            ["sweep.grid={reward.r44: [5,50]}"],
+            r"unknown key 'reward.r44' in dqn; did you mean reward.r4\?",
+        ),
+        (["sweep.grid={seed: [0]}", "sweep.base=['algo.lrr=1']"], r"did you mean algo.lr\?"),
     ],
 )
 def test_bad_grid_is_refused_before_ray_starts(overrides, msg):

@@ -1,9 +1,9 @@
 """A Lagrangian DQN for the constrained problem (MODEL.md § A): the most of an objective subject to
 miss detection ≤ a target, learned from interaction alone.
 
-The DQN machinery of ``irdrc.agents.dqn`` (network body, ε-greedy, replay, TorchRL's collector and
-``SoftUpdate``) with two value heads per action, learned by double-DQN TD(0) from the per-step
-signals the env writes under ``("next", key)``:
+DQN's machinery (``irdrc.agents.offpolicy``: the env rows and their ε ladder, replay, TorchRL's
+collector, target updater and the shared loop) with two value heads per action, learned by TD(0)
+from the per-step signals the env writes under ``("next", key)``:
 
 - Q_J(s, a): the objective (``sent`` for throughput, ``reward``, or ``capacity``);
 - Q_C(s, a): the constraint cost c = missed − m*·event, whose long-run average is ≤ 0 exactly when
@@ -16,24 +16,17 @@ their own scale whatever μ is, and gives the greedy policy for *every* μ from 
 comm wins in state s while μ < ΔJ(s)/ΔC(s) (Δ = comm − radar), so as μ grows the greedy table
 changes one state at a time at those breakpoints.
 
-The final policy is chosen the way a vehicle could: along that path of tables, a bisection on
-measured miss detection (Monte-Carlo episodes on the simulator, counted in ``env_steps``) finds the
-two neighbouring tables on either side of the target; they differ in one state, and the final
-policy randomises there with the probability found by bisection on measured rates — the same shape
-as the exact LP optimum. The heads can misorder states they seldom see (a risky state at a long
-queue kept in comm after better ones went to radar); the prune (``algo.prune``) finds a second pair
-of neighbours by giving the comm states of the path's upper neighbour to radar in the order of
-their measured data per missed event, and the pair that promises more is kept. The exact model
-only scores (``history``, the final metrics).
+The final policy is chosen the way a vehicle could, by measured rates along that path of tables
+(``irdrc.agents.policy_search``); it may randomise in one state, as the exact LP optimum does. The
+exact model only scores (``history``, the final metrics).
 """
 
 from __future__ import annotations
 
-import bisect
 import math
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from typing import Any
 
 import torch
@@ -59,11 +52,10 @@ from irdrc.agents.offpolicy import (
     make_target_updater,
     policy_view,
 )
+from irdrc.agents.policy_search import FinalPolicySearch, SearchConfig
 from irdrc.core.env import DFRCEnv
-from irdrc.core.evaluate import long_run
 from irdrc.core.params import (
     Params,
-    check_bool,
     check_choice,
     check_number,
     reject_unknown_keys,
@@ -75,36 +67,17 @@ NAME = "dqn_lagrangian"
 OBJECTIVE_KEYS = {"throughput": "sent", "avg_reward": "reward", "link_capacity": "capacity"}
 """The env's per-step signal (under ``("next", key)``) for each objective of ``irdrc.core.cmdp``."""
 
-LAGRANGIAN_KEYS = (
-    "mu_init",
-    "mu_lr",
-    "mu_min",
-    "mu_max",
-    "cost_window_frames",
-    "search_span",
-    "measure_envs",
-    "measure_steps",
-    "measure_burn_in",
-    "measure_max_blocks",
-    "mix_steps",
-    "confirm",
-    "prune",
-)
+SEARCH_KEYS = tuple(f.name for f in fields(SearchConfig))
+"""The final search's ``algo.*`` keys (``irdrc.agents.policy_search.SearchConfig``)."""
+
+LAGRANGIAN_KEYS = ("mu_init", "mu_lr", "mu_min", "mu_max", "cost_window_frames", *SEARCH_KEYS)
+"""The ``algo.*`` keys of this learner beside the machinery's (``OffPolicyConfig``)."""
 
 DQN_VARIANT_KEYS = frozenset(
     {"distributional", "atoms", "support_span"}
     | {f"select_{k}" for k in ("every_frames", "after_frames", "envs", "steps", "burn_in", "z")}
 )
 """DQN's variant keys (``irdrc.agents.dqn_variants``): refused here, rather than ignored."""
-
-SEARCH_FLOOR = 1e-6
-"""The final search goes down the path no further than this fraction of the trained μ."""
-
-MIXING_STEPS_PER_BLOCK = 1
-"""The final policy's randomisation is searched on its log-odds within ±log(measure_steps / this):
-a probability closer to 0 or 1 in a state the chain lingers in (a full queue) makes the chain mix
-more slowly than a measurement block can see (at 1 − 1/measure_steps, measured and exact miss
-detection still agreed within 0.002 here)."""
 
 
 @dataclass(frozen=True)
@@ -162,14 +135,7 @@ class LagrangianConfig:
     mu_min: float = 1e-3
     mu_max: float = 1e5
     cost_window_frames: int = 4_000
-    search_span: float = 4.0
-    measure_envs: int = 2048
-    measure_steps: int = 2_000
-    measure_burn_in: int = 2_000
-    measure_max_blocks: int = 8
-    mix_steps: int = 10
-    confirm: bool = True
-    prune: bool = True
+    search: SearchConfig = field(default_factory=SearchConfig)
     name: str = field(default=NAME, compare=False)
 
     def __post_init__(self) -> None:
@@ -185,14 +151,8 @@ class LagrangianConfig:
         num("mu_max", 0, open_lo=True)
         num("mu_init", self.mu_min, self.mu_max)
         num("cost_window_frames", 1, 10**12, integer=True)
-        num("search_span", 1)
-        num("measure_envs", 2, 10**7, integer=True)
-        num("measure_steps", 1, 10**9, integer=True)
-        num("measure_burn_in", 0, 10**9, integer=True)
-        num("measure_max_blocks", 1, 10**6, integer=True)
-        num("mix_steps", 0, 60, integer=True)
-        check_bool("algo.confirm", self.confirm)
-        check_bool("algo.prune", self.prune)
+        if not isinstance(self.search, SearchConfig):
+            raise ValueError(f"search={self.search!r} must be a SearchConfig")
         if not isinstance(self.dqn, OffPolicyConfig):
             raise ValueError(f"dqn={self.dqn!r} must be an OffPolicyConfig")
         if self.dqn.n_steps != 1:
@@ -222,8 +182,9 @@ class LagrangianConfig:
             "algo.", data, (OffPolicyConfig.keys() - {"name"}) | set(LAGRANGIAN_KEYS)
         )
         own = {k: data.pop(k) for k in LAGRANGIAN_KEYS if k in data}
+        search = SearchConfig(**{k: own.pop(k) for k in SEARCH_KEYS if k in own})
         dqn = OffPolicyConfig.from_dict({"reward_centering": 0.0, **data, "name": NAME}, network)
-        return cls(dqn=dqn, target_miss=target_miss, objective=objective, **own)
+        return cls(dqn=dqn, target_miss=target_miss, objective=objective, search=search, **own)
 
     @classmethod
     def from_node(cls, cfg: Any) -> LagrangianConfig:
@@ -270,10 +231,11 @@ class Lagrangian(nn.Module):
 
 
 class LagrangianDQNLoss(LossModule):
-    """Double-DQN TD(0) on both heads: the next action is the online network's greedy action on
-    Q_J − μ·Q_C, valued by the target network's heads. Writes ``td_error`` (|δ_J| + |δ_C|) for
-    prioritised replay; the loss is the (importance-weighted) mean of δ_J² + δ_C² (or the chosen
-    distance)."""
+    """TD(0) on both heads: the next action is greedy on Q_J − μ·Q_C in the online network (double
+    DQN, ``double_dqn``) or in the target network, and valued by the target network's heads. Writes
+    ``td_error`` (|δ_J| + |δ_C|) for prioritised replay; the loss is the (importance-weighted) mean
+    of δ_J² + δ_C² (or the chosen distance). The objective signal arrives centred when reward
+    centering is on (``OffPolicyLoop`` centres it in every sample)."""
 
     value_network: TwoHeads
     value_network_params: TensorDictParams
@@ -288,6 +250,7 @@ class LagrangianDQNLoss(LossModule):
         objective_key: str,
         target_miss: float,
         loss_function: str = "l2",
+        double_dqn: bool = True,
     ) -> None:
         super().__init__()
         self.convert_to_functional(heads, "value_network", create_target_params=True)
@@ -296,14 +259,12 @@ class LagrangianDQNLoss(LossModule):
         self.objective_key = objective_key
         self.target_miss = float(target_miss)
         self.loss_function = loss_function
-        self.objective_center = 0.0
+        self.double_dqn = bool(double_dqn)
 
     def signals(self, td: TensorDictBase) -> torch.Tensor:
-        """[B, 2] per-step (objective, cost) of a batch of transitions; the objective less
-        ``objective_center`` (reward centering: a constant shift, so Q_J − μ·Q_C ranks actions
-        the same at every μ)."""
+        """[B, 2] per-step (objective, cost) of a batch of transitions."""
         nxt = td["next"]
-        j = nxt[self.objective_key].reshape(-1).to(torch.float32) - self.objective_center
+        j = nxt[self.objective_key].reshape(-1).to(torch.float32)
         c = nxt["missed"].reshape(-1).float() - self.target_miss * nxt["event"].reshape(-1).float()
         return torch.stack([j, c], -1)
 
@@ -314,11 +275,13 @@ class LagrangianDQNLoss(LossModule):
             q = self.value_network(obs)  # [B, 2, 2]
         taken = q.gather(-1, action.view(-1, 1, 1).expand(-1, 2, 1)).squeeze(-1)  # [B, 2]
         with torch.no_grad():
-            with self.value_network_params.data.to_module(self.value_network):
-                qn = self.value_network(nobs)
-            best = (qn[:, 0] - self.mu * qn[:, 1]).argmax(-1)
             with self.target_value_network_params.to_module(self.value_network):
                 qt = self.value_network(nobs)
+            qn = qt
+            if self.double_dqn:
+                with self.value_network_params.data.to_module(self.value_network):
+                    qn = self.value_network(nobs)
+            best = (qn[:, 0] - self.mu * qn[:, 1]).argmax(-1)
             nxt = qt.gather(-1, best.view(-1, 1, 1).expand(-1, 2, 1)).squeeze(-1)
             terminated = td["next", "terminated"].reshape(-1, 1).float()
             target = self.signals(td) + self.gamma * (1.0 - terminated) * nxt
@@ -350,264 +313,13 @@ def heads_table(heads: TwoHeads, env: DFRCEnv) -> torch.Tensor:
         return heads(env.dynamics.obs).double().cpu()
 
 
-def greedy_path(q: torch.Tensor) -> tuple[list[float], list[torch.Tensor]]:
-    """The greedy tables of Q_J − μ·Q_C as μ goes from 0 to ∞, from values ``q`` [S, 2, 2].
-
-    Returns ``(breaks, tables)``: ``tables[k]`` is greedy on (breaks[k−1], breaks[k]) (breaks[−1]
-    = 0), consecutive tables differ in exactly one state, ``len(tables) = len(breaks) + 1``.
-    Ties go to comm, as in ``irdrc.agents.dqn.greedy_table``.
-    """
-    dj = q[:, 0, 0] - q[:, 0, 1]  # objective gain of comm over radar
-    dc = q[:, 1, 0] - q[:, 1, 1]  # cost of comm over radar
-    table = (dj < 0).long()  # μ = 0: greedy on Q_J (1 = radar)
-    # State s switches at μ_s = dj/dc where the sign of dj − μ·dc changes for some μ > 0.
-    switch = torch.where(dc != 0, dj / dc, torch.full_like(dj, math.inf))
-    crosses = (switch > 0) & torch.isfinite(switch)
-    order = sorted(crosses.nonzero().flatten().tolist(), key=lambda s: float(switch[s]))
-    breaks, tables = [], [table.clone()]
-    for s in order:
-        table = table.clone()
-        table[s] = 1 - table[s]
-        breaks.append(float(switch[s]))
-        tables.append(table)
-    return breaks, tables
-
-
-def path_index(breaks: list[float], mu: float) -> int:
-    """The index of the table of ``greedy_path`` that is greedy at multiplier ``mu``."""
-    return bisect.bisect_right(breaks, mu)
-
-
-CONFIRM_SEED_OFFSET = 104_729
-"""The confirmation's random numbers: the search's seed plus this (independent of the search's)."""
-
-
-def prune_order(by_state: dict[str, torch.Tensor], table: torch.Tensor, key: str) -> list[int]:
-    """The states where ``table`` (1 = radar) communicates, in the order the prune gives them to
-    radar: ascending measured objective per missed event in their comm steps, Σ``key`` / (Σmissed
-    + 1) over ``by_state`` (``long_run(..., by_state=True)``). The + 1 keeps states seen too
-    seldom to have missed an event from looking best: they go early, which costs little data."""
-    comm = (table == 0).nonzero().flatten().tolist()
-    score = by_state[key].double() / (by_state["missed"].double() + 1.0)
-    return sorted(comm, key=lambda s: (float(score[s]), s))
-
-
 def final_policy(
     q: torch.Tensor, params: Params, mu: float, cfg: LagrangianConfig, seed: int
 ) -> tuple[torch.Tensor, dict[str, Any]]:
     """The final [S, 2] policy from the learned heads ``q`` [S, 2, 2] and the trained multiplier
-    ``mu``, chosen by measured rates alone (long-run Monte-Carlo runs on the simulator,
-    ``irdrc.core.evaluate.long_run``, all with the same random numbers so that measurements of
-    neighbouring policies compare like with like). Returns (policy, facts); facts include the
-    measurement env steps (``measure_env_steps``) and the measured rates of the final policy.
-
-    Along the greedy path (``greedy_path``), from the table greedy at ``mu``: if it meets the
-    target, down the path (multipliers ÷ ``search_span`` at a time) while tables meet it and
-    their measured objective grows; if not, up to ``mu``·``search_span`` and then the safest end.
-    A bisection between the last table above the target and the first at or below it finds
-    neighbours on either side of it. With ``cfg.confirm`` the table found is measured again on
-    fresh random numbers, and while that measurement is above the target the search climbs the
-    path (doubling its steps, then bisecting) on the fresh numbers.
-
-    With ``cfg.prune`` (objectives ``throughput`` and ``link_capacity``) a second pair of
-    neighbours comes from the measurements instead of the heads' ordering: the comm states of the
-    path's neighbour above the target go to radar one at a time in ``prune_order`` (from that
-    table's own per-state measurement), and a bisection on their number finds the two tables on
-    either side of the target. The pair whose measured (miss, objective) promise more at the
-    target, by linear interpolation between its two tables, is kept (the path's on a tie).
-
-    The final policy randomises in the one state where the kept neighbours differ, with the
-    probability found by bisection (on its log-odds) on measured miss detection (the fresh
-    numbers' with ``cfg.confirm``).
-    """
-    breaks, tables = greedy_path(q)
-    target = cfg.target_miss
-    last = len(tables) - 1
-    steps = 0
-    seen: dict[tuple[bool, bytes], tuple[float, float]] = {}
-    per_state: dict[tuple[bool, bytes], dict[str, torch.Tensor]] = {}
-
-    key = OBJECTIVE_KEYS[cfg.objective]
-    metric = {"sent": "throughput", "reward": "avg_reward", "capacity": "link_capacity"}[key]
-    prune = cfg.prune and key != "reward"  # radar earns reward too: no per-comm-step trade
-
-    def rates(p_radar: torch.Tensor, fresh: bool = False) -> tuple[float, float]:
-        """Measured (miss detection, objective) of a policy (each policy measured once per
-        stream: the search's, or with ``fresh`` the confirmation's)."""
-        nonlocal steps
-        k = (fresh, p_radar.double().numpy().tobytes())
-        if k not in seen:
-            ev = long_run(
-                params,
-                p_radar.double(),
-                envs=cfg.measure_envs,
-                steps=cfg.measure_steps,
-                burn_in=cfg.measure_burn_in,
-                max_blocks=cfg.measure_max_blocks,
-                seed=seed + 7919 + (CONFIRM_SEED_OFFSET if fresh else 0),
-                by_state=prune,  # the per-state sums the prune orders by
-            )
-            steps += ev.steps
-            seen[k] = (float(ev.metrics.miss_detection), float(getattr(ev.metrics, metric)))
-            per_state[k] = ev.by_state
-        return seen[k]
-
-    def miss(p_radar: torch.Tensor, fresh: bool = False) -> float:
-        return rates(p_radar, fresh)[0]
-
-    def table(k: int) -> torch.Tensor:
-        return tables[k].double()
-
-    def done(
-        p_radar: torch.Tensor, fresh: bool = False, **extra: Any
-    ) -> tuple[torch.Tensor, dict[str, Any]]:
-        facts = {
-            "path_tables": len(tables),
-            "measured_final_miss": miss(p_radar, fresh),
-            "measurements": len(seen),
-            "measure_env_steps": steps,
-            "confirmed": fresh,
-            **extra,
-        }
-        return torch.stack([1 - p_radar.double(), p_radar.double()], -1), facts
-
-    def bracket(lo: int, hi: int, fresh: bool, miss_of=lambda k, f: miss(table(k), f)):
-        """Bisection to neighbours: miss(lo) > target ≥ miss(hi) on entry and on return."""
-        while hi - lo > 1:
-            mid = (lo + hi) // 2
-            if miss_of(mid, fresh) > target:
-                lo = mid
-            else:
-                hi = mid
-        return lo, hi
-
-    def path_search() -> tuple[torch.Tensor | None, torch.Tensor, bool, float | None]:
-        """The path's neighbours (above the target or None, at or below it — or the safest end
-        of the path when no table meets the target), the stream that decides, and the
-        multiplier of the switch."""
-        k0 = path_index(breaks, mu)
-        lo: int | None
-        if miss(table(k0)) <= target:
-            # Down the path (more data) by factors of search_span while the tables stay within
-            # the target and their measured objective grows; the first one above it brackets.
-            lo, hi = None, k0
-            m = mu
-            while hi > 0 and m > mu * SEARCH_FLOOR:
-                m /= cfg.search_span
-                k = path_index(breaks, m)
-                if k == hi:
-                    continue
-                if miss(table(k)) > target:
-                    lo = k
-                    break
-                if rates(table(k))[1] <= rates(table(hi))[1]:
-                    break  # no more data lower down: the heads' differences there are noise
-                hi = k
-        else:
-            lo, hi = k0, path_index(breaks, mu * cfg.search_span)
-            if miss(table(hi)) > target:
-                hi = last  # beyond the range: the safest tables of the path
-                if hi == lo or miss(table(hi)) > target:
-                    return None, table(hi), cfg.confirm, None
-        if lo is not None:
-            lo, hi = bracket(lo, hi, fresh=False)
-        fresh = cfg.confirm
-        if fresh and miss(table(hi), fresh) > target:
-            # The search kept this table because its measurement fell at or below the target,
-            # which noise alone can do: climb the path on fresh numbers until a table meets it.
-            step, lo = 1, hi
-            while True:
-                k = min(hi + step, last)
-                if miss(table(k), fresh) <= target:
-                    lo, hi = bracket(lo, k, fresh)
-                    break
-                if k == last:
-                    return None, table(last), True, None
-                lo, step = k, 2 * step
-        if lo is None:
-            return None, table(hi), fresh, None
-        return table(lo), table(hi), fresh, breaks[lo]
-
-    def promise(t_lo: torch.Tensor | None, t_hi: torch.Tensor, fresh: bool) -> float:
-        """The objective a mixture of the pair promises at the target, from their measured
-        rates by linear interpolation in miss detection (−∞ when its safer table ``t_hi`` does
-        not meet it)."""
-        m_hi, j_hi = rates(t_hi, fresh)
-        if t_lo is None:
-            return j_hi if m_hi <= target else -math.inf
-        m_lo, j_lo = rates(t_lo, fresh)
-        if m_hi > target:
-            return -math.inf
-        if m_lo <= target:
-            return max(j_lo, j_hi)
-        w = (m_lo - target) / (m_lo - m_hi)  # the weight of t_hi that lands on the target
-        return (1 - w) * j_lo + w * j_hi
-
-    def prune_search(
-        top: torch.Tensor, fresh: bool
-    ) -> tuple[torch.Tensor | None, torch.Tensor, int, int]:
-        """Neighbours on either side of the target among ``top`` with its first k comm states
-        (``prune_order``) given to radar; also k (of the upper neighbour) and how many there are."""
-        rates(top, fresh)
-        order = prune_order(per_state[(fresh, top.numpy().tobytes())], top, key)
-
-        def pruned(k: int) -> torch.Tensor:
-            t = top.clone()
-            t[order[:k]] = 1.0
-            return t
-
-        n = len(order)
-        if miss(top, fresh) <= target:
-            return None, top, 0, n
-        if miss(pruned(n), fresh) > target:
-            return None, pruned(n), n, n
-        lo, hi = bracket(0, n, fresh, miss_of=lambda k, f: miss(pruned(k), f))
-        return pruned(lo), pruned(hi), hi, n
-
-    t_lo, t_hi, fresh, mu_switch = path_search()
-    extra: dict[str, Any] = {"pruned": None}
-    if prune and (t_lo is not None or miss(t_hi, fresh) > target):
-        top = t_lo if t_lo is not None else t_hi
-        p_lo, p_hi, k, n = prune_search(top, fresh)
-        path_promise, prune_promise = promise(t_lo, t_hi, fresh), promise(p_lo, p_hi, fresh)
-        won = prune_promise > path_promise
-        extra = {
-            "pruned": won,
-            "prune_states": k,
-            "prune_candidates": n,
-            # −∞ (neither table of the pair meets the target) is written as None
-            "path_promise": path_promise if math.isfinite(path_promise) else None,
-            "prune_promise": prune_promise if math.isfinite(prune_promise) else None,
-        }
-        if won:
-            t_lo, t_hi, mu_switch = p_lo, p_hi, None
-    if t_lo is None:
-        return done(t_hi, fresh, switch_state=None, p_switch=None, **extra)
-    s = int((t_lo != t_hi).nonzero().flatten()[0])
-    a_lo, a_hi = float(t_lo[s]), float(t_hi[s])
-
-    def mixed(z: float) -> torch.Tensor:
-        w = 1.0 / (1.0 + math.exp(-z))  # weight of t_hi's action in s
-        p = t_hi.clone()
-        p[s] = w * a_hi + (1 - w) * a_lo
-        return p
-
-    # Bisection on the log-odds z of the weight: miss(mixed(z)) falls as z grows.
-    span = math.log(max(2.0, cfg.measure_steps / MIXING_STEPS_PER_BLOCK))
-    z_lo, z_hi = -span, span
-    if miss(mixed(z_hi), fresh) > target:
-        return done(t_hi, fresh, switch_state=s, p_switch=float(t_hi[s]), **extra)
-    if miss(mixed(z_lo), fresh) <= target:
-        z_hi = z_lo
-    else:
-        for _ in range(cfg.mix_steps):
-            z = 0.5 * (z_lo + z_hi)
-            if miss(mixed(z), fresh) > target:
-                z_lo = z
-            else:
-                z_hi = z
-    p = mixed(z_hi)
-    return done(p, fresh, switch_state=s, p_switch=float(p[s]), mu_switch=mu_switch, **extra)
+    ``mu``, and facts about its search (``irdrc.agents.policy_search.FinalPolicySearch``)."""
+    signal = OBJECTIVE_KEYS[cfg.objective]
+    return FinalPolicySearch(q, params, mu, cfg.target_miss, signal, cfg.search, seed).run()
 
 
 def train(
@@ -621,17 +333,17 @@ def train(
     eval_every_frames: int = 25_000,
     hooks: Hooks | None = None,
     resume: dict[str, Any] | None = None,
-    optimal_value: float | None = None,
 ) -> RunRecord:
     """Train the Lagrangian DQN and choose its final (possibly randomised) policy.
 
     The interface of ``irdrc.agents.base``, on the machinery of ``irdrc.agents.offpolicy`` (the
     same rows, ladder, replay and loop as DQN). ``hooks.on_batch`` gets ``env_steps``,
     ``episodes``, ``loss``, ``mu`` (the multiplier), ``measured_miss`` (M̂), ``buffer``. Each exact
-    evaluation scores the greedy table at the current μ; its ``optimality_ratio`` is the objective
-    over ``optimal_value`` (the LP optimum, when given; else over the reward-optimal average
-    reward). The record's ``policy`` is the final [1, S, 2] policy, ``greedy`` its most likely
-    action, and ``info`` the final search's facts. Runs do not resume (``resume`` must be None).
+    evaluation scores the greedy table at the current μ (its ``optimality_ratio`` against the
+    reward optimum, as every learner's; the constrained recipe reads it against the LP's objective
+    in its ``on_eval`` hook). The record's ``policy`` is the final [1, S, 2] policy, ``greedy`` its
+    most likely action, and ``info`` the final search's facts. Runs do not resume (``resume`` must
+    be None).
     """
     cfg = cfg or LagrangianConfig()
     dq = cfg.dqn
@@ -661,6 +373,7 @@ def train(
         objective_key=objective_key,
         target_miss=cfg.target_miss,
         loss_function=dq.loss_function,
+        double_dqn=dq.double_dqn,
     )
     target = make_target_updater(loss, dq)
     optimizer = make_optimizer(loss, dq)
@@ -697,8 +410,6 @@ def train(
         return value
 
     t0 = time.perf_counter()
-    metric = {"sent": "throughput", "reward": "avg_reward", "capacity": "link_capacity"}
-    obj_name = metric[objective_key]
 
     def evaluate_now() -> None:
         with policy_view(loss, dq):
@@ -712,8 +423,6 @@ def train(
             m,
             scorer.optimal_metrics.avg_reward,
         )
-        if optimal_value is not None:
-            entry["optimality_ratio"] = getattr(m, obj_name) / optimal_value
         record.history.append(entry)
         hooks.eval([entry])
 

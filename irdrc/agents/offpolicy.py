@@ -203,12 +203,6 @@ class OffPolicyConfig:
                 f"algo.frames_per_batch={self.frames_per_batch} must be a multiple of "
                 f"algo.num_envs={self.num_envs}"
             )
-        if self.n_steps > 1 and self.frames_per_batch // self.num_envs < self.n_steps:
-            raise ValueError(
-                f"algo.n_steps={self.n_steps} needs at least that many steps per row in a "
-                f"collection: algo.frames_per_batch={self.frames_per_batch} / algo.num_envs="
-                f"{self.num_envs} = {self.frames_per_batch // self.num_envs}"
-            )
         if self.init_random_frames >= self.total_frames:
             raise ValueError(
                 f"algo.init_random_frames={self.init_random_frames} must be < "

@@ -12,7 +12,8 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from irdrc.agents import dqn
-from irdrc.agents.base import Hooks
+from irdrc.agents.base import Hooks, RunRecord
+from irdrc.core.env import DFRCEnv
 from irdrc.core.model import ExactModel, build_model
 from irdrc.core.params import Params, to_plain
 from irdrc.core.solve import ExactScorer, stationary_occupancy
@@ -29,19 +30,20 @@ from irdrc.experiments.results import (
 from irdrc.experiments.results import read_csv_rows as read_csv
 
 SUMMARY_KEYS = (
+    "env_steps_per_second",
+    "updates_per_second",
     "env_steps_to_95",
     "seconds_to_95",
     "env_steps_to_99",
     "seconds_to_99",
     "later_evals_at_99",
     "final_ratio",
-    "updates_per_second",
 )
 
 
-def profile_config(name: str, overrides: list[str]) -> dqn.DQNConfig:
-    """The DQN config (algo and network) of ``recipes/dqn.py algo=<name>``."""
-    return dqn.DQNConfig.from_node(compose("dqn", [f"algo={name}", *overrides]))
+def profile_config(overrides: list[str]) -> dqn.DQNConfig:
+    """The DQN config (algo and network) ``recipes/dqn.py`` composes from ``overrides``."""
+    return dqn.DQNConfig.from_node(compose("dqn", list(overrides)))
 
 
 def _fmt(values: list) -> str:
@@ -175,9 +177,12 @@ def _gap_tracer(
 
 
 def run_bench_dqn(cfg: DictConfig, out: Path) -> int:
-    """Train every (profile, seed), print medians and ranges, write ``cfg.csv`` into ``out``; with
-    ``trace_gaps``, also the learned action gap at every state where the optimum communicates, at
-    every evaluation (``gap_trace.csv``), and each run's final gaps there."""
+    """Train every (profile, seed), profiles alternated seed by seed in one process; per run: the
+    training speed (env steps/s, updates/s, the share of collecting, storing and learning) and the
+    env steps and seconds to 95 % / 99 %; then the cost of one update for K learners stacked in
+    one network (``cfg.stacked``) against K single ones. Writes ``bench_dqn.csv`` and
+    ``bench_dqn.md``; with ``trace_gaps`` also the learned action gaps (``gap_trace.csv``)."""
+    start = time.perf_counter()
     torch.set_num_threads(int(cfg.num_threads))
     params = Params.from_config(cfg)
     scorer = ExactScorer(build_model(params), gamma=float(cfg.optimum_gamma))
@@ -185,12 +190,11 @@ def run_bench_dqn(cfg: DictConfig, out: Path) -> int:
     states = comm_states(scorer) if trace else []
     gap_rows: list[dict[str, Any]] = []
     rows: list[dict[str, Any]] = []
-    for name in cfg.profiles:
-        extra = [str(o) for o in cfg.get("overrides", [])]
-        if name in cfg.frames_override:
-            extra.append(f"algo.total_frames={int(cfg.frames_override[name])}")
-        config = profile_config(name, extra)
-        for seed in cfg.seeds:
+    profiles = candidate_overrides({"candidates": cfg.profiles})
+    extra = [str(o) for o in cfg.get("overrides", [])]
+    configs = {name: profile_config([*ov, *extra]) for name, ov in profiles.items()}
+    for seed in cfg.seeds:
+        for name, config in configs.items():
             hooks = Hooks(
                 on_values=_gap_tracer(states, name, int(seed), gap_rows, scorer) if trace else None
             )
@@ -203,70 +207,233 @@ def run_bench_dqn(cfg: DictConfig, out: Path) -> int:
                 scorers=scorer,
                 hooks=hooks,
             )
-            t99 = rec.first_reaching(0.99)
-            later = [e for e in rec.history if t99 is not None and e["env_steps"] > t99]
-            row = {
-                "profile": name,
-                "seed": int(seed),
-                "total_frames": rec.env_steps,
-                "updates": rec.updates,
-                "wall_seconds": round(rec.wall_seconds, 3),
-                "env_steps_to_95": rec.first_reaching(0.95),
-                "seconds_to_95": rec.first_reaching(0.95, at="wall_seconds"),
-                "env_steps_to_99": t99,
-                "seconds_to_99": rec.first_reaching(0.99, at="wall_seconds"),
-                "later_evals_at_99": (
-                    sum(e["optimality_ratio"] >= 0.99 for e in later) / len(later)
-                    if later
-                    else None
-                ),
-                "final_ratio": rec.history[-1]["optimality_ratio"],
-                "updates_per_second": round(rec.updates / rec.wall_seconds, 1),
-            }
-            rows.append(row)
+            rows.append(_speed_row(name, int(seed), rec))
+            row = rows[-1]
             print(
-                f"{name:>10} seed {seed}: 95 % at {row['env_steps_to_95']} steps, 99 % at {t99} "
-                f"steps / {row['seconds_to_99'] and round(row['seconds_to_99'], 2)} s; later evals "
-                f"≥ 99 %: {row['later_evals_at_99']}; final {row['final_ratio']:.4f}; "
-                f"{rec.env_steps} steps in {rec.wall_seconds:.1f} s",
+                f"{name:>14} seed {seed}: {row['env_steps_per_second']:,.0f} env steps/s, "
+                f"{row['updates_per_second']:.0f} updates/s of training; 99 % at "
+                f"{row['env_steps_to_99']} steps / {row['seconds_to_99']} s; final "
+                f"{row['final_ratio']:.4f}",
                 flush=True,
             )
             if trace:
-                final = gap_rows[-len(states) :]
-                if final:
-                    print(
-                        f"    final learned slope of V in the queue length: "
-                        f"{final[-1]['learned_value_slope']:+.3f} per packet (true "
-                        f"{final[-1]['true_value_slope']:+.3f}); mean of V "
-                        f"{final[-1]['learned_value_mean']:.1f} (true "
-                        f"{final[-1]['true_value_mean']:.1f})"
-                    )
-                print(
-                    "    final learned gap (true "
-                    + ", ".join(sorted({f"{st['true_gap']:.3f}" for st in states}))
-                    + "): "
-                    + "; ".join(
-                        f"{st['label']}: {g['learned_gap']:+.2f}"
-                        for st, g in zip(states, final, strict=True)
-                    )
-                )
-    print()
-    for name in cfg.profiles:
-        rs = [r for r in rows if r["profile"] == name]
-        print(f"{name} ({len(rs)} seeds, {rs[0]['total_frames']} env steps each):")
-        for key in SUMMARY_KEYS:
-            print(f"  {key:<18} {_fmt([r[key] for r in rs])}")
+                _print_gaps(states, gap_rows)
+    stacked = [int(k) for k in cfg.get("stacked", [])]
+    stack_rows = stacked_update_cost(configs[next(iter(configs))], stacked) if stacked else []
     write_rows_csv(Path(out) / cfg.csv, rows)
-    print(f"\nwrote {Path(out) / cfg.csv}")
+    table = speed_table(rows, list(configs)) + (
+        "\n\n" + stacked_table(stack_rows) if stack_rows else ""
+    )
+    print("\n" + table)
+    write_table_md(Path(out) / "bench_dqn.md", table, time.perf_counter() - start)
+    print(f"\nwrote {Path(out) / cfg.csv} and {Path(out) / 'bench_dqn.md'}")
     if trace:
         write_rows_csv(Path(out) / "gap_trace.csv", gap_rows)
         print(f"wrote {Path(out) / 'gap_trace.csv'}")
-        for st in states:
-            print(
-                f"  {st['label']}: {st['visit_frequency']:.4f} of the time under the optimum; "
-                f"radar there alone → ratio {st['ratio_if_radar_here']:.4f}"
-            )
     return 0
+
+
+def _speed_row(name: str, seed: int, rec: RunRecord) -> dict[str, Any]:
+    """One run of the speed benchmark: its counts, its phases' seconds, and how soon it learned."""
+    info = rec.info
+    train = info["seconds_collect"] + info["seconds_store"] + info["seconds_learn"]
+    t99 = rec.first_reaching(0.99)
+    later = [e for e in rec.history if t99 is not None and e["env_steps"] > t99]
+    return {
+        "profile": name,
+        "seed": seed,
+        "env_steps": rec.env_steps,
+        "updates": rec.updates,
+        "training_seconds": round(train, 3),
+        "evaluation_seconds": round(info.get("seconds_evaluate", 0.0), 3),
+        **{
+            f"share_{k}": round(info[f"seconds_{k}"] / train, 3)
+            for k in ("collect", "store", "learn")
+        },
+        "env_steps_per_second": rec.env_steps / train,
+        "updates_per_second": rec.updates / info["seconds_learn"] if info["seconds_learn"] else 0.0,
+        "env_steps_to_95": rec.first_reaching(0.95),
+        "seconds_to_95": rec.first_reaching(0.95, at="wall_seconds"),
+        "env_steps_to_99": t99,
+        "seconds_to_99": rec.first_reaching(0.99, at="wall_seconds"),
+        "later_evals_at_99": (
+            sum(e["optimality_ratio"] >= 0.99 for e in later) / len(later) if later else None
+        ),
+        "final_ratio": rec.history[-1]["optimality_ratio"],
+    }
+
+
+def _print_gaps(states: list[dict[str, Any]], gap_rows: list[dict[str, Any]]) -> None:
+    final = gap_rows[-len(states) :]
+    if final:
+        print(
+            f"    final learned slope of V in the queue length: "
+            f"{final[-1]['learned_value_slope']:+.3f} per packet (true "
+            f"{final[-1]['true_value_slope']:+.3f}); mean of V "
+            f"{final[-1]['learned_value_mean']:.1f} (true {final[-1]['true_value_mean']:.1f})"
+        )
+        print(
+            "    final learned gap: "
+            + "; ".join(
+                f"{st['label']}: {g['learned_gap']:+.2f} (true {st['true_gap']:+.2f})"
+                for st, g in zip(states, final, strict=True)
+            )
+        )
+
+
+def speed_table(rows: list[dict[str, Any]], profiles: list[str]) -> str:
+    """The speed benchmark as Markdown: per profile, medians over its seeds, and its training speed
+    as a ratio to the first profile's (measured in the same run, alternately)."""
+    body, base = [], None
+    for name in profiles:
+        mine = [r for r in rows if r["profile"] == name]
+        if not mine:
+            continue
+        rate = statistics.median(r["env_steps_per_second"] for r in mine)
+        base = base or rate
+        t99 = [r for r in mine if r["env_steps_to_99"] is not None]
+        body.append(
+            [
+                name,
+                len(mine),
+                f"{mine[0]['env_steps']:,}".replace(",", " "),
+                f"{statistics.median(r['updates'] for r in mine):,.0f}".replace(",", " "),
+                f"{statistics.median(r['training_seconds'] for r in mine):.2f}",
+                f"{rate:,.0f}".replace(",", " "),
+                f"{rate / base:.3g}",
+                f"{statistics.median(r['updates_per_second'] for r in mine):.0f}",
+                " / ".join(
+                    f"{statistics.median(r[f'share_{k}'] for r in mine):.0%}"
+                    for k in ("collect", "store", "learn")
+                ),
+                f"{len(t99)}/{len(mine)}",
+                _fmt([r["env_steps_to_99"] for r in t99]) if t99 else "—",
+                _fmt([r["seconds_to_99"] for r in t99]) if t99 else "—",
+                _fmt([r["final_ratio"] for r in mine]),
+            ]
+        )
+    return md_table(
+        [
+            "profile",
+            "seeds",
+            "env steps",
+            "updates",
+            "training s",
+            "env steps/s of training",
+            "× the first profile",
+            "updates/s",
+            "collect / store / learn",
+            "reached 99 %",
+            "env steps to 99 %",
+            "s to 99 %",
+            "final ratio",
+        ],
+        body,
+    ) + (
+        "\n\nMedians over the seeds (ranges in brackets); one thread; training seconds leave the "
+        "exact evaluations out."
+    )
+
+
+def stacked_update_cost(
+    config: dqn.DQNConfig, learners: list[int], repeats: int = 20
+) -> list[dict]:
+    """The cost of one gradient update per learner when K learners are one stacked network
+    (TorchRL's ``MultiAgentMLP``, unshared parameters, vmapped; one ``DQNLoss`` on [B, K]
+    samples) against K = 1, on ``config``'s network and batch: whether running seeds as learners
+    of one process would beat running them one per process."""
+    from tensordict import TensorDict
+    from torchrl.modules import MultiAgentMLP, QValueActor
+    from torchrl.objectives import DQNLoss, SoftUpdate
+
+    from irdrc.agents.offpolicy import ACTIVATIONS, make_qnet
+
+    env = DFRCEnv(Params(), batch_size=[1])
+    spec, B, net = env.action_spec_unbatched, config.batch_size, config.network
+    width = env.observation_spec["observation"].shape[-1]
+    out = []
+    for k in learners:
+        if k == 1:
+            qnet = make_qnet(env, net)
+        else:
+            norm = (
+                {
+                    "norm_class": torch.nn.LayerNorm,
+                    "norm_kwargs": {"normalized_shape": net.hidden[0]},
+                }
+                if net.layer_norm
+                else {}
+            )
+            body = MultiAgentMLP(
+                n_agent_inputs=width,
+                n_agent_outputs=2,
+                n_agents=k,
+                centralized=False,
+                share_params=False,
+                num_cells=list(net.hidden),
+                activation_class=ACTIVATIONS[net.activation],
+                **norm,
+            )
+            qnet = QValueActor(module=body, in_keys=["observation"], spec=spec)
+        loss = DQNLoss(
+            qnet, loss_function="l2", delay_value=True, double_dqn=True, action_space=spec
+        )
+        loss.make_value_estimator(gamma=config.gamma)
+        opt = torch.optim.Adam(loss.parameters(), lr=config.lr, foreach=True)
+        target = SoftUpdate(loss, tau=config.tau)
+        shape = [B] if k == 1 else [B, k]
+        flag = torch.zeros(*shape, 1, dtype=torch.bool)
+        td = TensorDict(
+            {
+                "observation": torch.rand(*shape, width),
+                "action": torch.randint(0, 2, shape),
+                "next": {
+                    "observation": torch.rand(*shape, width),
+                    "reward": torch.randn(*shape, 1),
+                    "done": flag,
+                    "terminated": flag,
+                },
+            },
+            shape,
+        )
+
+        times = []
+        for i in range(repeats + 1):  # the first update warms up
+            t0 = time.perf_counter()
+            value = loss(td)["loss"]
+            opt.zero_grad()
+            value.backward()
+            opt.step()
+            target.step()
+            if i:
+                times.append(time.perf_counter() - t0)
+        out.append({"learners": k, "ms_per_update": 1e3 * statistics.median(times)})
+    return out
+
+
+def stacked_table(rows: list[dict]) -> str:
+    """The stacked-learners check as Markdown: ms per update in all and per learner."""
+    single = next((r["ms_per_update"] for r in rows if r["learners"] == 1), None)
+    return (
+        md_table(
+            [
+                "learners in one stacked network",
+                "ms per update",
+                "ms per learner",
+                "× one learner's speed",
+            ],
+            [
+                [
+                    r["learners"],
+                    f"{r['ms_per_update']:.1f}",
+                    f"{r['ms_per_update'] / r['learners']:.2f}",
+                    f"{single / (r['ms_per_update'] / r['learners']):.2f}" if single else "—",
+                ]
+                for r in rows
+            ],
+        )
+        + "\n\nMedian of 20 updates each, one thread, batch and network of the first profile."
+    )
 
 
 def run_bench_robust(cfg: DictConfig, out: Path, scenario: list[str] | None = None) -> int:

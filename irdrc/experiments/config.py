@@ -106,8 +106,37 @@ REMOVED = {
 """Per recipe: keys that no longer exist, and what to use instead."""
 
 
+def replace_mappings(config_name: str, overrides: list[str]) -> list[str]:
+    """``key={…}`` for a key whose default is a mapping (``bench_dqn.py profiles={…}``) becomes
+    ``~key`` and ``+key={…}``: the new mapping replaces the default instead of being merged into
+    it (Hydra refuses keys the default does not have)."""
+    mapped = [o for o in overrides if "={" in o and o[0] not in "+~"]
+    if not mapped:
+        return list(overrides)
+    base = _default_config(config_name)
+    out = []
+    for o in overrides:
+        key = override_key(o)
+        if o in mapped and isinstance(OmegaConf.select(base, key, default=None), DictConfig):
+            out += [f"~{key}", f"+{o}"]
+        else:
+            out.append(o)
+    return out
+
+
+def _default_config(config_name: str) -> DictConfig:
+    """The recipe's config with no overrides (cached)."""
+    if config_name not in _DEFAULTS:
+        _DEFAULTS[config_name] = compose(config_name, [])
+    return _DEFAULTS[config_name]
+
+
+_DEFAULTS: dict[str, DictConfig] = {}
+
+
 def rename_overrides(config_name: str, overrides: list[str]) -> tuple[list[str], list[str]]:
-    """Command-line overrides with renamed keys (``RENAMED``) replaced by their new names.
+    """Command-line overrides with renamed keys (``RENAMED``) replaced by their new names, and
+    mappings replaced whole (``replace_mappings``).
 
     Returns:
         (the overrides, one note per renamed key).
@@ -126,7 +155,7 @@ def rename_overrides(config_name: str, overrides: list[str]) -> tuple[list[str],
             o = f"{prefix}{renamed[key]}={o.split('=', 1)[1]}"
             notes.append(f"note: {key} is now {renamed[key]} (the old name still works for now)")
         out.append(o)
-    return out, notes
+    return replace_mappings(config_name, out), notes
 
 
 def compose(config_name: str, overrides: list[str] | None = None) -> DictConfig:

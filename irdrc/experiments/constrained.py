@@ -42,6 +42,14 @@ MU_FIELDS = ("env_steps", "mu", "measured_miss")
 """Columns of ``mu.csv``: the multiplier and the learner's measured miss detection over training."""
 
 
+def objective_ratio(entries: list[dict[str, Any]], sol: CMDPSolution) -> list[dict[str, Any]]:
+    """Evaluations read against the LP: each entry's ``optimality_ratio`` becomes its objective
+    over the LP optimum's (the entries are the learner's history, so it keeps these)."""
+    for e in entries:
+        e["optimality_ratio"] = e[sol.objective] / sol.value if sol.value else float("nan")
+    return entries
+
+
 def constraint_kwargs(cfg: DictConfig) -> dict[str, Any]:
     """``solve_cmdp``'s keyword arguments from a recipe config (``target_miss``, ``objective``,
     ``max_drop``, ``min_radar``)."""
@@ -196,12 +204,11 @@ def run_constrained_learned(
             scorers=scorer,
             eval_every_frames=int(cfg.eval.every_frames),
             hooks=Hooks(
-                on_eval=progress.on_eval,
+                on_eval=lambda entries: progress.on_eval(objective_ratio(entries, sol)),
                 on_batch=progress.on_batch,
                 on_start=progress.on_start,
                 should_stop=stop,
             ),
-            optimal_value=sol.value,
         )
         progress.close()
     mu_trace = record.info.pop("mu_trace")

@@ -24,6 +24,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from irdrc.agents import dqn, pqn, qlearning
 from irdrc.agents.base import Hooks
+from irdrc.agents.registry import LEARNERS
 from irdrc.core.env import DFRCEnv
 from irdrc.core.evaluate import evaluate
 from irdrc.core.metrics import Metrics, format_table
@@ -52,7 +53,6 @@ from irdrc.experiments.results import (
 )
 from irdrc.experiments.tracking import log_scalars, make_logger, resolve_wandb_mode
 
-LEARNERS = {dqn.NAME: dqn, pqn.NAME: pqn, qlearning.NAME: qlearning}
 """Method name → learner module (``Config``, ``train``; see ``irdrc.agents.base``)."""
 
 

@@ -23,11 +23,11 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
-from irdrc.experiments.config import compose
+from irdrc.experiments.config import compose, rename_overrides
 from irdrc.experiments.grid import format_value, parse_grid, point_id, point_overrides, scenario_of
 from irdrc.experiments.results import atomic_write_text
 from irdrc.experiments.runs import RUNNERS
-from irdrc.experiments.validate import validate
+from irdrc.experiments.validate import check_overrides, validate
 
 METHODS = ("dqn", "qlearning", "solve", "constrained")
 # Settings a sweep gives every trial before the user's base overrides (which may change them).
@@ -132,6 +132,8 @@ def plan(
     for point in points:
         ov = point_overrides(point)
         try:
+            # an unknown key: the closest valid one (old key names still work)
+            check_overrides(method, rename_overrides(method, [*base, *ov])[0])
             composed = compose(method, [*TRIAL_DEFAULTS[method], *base, *ov])
             validate(method, composed, [*base, *ov])
         except Exception as err:

@@ -293,9 +293,17 @@ def _sweep(cfg: DictConfig) -> None:
 def _bench_dqn(cfg: DictConfig) -> None:
     check_common(cfg)
     overrides = [str(o) for o in cfg.get("overrides", [])]
-    for name in cfg.profiles:
-        check_choice("profiles", name, ("dqn", "dqn_paper"))
-        dqn.DQNConfig.from_node(compose("dqn", [f"algo={name}", *overrides]))
+    for name, extra in candidate_overrides({"candidates": cfg.profiles}).items():
+        try:
+            check_overrides("dqn", [*extra, *overrides])
+            dqn.DQNConfig.from_node(compose("dqn", [*extra, *overrides]))
+        except Exception as err:
+            raise ValueError(f"profiles.{name}: {str(err).strip().splitlines()[0]}") from err
+    stacked = to_plain(cfg.get("stacked", [])) or []
+    if not isinstance(stacked, list):
+        raise ValueError(f"stacked={stacked!r} must be a list of learner counts")
+    for i, k in enumerate(stacked):
+        check_number(f"stacked[{i}]", k, 1, 1024, integer=True)
     check_bool("trace_gaps", cfg.get("trace_gaps", False))
 
 

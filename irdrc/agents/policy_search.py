@@ -1,0 +1,363 @@
+"""The Lagrangian DQN's final policy, chosen by measured rates alone.
+
+The learned heads give Q_J (objective) and Q_C (cost: missed − m*·event) per state and action; the
+greedy table of Q_J − μ·Q_C changes one state at a time as μ grows (``greedy_path``). The search
+finds, by long-run Monte-Carlo measurements on the simulator (``irdrc.core.evaluate.long_run``,
+common random numbers across candidates), the two neighbouring tables on either side of the
+miss-detection target, and randomises between them in the one state where they differ — the
+shape of the exact LP optimum. A confirmation re-measures the result on fresh random numbers
+(the search keeps what read low by chance), and a prune finds a second pair of neighbours from
+per-state measurements where the heads misorder rarely seen states. The exact model never steers
+the choice; every measurement step is counted.
+"""
+
+from __future__ import annotations
+
+import bisect
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+
+from irdrc.core.evaluate import long_run
+from irdrc.core.params import Params, check_bool, check_number
+
+SEARCH_FLOOR = 1e-6
+"""The search goes down the path no further than this fraction of the trained μ."""
+
+MIXING_STEPS_PER_BLOCK = 1
+"""The final policy's randomisation is searched on its log-odds within ±log(measure_steps / this):
+a probability closer to 0 or 1 in a state the chain lingers in (a full queue) makes the chain mix
+more slowly than a measurement block can see."""
+
+CONFIRM_SEED_OFFSET = 104_729
+"""The confirmation's random numbers: the search's seed plus this (independent of the search's)."""
+
+METRIC_OF_SIGNAL = {"sent": "throughput", "reward": "avg_reward", "capacity": "link_capacity"}
+"""The metric that measures each objective signal."""
+
+
+@dataclass(frozen=True)
+class SearchConfig:
+    """How the final policy is searched (the ``algo.*`` keys of the same names).
+
+    Attributes:
+        search_span: the search moves along the path by this factor in μ at a time.
+        measure_envs, measure_steps, measure_burn_in, measure_max_blocks: each long-run
+            measurement runs ``measure_envs`` chains for ``measure_burn_in`` steps, then blocks of
+            ``measure_steps`` until two consecutive blocks agree (at most ``measure_max_blocks``).
+        mix_steps: bisection steps on the log-odds of the final randomisation.
+        confirm: re-measure the search's result on fresh random numbers and climb the path while
+            that measurement is above the target; mix on the fresh numbers.
+        prune: also give the comm states of the path's neighbour above the target to radar in
+            the order of their measured objective per missed event, and keep the pair that
+            promises more at the target (not for the average-reward objective: radar earns it too).
+    """
+
+    search_span: float = 4.0
+    measure_envs: int = 2048
+    measure_steps: int = 2_000
+    measure_burn_in: int = 2_000
+    measure_max_blocks: int = 8
+    mix_steps: int = 10
+    confirm: bool = True
+    prune: bool = True
+
+    def __post_init__(self) -> None:
+        def num(key: str, lo: float, hi: float = math.inf, **kw: Any) -> None:
+            object.__setattr__(
+                self, key, check_number(f"algo.{key}", getattr(self, key), lo, hi, **kw)
+            )
+
+        num("search_span", 1)
+        num("measure_envs", 2, 10**7, integer=True)
+        num("measure_steps", 1, 10**9, integer=True)
+        num("measure_burn_in", 0, 10**9, integer=True)
+        num("measure_max_blocks", 1, 10**6, integer=True)
+        num("mix_steps", 0, 60, integer=True)
+        check_bool("algo.confirm", self.confirm)
+        check_bool("algo.prune", self.prune)
+
+
+def greedy_path(q: torch.Tensor) -> tuple[list[float], list[torch.Tensor]]:
+    """The greedy tables of Q_J − μ·Q_C as μ goes from 0 to ∞, from values ``q`` [S, 2, 2].
+
+    Returns ``(breaks, tables)``: ``tables[k]`` is greedy on (breaks[k−1], breaks[k]) (breaks[−1]
+    = 0), consecutive tables differ in exactly one state, ``len(tables) = len(breaks) + 1``.
+    Ties go to comm, as in ``irdrc.agents.offpolicy.greedy_table``.
+    """
+    dj = q[:, 0, 0] - q[:, 0, 1]  # objective gain of comm over radar
+    dc = q[:, 1, 0] - q[:, 1, 1]  # cost of comm over radar
+    table = (dj < 0).long()  # μ = 0: greedy on Q_J (1 = radar)
+    # State s switches at μ_s = dj/dc where the sign of dj − μ·dc changes for some μ > 0.
+    switch = torch.where(dc != 0, dj / dc, torch.full_like(dj, math.inf))
+    crosses = (switch > 0) & torch.isfinite(switch)
+    order = sorted(crosses.nonzero().flatten().tolist(), key=lambda s: float(switch[s]))
+    breaks, tables = [], [table.clone()]
+    for s in order:
+        table = table.clone()
+        table[s] = 1 - table[s]
+        breaks.append(float(switch[s]))
+        tables.append(table)
+    return breaks, tables
+
+
+def path_index(breaks: list[float], mu: float) -> int:
+    """The index of the table of ``greedy_path`` that is greedy at multiplier ``mu``."""
+    return bisect.bisect_right(breaks, mu)
+
+
+def prune_order(by_state: dict[str, torch.Tensor], table: torch.Tensor, key: str) -> list[int]:
+    """The states where ``table`` (1 = radar) communicates, in the order the prune gives them to
+    radar: ascending measured objective per missed event in their comm steps, Σ``key`` / (Σmissed
+    + 1) over ``by_state`` (``long_run(..., by_state=True)``). The + 1 keeps states seen too
+    seldom to have missed an event from looking best: they go early, which costs little data."""
+    comm = (table == 0).nonzero().flatten().tolist()
+    score = by_state[key].double() / (by_state["missed"].double() + 1.0)
+    return sorted(comm, key=lambda s: (float(score[s]), s))
+
+
+Pair = tuple[torch.Tensor | None, torch.Tensor]
+"""Neighbouring tables (radar probabilities [S]): the one above the target (or None when the
+other is the best found) and the one at or below it."""
+
+
+class FinalPolicySearch:
+    """The search of the final policy for one run (see the module docstring).
+
+    Args:
+        q: the learned heads' values [S, 2, 2] (objective, cost) × (comm, radar).
+        params: the scenario (measurements run on its simulator).
+        mu: the trained multiplier (where the search starts on the path).
+        target: the miss-detection target m*.
+        signal: the objective's per-step signal (``sent``, ``reward``, ``capacity``).
+        cfg: how to search.
+        seed: the measurements' random numbers (the confirmation's are offset).
+    """
+
+    def __init__(
+        self,
+        q: torch.Tensor,
+        params: Params,
+        mu: float,
+        target: float,
+        signal: str,
+        cfg: SearchConfig,
+        seed: int,
+    ) -> None:
+        self.breaks, self.tables = greedy_path(q)
+        self.params, self.mu, self.target, self.cfg, self.seed = params, mu, target, cfg, seed
+        self.signal, self.metric = signal, METRIC_OF_SIGNAL[signal]
+        self.prune = cfg.prune and signal != "reward"  # radar earns reward too: no per-step trade
+        self.steps = 0
+        self.seen: dict[tuple[bool, bytes], tuple[float, float]] = {}
+        self.per_state: dict[tuple[bool, bytes], dict[str, torch.Tensor]] = {}
+
+    @property
+    def last(self) -> int:
+        """The index of the path's safest table."""
+        return len(self.tables) - 1
+
+    def table(self, k: int) -> torch.Tensor:
+        """The path's table ``k`` as radar probabilities."""
+        return self.tables[k].double()
+
+    # -- measurements ------------------------------------------------------------------------------
+
+    def rates(self, p_radar: torch.Tensor, fresh: bool = False) -> tuple[float, float]:
+        """Measured (miss detection, objective) of a policy: each policy measured once per stream
+        (the search's, or with ``fresh`` the confirmation's)."""
+        key = (fresh, p_radar.double().numpy().tobytes())
+        if key not in self.seen:
+            cfg = self.cfg
+            ev = long_run(
+                self.params,
+                p_radar.double(),
+                envs=cfg.measure_envs,
+                steps=cfg.measure_steps,
+                burn_in=cfg.measure_burn_in,
+                max_blocks=cfg.measure_max_blocks,
+                seed=self.seed + 7919 + (CONFIRM_SEED_OFFSET if fresh else 0),
+                by_state=self.prune,  # the per-state sums the prune orders by
+            )
+            self.steps += ev.steps
+            m = ev.metrics
+            self.seen[key] = (float(m.miss_detection), float(getattr(m, self.metric)))
+            self.per_state[key] = ev.by_state
+        return self.seen[key]
+
+    def miss(self, p_radar: torch.Tensor, fresh: bool = False) -> float:
+        """Measured miss detection of a policy."""
+        return self.rates(p_radar, fresh)[0]
+
+    def bracket(
+        self, lo: int, hi: int, fresh: bool, miss_of: Callable[[int, bool], float] | None = None
+    ) -> tuple[int, int]:
+        """Bisection to neighbours: miss(lo) > target ≥ miss(hi) on entry and on return."""
+        miss_of = miss_of or (lambda k, f: self.miss(self.table(k), f))
+        while hi - lo > 1:
+            mid = (lo + hi) // 2
+            if miss_of(mid, fresh) > self.target:
+                lo = mid
+            else:
+                hi = mid
+        return lo, hi
+
+    # -- the search ------------------------------------------------------------------------------
+
+    def path_search(self) -> tuple[torch.Tensor | None, torch.Tensor, bool, float | None]:
+        """The path's neighbours (above the target or None, at or below it — or the safest end of
+        the path when no table meets the target), the stream that decides, and the multiplier of
+        the switch.
+
+        From the table greedy at μ: if it meets the target, down the path (μ ÷ ``search_span`` at
+        a time) while tables meet it and their measured objective grows; if not, up to
+        μ·``search_span`` and then the safest end. A bisection finds the neighbours; with
+        ``confirm`` the one kept is measured again on fresh numbers, and while that is above the
+        target the search climbs the path (doubling its steps, then bisecting) on them."""
+        cfg, target, mu = self.cfg, self.target, self.mu
+        k0 = path_index(self.breaks, mu)
+        lo: int | None
+        if self.miss(self.table(k0)) <= target:
+            lo, hi, m = None, k0, mu
+            while hi > 0 and m > mu * SEARCH_FLOOR:
+                m /= cfg.search_span
+                k = path_index(self.breaks, m)
+                if k == hi:
+                    continue
+                if self.miss(self.table(k)) > target:
+                    lo = k
+                    break
+                if self.rates(self.table(k))[1] <= self.rates(self.table(hi))[1]:
+                    break  # no more data lower down: the heads' differences there are noise
+                hi = k
+        else:
+            lo, hi = k0, path_index(self.breaks, mu * cfg.search_span)
+            if self.miss(self.table(hi)) > target:
+                hi = self.last  # beyond the range: the safest tables of the path
+                if hi == lo or self.miss(self.table(hi)) > target:
+                    return None, self.table(hi), cfg.confirm, None
+        if lo is not None:
+            lo, hi = self.bracket(lo, hi, fresh=False)
+        fresh = cfg.confirm
+        if fresh and self.miss(self.table(hi), fresh) > target:
+            # Kept because its measurement fell at or below the target, which noise alone can
+            # do: climb the path on fresh numbers until a table meets it.
+            step, lo = 1, hi
+            while True:
+                k = min(hi + step, self.last)
+                if self.miss(self.table(k), fresh) <= target:
+                    lo, hi = self.bracket(lo, k, fresh)
+                    break
+                if k == self.last:
+                    return None, self.table(self.last), True, None
+                lo, step = k, 2 * step
+        if lo is None:
+            return None, self.table(hi), fresh, None
+        return self.table(lo), self.table(hi), fresh, self.breaks[lo]
+
+    def promise(self, pair: Pair, fresh: bool) -> float:
+        """The objective a mixture of the pair promises at the target, from their measured rates
+        by linear interpolation in miss detection (−∞ when the safer table does not meet it)."""
+        t_lo, t_hi = pair
+        m_hi, j_hi = self.rates(t_hi, fresh)
+        if t_lo is None:
+            return j_hi if m_hi <= self.target else -math.inf
+        m_lo, j_lo = self.rates(t_lo, fresh)
+        if m_hi > self.target:
+            return -math.inf
+        if m_lo <= self.target:
+            return max(j_lo, j_hi)
+        w = (m_lo - self.target) / (m_lo - m_hi)  # the weight of t_hi that lands on the target
+        return (1 - w) * j_lo + w * j_hi
+
+    def prune_search(self, top: torch.Tensor, fresh: bool) -> tuple[Pair, int, int]:
+        """Neighbours on either side of the target among ``top`` with its first k comm states
+        (``prune_order``) given to radar; also k (of the upper neighbour) and how many there are."""
+        self.rates(top, fresh)
+        order = prune_order(self.per_state[(fresh, top.numpy().tobytes())], top, self.signal)
+
+        def pruned(k: int) -> torch.Tensor:
+            t = top.clone()
+            t[order[:k]] = 1.0
+            return t
+
+        n = len(order)
+        if self.miss(top, fresh) <= self.target:
+            return (None, top), 0, n
+        if self.miss(pruned(n), fresh) > self.target:
+            return (None, pruned(n)), n, n
+        lo, hi = self.bracket(0, n, fresh, miss_of=lambda k, f: self.miss(pruned(k), f))
+        return (pruned(lo), pruned(hi)), hi, n
+
+    def mix(self, pair: Pair, fresh: bool) -> tuple[torch.Tensor, int | None, bool]:
+        """The final radar probabilities: the safer table, randomised in the one state where the
+        pair differs with the weight found by bisection (on its log-odds) on measured miss
+        detection; returns (probabilities, that state, whether it was mixed at all)."""
+        t_lo, t_hi = pair
+        if t_lo is None:
+            return t_hi, None, False
+        s = int((t_lo != t_hi).nonzero().flatten()[0])
+        a_lo, a_hi = float(t_lo[s]), float(t_hi[s])
+
+        def mixed(z: float) -> torch.Tensor:
+            w = 1.0 / (1.0 + math.exp(-z))  # weight of t_hi's action in s
+            p = t_hi.clone()
+            p[s] = w * a_hi + (1 - w) * a_lo
+            return p
+
+        span = math.log(max(2.0, self.cfg.measure_steps / MIXING_STEPS_PER_BLOCK))
+        z_lo, z_hi = -span, span
+        if self.miss(mixed(z_hi), fresh) > self.target:
+            return t_hi, s, False
+        if self.miss(mixed(z_lo), fresh) <= self.target:
+            z_hi = z_lo
+        else:
+            for _ in range(self.cfg.mix_steps):
+                z = 0.5 * (z_lo + z_hi)
+                if self.miss(mixed(z), fresh) > self.target:
+                    z_lo = z
+                else:
+                    z_hi = z
+        return mixed(z_hi), s, True
+
+    def run(self) -> tuple[torch.Tensor, dict[str, Any]]:
+        """The final [S, 2] policy (comm, radar probabilities) and facts about the search:
+        ``path_tables``, ``measured_final_miss``, ``measurements``, ``measure_env_steps``,
+        ``confirmed``, ``switch_state``, ``p_switch``, ``mu_switch``, and the prune's
+        (``pruned``, ``prune_states``, ``prune_candidates``, ``path_promise``, ``prune_promise``)."""
+        t_lo, t_hi, fresh, mu_switch = self.path_search()
+        extra: dict[str, Any] = {"pruned": None}
+        if self.prune and (t_lo is not None or self.miss(t_hi, fresh) > self.target):
+            top = t_lo if t_lo is not None else t_hi
+            pruned, k, n = self.prune_search(top, fresh)
+            path_promise, prune_promise = (
+                self.promise((t_lo, t_hi), fresh),
+                self.promise(pruned, fresh),
+            )
+            won = prune_promise > path_promise
+            extra = {
+                "pruned": won,
+                "prune_states": k,
+                "prune_candidates": n,
+                # −∞ (neither table of the pair meets the target) is written as None
+                "path_promise": path_promise if math.isfinite(path_promise) else None,
+                "prune_promise": prune_promise if math.isfinite(prune_promise) else None,
+            }
+            if won:
+                (t_lo, t_hi), mu_switch = pruned, None
+        p, state, mixed = self.mix((t_lo, t_hi), fresh)
+        facts = {
+            "path_tables": len(self.tables),
+            "measured_final_miss": self.miss(p, fresh),
+            "measurements": len(self.seen),
+            "measure_env_steps": self.steps,
+            "confirmed": fresh,
+            "switch_state": state,
+            "p_switch": None if state is None else float(p[state]),
+            **({"mu_switch": mu_switch} if mixed else {}),
+            **extra,
+        }
+        return torch.stack([1 - p.double(), p.double()], -1), facts

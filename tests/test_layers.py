@@ -105,12 +105,12 @@ def test_every_layer_says_what_it_holds_and_may_import(package):
 
 
 def test_every_learner_is_registered_with_one_train_signature():
-    """DQN, PQN, Q-learning and the Lagrangian DQN: one interface (``irdrc.agents.base``)."""
+    """DQN, Q-learning and the Lagrangian DQN: one interface (``irdrc.agents.base``)."""
     import inspect
 
     from irdrc.agents.registry import LEARNERS
 
-    assert set(LEARNERS) == {"dqn", "pqn", "qlearning", "dqn_lagrangian"}
+    assert set(LEARNERS) == {"dqn", "qlearning", "dqn_lagrangian"}
     signatures = {name: inspect.signature(m.train) for name, m in LEARNERS.items()}
     params = {name: list(s.parameters) for name, s in signatures.items()}
     assert len({tuple(p) for p in params.values()}) == 1, params

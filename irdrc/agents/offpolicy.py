@@ -1,5 +1,5 @@
 """Off-policy value learning on the batched simulator: the parts every value-based learner composes
-(DQN, the Lagrangian DQN, the multi-agent learners), built in a fixed order.
+(DQN and the Lagrangian DQN), built in a fixed order.
 
 model (``make_qnet``) → exploration (``LadderExploration``) → buffer (``make_buffer``) → loss
 (``make_dqn_loss``) → target updater (``make_target_updater``) → optimiser (``make_optimizer``) →

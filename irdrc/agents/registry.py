@@ -6,7 +6,7 @@ from __future__ import annotations
 
 from types import ModuleType
 
-from irdrc.agents import dqn, lagrangian, pqn, qlearning
+from irdrc.agents import dqn, lagrangian, qlearning
 
-LEARNERS: dict[str, ModuleType] = {m.NAME: m for m in (dqn, pqn, qlearning, lagrangian)}
-"""Learner modules by name: ``dqn``, ``pqn``, ``qlearning``, ``dqn_lagrangian``."""
+LEARNERS: dict[str, ModuleType] = {m.NAME: m for m in (dqn, qlearning, lagrangian)}
+"""Learner modules by name: ``dqn``, ``qlearning``, ``dqn_lagrangian``."""

@@ -22,7 +22,7 @@ from typing import Any
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from irdrc.agents import dqn, pqn, qlearning
+from irdrc.agents import dqn, qlearning
 from irdrc.agents.base import Hooks
 from irdrc.agents.registry import LEARNERS
 from irdrc.core.env import DFRCEnv
@@ -172,8 +172,7 @@ def run_qlearning(cfg: DictConfig, out: Path, scenario: str | None = None) -> di
 
 def run_dqn(cfg: DictConfig, out: Path, scenario: str | None = None) -> dict[str, Any]:
     """DQN from TorchRL parts (checkpoints; ``resume`` continues one)."""
-    method = pqn.NAME if cfg.algo.get("name") == pqn.NAME else dqn.NAME  # algo=pqn: its learner
-    return run_learner(method, cfg, out, scenario)
+    return run_learner(dqn.NAME, cfg, out, scenario)
 
 
 def _check_eval(cfg: DictConfig) -> None:

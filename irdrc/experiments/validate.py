@@ -20,7 +20,7 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
-from irdrc.agents import dqn, pqn, qlearning
+from irdrc.agents import dqn, qlearning
 from irdrc.core.model import DENSE_MODEL_LIMIT_BYTES
 from irdrc.core.params import Params, check_bool, check_choice, check_number, to_plain
 from irdrc.experiments.config import CONF_DIR, compose, list_scenarios
@@ -239,8 +239,7 @@ def _solve(cfg: DictConfig) -> None:
 
 def _dqn(cfg: DictConfig, explicit: frozenset[str] = frozenset()) -> None:
     params = check_common(cfg)
-    learner = pqn.PQNConfig if cfg.algo.get("name") == pqn.NAME else dqn.DQNConfig
-    config = learner.from_node(cfg)
+    config = dqn.DQNConfig.from_node(cfg)
     _check_eval_period(cfg, config.total_frames, explicit)
     if _opt(cfg, "checkpoint.every_frames") is not None:
         check_number(

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import re
 import shlex
+import subprocess
 from pathlib import Path
 
 import pytest
@@ -14,6 +15,7 @@ from omegaconf import OmegaConf
 from irdrc.experiments.config import compose, rename_overrides
 from irdrc.experiments.grid import override_key
 from irdrc.experiments.validate import GENERAL_MODEL_KEYS, check_overrides, flat_keys, validate
+from irdrc.paper.docs import shell_quote
 
 ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"
@@ -187,3 +189,14 @@ def test_refresh_refuses_what_it_cannot_do_and_changes_nothing(tmp_path):
     (run / "second.md").write_text("x")
     assert main([str(doc), str(run)]) == 2  # two tables: which one?
     assert doc.read_text() == before
+
+
+@pytest.mark.parametrize(
+    "arg", ["a=b", "candidates={x: ['algo.n_steps=3']}", "p=[0.1]", "odd\"'$x", "it's"]
+)
+def test_shell_quote_round_trips_through_a_shell(arg: str) -> None:
+    """The command shown above a generated table, pasted into a shell, gives back each argument."""
+    out = subprocess.run(
+        ["sh", "-c", f"printf %s {shell_quote(arg)}"], capture_output=True, text=True, check=True
+    )
+    assert out.stdout == arg

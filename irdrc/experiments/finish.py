@@ -263,3 +263,42 @@ def plot_learning_curve(record: RunRecord, path: Path, *, title: str) -> None:
     ax.legend(fontsize=8, loc="lower right")
     fig.tight_layout()
     atomic_savefig(fig, path, dpi=80)
+
+
+END_THRESHOLD = 0.99
+"""A run whose final greedy policy is below this share of the optimum ends with a warning."""
+
+END_SLACK = 0.01
+"""… as does one whose final policy is more than this below its own best evaluation."""
+
+
+def end_warning(history: list[dict[str, Any]]) -> str | None:
+    """One warning line when a learner's final greedy policy is below ``END_THRESHOLD`` of the
+    optimum, or more than ``END_SLACK`` below its own best evaluation, saying where that best
+    evaluation was; ``None`` when every learner ends well. The exact model only scores: the
+    warning does not change which network the run returns."""
+    runs: dict[int, list[dict[str, Any]]] = {}
+    for e in history:
+        runs.setdefault(int(e.get("learner", 0)), []).append(e)
+    bad = []
+    for learner, hist in sorted(runs.items()):
+        final = float(hist[-1]["optimality_ratio"])
+        best = max(hist, key=lambda e: float(e["optimality_ratio"]))
+        gap = float(best["optimality_ratio"]) - final
+        if final < END_THRESHOLD or gap > END_SLACK:
+            why = [f"below {END_THRESHOLD}"] if final < END_THRESHOLD else []
+            if gap > END_SLACK:
+                why.append(f"{gap:.4f} below its best")
+            bad.append(
+                (
+                    learner,
+                    f"{final:.4f} of the optimum ({', '.join(why)}); its best evaluation "
+                    f"was {float(best['optimality_ratio']):.4f} at {int(best['env_steps'])} env steps",
+                )
+            )
+    if not bad:
+        return None
+    if len(runs) == 1:
+        return f"warning: the final greedy policy is {bad[0][1]} (metrics.csv)"
+    each = "; ".join(f"learner {i}: {text}" for i, text in bad)
+    return f"warning: {len(bad)} of {len(runs)} learners end badly — {each} (metrics.csv)"

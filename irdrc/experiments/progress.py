@@ -52,6 +52,8 @@ class RunProgress:
         self.min_ratio = math.nan
         self.start = time.perf_counter()
         self.next_line = 0.1
+        self.pending: int | None = None  # env step of a plain line waiting for its evaluation
+        self.ratio_steps: int | None = None  # env step of the latest evaluation
 
     def on_start(self, info: dict[str, Any]) -> None:
         for key, value in info.items():
@@ -59,25 +61,37 @@ class RunProgress:
 
     def on_batch(self, info: dict[str, Any]) -> None:
         steps = info["env_steps"]
+        if self.pending is not None:  # no evaluation came at the pending line's env step
+            self._line(self.pending)
         if self.enabled and self.tty:
             if self.bar is None:
                 self.bar = tqdm(total=self.total, unit="step", dynamic_ncols=True)
             self.bar.update(steps - self.bar.n)
-            post = {"opt": f"{self.ratio:.4f}"}
-            if not math.isnan(self.min_ratio):
-                post["min"] = f"{self.min_ratio:.4f}"
-            self.bar.set_postfix(post, refresh=False)
+            self._postfix()
         elif self.enabled and steps >= self.next_line * self.total:
-            elapsed = time.perf_counter() - self.start
-            eta = elapsed / steps * (self.total - steps) if steps else math.nan
-            print(
-                f"[{self.label}] {steps}/{self.total} env steps ({steps / self.total:.0%}), "
-                f"ratio {self.ratio:.4f}, {elapsed:.0f} s, ETA {eta:.0f} s",
-                flush=True,
-            )
+            # printed after this step's evaluation, if one comes, so the ratio is this step's
+            self.pending = steps
             self.next_line = math.floor(steps / self.total * 10 + 1) / 10
         scalars = {f"train/{k}": v for k, v in info.items() if k != "env_steps"}
         log_scalars(self.logger, scalars, steps)
+
+    def _line(self, steps: int) -> None:
+        """One plain progress line: the env steps, the latest evaluation's ratio and where it was."""
+        self.pending = None
+        elapsed = time.perf_counter() - self.start
+        eta = max(0.0, elapsed / steps * (self.total - steps)) if steps else math.nan
+        at = f" at {self.ratio_steps}" if self.ratio_steps not in (None, steps) else ""
+        print(
+            f"[{self.label}] {steps}/{self.total} env steps ({steps / self.total:.0%}), "
+            f"ratio {self.ratio:.4f}{at}, {elapsed:.0f} s, ETA {eta:.0f} s",
+            flush=True,
+        )
+
+    def _postfix(self) -> None:
+        post = {"opt": f"{self.ratio:.4f}"}
+        if not math.isnan(self.min_ratio):
+            post["min"] = f"{self.min_ratio:.4f}"
+        self.bar.set_postfix(post, refresh=False)
 
     def on_eval(self, records: list[dict[str, Any]]) -> None:
         first = records[0]
@@ -85,6 +99,11 @@ class RunProgress:
         if len(records) > 1:
             self.min_ratio = min(r["optimality_ratio"] for r in records)
         step = first["env_steps"]
+        self.ratio_steps = step
+        if self.pending is not None and step >= self.pending:
+            self._line(self.pending)
+        if self.bar is not None:
+            self._postfix()
         skip = ("learner", "env_steps", "episodes", "wall_seconds", "updates")
         log_scalars(self.logger, {f"eval/{k}": v for k, v in first.items() if k not in skip}, step)
         log_scalars(
@@ -94,5 +113,7 @@ class RunProgress:
         )
 
     def close(self) -> None:
+        if self.pending is not None:
+            self._line(self.pending)
         if self.bar is not None:
             self.bar.close()

@@ -34,7 +34,7 @@ from irdrc.core.policies import table_policy
 from irdrc.core.solve import ExactScorer, episodic_metrics, stationary_metrics, value_iteration
 from irdrc.experiments.config import compose, scenario_name
 from irdrc.experiments.constrained import run_constrained
-from irdrc.experiments.finish import finish_run, table_dict
+from irdrc.experiments.finish import end_warning, finish_run, table_dict
 from irdrc.experiments.grid import is_scenario_key, parse_grid
 from irdrc.experiments.guard import (
     RunInterrupted,
@@ -278,6 +278,8 @@ def run_learner(
         summary = finish_run(
             name, cfg, out, scenario, record, scenarios, scorers, points, num_learners, comparisons
         )
+    if not record.interrupted and (warning := end_warning(record.history)):
+        print(warning, flush=True)
     log_scalars(logger, {"final/optimality_ratio": summary["optimality_ratio"]}, record.env_steps)
     if logger is not None and cfg.logger.backend == "wandb":
         sync_dir = Path(logger.experiment.dir).parent

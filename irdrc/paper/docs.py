@@ -67,7 +67,16 @@ def run_command(run_dir: Path) -> str:
         raise ValueError(f"{run_dir} is not a recipe's run directory (no .hydra/hydra.yaml)")
     hydra = OmegaConf.load(record).hydra
     overrides = [o for o in hydra.overrides.task if not o.startswith("hydra.")]
-    return " ".join(["python", f"recipes/{hydra.job.name}.py", *map(shlex.quote, overrides)])
+    return " ".join(["python", f"recipes/{hydra.job.name}.py", *map(shell_quote, overrides)])
+
+
+def shell_quote(arg: str) -> str:
+    """``arg`` quoted for a POSIX shell, readably: single quotes as ``shlex.quote`` gives, or double
+    quotes when the argument holds single quotes and nothing a shell expands inside double quotes."""
+    quoted = shlex.quote(arg)
+    if "'" in arg and not any(c in arg for c in '"$`\\!'):
+        return f'"{arg}"'
+    return quoted
 
 
 def table_file(run_dir: Path) -> Path:

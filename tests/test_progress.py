@@ -1,0 +1,61 @@
+"""The run's progress lines: each shows the evaluation of its own env step, when there is one."""
+
+from __future__ import annotations
+
+from irdrc.experiments.finish import end_warning
+from irdrc.experiments.progress import RunProgress
+
+
+def _eval(steps: int, ratio: float) -> list[dict]:
+    return [
+        {
+            "learner": 0,
+            "env_steps": steps,
+            "episodes": 0,
+            "wall_seconds": 0.0,
+            "updates": 0,
+            "optimality_ratio": ratio,
+        }
+    ]
+
+
+def test_line_shows_the_evaluation_made_at_its_own_step(capsys):
+    """The loop reports a batch, then evaluates at the same env step: the line waits for it (it
+    printed the previous evaluation's ratio before)."""
+    p = RunProgress(1000, True, None, "dqn")
+    p.on_eval(_eval(0, 0.4228))
+    p.on_batch({"env_steps": 100})
+    p.on_eval(_eval(100, 1.0))
+    p.close()
+    lines = capsys.readouterr().out.splitlines()
+    assert lines == [lines[0]] and "100/1000 env steps (10%), ratio 1.0000," in lines[0], lines
+    assert "ETA" in lines[0] and "ETA -" not in lines[0]
+
+
+def test_line_without_an_evaluation_names_where_its_ratio_comes_from(capsys):
+    p = RunProgress(1000, True, None, "dqn")
+    p.on_eval(_eval(0, 0.4228))
+    p.on_batch({"env_steps": 100})
+    p.on_batch({"env_steps": 200})  # no evaluation at 100: the line comes now, naming step 0
+    p.on_batch({"env_steps": 1000})
+    p.close()  # the last line (no evaluation after it) is printed at the end, ETA 0
+    lines = capsys.readouterr().out.splitlines()
+    assert "100/1000 env steps (10%), ratio 0.4228 at 0," in lines[0], lines
+    assert lines[-1].startswith("[dqn] 1000/1000") and lines[-1].endswith("ETA 0 s"), lines
+
+
+def _hist(*pairs: tuple[int, float], learner: int = 0) -> list[dict]:
+    return [{"learner": learner, "env_steps": s, "optimality_ratio": r} for s, r in pairs]
+
+
+def test_a_run_that_ends_badly_says_so_and_where_its_best_was():
+    assert end_warning(_hist((0, 0.42), (1000, 0.995), (2000, 0.999))) is None
+    low = end_warning(_hist((0, 0.42), (2016, 1.0), (4000, 0.4228)))
+    assert low.startswith("warning: the final greedy policy is 0.4228 of the optimum (below 0.99")
+    assert "best evaluation was 1.0000 at 2016 env steps" in low
+    fell = end_warning(_hist((0, 0.3), (50_000, 1.0), (200_000, 0.9850)))  # low and fell
+    assert "0.0150 below its best" in fell and "at 50000 env steps" in fell
+    drift = end_warning(_hist((0, 0.3), (50_000, 1.0), (200_000, 0.9950)))  # within the slack
+    assert drift is None
+    many = end_warning(_hist((0, 0.5), (10, 1.0)) + _hist((0, 0.5), (10, 0.5), learner=1))
+    assert many.startswith("warning: 1 of 2 learners end badly") and "learner 1:" in many

@@ -67,16 +67,43 @@ def flat_keys(node: Any, prefix: str = "") -> set[str]:
     return out
 
 
+OTHER_RECIPE = {
+    "dqn": {
+        "algo=qlearning": "python recipes/qlearning.py",
+        "algo=qlearning_paper": "python recipes/qlearning.py algo=qlearning_paper",
+        "algo=dqn_lagrangian": "python recipes/constrained.py learner=dqn_lagrangian",
+    },
+}
+"""Per recipe: group choices that belong to another recipe, and the command to use instead."""
+
+GROUP_USERS = {
+    "executor": "python recipes/sweep.py (or a benchmark: bench_robust, bench_constrained)"
+}
+"""Config groups that only some recipes have, and which ones."""
+
+
 def check_overrides(config_name: str, overrides: list[str]) -> None:
     """Fail on a key ``recipes/conf/<config_name>.yaml`` does not have (``+key`` included), naming
-    the closest valid key, and on an unknown scenario or group option.
+    the closest valid key, on an unknown scenario or group option, and on a group choice that
+    belongs to another recipe (naming it).
 
     Raises:
         ValueError: the first bad override.
     """
+    for o in overrides:
+        if o in OTHER_RECIPE.get(config_name, {}):
+            raise ValueError(
+                f"{o} is not a {config_name} profile: use {OTHER_RECIPE[config_name][o]}"
+            )
     groups = config_groups()
     choices = [o for o in overrides if "=" in o and override_key(o) in groups and o[0] not in "+~"]
     rest = [o for o in overrides if o not in choices]
+    if any(override_key(o) in GROUP_USERS for o in choices):
+        plain = compose(config_name, [])
+        for o in choices:
+            key = override_key(o)
+            if key in GROUP_USERS and key not in plain:
+                raise ValueError(f"{config_name} has no {key}: {key}= is for {GROUP_USERS[key]}")
     for o in choices:
         key, value = o.split("=", 1)
         options = (

@@ -134,7 +134,8 @@ def test_benchmark_table_from_local_runs(tmp_path):
             "p1_speed=[1.0]",
             "targets=[0.15]",
             "executor=local",
-            "overrides=['algo.total_frames=512','algo.init_random_frames=256',"
+            "overrides=['algo.num_envs=8','algo.frames_per_batch=32','algo.batch_size=64',"
+            "'algo.total_frames=512','algo.init_random_frames=256',"
             "'algo.measure_envs=4','algo.measure_steps=20','algo.measure_burn_in=5',"
             "'algo.mix_steps=1']",
             f"hydra.run.dir={tmp_path}",

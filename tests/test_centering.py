@@ -25,14 +25,14 @@ def _sample(rewards: list[float]) -> TensorDict:
 
 
 def test_default_profile_centres_the_lagrangian_and_paper_profiles_do_not():
-    """``algo=dqn`` and the Lagrangian learner (yaml and dataclass) centre at 1e-5 per env step;
-    the paper profile keeps rewards as they are."""
+    """``algo=dqn`` (yaml and dataclass) centres at 1e-5 per env step; the paper profile and the
+    Lagrangian learner keep rewards as they are."""
     conf = ROOT / "recipes" / "conf" / "algo"
     assert DQNConfig().reward_centering == 1e-5
     assert DQNConfig.from_dict(OmegaConf.load(conf / "dqn.yaml")) == DQNConfig()
     assert OmegaConf.load(conf / "dqn_paper.yaml").algo.reward_centering == 0.0
-    assert LagrangianConfig().dqn.reward_centering == 1e-5
-    assert LagrangianConfig.from_dict({}).dqn.reward_centering == 1e-5
+    assert LagrangianConfig().dqn.reward_centering == 0.0
+    assert LagrangianConfig.from_dict({}).dqn.reward_centering == 0.0
     assert LagrangianConfig.from_dict({"reward_centering": 0.01}).dqn.reward_centering == 0.01
 
 

@@ -34,7 +34,7 @@ def paper():
 def test_yaml_profile_equals_the_dataclass_defaults():
     node = OmegaConf.load(ROOT / "recipes" / "conf" / "algo" / "dqn_lagrangian.yaml")
     assert L.LagrangianConfig.from_dict(node) == L.LagrangianConfig()
-    assert L.LagrangianConfig().dqn.total_frames == 500_000
+    assert L.LagrangianConfig().dqn.total_frames == 80_000
 
 
 @pytest.mark.parametrize(

@@ -57,9 +57,9 @@ class SearchConfig:
     """
 
     search_span: float = 4.0
-    measure_envs: int = 128
+    measure_envs: int = 2048
     measure_steps: int = 2_000
-    measure_burn_in: int = 1_000
+    measure_burn_in: int = 2_000
     measure_max_blocks: int = 8
     mix_steps: int = 10
     confirm: bool = True

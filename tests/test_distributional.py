@@ -34,7 +34,7 @@ def test_support_spans_the_reward_table_and_values_are_its_means():
     qnet = make_distributional_qnet(env, NetworkConfig(hidden=(16,)), 11, 2.0)
     # the paper's largest |reward| is the missed-event penalty r3 = 50
     torch.testing.assert_close(qnet.support, torch.linspace(-100.0, 100.0, 11))
-    big = DFRCEnv(Params.from_overrides({"r4": 50, "p1.speed": 1.0}), batch_size=[4])
+    big = DFRCEnv(Params.from_overrides({"reward.r4": 50, "env.p1.speed": 1.0}), batch_size=[4])
     assert make_distributional_qnet(big, NetworkConfig(), 5, 1.0).support.max() == 250.0
     logp = qnet(env.reset().clone())["action_value"]
     assert logp.shape == (4, 11, 2)

@@ -81,7 +81,7 @@ def test_unknown_keys_and_network():
 
 
 def test_qnet_sized_from_specs_and_greedy_table():
-    env = DFRCEnv(Params.from_overrides(queue_capacity=5), batch_size=[4])
+    env = DFRCEnv(Params.from_overrides({"env.queue_capacity": 5}), batch_size=[4])
     qnet = make_qnet(env, NetworkConfig(hidden=(16,)))
     td = qnet(env.reset())
     assert td["action_value"].shape == (4, 2)
@@ -156,14 +156,19 @@ def test_recipe_end_to_end_and_resume(tmp_path):
         assert (out / name).is_file(), name
     s = json.loads((out / "summary.json").read_text())
     assert s["method"] == "dqn" and s["env_steps"] == 640 and s["scenario"] == "paper[reward.r4=50]"
-    assert "optimal (exact)" in first.stdout and "round_robin (exact)" in first.stdout
+    assert "optimal (exact, long run)" in first.stdout
+    assert (
+        "round_robin (exact, long run)" in first.stdout and "long run: the policy's" in first.stdout
+    )
     assert "final greedy policy:" in first.stdout and "the optimum" in first.stdout
     assert (out / "learning_curve.png").stat().st_size > 0
     assert set(s["table"]) == {
-        "dqn (exact)",
+        "dqn (exact, long run)",
+        "dqn (exact, episodic)",
         "dqn (Monte-Carlo, episodic)",
-        "optimal (exact)",
-        "round_robin (exact)",
+        "optimal (exact, long run)",
+        "optimal (exact, episodic)",
+        "round_robin (exact, long run)",
     }
     ckpt = torch.load(out / "checkpoint.pt", weights_only=True)
     assert ckpt["frames"] == 640 and ckpt["config"]["network"]["hidden"] == [32, 32]
@@ -198,6 +203,37 @@ def test_wandb_offline_without_network_or_key(tmp_path):
     runs = list((tmp_path / "run" / "logs" / "wandb").glob("offline-run-*"))
     assert runs, list((tmp_path / "run").rglob("*"))[:20]
     assert f"wandb sync {runs[0]}" in r.stdout
+
+
+def test_tensorboard_logger_writes_the_evaluations(tmp_path):
+    """``logger=tensorboard``: TorchRL's TensorboardLogger writes an event file whose scalars
+    hold the run's exact evaluations (read back with TensorBoard's own reader)."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    r = run_dqn(tmp_path / "run", "logger=tensorboard")
+    assert r.returncode == 0, r.stderr
+    events = list((tmp_path / "run" / "logs").rglob("events.out.tfevents.*"))
+    assert len(events) == 1, list((tmp_path / "run").rglob("*"))[:20]
+    acc = EventAccumulator(str(events[0].parent))
+    acc.Reload()
+    tags = acc.Tags()["scalars"]
+    assert "final/optimality_ratio" in tags and any(t.startswith("eval/") for t in tags), tags
+    final = acc.Scalars("final/optimality_ratio")[-1].value
+    summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert final == pytest.approx(summary["optimality_ratio"], rel=1e-6)
+
+
+def test_plot_format_and_bands(tmp_path):
+    """``plot.format=pdf`` writes ``learning_curve.pdf`` (a PDF); an unknown format is refused
+    before any work, naming the choices."""
+    r = run_dqn(tmp_path / "run", "plot.format=pdf", "eval.mc_episodes=0")
+    assert r.returncode == 0, r.stderr
+    assert (tmp_path / "run" / "learning_curve.pdf").read_bytes()[:5] == b"%PDF-"
+    assert not (tmp_path / "run" / "learning_curve.png").exists()
+    assert "learning_curve.pdf" in r.stdout
+    bad = run_dqn(tmp_path / "bad", "plot.format=jpg")
+    assert bad.returncode == 2 and "plot.format" in bad.stderr and "svg" in bad.stderr
+    assert not (tmp_path / "bad").exists()
 
 
 def test_wandb_mode_resolution(monkeypatch, tmp_path):

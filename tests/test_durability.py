@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import json
+import shlex
 import signal
 import subprocess
 import sys
@@ -13,6 +14,7 @@ from pathlib import Path
 import pytest
 import torch
 
+from irdrc.experiments.guard import resumed_config
 from irdrc.experiments.results import FILE_MODE, atomic_write, atomic_write_text
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -75,13 +77,24 @@ def test_sigterm_saves_and_resume_continues_without_lost_or_duplicated_rows(tmp_
     before = steps_of(out / "metrics.csv")
     assert before[-1] == stopped_at
 
-    r = dqn(tmp_path / "resumed", f"resume={out / 'checkpoint.pt'}")
+    # the printed command, run as printed (no overrides: the checkpoint keeps the configuration),
+    # goes on in the same directory
+    printed = stderr.split("go on with: ", 1)[1].split(" (", 1)[0]
+    args = shlex.split(printed)
+    assert args[:2] == ["python", "recipes/dqn.py"]
+    r = subprocess.run(
+        [sys.executable, *args[1:]], capture_output=True, text=True, timeout=300, cwd=ROOT
+    )
     assert r.returncode == 0, r.stderr[-2000:]
     assert f"resumed from {out / 'checkpoint.pt'} at {stopped_at} env steps" in r.stdout
-    after = steps_of(tmp_path / "resumed" / "metrics.csv")
+    assert f"training to 4000, files in {out}" in r.stdout
+    after = steps_of(out / "metrics.csv")
     assert after[: len(before)] == before  # nothing lost
     assert len(after) == len(set(after)) and after == sorted(after)  # nothing twice
     assert after[-1] == 4000 and all(s % 320 == 0 or s == 4000 for s in after[len(before) :])
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["interrupted"] is False and summary["env_steps"] == 4000
+    assert "resumed from" in (out / "dqn.log").read_text()  # the log holds both parts
 
 
 @pytest.mark.e2e
@@ -163,6 +176,33 @@ def test_resume_refuses_another_configuration_and_changes_nothing(finished_run, 
         assert key in r.stderr, r.stderr
     after = {p.name: p.read_bytes() for p in (tmp_path / "a").iterdir() if p.is_file()}
     assert after == before  # config.yaml and the rest untouched
+
+
+def test_resume_of_a_finished_run_says_how_to_train_longer(finished_run, tmp_path):
+    """Resuming a finished run with nothing left to train is refused before Hydra makes a run
+    directory, and the message names the key that trains it longer."""
+    ckpt = _copy(finished_run, tmp_path) / "checkpoint.pt"
+    r = dqn(tmp_path / "b", f"resume={ckpt}", "algo.total_frames=640")
+    assert r.returncode == 2 and "nothing left to train" in r.stderr
+    assert "algo.total_frames" in r.stderr and not (tmp_path / "b").exists()
+
+
+def test_resumed_config_is_the_checkpoints_but_for_what_the_command_line_sets():
+    """``resumed_config``: keys left off the command line come from the checkpoint (its scenario,
+    its run length), keys set on purpose that may change (run length, evaluation) are taken, and a
+    group chosen to something else (``env=…``) is refused, naming its keys."""
+    saved = {"env": {"p1": {"speed": 0.5}, "n": 3}, "algo": {"total_frames": 200}, "eval": {"k": 1}}
+    current = {
+        "env": {"p1": {"speed": 0.1}, "n": 3},
+        "algo": {"total_frames": 500},
+        "eval": {"k": 2},
+    }
+    path = Path("c.pt")
+    assert resumed_config(path, saved, current, frozenset()) == saved
+    out = resumed_config(path, saved, current, frozenset({"algo.total_frames", "eval.k"}))
+    assert out == {**saved, "algo": {"total_frames": 500}, "eval": {"k": 2}}
+    with pytest.raises(ValueError, match=r"env\.p1\.speed: 0\.5 → 0\.1"):
+        resumed_config(path, saved, current, frozenset({"env"}))
 
 
 @pytest.mark.parametrize("damage", ["truncate", "garbage", "empty"])

@@ -73,7 +73,7 @@ def test_partial_reset_keeps_untouched_rows():
 
 
 def test_truncation_not_termination():
-    env = DFRCEnv(Params.from_overrides(horizon=3), batch_size=[5], seed=0)
+    env = DFRCEnv(Params.from_overrides({"env.horizon": 3}), batch_size=[5], seed=0)
     td = env.rollout(3, break_when_any_done=False)
     trunc = td["next", "truncated"].squeeze(-1)
     assert torch.equal(trunc[:, :2], torch.zeros(5, 2, dtype=torch.bool))
@@ -137,7 +137,7 @@ def test_queue_arithmetic_hand_cases():
 
 @pytest.mark.parametrize(("action", "c", "nu"), [(0, 0, 4), (0, 1, 2), (1, 0, 0), (1, 1, 0)])
 def test_queue_in_env_without_arrivals(step_from, action, c, nu):
-    params = Params.from_overrides(arrival_rate=0.0)
+    params = Params.from_overrides({"env.arrival_rate": 0.0})
     d = torch.arange(11)
     nxt = step_from(params, state_index(d, c, 0, 0, 0, 0), action)
     got_d = nxt["observation"][:, 0].long()
@@ -188,8 +188,10 @@ def test_grouped_dynamics_match_each_scenario_row_by_row():
 
     scenarios = [
         Params(),
-        Params.from_overrides({"env.p1.speed": 1.0, "r4": 50, "env.packets_good": 3}),
-        Params.from_overrides({"env.arrival_rate": 3.0, "env.stay_good.channel": 0.5, "r1": 7}),
+        Params.from_overrides({"env.p1.speed": 1.0, "reward.r4": 50, "env.packets_good": 3}),
+        Params.from_overrides(
+            {"env.arrival_rate": 3.0, "env.stay_good.channel": 0.5, "reward.r1": 7}
+        ),
     ]
     n = 3000
     state = torch.randint(0, 352, (n,), generator=torch.Generator().manual_seed(1))

@@ -102,7 +102,7 @@ def poisson_pmf(k: int, lam: float) -> float:
 @pytest.mark.parametrize("lam", [1.0, 3.5])
 def test_arrivals_are_poisson(step_from, lam):
     # radar (ν = 0) from an empty queue that cannot overflow: d′ = A exactly
-    params = Params.from_overrides(arrival_rate=lam, queue_capacity=60)
+    params = Params.from_overrides({"env.arrival_rate": lam, "env.queue_capacity": 60})
     n = 1_000_000
     nxt = step_from(params, torch.full((n,), state_index(0, 0, 0, 0, 0, 0)), 1, seed=3)
     a = nxt["state"] >> 5

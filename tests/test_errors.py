@@ -190,3 +190,37 @@ def test_gym_env_step_before_reset_is_refused():
         DFRCGymEnv().step(0)
     with pytest.raises(gymnasium.error.ResetNeeded):
         gymnasium.make_vec("irdrc/DFRC-v0", num_envs=2).step(np.array([0, 1]))
+
+
+def test_a_run_refused_after_hydra_started_leaves_no_directory_and_logs_what_it_printed(tmp_path):
+    """A recipe whose run refuses (a ``ValueError`` after Hydra made the run directory) removes
+    the directory it made: one line, exit 2, nothing left. A run that works keeps what it printed
+    in ``<recipe>.log``."""
+    script = (
+        "import sys\n"
+        "from irdrc.experiments.app import recipe\n"
+        "def run(cfg, out):\n"
+        "    print('working on it')\n"
+        "    if cfg.seed == 1:\n"
+        "        raise ValueError('refused on purpose')\n"
+        "recipe('solve', run)()\n"
+    )
+    refused, kept = tmp_path / "refused", tmp_path / "kept"
+    r = subprocess.run(
+        [sys.executable, "-c", script, "seed=1", f"hydra.run.dir={refused}"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=ROOT,
+    )
+    assert r.returncode == 2 and r.stderr.strip() == "error: refused on purpose", r.stderr
+    assert not refused.exists()
+    r = subprocess.run(
+        [sys.executable, "-c", script, "seed=0", f"hydra.run.dir={kept}"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=ROOT,
+    )
+    assert r.returncode == 0, r.stderr
+    assert "working on it" in (kept / "solve.log").read_text()

@@ -44,25 +44,25 @@ CHANNEL3 = {
 BURSTY = {"rates": [0.5, 3.0], "transition": [[0.9, 0.1], [0.3, 0.7]]}
 
 FEATURES = {
-    "levels": {"factors": {"speed": SPEED3, "channel": CHANNEL3}},
-    "reaction": {"factors": {"object": OBJECT3, "speed": SPEED3}, "reaction_clear": 0.7},
-    "bursty": {"bursty": BURSTY, "arrival_rate": None},
-    "imperfect_radar": {"detection_prob": 0.8, "false_alarm_prob": 0.1, "r5": 7.0},
+    "levels": {"env.factors": {"speed": SPEED3, "channel": CHANNEL3}},
+    "reaction": {"env.factors": {"object": OBJECT3, "speed": SPEED3}, "env.reaction_clear": 0.7},
+    "bursty": {"env.bursty": BURSTY, "env.arrival_rate": None},
+    "imperfect_radar": {"env.detection_prob": 0.8, "env.false_alarm_prob": 0.1, "reward.r5": 7.0},
     "everything": {
-        "factors": {"speed": SPEED3, "object": OBJECT3, "channel": CHANNEL3},
-        "bursty": BURSTY,
-        "arrival_rate": None,
-        "detection_prob": 0.8,
-        "false_alarm_prob": 0.1,
-        "r5": 7.0,
-        "event_model": "sum",
-        "reaction_clear": 0.6,
+        "env.factors": {"speed": SPEED3, "object": OBJECT3, "channel": CHANNEL3},
+        "env.bursty": BURSTY,
+        "env.arrival_rate": None,
+        "env.detection_prob": 0.8,
+        "env.false_alarm_prob": 0.1,
+        "reward.r5": 7.0,
+        "env.event_model": "sum",
+        "env.reaction_clear": 0.6,
     },
 }
 
 
 def params_of(feature: str, queue: int = 3) -> Params:
-    return Params.from_overrides({**FEATURES[feature], "queue_capacity": queue})
+    return Params.from_overrides({**FEATURES[feature], "env.queue_capacity": queue})
 
 
 def test_v1_spelled_as_factors_is_v1():
@@ -71,7 +71,7 @@ def test_v1_spelled_as_factors_is_v1():
     T = [[0.9, 0.1], [0.9, 0.1]]
     spelled = Params.from_overrides(
         {
-            "factors": {
+            "env.factors": {
                 "channel": {"transition": T, "packets": [4, 2], "comm_reward": [2.0, 1.0]},
                 "road": {"transition": T, "event": [0.005, 0.05]},
                 "weather": {"transition": T, "event": [0.005, 0.046]},
@@ -159,11 +159,11 @@ def test_imperfect_radar_rewards_by_hand():
     """R for radar with P_d = 0.8, P_fa = 0.1, r5 = 7 in one state, computed by hand."""
     p = Params.from_overrides(
         {
-            "detection_prob": 0.8,
-            "false_alarm_prob": 0.1,
-            "r5": 7.0,
-            "queue_capacity": 2,
-            "p1": {"road": 0.2, "weather": 0.3, "speed": 0.4, "object": 0.1},
+            "env.detection_prob": 0.8,
+            "env.false_alarm_prob": 0.1,
+            "reward.r5": 7.0,
+            "env.queue_capacity": 2,
+            "env.p1": {"road": 0.2, "weather": 0.3, "speed": 0.4, "object": 0.1},
         }
     )
     m = build_model(p)
@@ -235,15 +235,15 @@ def _random_params(seed: int) -> Params:
         factors[name] = {"transition": stochastic(n), "event": probs(n)}
     return Params.from_overrides(
         {
-            "factors": factors,
-            "bursty": {"rates": [0.3, 2.5], "transition": stochastic(2)},
-            "arrival_rate": None,
-            "queue_capacity": 4,
-            "detection_prob": 0.85,
-            "false_alarm_prob": 0.07,
-            "r5": 3.0,
-            "event_model": ("noisy_or", "sum")[seed % 2],
-            "reaction_clear": 0.5,
+            "env.factors": factors,
+            "env.bursty": {"rates": [0.3, 2.5], "transition": stochastic(2)},
+            "env.arrival_rate": None,
+            "env.queue_capacity": 4,
+            "env.detection_prob": 0.85,
+            "env.false_alarm_prob": 0.07,
+            "reward.r5": 3.0,
+            "env.event_model": ("noisy_or", "sum")[seed % 2],
+            "env.reaction_clear": 0.5,
         }
     )
 
@@ -258,23 +258,32 @@ def test_factored_equals_dense_with_every_feature_on(seed):
 @pytest.mark.parametrize(
     ("overrides", "match"),
     [
-        ({"factors": {"speed": {"transition": [[0.5, 0.6], [0.5, 0.5]], "event": [0, 0]}}}, "sum"),
-        ({"factors": {"speed": {"transition": [[1.0, 0.0], [0.5, 0.5]]}}}, r"speed\.event"),
-        ({"factors": {"speed": {**SPEED3, "event": [0.1, 0.2]}}}, "3 values"),
-        ({"factors": {"speed": {**SPEED3, "levels": ["a", "b"]}}}, "levels"),
-        ({"factors": {"speed": {**SPEED3, "packets": [1, 2, 3]}}}, "only the channel"),
-        ({"factors": {"channel": {**CHANNEL3, "event": [0, 0, 0]}}}, "drives no event"),
-        ({"factors": {"speeed": SPEED3}}, "did you mean"),
-        ({"factors": {"speed": {**SPEED3, "matrix": 1}}}, "unknown key"),
-        ({"factors": {"speed": SPEED3}, "p1": {"speed": 0.5}}, r"env\.p1\.speed=0\.5 is not used"),
-        ({"factors": {"channel": CHANNEL3}, "r1": 3.0}, r"reward\.r1=3\.0 is not used"),
-        ({"bursty": BURSTY}, "arrival_rate=null"),
-        ({"arrival_rate": None}, "needs env.bursty"),
-        ({"bursty": {"rates": [1.0, 2.0]}, "arrival_rate": None}, "both rates and transition"),
-        ({"bursty": {**BURSTY, "rates": [1.0, -2.0]}, "arrival_rate": None}, "rates"),
-        ({"detection_prob": 1.5}, "detection_prob"),
-        ({"false_alarm_prob": -0.1}, "false_alarm_prob"),
-        ({"r5": -1}, r"reward\.r5"),
+        (
+            {"env.factors": {"speed": {"transition": [[0.5, 0.6], [0.5, 0.5]], "event": [0, 0]}}},
+            "sum",
+        ),
+        ({"env.factors": {"speed": {"transition": [[1.0, 0.0], [0.5, 0.5]]}}}, r"speed\.event"),
+        ({"env.factors": {"speed": {**SPEED3, "event": [0.1, 0.2]}}}, "3 values"),
+        ({"env.factors": {"speed": {**SPEED3, "levels": ["a", "b"]}}}, "levels"),
+        ({"env.factors": {"speed": {**SPEED3, "packets": [1, 2, 3]}}}, "only the channel"),
+        ({"env.factors": {"channel": {**CHANNEL3, "event": [0, 0, 0]}}}, "drives no event"),
+        ({"env.factors": {"speeed": SPEED3}}, "did you mean"),
+        ({"env.factors": {"speed": {**SPEED3, "matrix": 1}}}, "unknown key"),
+        (
+            {"env.factors": {"speed": SPEED3}, "env.p1": {"speed": 0.5}},
+            r"env\.p1\.speed=0\.5 is not used",
+        ),
+        ({"env.factors": {"channel": CHANNEL3}, "reward.r1": 3.0}, r"reward\.r1=3\.0 is not used"),
+        ({"env.bursty": BURSTY}, "arrival_rate=null"),
+        ({"env.arrival_rate": None}, "needs env.bursty"),
+        (
+            {"env.bursty": {"rates": [1.0, 2.0]}, "env.arrival_rate": None},
+            "both rates and transition",
+        ),
+        ({"env.bursty": {**BURSTY, "rates": [1.0, -2.0]}, "env.arrival_rate": None}, "rates"),
+        ({"env.detection_prob": 1.5}, "detection_prob"),
+        ({"env.false_alarm_prob": -0.1}, "false_alarm_prob"),
+        ({"reward.r5": -1}, r"reward\.r5"),
     ],
 )
 def test_bad_general_configs_are_rejected(overrides, match):
@@ -323,7 +332,7 @@ def test_factor_levels_follow_their_own_matrices():
     )
     assert bool((radar[:, 4] == 0).all())  # v′ = 0
     m_next = torch.bincount(radar[:, 5], minlength=3).double() / n
-    clear = FEATURES["everything"]["reaction_clear"]
+    clear = FEATURES["everything"]["env.reaction_clear"]
     prob = torch.tensor([clear, 0.0, 1 - clear], dtype=torch.float64)
     sigma = torch.sqrt(prob * (1 - prob) / n)
     assert bool(((m_next - prob).abs() <= 5 * sigma + 1e-12).all()), m_next
@@ -391,7 +400,7 @@ def test_the_lp_on_sparse_factored_transitions_equals_the_dense_lp():
                 fan_out = fac.pmf.shape[-1] * int((fac.F[a] > 0).sum(1).max())
                 assert sp.nnz <= dense.num_states * fan_out < dense.P[a].numel()
             assert float(abs(sp.toarray() - dense.P[a].numpy()).max()) < 1e-15
-    small = Params.from_overrides({**FEATURES["imperfect_radar"], "queue_capacity": 4})
+    small = Params.from_overrides({**FEATURES["imperfect_radar"], "env.queue_capacity": 4})
     sd = solve_cmdp(build_model(small), 0.25)
     sf = solve_cmdp(build_factored(small), 0.25)
     assert sf.value == pytest.approx(sd.value, rel=1e-8)

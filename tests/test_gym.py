@@ -21,17 +21,24 @@ def test_env_checker_passes():
 
 
 def test_overrides():
-    env = gymnasium.make("irdrc/DFRC-v0", env={"p1": {"speed": 0.5}}, reward={"r4": 50}, horizon=7)
+    env = gymnasium.make(
+        "irdrc/DFRC-v0", env={"p1": {"speed": 0.5}, "horizon": 7}, reward={"r4": 50}
+    )
     p = env.unwrapped.params
     assert p.env.p1.speed == 0.5 and p.reward.r4 == 50 and p.env.horizon == 7
-    env2 = gymnasium.make("irdrc/DFRC-v0", **{"env.p1.speed": 0.5, "r4": 50, "horizon": 7})
+    env2 = gymnasium.make(
+        "irdrc/DFRC-v0", **{"env.p1.speed": 0.5, "reward.r4": 50, "env.horizon": 7}
+    )
     assert env2.unwrapped.params == p
     with pytest.raises(ValueError, match=r"env\.p1\.speed"):
-        gymnasium.make("irdrc/DFRC-v0", p1={"speed": 2.0})
+        gymnasium.make("irdrc/DFRC-v0", env={"p1": {"speed": 2.0}})
+    # a keyword without its section: the error names what the constructor takes and the fix
+    with pytest.raises(ValueError, match=r"takes params, env, reward.*r4 → 'reward\.r4'"):
+        gymnasium.make("irdrc/DFRC-v0", r4=50)
 
 
 def test_episode_and_info():
-    env = gymnasium.make("irdrc/DFRC-v0", horizon=5)
+    env = gymnasium.make("irdrc/DFRC-v0", env={"horizon": 5})
     obs, info = env.reset(seed=0)
     assert obs.dtype == np.float32 and obs.shape == (6,)
     for t in range(5):
@@ -103,7 +110,7 @@ def test_transitions_and_rewards_match_the_exact_model():
 
 
 def test_vector_env_matches_the_batched_dynamics_and_autoresets():
-    venv = gymnasium.make_vec("irdrc/DFRC-v0", num_envs=3, horizon=2)
+    venv = gymnasium.make_vec("irdrc/DFRC-v0", num_envs=3, env={"horizon": 2})
     obs, info = venv.reset(seed=0)
     assert obs.shape == (3, 6) and obs.dtype == np.float32
     _, _, term, trunc, _ = venv.step(np.array([0, 1, 0]))

@@ -16,10 +16,16 @@ from irdrc.agents import lagrangian as L
 from irdrc.agents import policy_search
 from irdrc.agents.base import Hooks
 from irdrc.agents.offpolicy import OffPolicyConfig
-from irdrc.agents.policy_search import SearchConfig, greedy_path, path_index, prune_order
+from irdrc.agents.policy_search import (
+    SearchConfig,
+    greedy_path,
+    path_index,
+    pooled,
+    prune_order,
+)
 from irdrc.core.cmdp import solve_cmdp
 from irdrc.core.env import DFRCEnv
-from irdrc.core.evaluate import COMM_SUMS, long_run
+from irdrc.core.evaluate import STATE_ACTION_SUMS, long_run
 from irdrc.core.model import build_model
 from irdrc.core.params import Params
 from irdrc.core.solve import stationary_metrics, stationary_occupancy
@@ -187,28 +193,26 @@ def _path_heads(paper) -> torch.Tensor:
     return q
 
 
-def _exact_long_run(paper, low_seed: int | None = None, low: float = 0.0):
-    """A stand-in for ``long_run`` that measures exactly: the stationary metrics of the policy,
-    and per-state sums (``by_state``) from its exact occupancy over 10⁶ steps; miss detection
-    reads ``low`` low on the stream seeded ``low_seed``."""
-    import dataclasses
+def _exact_long_run(paper, low_seed: int | None = None, low: float = 1.0):
+    """A stand-in for ``long_run`` that measures exactly: per-(state, action) sums
+    (``by_state``) from the policy's exact occupancy over 10⁶ steps, so that the search's pooled
+    rates are the model's; on the stream seeded ``low_seed`` every missed event is counted
+    ``low`` times (a stream whose numbers read miss detection low by that factor)."""
     import types
 
     def fake(params, p_radar, *, seed, by_state=False, **kw):
         probs = torch.stack([1 - p_radar, p_radar], -1)
-        occ = stationary_occupancy(paper, probs)[0] * 1e6  # comm steps per state
-        m = stationary_metrics(paper, probs)
-        if seed == low_seed:
-            m = dataclasses.replace(m, miss_detection=m.miss_detection - low)
+        occ = stationary_occupancy(paper, probs).T * 1e6  # [S, 2] steps per state and action
         sums = {
+            "steps": occ,
             "visits": occ,
-            "sent": occ * paper.sent[0],
-            "capacity": occ * paper.capacity[0],
-            "reward": occ * paper.R[0],
-            "event": occ * paper.event,
-            "missed": occ * paper.missed[0],
+            "sent": occ * paper.sent.T,
+            "capacity": occ * paper.capacity.T,
+            "reward": occ * paper.R.T,
+            "event": occ * paper.event[:, None],
+            "missed": occ * paper.missed.T * (low if seed == low_seed else 1.0),
         }
-        return types.SimpleNamespace(metrics=m, steps=1000, by_state=sums if by_state else None)
+        return types.SimpleNamespace(steps=1000, by_state=sums)
 
     return fake
 
@@ -285,12 +289,12 @@ def test_prune_order_is_data_per_missed_event_over_comm_states():
     assert prune_order(sums, table, "sent") == [4, 2, 0, 3]
 
 
-def test_long_run_counts_comm_steps_per_state(paper):
+def test_long_run_sums_per_state_and_action(paper):
     """``by_state`` leaves the random numbers, and so the metrics, as they were, and its sums
-    agree with the model: over the measured steps the comm visits are the comm fraction, and in
-    the two most visited comm states data per comm step and events per comm step are within 4
-    binomial standard errors (≈ 8σ over the per-step spread; chains are not independent
-    samples, so a loose bound) of the model's."""
+    agree with the model: the last block's visits are the radar fraction's steps, every step run
+    is counted, and in the two most visited comm states data per comm step and events per comm
+    step are within 4 binomial standard errors (≈ 8σ over the per-step spread; chains are not
+    independent samples, so a loose bound) of the model's."""
     sol = solve_cmdp(paper, 0.05)
     kw = dict(envs=64, steps=1000, burn_in=500, seed=3)
     plain = long_run(Params(), sol.p_radar, **kw)
@@ -299,28 +303,48 @@ def test_long_run_counts_comm_steps_per_state(paper):
         assert getattr(plain.metrics, key) == getattr(ev.metrics, key), key
     assert plain.by_state is None
     b = ev.by_state
-    assert set(b) == set(COMM_SUMS)
-    assert float(b["visits"].sum()) == pytest.approx((1 - ev.metrics.radar_fraction) * 64_000)
-    assert float(b["sent"].sum()) == pytest.approx(ev.metrics.throughput * 64_000)
-    for s in b["visits"].topk(2).indices.tolist():
-        n = float(b["visits"][s])
+    assert set(b) == {*STATE_ACTION_SUMS, "visits"}
+    assert all(v.shape == (paper.num_states, 2) for v in b.values())
+    assert float(b["steps"].sum()) == ev.steps == 64 * 1500
+    assert float(b["visits"][:, 1].sum()) == pytest.approx(ev.metrics.radar_fraction * 64_000)
+    assert float(b["visits"].sum()) == 64_000
+    comm = {k: v[:, 0] for k, v in b.items()}
+    for s in comm["steps"].topk(2).indices.tolist():
+        n = float(comm["steps"][s])
         assert n > 500
-        assert float(b["sent"][s]) / n == pytest.approx(float(paper.sent[0, s]), abs=0.05)
+        assert float(comm["sent"][s]) / n == pytest.approx(float(paper.sent[0, s]), abs=0.05)
         e = float(paper.event[s])
-        assert abs(float(b["event"][s]) / n - e) <= 4 * math.sqrt(e * (1 - e) / n) + 1e-9
-        assert float(b["missed"][s]) == float(b["event"][s])  # comm misses every event
+        assert abs(float(comm["event"][s]) / n - e) <= 4 * math.sqrt(e * (1 - e) / n) + 1e-9
+        assert float(comm["missed"][s]) == float(comm["event"][s])  # comm misses every event
+
+
+def test_pooled_rates_weigh_visits_by_every_measurement():
+    """``pooled``: a policy's miss detection and objective are its visits weighted by the rates
+    per state and action of the whole pool, not by its own few events."""
+    visits = torch.tensor([[10.0, 0.0], [0.0, 30.0]])  # state 0 comm, state 1 radar
+    pool = {
+        "steps": torch.tensor([[1000.0, 1000.0], [1000.0, 1000.0]]),
+        "event": torch.tensor([[100.0, 100.0], [300.0, 300.0]]),  # P(event): 0.1, 0.3
+        "missed": torch.tensor([[100.0, 0.0], [300.0, 30.0]]),  # radar misses 10 % in state 1
+        "sent": torch.tensor([[2000.0, 0.0], [1000.0, 0.0]]),
+    }
+    miss, sent = pooled(visits, pool, "sent")
+    # missed: 10·0.1 + 30·0.03 = 1.9; events: 10·0.1 + 30·0.3 = 10; data: 10·2 / 40 steps
+    assert miss == pytest.approx(0.19)
+    assert sent == pytest.approx(0.5)
 
 
 @pytest.mark.parametrize("confirm", [True, False])
 def test_confirmation_undoes_a_search_measured_low(paper, monkeypatch, confirm):
-    """A measurement whose random numbers happen to read 0.02 low for every policy (the search's
-    stream; the confirmation's reads exactly) stands in for the winner's curse: the search keeps
-    tables whose measured miss fell below the target. Measurements are the exact stationary
-    metrics plus that offset, so the outcome is exact: without the confirmation the final policy
-    misses ≈ target + 0.02 (as the search measured it, 0.02 low); with it, the fresh measurements
-    climb the path to neighbours on either side of the target and the mixture lands on it."""
+    """A measurement whose random numbers happen to read miss detection 1/6 low for every policy
+    (the search's stream; the confirmation's reads exactly) stands in for the winner's curse: the
+    search keeps tables whose measured miss fell below the target. Measurements are exact but for
+    that factor, so the outcome is exact: without the confirmation the final policy misses
+    ≈ 0.1 · 6/5 = target + 0.02 (as the search measured it, 1/6 low); with it, the fresh
+    measurements climb the path to neighbours on either side of the target and the mixture lands
+    on it."""
     monkeypatch.setattr(
-        policy_search, "long_run", _exact_long_run(paper, low_seed=0 + 7919, low=0.02)
+        policy_search, "long_run", _exact_long_run(paper, low_seed=0 + 7919, low=5 / 6)
     )
     q = _path_heads(paper)
     cfg = L.LagrangianConfig(target_miss=0.1, search=SearchConfig(mix_steps=12, confirm=confirm))

@@ -19,7 +19,7 @@ from irdrc.experiments.config import CONF_DIR
 
 
 def test_round_robin_alternates_from_each_reset():
-    env = DFRCEnv(Params.from_overrides(horizon=5), batch_size=[3], seed=0)
+    env = DFRCEnv(Params.from_overrides({"env.horizon": 5}), batch_size=[3], seed=0)
     td = env.rollout(10, policies.round_robin(), break_when_any_done=False)
     assert td["action"][0].tolist() == [0, 1, 0, 1, 0, 0, 1, 0, 1, 0]
     td = env.rollout(4, policies.round_robin(first=1), break_when_any_done=False)
@@ -55,7 +55,7 @@ def test_ratio_ci_is_ratio_of_sums():
 
 
 def test_evaluate_counts_and_ci_coverage():
-    env = DFRCEnv(Params.from_overrides(horizon=50), batch_size=[100], seed=3)
+    env = DFRCEnv(Params.from_overrides({"env.horizon": 50}), batch_size=[100], seed=3)
     ev = evaluate(policies.round_robin(), env, episodes=250)
     assert ev.episodes == 300 and ev.steps == 300 * 50  # rounded up to whole batches
     assert ev.metrics.radar_fraction == 0.5 and ev.ci95["radar_fraction"] == 0
@@ -97,7 +97,7 @@ def test_learners_are_independent_and_reproducible():
 def test_q_update_is_the_tabular_rule():
     # One learner, one step per episode (horizon 1), constant α: after one update from Q = 0 the
     # visited entry is α · r exactly (max over a zero next row is 0), and nothing else moved.
-    p = Params.from_overrides(horizon=1)
+    p = Params.from_overrides({"env.horizon": 1})
     cfg = QLearningConfig(episodes=1, alpha=0.5, alpha_schedule="constant")
     res = train(p, cfg, num_learners=1, seed=5)
     nz = res.q.flatten().nonzero().flatten()
@@ -135,7 +135,7 @@ def test_scenarios_trained_in_one_batch_learn_their_own_optimum():
     the other scenario's optimum, so rows fed the wrong scenario's tables fail the 0.9 asked here,
     which 100 episodes of the default profile clear on every row (0.93–1.0 measured, seeds 0–4).
     """
-    scenarios = [Params(), Params.from_overrides({"r3": 0, "r4": 0})]
+    scenarios = [Params(), Params.from_overrides({"reward.r3": 0, "reward.r4": 0})]
     res = train(scenarios, replace(DEFAULT, episodes=100), num_learners=2, seed=0)
     assert res.group == [0, 0, 1, 1] and res.greedy.shape == (4, 352)
     scorers = [ExactScorer(build_model(p), 0.99) for p in scenarios]
@@ -146,4 +146,4 @@ def test_scenarios_trained_in_one_batch_learn_their_own_optimum():
     assert scorers[1].ratio(scorers[0].optimal.policy) < 0.7
     assert scorers[0].ratio(scorers[1].optimal.policy) < 0
     with pytest.raises(ValueError, match="horizon"):
-        train([Params(), Params.from_overrides(horizon=10)], DEFAULT)
+        train([Params(), Params.from_overrides({"env.horizon": 10})], DEFAULT)

@@ -28,12 +28,17 @@ def test_round_trip_dict_and_omegaconf():
     assert Params.from_config(OmegaConf.create(d)) == Params()
 
 
-def test_overrides_nested_dotted_and_short():
+def test_overrides_nested_or_dotted_and_a_key_without_its_section_is_named():
+    """One key style, the command line's: nested or dotted, each key with its section; a bare
+    key is refused with its full name."""
     a = Params.from_overrides({"env": {"p1": {"speed": 0.5}}, "reward": {"r4": 50}})
     b = Params.from_overrides({"env.p1.speed": 0.5, "reward.r4": 50})
-    c = Params.from_overrides(p1={"speed": 0.5}, r4=50)
-    assert a == b == c
+    assert a == b
     assert a.env.p1.speed == 0.5 and a.env.p1.road == 0.05 and a.reward.r4 == 50
+    with pytest.raises(ValueError, match=r"'r4' needs its section: write 'reward\.r4'"):
+        Params.from_overrides({"r4": 50})
+    with pytest.raises(ValueError, match=r"write 'env\.p1\.speed'"):
+        Params().with_overrides({"p1.speed": 0.5})
 
 
 def test_scenario_files():
@@ -112,8 +117,8 @@ def test_frozen():
 
 
 def test_with_overrides_keeps_the_rest_and_validates():
-    base = Params.from_overrides({"env.p1.road": 0.2, "r1": 3})
-    p = base.with_overrides({"env.p1.speed": 0.5, "r4": 50})
+    base = Params.from_overrides({"env.p1.road": 0.2, "reward.r1": 3})
+    p = base.with_overrides({"env.p1.speed": 0.5, "reward.r4": 50})
     assert (p.env.p1.speed, p.reward.r4) == (0.5, 50) and (p.env.p1.road, p.reward.r1) == (0.2, 3)
     assert base.env.p1.speed == 0.1  # frozen: the original is untouched
     with pytest.raises(ValueError, match=r"env\.p1\.sped"):

@@ -3,7 +3,8 @@
 The learned heads give Q_J (objective) and Q_C (cost: missed − m*·event) per state and action; the
 greedy table of Q_J − μ·Q_C changes one state at a time as μ grows (``greedy_path``). The search
 finds, by long-run Monte-Carlo measurements on the simulator (``irdrc.core.evaluate.long_run``,
-common random numbers across candidates), the two neighbouring tables on either side of the
+common random numbers across candidates, the signals' rates per state and action pooled over
+every measurement), the two neighbouring tables on either side of the
 miss-detection target, and randomises between them in the one state where they differ — the
 shape of the exact LP optimum. A confirmation re-measures the result on fresh random numbers
 (the search keeps what read low by chance), and a prune finds a second pair of neighbours from
@@ -34,9 +35,6 @@ more slowly than a measurement block can see."""
 
 CONFIRM_SEED_OFFSET = 104_729
 """The confirmation's random numbers: the search's seed plus this (independent of the search's)."""
-
-METRIC_OF_SIGNAL = {"sent": "throughput", "reward": "avg_reward", "capacity": "link_capacity"}
-"""The metric that measures each objective signal."""
 
 
 @dataclass(frozen=True)
@@ -119,6 +117,20 @@ def prune_order(by_state: dict[str, torch.Tensor], table: torch.Tensor, key: str
     return sorted(comm, key=lambda s: (float(score[s]), s))
 
 
+def pooled(visits: torch.Tensor, pool: dict[str, torch.Tensor], signal: str) -> tuple[float, float]:
+    """(miss detection, objective per step) of a policy from its ``visits`` [S, 2] per state and
+    action, with each signal's expected value in (s, a) estimated from ``pool`` (sums over every
+    step measured so far, of every policy: the rates given the state, which is the observation,
+    and the action do not depend on the policy). The event noise of one measurement — events are
+    rare — is averaged over all of them; only the visits are the policy's own."""
+    seen = pool["steps"].clamp_min(1.0)
+    event = (visits * pool["event"] / seen).sum()
+    missed = (visits * pool["missed"] / seen).sum()
+    objective = (visits * pool[signal] / seen).sum() / visits.sum()
+    miss = float(missed / event) if float(event) > 0 else math.nan
+    return miss, float(objective)
+
+
 Pair = tuple[torch.Tensor | None, torch.Tensor]
 """Neighbouring tables (radar probabilities [S]): the one above the target (or None when the
 other is the best found) and the one at or below it."""
@@ -149,11 +161,19 @@ class FinalPolicySearch:
     ) -> None:
         self.breaks, self.tables = greedy_path(q)
         self.params, self.mu, self.target, self.cfg, self.seed = params, mu, target, cfg, seed
-        self.signal, self.metric = signal, METRIC_OF_SIGNAL[signal]
+        self.signal = signal
         self.prune = cfg.prune and signal != "reward"  # radar earns reward too: no per-step trade
         self.steps = 0
-        self.seen: dict[tuple[bool, bytes], tuple[float, float]] = {}
-        self.per_state: dict[tuple[bool, bytes], dict[str, torch.Tensor]] = {}
+        self.visits: dict[tuple[bool, bytes], torch.Tensor] = {}
+        self.comm_sums: dict[tuple[bool, bytes], dict[str, torch.Tensor]] = {}
+        n = len(self.tables[0])
+        self.pool = {  # one pool per stream: the confirmation's numbers stay independent
+            fresh: {
+                k: torch.zeros(n, 2, dtype=torch.float64)
+                for k in ("steps", "event", "missed", signal)
+            }
+            for fresh in (False, True)
+        }
 
     @property
     def last(self) -> int:
@@ -167,10 +187,12 @@ class FinalPolicySearch:
     # -- measurements ------------------------------------------------------------------------------
 
     def rates(self, p_radar: torch.Tensor, fresh: bool = False) -> tuple[float, float]:
-        """Measured (miss detection, objective) of a policy: each policy measured once per stream
-        (the search's, or with ``fresh`` the confirmation's)."""
+        """Estimated (miss detection, objective) of a policy: its measured visits per state and
+        action (each policy measured once per stream: the search's, or with ``fresh`` the
+        confirmation's) weighted by the signals' rates per state and action pooled over every
+        measurement of that stream so far (``pooled``)."""
         key = (fresh, p_radar.double().numpy().tobytes())
-        if key not in self.seen:
+        if key not in self.visits:
             cfg = self.cfg
             ev = long_run(
                 self.params,
@@ -180,13 +202,15 @@ class FinalPolicySearch:
                 burn_in=cfg.measure_burn_in,
                 max_blocks=cfg.measure_max_blocks,
                 seed=self.seed + 7919 + (CONFIRM_SEED_OFFSET if fresh else 0),
-                by_state=self.prune,  # the per-state sums the prune orders by
+                by_state=True,
             )
             self.steps += ev.steps
-            m = ev.metrics
-            self.seen[key] = (float(m.miss_detection), float(getattr(m, self.metric)))
-            self.per_state[key] = ev.by_state
-        return self.seen[key]
+            sums = ev.by_state
+            for k, total in self.pool[fresh].items():
+                total += sums[k]
+            self.visits[key] = sums["visits"]
+            self.comm_sums[key] = {k: v[:, 0] for k, v in sums.items()}
+        return pooled(self.visits[key], self.pool[fresh], self.signal)
 
     def miss(self, p_radar: torch.Tensor, fresh: bool = False) -> float:
         """Measured miss detection of a policy."""
@@ -277,7 +301,7 @@ class FinalPolicySearch:
         """Neighbours on either side of the target among ``top`` with its first k comm states
         (``prune_order``) given to radar; also k (of the upper neighbour) and how many there are."""
         self.rates(top, fresh)
-        order = prune_order(self.per_state[(fresh, top.numpy().tobytes())], top, self.signal)
+        order = prune_order(self.comm_sums[(fresh, top.numpy().tobytes())], top, self.signal)
 
         def pruned(k: int) -> torch.Tensor:
             t = top.clone()
@@ -352,7 +376,7 @@ class FinalPolicySearch:
         facts = {
             "path_tables": len(self.tables),
             "measured_final_miss": self.miss(p, fresh),
-            "measurements": len(self.seen),
+            "measurements": len(self.visits),
             "measure_env_steps": self.steps,
             "confirmed": fresh,
             "switch_state": state,

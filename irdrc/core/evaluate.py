@@ -55,8 +55,10 @@ class Evaluation:
             independent; NaN when fewer than two episodes or no event).
         episodes: episodes evaluated.
         steps: env steps evaluated.
-        by_state: ``long_run(..., by_state=True)`` only: per-state sums [S] (float64) over every
-            measured step (burn-in excluded) of ``COMM_SUMS``, counted in comm steps only.
+        by_state: ``long_run(..., by_state=True)`` only: per-(state, action) sums [S, 2] (float64,
+            action 0 = comm) of ``STATE_ACTION_SUMS`` over every step run (burn-in included: the
+            signals' rates given the state and action do not depend on the policy), and
+            ``visits``, the steps per state and action in the measured (last) block.
     """
 
     metrics: Metrics
@@ -134,9 +136,9 @@ def evaluate(policy, env: DFRCEnv, episodes: int | None = None) -> Evaluation:
     )
 
 
-COMM_SUMS = ("visits", "sent", "capacity", "reward", "event", "missed")
-"""What ``long_run(..., by_state=True)`` sums per state over the comm steps taken there: the
-visits and the step's signals of ``irdrc.core.env`` (``Step``)."""
+STATE_ACTION_SUMS = ("steps", "sent", "capacity", "reward", "event", "missed")
+"""What ``long_run(..., by_state=True)`` sums per state and action over every step run: the steps
+taken and the step's signals of ``irdrc.core.env`` (``Step``)."""
 
 STATIONARITY_KEYS = ("miss_detection", "throughput", "mean_queue")
 """Rates that two consecutive blocks of ``long_run`` must agree on (it checks stationarity)."""
@@ -167,9 +169,9 @@ def long_run(
     trap (e.g. a full queue it never empties) is then measured after the drift, not during it.
     The result describes the last block; ``steps`` counts every step run. Confidence
     half-widths treat each chain as one independent sample (delta method). With ``by_state`` the
-    result also carries, per state, the sums of ``COMM_SUMS`` over the comm steps taken there in
-    every measured block (``Evaluation.by_state``); the random numbers, and so the metrics, are
-    the same either way.
+    result also carries, per state and action, the sums of ``STATE_ACTION_SUMS`` over every step
+    run and the last block's visits (``Evaluation.by_state``); the random numbers, and so the
+    metrics, are the same either way.
     """
     from irdrc.core.env import Dynamics
 
@@ -184,18 +186,32 @@ def long_run(
         raise ValueError(f"p_radar must be {dyn.num_states} probabilities in [0, 1]")
     gen = torch.Generator(device=dyn.device).manual_seed(int(seed))
     state = dyn.reset_states(envs, gen)
+    shape = (dyn.num_states * 2,)
     per_state = (
-        {k: torch.zeros(dyn.num_states, dtype=torch.float64, device=dyn.device) for k in COMM_SUMS}
+        {
+            k: torch.zeros(shape, dtype=torch.float64, device=dyn.device)
+            for k in (*STATE_ACTION_SUMS, "visits")
+        }
         if by_state
         else None
     )
+    ones = torch.ones(envs, dtype=torch.float64, device=dyn.device)
 
     def run(n: int, sums: dict[str, torch.Tensor] | None) -> torch.Tensor:
         nonlocal state
+        if per_state is not None and sums is not None:
+            per_state["visits"].zero_()  # the visits of the last block only
         for _ in range(n):
             u = torch.rand(envs, generator=gen, device=dyn.device, dtype=torch.float64)
             action = (u < p[state]).long()
             out = dyn.step(state, action, gen)
+            if per_state is not None:
+                sa = state * 2 + action
+                per_state["steps"].index_add_(0, sa, ones)
+                if sums is not None:
+                    per_state["visits"].index_add_(0, sa, ones)
+                for k in STATE_ACTION_SUMS[1:]:
+                    per_state[k].index_add_(0, sa, getattr(out, k).double())
             if sums is not None:
                 sums["queue"] += dyn.split(state)[0].double()
                 sums["radar"] += action.double()
@@ -203,11 +219,6 @@ def long_run(
                     sums[k] += getattr(out, k).double()
                 sums["alarm"] += out.false_alarm.double()
                 sums["quiet"] += ((action == 1) & ~out.event).double()
-                if per_state is not None:
-                    comm = (action == 0).double()
-                    per_state["visits"].index_add_(0, state, comm)
-                    for k in COMM_SUMS[1:]:
-                        per_state[k].index_add_(0, state, comm * getattr(out, k).double())
             state = out.state
         return state
 
@@ -250,7 +261,9 @@ def long_run(
         ci95=ci95,
         episodes=envs,
         steps=envs * (burn_in + blocks * steps),
-        by_state=None if per_state is None else {k: v.cpu() for k, v in per_state.items()},
+        by_state=None
+        if per_state is None
+        else {k: v.cpu().reshape(-1, 2) for k, v in per_state.items()},
     )
 
 

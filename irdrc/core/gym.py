@@ -7,9 +7,9 @@
 - ``gymnasium.make_vec("irdrc/DFRC-v0", num_envs=N, **overrides)``: N envs stepped together by
   ``Dynamics`` (torch), with gymnasium's next-step autoreset.
 
-Overrides use the config names, nested or dotted: ``env={"p1": {"speed": 0.5}}``,
-``reward={"r4": 50}``, ``p1={"speed": 0.5}``, ``horizon=100``, ``r4=50`` or
-``**{"env.p1.speed": 0.5}``.
+The scenario is ``params=Params(...)``, or overrides named as everywhere else (each key with its
+section, as on the command line): ``env={"p1": {"speed": 0.5}}, reward={"r4": 50}`` (nested), or
+``**{"env.p1.speed": 0.5, "reward.r4": 50}`` (dotted).
 """
 
 from __future__ import annotations
@@ -25,15 +25,29 @@ from gymnasium import spaces
 from gymnasium.vector import AutoresetMode, VectorEnv
 
 from irdrc.core.env import Dynamics, checked_actions, observation_high
-from irdrc.core.params import Params
+from irdrc.core.params import Params, full_key
 
 ENV_ID = "irdrc/DFRC-v0"
+
+
+GYM_KEYWORDS = ("params", "env", "reward", "env.<key>", "reward.<key>")
+"""What the gym constructors take besides ``num_envs``."""
 
 
 def _params(params: Params | None, overrides: dict[str, Any]) -> Params:
     if params is not None and overrides:
         raise ValueError("pass either params or overrides, not both")
-    return params if params is not None else Params.from_overrides(overrides)
+    if params is not None:
+        return params
+    bare = [k for k in overrides if k.split(".", 1)[0] not in ("env", "reward")]
+    if bare:
+        fixes = ", ".join(f"{k} → {full_key(k)!r}" for k in bare)
+        raise ValueError(
+            f"irdrc/DFRC-v0 takes {', '.join(GYM_KEYWORDS)}; got {', '.join(bare)}: name each "
+            f"key with its section ({fixes}), e.g. env={{'p1': {{'speed': 0.5}}}}, "
+            "reward={'r4': 50} or **{'env.p1.speed': 0.5}"
+        )
+    return Params.from_overrides(overrides)
 
 
 def _observation_space(params: Params) -> spaces.Box:

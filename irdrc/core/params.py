@@ -628,15 +628,16 @@ class Params:
         )
 
     @classmethod
-    def from_overrides(cls, overrides: Mapping[str, Any] | None = None, **kwargs: Any) -> Params:
-        """Defaults updated by overrides, nested or dotted.
+    def from_overrides(cls, overrides: Mapping[str, Any] | None = None) -> Params:
+        """Defaults updated by overrides named as on the command line: each key starts with its
+        section, dotted (``{"env.p1.speed": 0.5, "reward.r4": 50}``) or nested (``{"env": {"p1":
+        {"speed": 0.5}}, "reward": {"r4": 50}}``).
 
-        Accepts ``{"env": {"p1": {"speed": 0.5}}}``, ``{"env.p1.speed": 0.5}``, and, for brevity,
-        env keys without their prefix (``{"p1": {"speed": 0.5}, "horizon": 100}``) and reward weights
-        by name (``{"r4": 50}``).
+        Raises:
+            ValueError: a key without its section (``"r4"``, ``"horizon"``), naming the full key.
         """
         merged: dict[str, Any] = {"env": {}, "reward": {}}
-        _apply_overrides(merged, {**(overrides or {}), **kwargs})
+        _apply_overrides(merged, overrides or {})
         return cls.from_config(merged, strict=False)
 
     def with_overrides(self, overrides: Mapping[str, Any]) -> Params:
@@ -654,13 +655,30 @@ class Params:
         return {"env": as_dict(self.env), "reward": as_dict(self.reward)}
 
 
+REWARD_KEYS = ("r1", "r2", "r3", "r4", "r5")
+"""The reward weights (``reward.r1`` … ``reward.r5``)."""
+
+
+def full_key(key: str) -> str:
+    """``key`` with its section: ``r4`` → ``reward.r4``, ``p1.speed`` → ``env.p1.speed`` (as it is
+    when it has one)."""
+    head = key.split(".", 1)[0]
+    if head in ("env", "reward"):
+        return key
+    return f"reward.{key}" if head in REWARD_KEYS else f"env.{key}"
+
+
 def _apply_overrides(merged: dict[str, Any], overrides: Mapping[str, Any]) -> None:
-    """Set dotted or nested overrides into ``merged`` ({"env": …, "reward": …}); a key without
-    its section prefix is an env key, except the reward weights r1 … r4."""
+    """Set dotted or nested overrides into ``merged`` ({"env": …, "reward": …}); every key starts
+    with its section (``env.`` or ``reward.``), as on the command line."""
     for key, value in overrides.items():
         parts = str(key).split(".")
         if parts[0] not in ("env", "reward"):
-            parts = ["reward" if parts[0] in ("r1", "r2", "r3", "r4", "r5") else "env", *parts]
+            raise ValueError(
+                f"override {key!r} needs its section: write {full_key(str(key))!r} (keys are "
+                "named as on the command line: 'env.p1.speed', 'reward.r4', or nested "
+                "{'env': {...}, 'reward': {...}})"
+            )
         target = merged
         for p in parts[:-1]:
             target = target.setdefault(p, {})

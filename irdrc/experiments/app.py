@@ -28,6 +28,48 @@ def fail(message: str, code: int = EXIT_USAGE) -> None:
     sys.exit(code)
 
 
+class _Tee:
+    """``sys.stdout`` for the length of a run: what is printed also goes to the run's log."""
+
+    def __init__(self, stream: Any, log: Any) -> None:
+        self.stream, self.log = stream, log
+
+    def write(self, text: str) -> int:
+        self.log.write(text)
+        return self.stream.write(text)
+
+    def flush(self) -> None:
+        self.log.flush()
+        self.stream.flush()
+
+    def __getattr__(self, name: str) -> Any:  # isatty, fileno, encoding: the terminal's
+        return getattr(self.stream, name)
+
+
+def _quoted_path(path: Path) -> str:
+    """A path as a Hydra override value (quoted when it holds more than plain characters)."""
+    text = str(path)
+    plain = all(c.isalnum() or c in "_-./" for c in text)
+    return text if plain else "'" + text.replace("\\", "\\\\").replace("'", "\\'") + "'"
+
+
+def _remove_if_empty(out: Path, log_name: str) -> None:
+    """Remove a run directory a refused run made: one holding only Hydra's record and the log
+    (and its date folder under ``outputs/`` when that is left empty)."""
+    if not out.is_dir() or {p.name for p in out.iterdir()} - {".hydra", log_name}:
+        return
+    import shutil
+
+    shutil.rmtree(out / ".hydra", ignore_errors=True)
+    (out / log_name).unlink(missing_ok=True)
+    for d in (out, out.parent):
+        if d == out or d.parent.name == "outputs":
+            try:
+                d.rmdir()
+            except OSError:
+                return
+
+
 def recipe(
     config_name: str,
     run: Callable[..., Any],
@@ -59,19 +101,32 @@ def recipe(
     @hydra.main(config_path=str(CONF_DIR), config_name=config_name, version_base=None)
     def _main(cfg) -> None:
         out = Path(HydraConfig.get().runtime.output_dir)
-        try:
-            if scenario_overrides:
-                from irdrc.experiments.config import scenario_overrides as current
+        log_name = f"{HydraConfig.get().job.name}.log"
+        stdout = sys.stdout
+        with open(out / log_name, "a", encoding="utf-8") as log:
+            sys.stdout = _Tee(stdout, log)  # the run's printed lines are kept in its log
+            try:
+                if scenario_overrides:
+                    from irdrc.experiments.config import scenario_overrides as current
 
-                code = run(cfg, out, current())
+                    code = run(cfg, out, current())
+                else:
+                    code = run(cfg, out)
+            except RunInterrupted as err:
+                print(f"error: {err}", file=log)
+                fail(str(err), err.code)
+            except (ValueError, OSError) as err:
+                if full:
+                    raise
+                print(f"error: {err}", file=log)
+                refused: str | None = str(err)
             else:
-                code = run(cfg, out)
-        except RunInterrupted as err:
-            fail(str(err), err.code)
-        except (ValueError, OSError) as err:
-            if full:
-                raise
-            fail(str(err))
+                refused = None
+            finally:
+                sys.stdout = stdout
+        if refused is not None:
+            _remove_if_empty(out, log_name)  # a refused run leaves no trace
+            fail(refused)
         if isinstance(code, int) and code:
             sys.exit(code)  # Hydra's wrapper drops return values, so exit from inside the task
 
@@ -97,6 +152,15 @@ def recipe(
             fail(f"{type(err).__name__}: {str(err).strip().splitlines()[0]}")
         for note in notes:
             print(note, file=sys.stderr)
+        resume = cfg.get("resume")
+        if (
+            isinstance(resume, str)
+            and resume
+            and not any(a.startswith("hydra.run.dir=") for a in args)
+        ):
+            # a resumed run goes on in its own directory: one run, one directory
+            run_dir = Path(resume).expanduser().resolve().parent
+            args.append(f"hydra.run.dir={_quoted_path(run_dir)}")
         if not any(a.startswith("hydra.job.name=") for a in args):
             args.append(f"hydra.job.name={config_name}")  # the log file is <recipe>.log
         sys.argv[1:] = args

@@ -22,9 +22,10 @@ from irdrc.agents.base import EPISODE_FIELDS, RunRecord, progress_fields
 from irdrc.core.env import DFRCEnv
 from irdrc.core.evaluate import evaluate
 from irdrc.core.metrics import Metrics, format_table
+from irdrc.core.model import ExactModel
 from irdrc.core.params import Params
 from irdrc.core.policies import table_policy
-from irdrc.core.solve import ExactScorer, stationary_metrics
+from irdrc.core.solve import ExactScorer, episodic_metrics, stationary_metrics
 from irdrc.experiments.grid import is_scenario_key, point_overrides
 from irdrc.experiments.guard import save_checkpoint
 from irdrc.experiments.results import (
@@ -53,27 +54,33 @@ def finish_run(
     """Write the run files of every learner the same way, print the table, return the summary."""
     learners = learner_rows(record, scorers, points, num_learners)
     if record.state is not None:
-        save_checkpoint(out, record.state, OmegaConf.to_container(cfg, resolve=True))
+        state = {**record.state, "scenario": scenario}  # a resumed run keeps the scenario's name
+        save_checkpoint(out, state, OmegaConf.to_container(cfg, resolve=True))
     write_rows_csv(out / "metrics.csv", record.history, progress_fields(record.history))
     write_rows_csv(out / "episode_rewards.csv", record.episode_rewards, EPISODE_FIELDS)
     write_rows_csv(out / "learners.csv", learners)
     greedy = record.greedy[0].cpu()
     write_policy_csv(out / "policy.csv", greedy, scenarios[0].env.levels)
-    plot_learning_curve(record, out / "learning_curve.png", title=f"{name} on {scenario}")
+    plot_learning_curve(record, out / curve_file(cfg), title=f"{name} on {scenario}")
 
     model, opt = scorers[0].model, scorers[0].optimal_metrics
     learned = scorers[0].metrics(greedy)
-    rows: dict[str, Metrics] = {f"{name} (exact)": learned}
+    rows: dict[str, Metrics] = {f"{name} (exact, long run)": learned}
     errs: dict[str, dict[str, float]] = {}
+    episodic = int(cfg.eval.mc_episodes) > 0 and isinstance(model, ExactModel)
     if int(cfg.eval.mc_episodes):
         env = DFRCEnv(scenarios[0], batch_size=[int(cfg.eval.mc_num_envs)], seed=int(cfg.seed) + 1)
         ev = evaluate(table_policy(greedy), env, episodes=int(cfg.eval.mc_episodes))
+        if episodic:  # what the Monte-Carlo row estimates, exactly
+            rows[f"{name} (exact, episodic)"] = episodic_metrics(model, greedy)
         label = f"{name} (Monte-Carlo, episodic)"
         rows[label], errs[label] = ev.metrics, ev.ci95
-    rows["optimal (exact)"] = opt
-    rows["round_robin (exact)"] = stationary_metrics(model, "round_robin")
+    rows["optimal (exact, long run)"] = opt
+    if episodic:
+        rows["optimal (exact, episodic)"] = episodic_metrics(model, scorers[0].optimal.policy)
+    rows["round_robin (exact, long run)"] = stationary_metrics(model, "round_robin")
     for label, m in comparisons.items():
-        rows[f"{label} (exact)"] = m
+        rows[f"{label} (exact, long run)"] = m
 
     first99 = record.first_reaching(0.99)
     extra: dict[str, Any] = {
@@ -140,6 +147,10 @@ def _print_run(
     )
     if len(scenarios) == 1:
         print(format_table(rows, errors=errs))
+        print(
+            "long run: the policy's stationary average (it runs forever); episodic: episodes of "
+            f"{scenarios[0].env.horizon} steps from a uniform reset, as the Monte-Carlo row samples"
+        )
     else:
         print("scenario                        optimum avg reward  final ratio (median, min)")
         for g, point in enumerate(points):
@@ -179,7 +190,7 @@ def _print_run(
         "metrics.csv",
         "learners.csv",
         "episode_rewards.csv",
-        "learning_curve.png",
+        curve_file(cfg),
     ]
     if record.state is not None:
         files += ["config.yaml", "checkpoint.pt"]
@@ -235,34 +246,69 @@ def table_dict(
     return out
 
 
+PLOT_FORMATS = ("png", "pdf", "svg")
+"""Formats of ``learning_curve.<format>`` (``plot.format``)."""
+
+
+def curve_file(cfg: DictConfig) -> str:
+    """The learning curve's file name for ``plot.format`` (``learning_curve.png`` by default)."""
+    return f"learning_curve.{cfg.get('plot', {}).get('format', 'png')}"
+
+
 def plot_learning_curve(record: RunRecord, path: Path, *, title: str) -> None:
-    """``learning_curve.png``: each learner's greedy policy, evaluated exactly, as a fraction of the
-    optimum's average reward against env steps (the median in bold when there are several)."""
-    fig, ax = plt.subplots(figsize=(7, 4))
+    """The learning curve (``learning_curve.<format>``): the greedy policy, evaluated exactly, as a
+    fraction of the optimum's average reward against env steps. With several learners: their
+    median, a band over the middle half (quartiles) and one over all of them (min–max)."""
+    fig, ax = plt.subplots(figsize=(6.4, 4.0))
     curves = [record.curve(n) for n in range(record.num_learners)]
-    many = len(curves) > 1
-    for c in curves:
-        ax.plot(
-            [r["env_steps"] for r in c],
-            [r["optimality_ratio"] for r in c],
+    xs = [r["env_steps"] for r in curves[0]] if curves and curves[0] else []
+    if len(curves) > 1 and xs:
+        cols = [sorted(c[i]["optimality_ratio"] for c in curves) for i in range(len(xs))]
+        q = [statistics.quantiles(col, n=4, method="inclusive") for col in cols]
+        ax.fill_between(
+            xs,
+            [c[0] for c in cols],
+            [c[-1] for c in cols],
             color="tab:blue",
-            alpha=0.3 if many else 1.0,
-            linewidth=1 if many else 1.6,
-            marker=None if many else ".",
+            alpha=0.15,
+            linewidth=0,
+            label=f"min–max of {len(curves)} learners",
         )
-    if many and curves[0]:
-        xs = [r["env_steps"] for r in curves[0]]
-        med = [statistics.median(c[i]["optimality_ratio"] for c in curves) for i in range(len(xs))]
-        ax.plot(xs, med, color="tab:blue", linewidth=2, label=f"median of {len(curves)} learners")
+        ax.fill_between(
+            xs,
+            [v[0] for v in q],
+            [v[2] for v in q],
+            color="tab:blue",
+            alpha=0.3,
+            linewidth=0,
+            label="interquartile range",
+        )
+        ax.plot(
+            xs,
+            [statistics.median(col) for col in cols],
+            color="tab:blue",
+            linewidth=2,
+            label="median",
+        )
+    elif xs:
+        ax.plot(
+            xs,
+            [r["optimality_ratio"] for r in curves[0]],
+            color="tab:blue",
+            linewidth=1.8,
+            marker=".",
+            label="greedy policy",
+        )
     ax.axhline(1.0, color="black", linestyle="--", linewidth=1, label="exact optimum")
-    ax.axhline(0.99, color="black", linestyle=":", linewidth=0.8, label="99 %")
-    ax.set_xlabel("env steps (per learner)")
-    ax.set_ylabel("greedy policy / optimum (avg reward, exact)")
-    ax.set_title(title, fontsize=9)
+    ax.axhline(0.99, color="black", linestyle=":", linewidth=1, label="99 % of the optimum")
+    ax.set_xlabel("env steps per learner", fontsize=11)
+    ax.set_ylabel("average reward / optimum's (exact)", fontsize=11)
+    ax.tick_params(labelsize=10)
+    ax.set_title(title, fontsize=11)
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=8, loc="lower right")
+    ax.legend(fontsize=9, loc="lower right")
     fig.tight_layout()
-    atomic_savefig(fig, path, dpi=80)
+    atomic_savefig(fig, path, dpi=200)
 
 
 END_THRESHOLD = 0.99

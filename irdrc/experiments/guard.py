@@ -4,6 +4,7 @@ resume that refuses a checkpoint of another configuration before it touches anyt
 from __future__ import annotations
 
 import contextlib
+import copy
 import io
 import signal
 import threading
@@ -51,31 +52,106 @@ def flatten(node: Any, prefix: str = "") -> dict[str, Any]:
     return {prefix[:-1]: node}
 
 
-def resume_differences(saved: dict[str, Any], current: dict[str, Any]) -> list[str]:
-    """``key: saved → current`` for every config value that differs and may not (see
-    ``RESUME_MAY_DIFFER``)."""
-    a, b = flatten(saved), flatten(current)
-    out = []
-    for key in sorted(set(a) | set(b)):
+def _covered(key: str, explicit: frozenset[str]) -> bool:
+    """Whether the command line set ``key`` (itself, or a group or section holding it)."""
+    return any(key == e or key.startswith(e + ".") for e in explicit)
+
+
+def _select(node: Any, key: str) -> Any:
+    for part in key.split("."):
+        if not isinstance(node, dict) or part not in node:
+            return "<absent>"
+        node = node[part]
+    return node
+
+
+def _assign(node: dict[str, Any], key: str, value: Any) -> None:
+    *parents, last = key.split(".")
+    for part in parents:
+        node = node.setdefault(part, {})
+    node[last] = value
+
+
+def resumed_config(
+    path: Path, saved: dict[str, Any], current: dict[str, Any], explicit: frozenset[str]
+) -> dict[str, Any]:
+    """The configuration of a run resumed from the checkpoint at ``path``: the checkpoint's own
+    (``saved``), except what the command line set on purpose (``explicit``: dotted keys, groups
+    such as ``env`` or ``algo`` included), which ``current`` gives — so ``resume=PATH`` alone
+    continues the run exactly as it was started, and ``algo.total_frames=…`` extends it.
+
+    Raises:
+        ValueError: naming every key the command line set to another value that a resumed run
+            may not change (what it learns; see ``RESUME_MAY_DIFFER``).
+    """
+    explicit = frozenset(k for k in explicit if not k.startswith("hydra"))
+    clash = []
+    for key in sorted(explicit):
         if key.startswith(RESUME_MAY_DIFFER) or key in ("resume", "progress", "device"):
             continue
-        if a.get(key, "<absent>") != b.get(key, "<absent>"):
-            out.append(f"{key}: {a.get(key, '<absent>')} → {b.get(key, '<absent>')}")
+        old, new = _select(saved, key), _select(current, key)
+        if old != new:
+            if isinstance(old, dict) and isinstance(new, dict):
+                a, b = flatten(old, key + "."), flatten(new, key + ".")
+                clash += [
+                    f"{k}: {a.get(k, '<absent>')} → {b.get(k, '<absent>')}"
+                    for k in sorted(set(a) | set(b))
+                    if a.get(k) != b.get(k)
+                ]
+            else:
+                clash.append(f"{key}: {old} → {new}")
+    if clash:
+        raise ValueError(
+            f"resume={path} was trained with another configuration; these keys differ "
+            f"(checkpoint → this run): {'; '.join(clash)}. A resumed run keeps the checkpoint's "
+            "configuration: leave them out"
+        )
+    out = copy.deepcopy(current)
+    for key, value in flatten(saved).items():
+        if not _covered(key, explicit) and key not in ("resume", "progress", "device"):
+            _assign(out, key, value)
     return out
 
 
-def check_resume(path: Path, state: dict[str, Any], current: dict[str, Any]) -> None:
-    """Refuse to resume ``state`` (loaded from ``path``) under a different configuration.
+def load_resume(cfg: Any, explicit: frozenset[str]) -> tuple[dict[str, Any] | None, Any]:
+    """The checkpoint a run resumes from (``resume=PATH``; ``None`` without one) and the run's
+    configuration (``resumed_config``: the checkpoint's, with what ``explicit`` set), checked
+    before anything is written.
 
     Raises:
-        ValueError: naming every differing key.
+        ValueError: the checkpoint is unreadable, its configuration clashes with the command
+            line, or it has nothing left to train.
     """
-    diffs = resume_differences(state["config"], current)
-    if diffs:
+    from omegaconf import OmegaConf
+
+    from irdrc.agents.dqn import load_checkpoint
+
+    if not cfg.get("resume"):
+        return None, cfg
+    path = Path(str(cfg.resume)).expanduser()
+    state = load_checkpoint(path)
+    current = OmegaConf.to_container(cfg, resolve=True)
+    merged = OmegaConf.create(resumed_config(path, state["config"], current, explicit))
+    total = int(merged.algo.total_frames)
+    if int(state["frames"]) >= total:
         raise ValueError(
-            f"resume={path} was trained with another configuration; these keys differ "
-            f"(checkpoint → this run): {'; '.join(diffs)}"
+            f"resume={path} is at {state['frames']} env steps, algo.total_frames={total}: "
+            "nothing left to train; raise algo.total_frames to train it longer"
         )
+    return state, merged
+
+
+def explicit_keys() -> frozenset[str]:
+    """The keys the running Hydra app's command line set (empty outside one)."""
+    from irdrc.experiments.grid import override_key
+
+    try:
+        from hydra.core.hydra_config import HydraConfig
+
+        task = HydraConfig.get().overrides.task
+    except Exception:
+        return frozenset()
+    return frozenset(override_key(o) for o in task)
 
 
 def save_checkpoint(out: Path, state: dict[str, Any], config: dict[str, Any]) -> None:

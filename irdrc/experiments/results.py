@@ -66,11 +66,12 @@ def atomic_write(path: Path, write: Callable[[BinaryIO], None]) -> None:
 
 
 def atomic_savefig(fig: Any, path: Path, dpi: int) -> None:
-    """Write a Matplotlib figure as a PNG atomically (a reader never sees half a file) and close it."""
+    """Write a Matplotlib figure atomically (a reader never sees half a file) in the format its
+    suffix names (``.png``, ``.pdf``, ``.svg``), and close it."""
     import matplotlib.pyplot as plt
 
     buf = io.BytesIO()
-    fig.savefig(buf, dpi=dpi, format="png")
+    fig.savefig(buf, dpi=dpi, format=Path(path).suffix.lstrip(".") or "png")
     plt.close(fig)
     data = buf.getvalue()
     atomic_write(Path(path), lambda f: f.write(data))

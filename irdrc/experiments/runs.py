@@ -38,7 +38,8 @@ from irdrc.experiments.finish import end_warning, finish_run, table_dict
 from irdrc.experiments.grid import is_scenario_key, parse_grid
 from irdrc.experiments.guard import (
     RunInterrupted,
-    check_resume,
+    explicit_keys,
+    load_resume,
     save_checkpoint,
     stop_on_signals,
 )
@@ -198,23 +199,6 @@ def batch_points(cfg: DictConfig) -> list[dict[str, Any]]:
     return points
 
 
-def _load_resume(cfg: DictConfig) -> tuple[dict[str, Any] | None, Path | None]:
-    """The checkpoint to resume from (``resume=…``), checked against this run's config before
-    anything is written."""
-    if not cfg.get("resume"):
-        return None, None
-    path = Path(str(cfg.resume)).expanduser()
-    state = dqn.load_checkpoint(path)
-    check_resume(path, state, OmegaConf.to_container(cfg, resolve=True))
-    total = int(cfg.algo.total_frames)
-    if int(state["frames"]) >= total:
-        raise ValueError(
-            f"resume={path} is at {state['frames']} env steps, algo.total_frames={total}: "
-            "nothing left to train; raise algo.total_frames"
-        )
-    return state, path
-
-
 def run_learner(
     method: str, cfg: DictConfig, out: Path, scenario: str | None = None
 ) -> dict[str, Any]:
@@ -224,6 +208,8 @@ def run_learner(
     that checkpoint, ``checkpoint.pt``) are written and ``RunInterrupted`` says how to go on.
     """
     agent = LEARNERS[method]
+    # a resumed run goes on with the checkpoint's configuration (what the command line set aside)
+    resume, cfg = load_resume(cfg, explicit_keys())  # before anything is written
     torch.set_num_threads(int(cfg.get("num_threads", 1)))
     logging.getLogger("torchrl").setLevel(logging.WARNING)  # its storage line would cut the bar
     # the run's own record counts the extra frames of a last partial batch
@@ -234,10 +220,9 @@ def run_learner(
     num_learners = int(cfg.get("num_learners", 1))
     points = batch_points(cfg)
     scenarios = [base.with_overrides(p) for p in points]
-    resume, resume_path = _load_resume(cfg)  # before anything is written
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    scenario = scenario or scenario_name(cfg)
+    scenario = (resume or {}).get("scenario") or scenario or scenario_name(cfg)
     name = str(cfg.algo.get("name", method))
     atomic_write_text(out / "config.yaml", OmegaConf.to_yaml(cfg))
     logger = make_logger(
@@ -248,8 +233,12 @@ def run_learner(
         mode=cfg.logger.mode,
         config=OmegaConf.to_container(cfg, resolve=True),
     )
-    if resume_path is not None:
-        print(f"resumed from {resume_path} at {resume['frames']} env steps", flush=True)
+    if resume is not None:
+        print(
+            f"resumed from {Path(str(cfg.resume)).expanduser()} at {resume['frames']} env steps; "
+            f"training to {cfg.algo.total_frames}, files in {out}",
+            flush=True,
+        )
     scorers = [ExactScorer(build_model(p), gamma=float(cfg.optimum_gamma)) for p in scenarios]
     progress = RunProgress(config.env_steps(base.env.horizon), bool(cfg.progress), logger, name)
     config_plain = OmegaConf.to_container(cfg, resolve=True)
@@ -258,7 +247,9 @@ def run_learner(
             on_eval=progress.on_eval,
             on_batch=progress.on_batch,
             on_start=progress.on_start,
-            on_checkpoint=lambda state: save_checkpoint(out, state, config_plain),
+            on_checkpoint=lambda state: save_checkpoint(
+                out, {**state, "scenario": scenario}, config_plain
+            ),
             checkpoint_every_frames=int(cfg.get("checkpoint", {}).get("every_frames", 0) or 0),
             should_stop=stop,
         )
@@ -290,7 +281,7 @@ def run_learner(
         signum = stop.signal or signal.SIGINT
         how = (
             f"go on with: python recipes/{method}.py resume={out / 'checkpoint.pt'} "
-            "(and the same overrides)"
+            "(it goes on in the same directory with the same configuration)"
             if record.state is not None
             else f"{method} runs do not resume: start again"
         )

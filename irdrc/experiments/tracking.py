@@ -11,7 +11,7 @@ import os
 from pathlib import Path
 from typing import Any
 
-BACKENDS = ("none", "csv", "wandb")
+BACKENDS = ("none", "csv", "tensorboard", "wandb")
 WANDB_MODES = ("auto", "online", "offline", "disabled")
 
 
@@ -48,12 +48,15 @@ def make_logger(
     mode: str = "auto",
     config: dict[str, Any] | None = None,
 ):
-    """A TorchRL logger (``WandbLogger`` or ``CSVLogger``), or None for ``backend="none"``.
+    """A TorchRL logger (``CSVLogger``, ``TensorboardLogger`` or ``WandbLogger``), or None for
+    ``backend="none"``.
 
     Args:
-        backend: ``none``, ``csv`` or ``wandb``.
+        backend: ``none``, ``csv``, ``tensorboard`` or ``wandb``.
         exp_name: the run's name.
-        log_dir: where files go (CSV: ``<log_dir>/<exp_name>/scalars``; W&B: ``<log_dir>/wandb``).
+        log_dir: where files go (CSV: ``<log_dir>/<exp_name>/scalars``; TensorBoard:
+            ``<log_dir>/<exp_name>``, read with ``tensorboard --logdir <log_dir>``; W&B:
+            ``<log_dir>/wandb``).
         project: W&B project.
         mode: W&B mode (see ``resolve_wandb_mode``).
         config: hyperparameters recorded with the run (W&B).
@@ -66,6 +69,10 @@ def make_logger(
         from torchrl.record.loggers import CSVLogger
 
         return CSVLogger(exp_name=exp_name, log_dir=str(log_dir))
+    if backend == "tensorboard":
+        from torchrl.record.loggers import TensorboardLogger
+
+        return TensorboardLogger(exp_name=exp_name, log_dir=str(log_dir))
     import wandb
     from torchrl.record.loggers import WandbLogger
 

@@ -24,8 +24,9 @@ from irdrc.agents import dqn, qlearning
 from irdrc.core.model import DENSE_MODEL_LIMIT_BYTES
 from irdrc.core.params import Params, check_bool, check_choice, check_number, to_plain
 from irdrc.experiments.config import CONF_DIR, compose, list_scenarios
+from irdrc.experiments.finish import PLOT_FORMATS
 from irdrc.experiments.grid import candidate_overrides, override_key, parse_grid
-from irdrc.experiments.guard import check_resume
+from irdrc.experiments.guard import load_resume
 from irdrc.experiments.runs import RUNNERS, batch_points
 from irdrc.experiments.tracking import BACKENDS, WANDB_MODES
 
@@ -234,6 +235,8 @@ def check_common(cfg: DictConfig, factored: bool = False) -> Params | None:
             )
     if "progress" in cfg and cfg.progress != "auto":
         check_bool("progress", cfg.progress)
+    if _opt(cfg, "plot.format") is not None:
+        check_choice("plot.format", cfg.plot.format, PLOT_FORMATS)
     if "logger" in cfg:
         check_choice("logger.backend", cfg.logger.backend, BACKENDS)
         check_choice("logger.mode", cfg.logger.mode, WANDB_MODES)
@@ -276,10 +279,7 @@ def _dqn(cfg: DictConfig, explicit: frozenset[str] = frozenset()) -> None:
         check_bool("compare.qlearning_paper", cfg.compare.qlearning_paper)
     if _opt(cfg, "compare.qlearning_paper"):
         check_writable_dir("cache_dir", cfg.cache_dir)
-    if cfg.get("resume"):
-        path = Path(str(cfg.resume)).expanduser()
-        state = dqn.load_checkpoint(path)
-        check_resume(path, state, OmegaConf.to_container(cfg, resolve=True))
+    load_resume(cfg, explicit)  # the checkpoint readable, no clash, something left to train
     del params
 
 

@@ -124,4 +124,4 @@ def test_with_overrides_keeps_the_rest_and_validates():
     with pytest.raises(ValueError, match=r"env\.p1\.sped"):
         base.with_overrides({"env.p1.sped": 0.5})
     with pytest.raises(ValueError, match=r"env\.p1\.speed=1\.5"):
-        base.with_overrides({"p1.speed": 1.5})
+        base.with_overrides({"env.p1.speed": 1.5})

@@ -166,3 +166,49 @@ def test_auto_hands_a_slow_chain_to_aggregation(monkeypatch):
         assert got.mean_queue == pytest.approx(want.mean_queue, abs=1e-8), method
         if method == "auto":
             assert steps > 5  # the power steps did not converge alone
+
+
+def test_aggregation_where_the_queue_never_empties():
+    """Radar always on large's dynamics: the queue fills and stays full, so short queues are
+    transient. The aggregated solve fixes the scale at the queue length holding the most mass (a
+    recurrent one, not d = 0) and gives the dense model's metrics."""
+    import irdrc.core.factored as fmod
+
+    params = Params.from_config(compose("solve", ["env=large", "env.queue_capacity=5"]))
+    dense, fac = build_model(params), build_factored(params)
+    policy = torch.ones(dense.num_states, dtype=torch.int64)
+    want = stationary_metrics(dense, policy)
+    mu, _ = fmod.stationary_distribution_factored(fac, policy, method="iad")
+    got = stationary_metrics_factored(fac, policy, mu=mu)
+    assert want.mean_queue == pytest.approx(5.0, abs=1e-9)  # full for good
+    assert got.mean_queue == pytest.approx(want.mean_queue, abs=1e-9)
+    assert got.avg_reward == pytest.approx(want.avg_reward, abs=1e-9)
+
+
+def test_growth_exponent_of_the_scale_table():
+    """``growth_exponents``: times that grow as S^1.5 fit k = 1.5; the last pair's k is its own."""
+    from irdrc.experiments.bench_scale import growth_exponents
+
+    rows = [
+        {
+            "scenario": "large",
+            "solver": "factored",
+            "device": "cpu",
+            "num_states": S,
+            "median_seconds": 1e-6 * S**1.5,
+        }
+        for S in (1_000, 10_000, 100_000)
+    ] + [
+        {
+            "scenario": "large",
+            "solver": "factored",
+            "device": "cpu",
+            "num_states": 1_000_000,
+            "median_seconds": 1e-6 * 100_000**1.5 * 1000,
+        }
+    ]
+    (g,) = growth_exponents(rows)
+    assert g["k_last"] == pytest.approx(3.0)
+    assert 1.5 < g["k_fit"] < 3.0
+    three = growth_exponents(rows[:3])[0]
+    assert three["k_fit"] == pytest.approx(1.5) and three["k_last"] == pytest.approx(1.5)

@@ -445,14 +445,13 @@ def _stationary_iad(
             K = pmf.shape[0]
             src = np.repeat(d, K)
             dst = np.clip(src + np.tile(np.arange(K), D1) - nu, 0, D1 - 1)
-            keep = dst != 0  # row 0 of (Aᵀ − I) is replaced by Σ α = 1
-            parts.append((a, cols, src[keep], np.tile(pmf, D1)[keep], dst[keep]))
-    # (Aᵀ − I)·α = 0 with its first row replaced by 1ᵀ·α = 1: entries (dst, src)
-    ri = np.concatenate([pt[4] for pt in parts] + [d[1:], np.zeros(D1, dtype=np.int64)])
-    ci = np.concatenate([pt[2] for pt in parts] + [d[1:], d])
-    fixed = np.concatenate([-np.ones(D1 - 1), np.ones(D1)])
-    b = np.zeros(D1)
-    b[0] = 1.0
+            parts.append((a, cols, src, np.tile(pmf, D1), dst))
+    # (Aᵀ − I)·α = 0, entries (dst, src), with the row of one queue length r replaced by α_r = 1
+    # (r holds the most mass, so it is recurrent): the matrix stays banded — d′ − d between −ν and
+    # the arrivals kept — and its LU costs O(D), where a row of ones (Σ α = 1) fills it in.
+    ri = np.concatenate([pt[4] for pt in parts] + [d])
+    ci = np.concatenate([pt[2] for pt in parts] + [d])
+    diag = -np.ones(D1)
     if start is None:
         X = torch.zeros(D1, nf, dtype=torch.float64, device=model.device)
         X[_start_queue(model, p)] = 1.0 / nf
@@ -473,7 +472,17 @@ def _stationary_iad(
         for a, cols, src, pmf, _ in parts:
             w = (cond[:, cols] * choice[a][:, cols]).sum(1).cpu().numpy()
             vals.append(w[src] * pmf)
-        M = sparse.csc_matrix((np.concatenate([*vals, fixed]), (ri, ci)), shape=(D1, D1))
+        r = int(mass.argmax())
+        keep = ri != r
+        M = sparse.csc_matrix(
+            (
+                np.append(np.concatenate([*vals, diag])[keep], 1.0),
+                (np.append(ri[keep], r), np.append(ci[keep], r)),
+            ),
+            shape=(D1, D1),
+        )
+        b = np.zeros(D1)
+        b[r] = 1.0
         alpha = torch.from_numpy(np.clip(spsolve(M, b), 0.0, None)).to(X.device)
         X = (alpha / alpha.sum())[:, None] * cond
     return X.reshape(-1), max_iter, False

@@ -119,6 +119,39 @@ def _child(scenario: str, queue: int, solver: str, device: str, tol: float, time
     return json.loads(res.stdout.strip().splitlines()[-1])
 
 
+def growth_exponents(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Per (scenario, solver, device) measured at two sizes or more: k of time ∝ S^k, the
+    least-squares slope of log(median s) on log(S) over every size, and between the two largest."""
+    out = []
+    keys = list(dict.fromkeys((r["scenario"], r["solver"], r["device"]) for r in rows))
+    for key in keys:
+        pts = sorted(
+            (r["num_states"], r["median_seconds"])
+            for r in rows
+            if (r["scenario"], r["solver"], r["device"]) == key and r["median_seconds"] > 0
+        )
+        if len(pts) < 2:
+            continue
+        xs = [math.log(S) for S, _ in pts]
+        ys = [math.log(t) for _, t in pts]
+        mx, my = statistics.fmean(xs), statistics.fmean(ys)
+        fit = sum((x - mx) * (y - my) for x, y in zip(xs, ys, strict=True)) / sum(
+            (x - mx) ** 2 for x in xs
+        )
+        last = (ys[-1] - ys[-2]) / (xs[-1] - xs[-2])
+        out.append(
+            {
+                "scenario": key[0],
+                "solver": key[1],
+                "device": key[2],
+                "sizes": [S for S, _ in pts],
+                "k_fit": fit,
+                "k_last": last,
+            }
+        )
+    return out
+
+
 def run_bench_scale(cfg: DictConfig, out: Path) -> int:
     """Every (scenario, S, solver[, device]) of ``cfg``: ``repeats`` fresh-process solves, median
     wall time, peak memory; the table printed and written as CSV and Markdown."""
@@ -199,6 +232,19 @@ def run_bench_scale(cfg: DictConfig, out: Path) -> int:
             f"{r['median_seconds']:.2f} | {r['sweeps']} | {r['stationary_steps']} | "
             f"{r['peak_rss_mb']:.0f} ({r['import_rss_mb']:.0f}) |"
         )
+    growth = growth_exponents(rows)
+    if growth:
+        lines += [
+            "",
+            "| scenario | solver | device | S measured | time ∝ S^k: k fitted over them | k between "
+            "the two largest |",
+            "|---|---|---|---|---|---|",
+        ]
+        for g in growth:
+            lines.append(
+                f"| {g['scenario']} | {g['solver']} | {g['device']} | "
+                f"{', '.join(f'{S:,}' for S in g['sizes'])} | {g['k_fit']:.2f} | {g['k_last']:.2f} |"
+            )
     if skipped:
         lines.append(
             f"\nNot run (the size before took more than {float(cfg.skip_after_seconds):g} s): "

@@ -185,3 +185,57 @@ def test_learner_stopped_by_sigterm_exits_with_its_signal(tmp_path):
         if proc.poll() is None:
             proc.kill()
     assert (tmp_path / "metrics.csv").is_file()
+
+
+def test_frontier_counts_every_solve_and_its_figure_names_the_targets(tmp_path, monkeypatch):
+    """The frontier's progress counts the LP solves and the r4 solves in one total (its first
+    ETA then covers the whole run, not the r4 part alone), every unit is ticked, and the target
+    lines have a legend entry."""
+    from omegaconf import OmegaConf
+
+    from irdrc.experiments.config import compose
+    from irdrc.paper import frontier, plots
+
+    seen = []
+
+    class Recorder(frontier.Ticker):
+        def __init__(self, total, label, every_seconds=5.0):
+            super().__init__(total, label, every_seconds)
+            seen.append(self)
+
+    figs = []
+    monkeypatch.setattr(frontier, "Ticker", Recorder)
+    monkeypatch.setattr(plots, "atomic_savefig", lambda fig, path, dpi: figs.append(fig))
+    cfg = compose(
+        "constrained",
+        [
+            "frontier=true",
+            "frontier_grid.p1_speed=[0.1]",
+            "frontier_grid.points=3",
+            "frontier_grid.r4.lo=40",
+            "frontier_grid.r4.hi=50",
+            "frontier_grid.r4.step=10",
+            "frontier_grid.targets=[0.05,0.1]",
+        ],
+    )
+    OmegaConf.set_struct(cfg, False)
+    frontier.run_frontier(cfg, tmp_path)
+    (ticker,) = seen
+    assert ticker.total == 5 + 2 and ticker.done == ticker.total  # 3 + 2 targets, 2 values of r4
+    labels = figs[0].axes[0].get_legend_handles_labels()[1]
+    assert sum("target" in label for label in labels) == 1, labels
+
+
+def test_a_degenerate_optimum_is_explained():
+    """r4 = 50 at p^v_1 = 0.1: the optimum never communicates, and the note says why; at the
+    paper's r4 = 5 there is no note."""
+    from irdrc.core.model import build_model
+    from irdrc.core.params import Params
+    from irdrc.core.solve import stationary_metrics, value_iteration
+    from irdrc.experiments.finish import degenerate_note
+
+    notes = []
+    for r4 in (5, 50):
+        model = build_model(Params.from_overrides({"reward.r4": r4}))
+        notes.append(degenerate_note(stationary_metrics(model, value_iteration(model).policy)))
+    assert notes[0] is None and "never communicates" in notes[1] and "r4" in notes[1]

@@ -7,6 +7,7 @@ from __future__ import annotations
 import re
 import shlex
 import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -51,13 +52,22 @@ def config_name(recipe: str) -> str:
     return re.search(r'recipe\(\s*"(\w+)"', source).group(1)
 
 
-def check_command(recipe: str, args: list[str]) -> None:
+def check_command(recipe: str, args: list[str], files: dict[str, Path] | None = None) -> None:
     """What a recipe checks before any work, on ``args``; an argument holding a placeholder
-    (``outputs/DATE/TIME/…``) has its key checked, not its value."""
+    (``outputs/DATE/TIME/…``) has its key checked, and its value replaced by a real file of that
+    kind where ``files`` has one (``checkpoint`` / ``resume``: a DQN checkpoint, ``policy``: a
+    policy table), else left out."""
     assert (ROOT / "recipes" / f"{recipe}.py").is_file(), f"recipes/{recipe}.py does not exist"
     name = config_name(recipe)
     args, _ = rename_overrides(name, [a for a in args if not a.startswith("-")])
     check_overrides(name, args)
+    files = files or {}
+    args = [
+        f"{override_key(a)}={files[override_key(a)]}"
+        if PLACEHOLDER.search(a) and override_key(a) in files
+        else a
+        for a in args
+    ]
     concrete = [a for a in args if not PLACEHOLDER.search(a)]
     plain = [a for a in concrete if not override_key(a).startswith("hydra")]
     validate(name, compose(name, plain), concrete)
@@ -72,8 +82,34 @@ def readme_commands() -> list[tuple[str, list[str]]]:
     readme_commands(),
     ids=[f"{r} {' '.join(a)}"[:80] for r, a in readme_commands()],
 )
-def test_readme_command_passes_its_checks(recipe, args):
-    check_command(recipe, args)
+def test_readme_command_passes_its_checks(recipe, args, example_files):
+    check_command(recipe, args, example_files)
+
+
+@pytest.fixture(scope="module")
+def example_files(tmp_path_factory) -> dict[str, Path]:
+    """Real files for the README's placeholders: a short DQN run's checkpoint and policy table."""
+    out = tmp_path_factory.mktemp("example_run")
+    tiny = [
+        "algo.num_envs=8",
+        "algo.frames_per_batch=32",
+        "algo.total_frames=640",
+        "algo.buffer_size=640",
+        "algo.batch_size=32",
+        "eval.every_frames=320",
+        "eval.mc_episodes=0",
+        "progress=false",
+        "logger=none",
+    ]
+    r = subprocess.run(
+        [sys.executable, str(ROOT / "recipes" / "dqn.py"), *tiny, f"hydra.run.dir={out}"],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert r.returncode == 0, r.stderr[-2000:]
+    ckpt = out / "checkpoint.pt"
+    return {"checkpoint": ckpt, "resume": ckpt, "policy": out / "policy.csv"}
 
 
 def test_readme_has_the_commands_it_promises():

@@ -53,6 +53,27 @@ def _quoted_path(path: Path) -> str:
     return text if plain else "'" + text.replace("\\", "\\\\").replace("'", "\\'") + "'"
 
 
+def stored_overrides(args: list[str]) -> tuple[list[str], list[str]]:
+    """With ``resume=true hydra.run.dir=DIR``, the command line completed by the overrides the run
+    in DIR was started with (its ``.hydra/overrides.yaml``; what the command line sets wins), so a
+    sweep, a figure or a benchmark goes on with its own grid; and the overrides taken from there."""
+    from omegaconf import OmegaConf
+
+    values = {override_key(a): a.split("=", 1)[1] for a in args if "=" in a}
+    run_dir = values.get("hydra.run.dir")
+    if str(values.get("resume", "")).lower() != "true" or not run_dir:
+        return args, []
+    record = Path(run_dir.strip("'\"")).expanduser() / ".hydra" / "overrides.yaml"
+    if not record.is_file():
+        return args, []
+    taken = [
+        str(o)
+        for o in OmegaConf.load(record)
+        if override_key(str(o)) not in values and not override_key(str(o)).startswith("hydra")
+    ]
+    return [*taken, *args], taken
+
+
 def _remove_if_empty(out: Path, log_name: str) -> None:
     """Remove a run directory a refused run made: one holding only Hydra's record and the log
     (and its date folder under ``outputs/`` when that is left empty)."""
@@ -134,6 +155,7 @@ def recipe(
         args = sys.argv[1:]
         try:
             args, notes = rename_overrides(config_name, args)
+            args, stored = stored_overrides(args)
             overrides = [a for a in args if not a.startswith("-")]
             check_overrides(config_name, overrides)
             # Checked before Hydra starts, which creates (or, when it exists, rewrites) the run
@@ -152,6 +174,8 @@ def recipe(
             fail(f"{type(err).__name__}: {str(err).strip().splitlines()[0]}")
         for note in notes:
             print(note, file=sys.stderr)
+        if stored:
+            print(f"resume: with the run's stored overrides {' '.join(stored)}", file=sys.stderr)
         resume = cfg.get("resume")
         if (
             isinstance(resume, str)

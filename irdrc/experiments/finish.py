@@ -151,6 +151,8 @@ def _print_run(
             "long run: the policy's stationary average (it runs forever); episodic: episodes of "
             f"{scenarios[0].env.horizon} steps from a uniform reset, as the Monte-Carlo row samples"
         )
+        if note := degenerate_note(scorers[0].optimal_metrics):
+            print(note)
     else:
         print("scenario                        optimum avg reward  final ratio (median, min)")
         for g, point in enumerate(points):
@@ -309,6 +311,19 @@ def plot_learning_curve(record: RunRecord, path: Path, *, title: str) -> None:
     ax.legend(fontsize=9, loc="lower right")
     fig.tight_layout()
     atomic_savefig(fig, path, dpi=200)
+
+
+def degenerate_note(optimal: Metrics) -> str | None:
+    """A line explaining an optimum that never communicates (throughput 0, every packet dropped),
+    or None: with a large detection reward r4 (e.g. 50 at p^v_1 = 0.1) radar earns more in every
+    state — the paper's degenerate case (docs/REPRODUCTION.md, claim 3)."""
+    if optimal.radar_fraction < 1.0 - 1e-9:
+        return None
+    return (
+        "note: at these weights the optimum never communicates (radar always: throughput 0, "
+        "every packet dropped); a large detection reward r4 makes radar worth more in every "
+        "state, the paper's degenerate case (docs/REPRODUCTION.md, claim 3)"
+    )
 
 
 END_THRESHOLD = 0.99

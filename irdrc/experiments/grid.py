@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import hashlib
 import itertools
+import shlex
 from collections.abc import Mapping
 from typing import Any
 
@@ -103,3 +104,12 @@ def candidate_overrides(cfg: Any) -> dict[str, list[str]]:
             raise ValueError(f"candidates.{name} must be a list of overrides (key=value)")
         out[str(name)] = list(extra)
     return out
+
+
+def shell_quote(arg: str) -> str:
+    """``arg`` quoted for a POSIX shell, readably: single quotes as ``shlex.quote`` gives, or double
+    quotes when the argument holds single quotes and nothing a shell expands inside double quotes."""
+    quoted = shlex.quote(arg)
+    if "'" in arg and not any(c in arg for c in '"$`\\!'):
+        return f'"{arg}"'
+    return quoted

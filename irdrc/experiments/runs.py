@@ -34,7 +34,7 @@ from irdrc.core.policies import table_policy
 from irdrc.core.solve import ExactScorer, episodic_metrics, stationary_metrics, value_iteration
 from irdrc.experiments.config import compose, scenario_name
 from irdrc.experiments.constrained import run_constrained
-from irdrc.experiments.finish import end_warning, finish_run, table_dict
+from irdrc.experiments.finish import degenerate_note, end_warning, finish_run, table_dict
 from irdrc.experiments.grid import is_scenario_key, parse_grid
 from irdrc.experiments.guard import (
     RunInterrupted,
@@ -93,6 +93,8 @@ def run_solve(cfg: DictConfig, out: Path, scenario: str | None = None) -> dict[s
         f"{params.env.horizon} steps from a uniform reset; Monte-Carlo ± 95 % CI):\n"
     )
     print(format_table(rows, errors=errs))
+    if note := degenerate_note(opt):
+        print(note)
 
     summary = summary_dict(
         method="optimal",

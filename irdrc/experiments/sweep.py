@@ -24,9 +24,17 @@ from typing import Any
 from omegaconf import DictConfig, OmegaConf
 
 from irdrc.experiments.config import compose, rename_overrides
-from irdrc.experiments.grid import format_value, parse_grid, point_id, point_overrides, scenario_of
+from irdrc.experiments.grid import (
+    format_value,
+    parse_grid,
+    point_id,
+    point_overrides,
+    scenario_of,
+    shell_quote,
+)
 from irdrc.experiments.results import atomic_write_text
 from irdrc.experiments.runs import RUNNERS
+from irdrc.experiments.seeds import plot_seed_curves, write_seed_summary
 from irdrc.experiments.validate import check_overrides, validate
 
 METHODS = ("dqn", "qlearning", "solve", "constrained")
@@ -197,12 +205,31 @@ def execute(cfg: DictConfig, planned: list[dict[str, Any]], out: Path) -> int:
     except KeyboardInterrupt:
         interrupted = True
         print(
-            "\nsweep: interrupted; finished points are kept (resume=true runs the rest)", flush=True
+            "\nsweep: interrupted; finished points are kept, the ones that were running are "
+            f"INCOMPLETE in summary.csv; go on with: {go_on_command(out)}",
+            flush=True,
         )
     finally:
         # Whatever happened, summary.csv lists every planned point: DONE, ERROR or INCOMPLETE.
         code = write_summary_csv(out / "summary.csv", planned, trials_dir)
+    # A grid over seeds: mean ± 95 % interval per point, and the learning curves with bands.
+    by_point = write_seed_summary(out / "summary.csv", out)
+    curves = plot_seed_curves(out / "summary.csv", trials_dir, out)
+    if by_point is not None:
+        print(f"wrote {by_point}" + (f" and {curves}" if curves else ""), flush=True)
     return 130 if interrupted else code
+
+
+def go_on_command(out: Path) -> str:
+    """The command that goes on with the interrupted run in ``out``: its recipe with
+    ``resume=true`` and the directory (the run's stored overrides come back on their own)."""
+    try:
+        from hydra.core.hydra_config import HydraConfig
+
+        recipe = HydraConfig.get().job.name
+    except Exception:
+        recipe = "sweep"
+    return f"python recipes/{recipe}.py resume=true hydra.run.dir={shell_quote(str(out))}"
 
 
 def run_sweep(cfg: DictConfig, out: Path) -> int:
@@ -284,6 +311,9 @@ def _run_local(todo: list[dict], already: int, total: int, trials_dir: Path) -> 
 def _run_tune(
     cfg: DictConfig, out: Path, todo: list[dict], already: int, total: int, trials_dir: Path
 ) -> None:
+    # Ctrl-C reaches this driver as KeyboardInterrupt (Tune's own handler would mark the running
+    # trials as errors and print its Tuner.restore hint): they stay INCOMPLETE, resume reruns them.
+    os.environ.setdefault("TUNE_DISABLE_SIGINT_HANDLER", "1")
     import ray
     from ray import tune
 

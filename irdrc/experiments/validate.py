@@ -267,6 +267,13 @@ def _solve(cfg: DictConfig) -> None:
         check_episodic_cost(params)
 
 
+def _evaluate(cfg: DictConfig) -> None:
+    from irdrc.experiments.evaluation import load_source
+
+    params = check_common(cfg, factored=True)  # any scenario: the factored scorer beyond dense
+    load_source(cfg, params)  # exactly one readable checkpoint / policy that fits the scenario
+
+
 def _dqn(cfg: DictConfig, explicit: frozenset[str] = frozenset()) -> None:
     params = check_common(cfg)
     config = dqn.DQNConfig.from_node(cfg)
@@ -313,6 +320,11 @@ def check_executor(cfg: DictConfig) -> None:
 def _sweep(cfg: DictConfig) -> None:
     check_executor(cfg)
     check_choice("method", cfg.method, tuple(RUNNERS))
+    if cfg.get("resume") and not cfg.sweep.grid:
+        raise ValueError(
+            "resume=true goes on with a sweep's stored grid: name its directory with "
+            "hydra.run.dir=… (the one the sweep printed)"
+        )
     parse_grid(cfg.sweep.grid)
 
 
@@ -465,6 +477,7 @@ def _constrained(cfg: DictConfig) -> None:
 VALIDATORS: dict[str, Callable[[DictConfig], None]] = {
     "constrained": _constrained,
     "solve": _solve,
+    "evaluate": _evaluate,
     "dqn": _dqn,
     "qlearning": _qlearning,
     "sweep": _sweep,

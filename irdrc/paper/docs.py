@@ -15,13 +15,13 @@ names the block (several runs of one benchmark fill several blocks).
 
 from __future__ import annotations
 
-import shlex
 import sys
 from collections.abc import Sequence
 from pathlib import Path
 
 from omegaconf import OmegaConf
 
+from irdrc.experiments.grid import shell_quote
 from irdrc.experiments.results import atomic_write_text
 
 TABLE_FILES_IGNORED = ("claims.md",)
@@ -68,15 +68,6 @@ def run_command(run_dir: Path) -> str:
     hydra = OmegaConf.load(record).hydra
     overrides = [o for o in hydra.overrides.task if not o.startswith("hydra.")]
     return " ".join(["python", f"recipes/{hydra.job.name}.py", *map(shell_quote, overrides)])
-
-
-def shell_quote(arg: str) -> str:
-    """``arg`` quoted for a POSIX shell, readably: single quotes as ``shlex.quote`` gives, or double
-    quotes when the argument holds single quotes and nothing a shell expands inside double quotes."""
-    quoted = shlex.quote(arg)
-    if "'" in arg and not any(c in arg for c in '"$`\\!'):
-        return f'"{arg}"'
-    return quoted
 
 
 def table_file(run_dir: Path) -> Path:

@@ -41,16 +41,23 @@ def r4_grid(cfg: DictConfig) -> list[float]:
     return [float(x) for x in np.round(np.arange(lo, hi + step / 2, step), 10)]
 
 
-def _lp_points(
-    params: Params, p: float, kwargs: dict[str, Any], n: int, gamma: float, extra: list[float]
-) -> list:
-    """LP optima at ``n`` targets from 0 to the reward-optimal policy's miss detection, and at the
-    ``extra`` targets (the table's)."""
+def _lp_targets(params: Params, n: int, gamma: float, extra: list[float]) -> list[float]:
+    """``n`` targets from 0 to the reward-optimal policy's miss detection, and the ``extra`` ones
+    (the table's)."""
     model = build_model(params)
     top = stationary_metrics(model, value_iteration(model, gamma=gamma).policy).miss_detection
+    return sorted({*np.linspace(0.0, top, n).tolist(), *extra})
+
+
+def _lp_points(
+    params: Params, p: float, kwargs: dict[str, Any], targets: list[float], ticker: Ticker
+) -> list:
+    """LP optima at ``targets``."""
+    model = build_model(params)
     rows = []
-    for target in sorted({*np.linspace(0.0, top, n).tolist(), *extra}):
+    for target in targets:
         sol = solve_cmdp(model, **{**kwargs, "target_miss": float(target)})
+        ticker.tick()
         rows.append(
             {
                 "p1_speed": p,
@@ -126,11 +133,15 @@ def run_frontier(cfg: DictConfig, out: Path) -> dict[str, Any]:
     t0 = time.perf_counter()
     lp_rows: list[dict] = []
     r4_rows: list[dict] = []
-    ticker = Ticker(len(ps) * len(r4s), "reward route: exact solves over r4")
+    scenarios = {p: ref_params(base, p) for p in ps}
+    lp_targets = {p: _lp_targets(scenarios[p], n, gamma, targets) for p in ps}
+    # one count for the whole run, LP solves and r4 solves alike, so the first ETA is a fair one
+    total = sum(len(t) for t in lp_targets.values()) + len(ps) * len(r4s)
+    ticker = Ticker(total, "frontier: exact LP solves per target, then value iteration per r4")
     for p in ps:
-        params = ref_params(base, p)
-        lp_rows += _lp_points(params, p, kwargs, n, gamma, targets)
-        r4_rows += _r4_points(params, p, r4s, gamma, ticker)
+        lp_rows += _lp_points(scenarios[p], p, kwargs, lp_targets[p], ticker)
+    for p in ps:
+        r4_rows += _r4_points(scenarios[p], p, r4s, gamma, ticker)
     gap = give_up_table(lp_rows, r4_rows, targets)
     wall = time.perf_counter() - t0
     write_rows_csv(out / "frontier.csv", [*lp_rows, *r4_rows], FRONTIER_COLUMNS)

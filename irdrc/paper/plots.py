@@ -261,8 +261,9 @@ def plot_frontier(
             color=line.get_color(),
             label=f"reward-optimal policy at each r4 (r4 route), p1.speed={p:g}",
         )
-    for t in targets:
-        ax.axvline(t, color="tab:red", linestyle=":", alpha=0.6)
+    for i, t in enumerate(targets):
+        label = "the recipe's targets (target_miss)" if i == 0 else None
+        ax.axvline(t, color="tab:red", linestyle=":", alpha=0.6, label=label)
     ax.set_xlabel("miss detection probability")
     ax.set_ylabel("throughput (packets sent per step)")
     ax.set_title("The design question: most data subject to a miss-detection target")

@@ -1,0 +1,109 @@
+"""``recipes/evaluate.py``: a saved network or policy table scored on any scenario."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+TINY = [
+    "algo.num_envs=8",
+    "algo.frames_per_batch=32",
+    "algo.total_frames=640",
+    "algo.init_random_frames=128",
+    "algo.buffer_size=640",
+    "algo.batch_size=32",
+    "eval.every_frames=320",
+    "eval.mc_episodes=0",
+    "progress=false",
+    "logger=none",
+    "reward.r4=50",
+]
+
+
+def run(recipe: str, *args: str) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, str(ROOT / "recipes" / recipe), *args],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        cwd=ROOT,
+    )
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("trained")
+    r = run("dqn.py", *TINY, f"hydra.run.dir={out}")
+    assert r.returncode == 0, r.stderr[-2000:]
+    return out
+
+
+def test_a_network_on_its_own_scenario_scores_as_its_run_did(trained, tmp_path):
+    """On the scenario it was trained on, the checkpoint's greedy policy is the run's final
+    policy: the same table (policy.csv) and the same exact ratio; the episodic Monte-Carlo row
+    comes with the exact episodic row it estimates."""
+    out = tmp_path / "e"
+    r = run(
+        "evaluate.py",
+        f"checkpoint={trained / 'checkpoint.pt'}",
+        "reward.r4=50",
+        "eval.mc_episodes=16",
+        "eval.mc_num_envs=16",
+        f"hydra.run.dir={out}",
+    )
+    assert r.returncode == 0, r.stderr[-2000:]
+    run_summary = json.loads((trained / "summary.json").read_text())
+    s = json.loads((out / "summary.json").read_text())
+    assert s["optimality_ratio"] == pytest.approx(run_summary["optimality_ratio"], abs=1e-12)
+    assert (out / "policy.csv").read_text() == (trained / "policy.csv").read_text()
+    assert {
+        "network (exact, long run)",
+        "network (exact, episodic)",
+        "network (Monte-Carlo, episodic)",
+        "optimal (exact, long run)",
+    } <= set(s["table"])
+    assert "of this scenario's optimum" in r.stdout
+
+
+def test_a_network_on_another_scenario_and_a_table_elsewhere(trained, tmp_path):
+    """Transfer: the network on multilevel (S = 792) is scored against multilevel's own optimum;
+    a policy.csv of the paper scenario is scored under other reward weights; a table of another
+    size is refused before any work, naming both sizes."""
+    r = run(
+        "evaluate.py",
+        f"checkpoint={trained / 'checkpoint.pt'}",
+        "env=multilevel",
+        "eval.mc_episodes=0",
+        f"hydra.run.dir={tmp_path / 'ml'}",
+    )
+    assert r.returncode == 0, r.stderr[-2000:]
+    s = json.loads((tmp_path / "ml" / "summary.json").read_text())
+    assert (
+        s["scenario"] == "multilevel"
+        and len((tmp_path / "ml" / "policy.csv").read_text().splitlines()) == 793
+    )
+    assert 0 < s["optimality_ratio"] <= 1 + 1e-9
+    r = run(
+        "evaluate.py",
+        f"policy={trained / 'policy.csv'}",
+        "reward.r4=5",
+        "eval.mc_episodes=0",
+        f"hydra.run.dir={tmp_path / 'p'}",
+    )
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert json.loads((tmp_path / "p" / "summary.json").read_text())["source"].startswith("policy")
+    bad = run(
+        "evaluate.py",
+        f"policy={trained / 'policy.csv'}",
+        "env=multilevel",
+        f"hydra.run.dir={tmp_path / 'bad'}",
+    )
+    assert bad.returncode == 2 and "352 states, expected 792" in bad.stderr, bad.stderr
+    assert not (tmp_path / "bad").exists()
+    neither = run("evaluate.py", f"hydra.run.dir={tmp_path / 'n'}")
+    assert neither.returncode == 2 and "exactly one of checkpoint" in neither.stderr

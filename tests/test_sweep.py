@@ -155,7 +155,8 @@ def test_crash_marks_error_and_resume_reruns_only_it(tmp_path):
     done_files = {p: p.stat().st_mtime_ns for p in (tmp_path / "trials").glob("*/summary.json")}
     assert len(done_files) == 3
     # the crash removed: resume runs only the point that did not finish
-    r2 = sweep(tmp_path, "method=solve", grid, base, "resume=true")
+    # the injected crash removed (the stored overrides would bring it back)
+    r2 = sweep(tmp_path, "method=solve", grid, base, "resume=true", "sweep.fail_on=[]")
     assert r2.returncode == 0, (r2.stdout[-3000:], r2.stderr[-3000:])
     assert "4 grid points, 1 to run (resume)" in r2.stdout and r2.stdout.count("→ DONE") == 1
     assert {t["status"] for t in rows(tmp_path / "summary.csv")} == {"DONE"}
@@ -201,11 +202,13 @@ def test_local_executor_crash_resume_and_mixed_plans(tmp_path):
         ).read_text()
     )
     # resume as the README gives it: the directory alone; the stored grid and options come back
+    # (all but the injected crash, which is removed)
     r = subprocess.run(
         [
             sys.executable,
             str(ROOT / "recipes" / "sweep.py"),
             "resume=true",
+            "sweep.fail_on=[]",
             f"hydra.run.dir={tmp_path}",
         ],
         capture_output=True,

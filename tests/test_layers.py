@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 PKG = Path(__file__).resolve().parents[1] / "irdrc"
-LAYERS = {"core": 0, "agents": 1, "experiments": 2, "paper": 3}
+LAYERS = {"core": 0, "fleet": 1, "agents": 1, "experiments": 2, "paper": 3}
 """Each layer may import only the layers before it (and itself)."""
 
 

@@ -1,0 +1,448 @@
+"""The exact fleet MDP of MODEL.md § C on factored kernels, and its centralised optimum.
+
+N vehicles alike (each with the single-vehicle model of ``params``) share road r and weather w;
+each has its own queue, channel, speed, object (and traffic phase). The joint state is
+(r, w, x_1, …, x_N) with x_i the vehicle's own components, index mixed radix with (r, w) most
+significant, then vehicle 1 … N in the single-vehicle order of their components. The joint action
+a = Σ_i a_i·2^(i−1) (bit i − 1 is vehicle i's: 0 comm, 1 radar).
+
+The kernels come from the single-vehicle exact model (``irdrc.core.model.build_model``), which is
+held to the simulator by its own tests: its transition factorises as P_rw(r′w′ | rw)·K_a(x′ | x)
+(road and weather follow their chains whatever the vehicle does), and K_a as the queue's
+Q_a(d′ | d, f) times the other components' F_a(f′ | f) — both checked when the model is built. A
+vehicle denied the uplink moves its queue as in radar mode (nothing sent) and its components as in
+comm mode (no radar reaction). Nothing here is an S × S matrix: the Bellman operator contracts the
+value tensor [RW, X, …, X] one axis at a time.
+
+Rewards, events and detection (per vehicle, given the joint action and who is granted):
+e = P(event | r, w, v_i, m_i); k_i = other vehicles in radar; q_i = 1 − (1 − share)^k_i the chance
+that another vehicle detects vehicle i's event (cooperative perception); P_d, P_fa the radar's.
+
+| a_i | outcome | reward | missed |
+|---|---|---|---|
+| radar | event, detected by itself (P_d) | r4·(b_i + 1) | 0 |
+| radar | event, not by itself, by another (q_i) | 0 | 0 |
+| radar | event, by nobody | −r3 | 1 |
+| radar | no event, false alarm (P_fa) | −r5 | 0 |
+| comm, granted | no event, or an event another vehicle detects | r_comm[c_i] | 0 |
+| comm, denied | no event, or an event another vehicle detects | 0 | 0 |
+| comm | event, by nobody | −r3 | 1 |
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from dataclasses import dataclass, field
+
+import torch
+
+from irdrc.core.env import decode_state
+from irdrc.core.metrics import Metrics
+from irdrc.core.model import ExactModel, build_model
+from irdrc.core.params import Params, check_choice, check_number
+
+ACCESS = ("scheduled", "collision")
+"""Uplink access rules: ``scheduled`` (K of the requests granted at random when more ask) or
+``collision`` (no request granted when more than K ask)."""
+
+FLEET_STATE_LIMIT = 2_000_000
+"""The largest joint state space the exact fleet model is built for (value tensors of float64 per
+joint action; N = 2 on the paper's sizes has 30 976 states, N = 3 2 725 888 — beyond it)."""
+
+
+@dataclass(frozen=True)
+class FleetSpec:
+    """A fleet of identical vehicles (MODEL.md § C).
+
+    Attributes:
+        vehicle: each vehicle's single-vehicle model.
+        vehicles: N.
+        channels: K, uplink channels at the base station.
+        access: ``scheduled`` or ``collision`` (``ACCESS``).
+        share: the probability that another vehicle in radar mode detects a vehicle's event.
+    """
+
+    vehicle: Params = field(default_factory=Params)
+    vehicles: int = 2
+    channels: int = 1
+    access: str = "scheduled"
+    share: float = 0.5
+
+    def __post_init__(self) -> None:
+        check_number("env.vehicles", self.vehicles, 1, 16, integer=True)
+        check_number("env.channels", self.channels, 1, 16, integer=True)
+        check_choice("env.access", self.access, ACCESS)
+        check_number("env.share", self.share, 0.0, 1.0)
+
+
+def grants(comm: tuple[int, ...], channels: int, access: str) -> list[tuple[float, frozenset]]:
+    """The uplink's outcomes when the vehicles ``comm`` ask for it: (probability, granted set).
+    At most ``channels`` requests are all granted; beyond, ``scheduled`` grants ``channels`` of
+    them uniformly at random and ``collision`` none."""
+    if len(comm) <= channels:
+        return [(1.0, frozenset(comm))]
+    if access == "collision":
+        return [(1.0, frozenset())]
+    sets = list(itertools.combinations(comm, channels))
+    return [(1.0 / len(sets), frozenset(s)) for s in sets]
+
+
+class FleetModel:
+    """The exact fleet model of ``spec`` (see the module docstring).
+
+    Attributes:
+        spec: the fleet.
+        single: the single-vehicle exact model the kernels come from.
+        RW, X: sizes of the shared (r, w) axis and of one vehicle's own components.
+        P_rw: [RW, RW] the road and weather chain.
+        K: {"comm", "radar", "denied"} → [X, X] one vehicle's kernel.
+        num_states: RW · X^N.
+    """
+
+    def __init__(self, spec: FleetSpec) -> None:
+        self.spec = spec
+        params = spec.vehicle
+        single = build_model(params)
+        self.single = single
+        levels = params.env.levels  # (c, r, w, v, m, phases)
+        S = single.num_states
+        cols = decode_state(torch.arange(S), levels)  # d, c, r, w, v, m[, phase]
+        Lr, Lw = levels[1], levels[2]
+        self.RW = Lr * Lw
+        rw = cols[:, 2] * Lw + cols[:, 3]
+        own = [0, 1, 4, 5] + ([6] if cols.shape[1] == 7 else [])  # d, c, v, m[, phase]
+        radix = [params.env.queue_capacity + 1, levels[0], levels[3], levels[4]]
+        radix += [levels[5]] if cols.shape[1] == 7 else []
+        x = torch.zeros(S, dtype=torch.int64)
+        for j, n in zip(own, radix, strict=True):
+            x = x * n + cols[:, j]
+        self.X = math.prod(radix)
+        self.F = self.X // radix[0]  # the components besides the queue
+        self.N = spec.vehicles
+        self.num_states = self.RW * self.X**self.N
+        if self.num_states > FLEET_STATE_LIMIT:
+            raise ValueError(
+                f"env.vehicles={self.N}: {self.num_states:,} joint states, above the exact fleet "
+                f"model's {FLEET_STATE_LIMIT:,} (N = 2 on the paper's sizes has 30 976)"
+            )
+        # single index → (rw, x), and the single model's tables on the [RW, X] grid
+        self.index = torch.empty(self.RW, self.X, dtype=torch.int64)
+        self.index[rw, x] = torch.arange(S)
+        P = single.P[:, self.index.reshape(-1)][:, :, self.index.reshape(-1)]
+        P = P.reshape(2, self.RW, self.X, self.RW, self.X)
+        self.P_rw = P[0, :, 0].sum(-1)  # [RW, RW′] from any x
+        kern = []
+        for a in (0, 1):
+            K = P[a, 0, :, :, :].sum(1)  # [X, X′] from rw = 0
+            want = self.P_rw[:, None, :, None] * K[None, :, None, :]
+            if not torch.allclose(P[a], want, atol=1e-12, rtol=0):
+                raise ValueError("the single-vehicle model does not factorise over (r, w)")
+            kern.append(K)
+        # queue × other components: K_a[(d, f), (d′, f′)] = Q_a[(d, f), d′]·F_a[f, f′]
+        D1 = radix[0]
+        split = [k.reshape(D1, self.F, D1, self.F) for k in kern]
+        Q = [k.sum(3) for k in split]  # [D1, F, D1′]
+        Fk = [k.sum(2)[0] for k in split]  # [F, F′] from d = 0
+        for k, q, f in zip(split, Q, Fk, strict=True):
+            if not torch.allclose(k, q[:, :, :, None] * f[None, :, None, :], atol=1e-12, rtol=0):
+                raise ValueError("the single-vehicle kernel does not factorise into queue × rest")
+        denied = (Q[1][:, :, :, None] * Fk[0][None, :, None, :]).reshape(self.X, self.X)
+        self.K = {"comm": kern[0], "radar": kern[1], "denied": denied}
+
+        # per-vehicle expectations on the [RW, X] grid
+        grid = self.index
+        self.event = single.event[grid]  # [RW, X]
+        env, rew = params.env, params.reward
+        b = (cols[:, 2] + cols[:, 3] + cols[:, 4] + cols[:, 5]).to(torch.float64)[grid]
+        channel = params.factor("channel")
+        c = cols[:, 1][grid]
+        r_comm = torch.tensor(channel.comm_reward, dtype=torch.float64)[c]
+        self.r_comm = r_comm
+        self.detect_reward = rew.r4 * (b + 1.0)
+        self.r3, self.r5 = float(rew.r3), float(rew.r5)
+        self.p_detect, self.p_alarm = float(env.detection_prob), float(env.false_alarm_prob)
+        self.sent = {"comm": single.sent[0][grid], "radar": single.sent[1][grid]}
+        self.dropped = {"comm": single.dropped[0][grid], "radar": single.dropped[1][grid]}
+        self.capacity = single.capacity[0][grid]
+        self.queue = single.queue.to(torch.float64)[grid]
+        self.joint = [self._joint(a) for a in range(2**self.N)]
+
+    # -- per joint action -----------------------------------------------------------------------
+
+    def actions_of(self, a: int) -> tuple[int, ...]:
+        """Each vehicle's action (0 comm, 1 radar) in joint action ``a``."""
+        return tuple((a >> i) & 1 for i in range(self.N))
+
+    def vehicle_terms(self, act: int, others_radar: int, granted: bool) -> dict[str, torch.Tensor]:
+        """One vehicle's expected reward, missed events, events, sent, dropped, capacity, comm and
+        denied steps per step ([RW, X]) given its action, how many others watch the road and
+        whether its uplink request is granted."""
+        e = self.event
+        q = 1.0 - (1.0 - self.spec.share) ** others_radar  # another vehicle detects the event
+        zero = torch.zeros_like(e)
+        if act == 1:
+            nobody = (1.0 - self.p_detect) * (1.0 - q)
+            reward = e * (self.p_detect * self.detect_reward - nobody * self.r3)
+            reward = reward - (1.0 - e) * self.p_alarm * self.r5
+            return {
+                "reward": reward,
+                "missed": e * nobody,
+                "event": e,
+                "sent": self.sent["radar"],
+                "dropped": self.dropped["radar"],
+                "capacity": zero,
+                "radar": torch.ones_like(e),
+                "comm": zero,
+                "denied": zero,
+                "queue": self.queue,
+            }
+        r_ok = self.r_comm if granted else zero
+        reward = (1.0 - e) * r_ok + e * (q * r_ok - (1.0 - q) * self.r3)
+        key = "comm" if granted else "radar"  # a denied vehicle's queue moves as in radar mode
+        return {
+            "reward": reward,
+            "missed": e * (1.0 - q),
+            "event": e,
+            "sent": self.sent[key],
+            "dropped": self.dropped[key],
+            "capacity": self.capacity if granted else zero,
+            "radar": zero,
+            "comm": torch.ones_like(e),
+            "denied": zero if granted else torch.ones_like(e),
+            "queue": self.queue,
+        }
+
+    def _joint(self, a: int) -> list[tuple[float, list[str], list[dict[str, torch.Tensor]]]]:
+        """For joint action ``a``: per uplink outcome, (probability, each vehicle's kernel name,
+        each vehicle's expected terms)."""
+        acts = self.actions_of(a)
+        comm = tuple(i for i, x in enumerate(acts) if x == 0)
+        radar = sum(acts)
+        out = []
+        for p, granted in grants(comm, self.spec.channels, self.spec.access):
+            names, terms = [], []
+            for i, x in enumerate(acts):
+                others = radar - x
+                if x == 1:
+                    names.append("radar")
+                else:
+                    names.append("comm" if i in granted else "denied")
+                terms.append(self.vehicle_terms(x, others, x == 0 and i in granted))
+            out.append((p, names, terms))
+        return out
+
+    # -- operators ------------------------------------------------------------------------------
+
+    def shape(self) -> tuple[int, ...]:
+        """The joint state tensor's shape: [RW, X, …, X]."""
+        return (self.RW, *([self.X] * self.N))
+
+    def _expand(self, t: torch.Tensor, i: int) -> torch.Tensor:
+        """A vehicle-``i`` quantity [RW, X] broadcast over the joint state."""
+        view = [self.RW] + [1] * self.N
+        view[1 + i] = self.X
+        return t.reshape(view)
+
+    def expected_next(self, V: torch.Tensor, names: list[str]) -> torch.Tensor:
+        """E[V(s′) | s] for every joint state when vehicle i moves by kernel ``names[i]``."""
+        W = torch.tensordot(self.P_rw, V, dims=([1], [0]))  # [RW, X, …]
+        for i, name in enumerate(names):
+            W = torch.tensordot(self.K[name], W, dims=([1], [1 + i]))  # new axis first
+            W = W.movedim(0, 1 + i)
+        return W
+
+    def push(self, mu: torch.Tensor, names: list[str]) -> torch.Tensor:
+        """The next-step distribution of a (sub-)distribution ``mu`` over joint states moving
+        with kernels ``names``."""
+        W = torch.tensordot(self.P_rw, mu, dims=([0], [0]))
+        for i, name in enumerate(names):
+            W = torch.tensordot(self.K[name], W, dims=([0], [1 + i])).movedim(0, 1 + i)
+        return W
+
+    def reward(self, a: int) -> torch.Tensor:
+        """The fleet's expected reward per joint state under joint action ``a``."""
+        R = torch.zeros(self.shape(), dtype=torch.float64)
+        for p, _, terms in self.joint[a]:
+            for i, t in enumerate(terms):
+                R = R + p * self._expand(t["reward"], i)
+        return R
+
+    def q_values(self, V: torch.Tensor, gamma: float) -> torch.Tensor:
+        """Q[a, s] = R_a(s) + γ·E[V(s′)] for every joint action, [2^N, *shape]."""
+        out = []
+        for a in range(2**self.N):
+            Q = self._rewards[a].clone()
+            for p, names, _ in self.joint[a]:
+                Q = Q + gamma * p * self.expected_next(V, names)
+            out.append(Q)
+        return torch.stack(out)
+
+    @property
+    def _rewards(self) -> list[torch.Tensor]:
+        if not hasattr(self, "_reward_cache"):
+            self._reward_cache = [self.reward(a) for a in range(2**self.N)]
+        return self._reward_cache
+
+
+@dataclass(frozen=True)
+class FleetSolution:
+    """The centralised optimum: ``policy`` [S] joint actions (ties → the lowest, all comm first),
+    ``values`` [S], ``iterations`` sweeps."""
+
+    policy: torch.Tensor
+    values: torch.Tensor
+    iterations: int
+
+
+def value_iteration_fleet(
+    model: FleetModel, gamma: float = 0.99, tol: float = 1e-9, max_iter: int = 100_000
+) -> FleetSolution:
+    """Value iteration over the joint state and the 2^N joint actions until sup |V_{k+1} − V_k|
+    < ``tol`` (as ``irdrc.core.solve.value_iteration``)."""
+    if not 0.0 < gamma < 1.0:
+        raise ValueError(f"gamma={gamma} must be in (0, 1)")
+    V = torch.zeros(model.shape(), dtype=torch.float64)
+    for it in range(1, max_iter + 1):  # noqa: B007 - reported after the loop
+        Q = model.q_values(V, gamma)
+        V_new = Q.max(0).values
+        if float((V_new - V).abs().max()) < tol:
+            V = V_new
+            break
+        V = V_new
+    else:
+        raise RuntimeError(f"fleet value iteration did not converge in {max_iter} sweeps")
+    Q = model.q_values(V, gamma)
+    policy = Q.argmax(0)  # first maximum: the lowest joint action
+    return FleetSolution(policy.reshape(-1), V.reshape(-1), it)
+
+
+FLEET_METRICS = (
+    "avg_reward",
+    "throughput",
+    "miss_detection",
+    "radar_fraction",
+    "drop_rate",
+    "denial_rate",
+    "link_capacity",
+    "mean_queue",
+)
+"""Metrics per vehicle and for the fleet (ratios of sums across vehicles)."""
+
+
+def _as_probs(model: FleetModel, policy: torch.Tensor) -> torch.Tensor:
+    """[S, 2^N] joint action probabilities from [S] joint actions or [S, 2^N]."""
+    t = torch.as_tensor(policy)
+    n = 2**model.N
+    if t.shape == (model.num_states,):
+        return torch.nn.functional.one_hot(t.long(), n).to(torch.float64)
+    if t.shape == (model.num_states, n):
+        return t.to(torch.float64)
+    raise ValueError(
+        f"policy must be [{model.num_states}] joint actions or [{model.num_states}, {n}]"
+    )
+
+
+def stationary_fleet(
+    model: FleetModel, policy: torch.Tensor, tol: float = 1e-13, max_iter: int = 200_000
+) -> torch.Tensor:
+    """The stationary distribution [S] of a joint policy, by power iteration from uniform (one
+    recurrent class assumed, as ``irdrc.core.solve.stationary_distribution``)."""
+    probs = _as_probs(model, policy).T.reshape(-1, *model.shape())
+    mu = torch.full(model.shape(), 1.0 / model.num_states, dtype=torch.float64)
+    for _ in range(max_iter):
+        nxt = torch.zeros_like(mu)
+        for a in range(2**model.N):
+            part = mu * probs[a]
+            if float(part.sum()) == 0.0:
+                continue
+            for p, names, _ in model.joint[a]:
+                nxt = nxt + p * model.push(part, names)
+        nxt = nxt / nxt.sum()
+        if float((nxt - mu).abs().sum()) < tol:
+            return nxt.reshape(-1)
+        mu = nxt
+    raise RuntimeError(f"the fleet's stationary distribution did not converge in {max_iter} steps")
+
+
+def fleet_metrics(model: FleetModel, policy: torch.Tensor) -> tuple[Metrics, list[dict]]:
+    """Exact long-run metrics of a joint policy: the fleet's (``Metrics``, with the fleet's
+    average reward, throughput etc. per vehicle-step summed over vehicles where they are rates of
+    the fleet: reward and throughput are fleet totals per step) and each vehicle's (dicts of
+    ``FLEET_METRICS``)."""
+    mu = stationary_fleet(model, policy).reshape(model.shape())
+    probs = _as_probs(model, policy).T.reshape(-1, *model.shape())
+    keys = (
+        "reward",
+        "missed",
+        "event",
+        "sent",
+        "dropped",
+        "capacity",
+        "radar",
+        "comm",
+        "denied",
+        "queue",
+    )
+    sums = [dict.fromkeys(keys, 0.0) for _ in range(model.N)]
+    for a in range(2**model.N):
+        w = mu * probs[a]
+        if float(w.sum()) == 0.0:
+            continue
+        for p, _, terms in model.joint[a]:
+            for i, t in enumerate(terms):
+                for k in keys:
+                    sums[i][k] += p * float((w * model._expand(t[k], i)).sum())
+
+    def rates(s: dict[str, float]) -> dict[str, float]:
+        return {
+            "avg_reward": s["reward"],
+            "throughput": s["sent"],
+            "miss_detection": s["missed"] / s["event"] if s["event"] > 0 else math.nan,
+            "radar_fraction": s["radar"],
+            "drop_rate": s["dropped"],
+            "denial_rate": s["denied"] / s["comm"] if s["comm"] > 0 else math.nan,
+            "link_capacity": s["capacity"],
+            "mean_queue": s["queue"],
+        }
+
+    per = [rates(s) for s in sums]
+    total = {k: sum(s[k] for s in sums) for k in keys}
+    fleet = rates(total)
+    n = model.N
+    fleet_m = Metrics(
+        avg_reward=fleet["avg_reward"],
+        episode_reward=fleet["avg_reward"] * model.spec.vehicle.env.horizon,
+        throughput=fleet["throughput"],
+        link_capacity=fleet["link_capacity"],
+        miss_detection=fleet["miss_detection"],
+        radar_fraction=total["radar"] / n,
+        drop_rate=fleet["drop_rate"],
+        mean_queue=total["queue"] / n,
+    )
+    for i, r in enumerate(per):
+        r["vehicle"] = i + 1
+    per.append(
+        {
+            "vehicle": "fleet",
+            **fleet,
+            "radar_fraction": total["radar"] / n,
+            "mean_queue": total["queue"] / n,
+        }
+    )
+    return fleet_m, per
+
+
+def joint_from_single(model: FleetModel, actions: torch.Tensor) -> torch.Tensor:
+    """[S_fleet] joint actions where every vehicle applies the single-vehicle table ``actions``
+    ([S] over the single model's states) to its own state and the shared road and weather."""
+    table = torch.as_tensor(actions).long()[model.index]  # [RW, X]
+    joint = torch.zeros(model.shape(), dtype=torch.int64)
+    for i in range(model.N):
+        joint = joint + (model._expand(table, i) << i)
+    return joint.reshape(-1)
+
+
+def single_model(model: FleetModel) -> ExactModel:
+    """The single-vehicle exact model the fleet is built from."""
+    return model.single

@@ -1,0 +1,124 @@
+"""The exact fleet model (MODEL.md § C): one vehicle is today's model, access and cooperation rules
+by hand, and independent vehicles add up."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from irdrc.core.params import Params
+from irdrc.core.solve import stationary_metrics, value_iteration
+from irdrc.fleet.exact import (
+    FleetModel,
+    FleetSpec,
+    fleet_metrics,
+    grants,
+    joint_from_single,
+    value_iteration_fleet,
+)
+
+
+@pytest.fixture(scope="module")
+def one():
+    return FleetModel(FleetSpec(vehicles=1))
+
+
+def test_one_vehicle_is_todays_model(one):
+    """N = 1: the expected rewards are the single-vehicle model's bit for bit, value iteration
+    gives the same policy, and the exact metrics agree to 1e-12."""
+    single = one.single
+    for a in (0, 1):
+        R = one.reward(a).reshape(one.RW, one.X)
+        assert torch.equal(R, single.R[a][one.index])
+    sol = value_iteration_fleet(one)
+    ref = value_iteration(single)
+    assert torch.equal(sol.policy.reshape(one.RW, one.X), ref.policy[one.index])
+    # the fleet's values are value iteration's (within tol·γ/(1 − γ)); the reference's are exact
+    assert float((sol.values.reshape(one.RW, one.X) - ref.values[one.index]).abs().max()) < 1e-6
+    got, per = fleet_metrics(one, sol.policy)
+    want = stationary_metrics(single, ref.policy)
+    for key in ("avg_reward", "throughput", "miss_detection", "radar_fraction", "drop_rate"):
+        assert getattr(got, key) == pytest.approx(getattr(want, key), abs=1e-12), key
+    assert per[0]["denial_rate"] == 0.0
+
+
+def test_one_vehicle_with_an_imperfect_radar_is_todays_model():
+    params = Params.from_overrides(
+        {"env.detection_prob": 0.8, "env.false_alarm_prob": 0.1, "reward.r5": 7.0}
+    )
+    m = FleetModel(FleetSpec(vehicle=params, vehicles=1, share=0.7))
+    for a in (0, 1):
+        R = m.reward(a).reshape(m.RW, m.X)
+        assert float((R - m.single.R[a][m.index]).abs().max()) < 1e-12
+
+
+def test_uplink_access_by_hand():
+    assert grants((0, 2), 2, "scheduled") == [(1.0, frozenset({0, 2}))]
+    three = grants((0, 1, 2), 1, "scheduled")
+    assert sorted(sorted(g) for _, g in three) == [[0], [1], [2]]
+    assert all(p == pytest.approx(1 / 3) for p, _ in three)
+    two_of_three = grants((0, 1, 2), 2, "scheduled")
+    assert len(two_of_three) == 3 and all(len(g) == 2 for _, g in two_of_three)
+    assert grants((0, 1, 2), 2, "collision") == [(1.0, frozenset())]
+    assert grants((), 1, "collision") == [(1.0, frozenset())]
+
+
+def test_cooperative_perception_and_denial_rewards_by_hand():
+    """One state, computed by hand: vehicle 1 in comm, the other vehicle in radar, share 0.5,
+    P_d = 1. Event probability e; granted: (1 − e)·r_comm + e·(0.5·r_comm − 0.5·r3); denied: the
+    comm reward is lost, the penalty stays; in radar: e·r4·(b + 1)."""
+    m = FleetModel(FleetSpec(vehicles=2, share=0.5))
+    e, rc = m.event, m.r_comm
+    granted = m.vehicle_terms(0, others_radar=1, granted=True)
+    assert torch.allclose(granted["reward"], (1 - e) * rc + e * (0.5 * rc - 0.5 * 50.0))
+    assert torch.allclose(granted["missed"], 0.5 * e)
+    denied = m.vehicle_terms(0, others_radar=1, granted=False)
+    assert torch.allclose(denied["reward"], -0.5 * 50.0 * e)
+    assert float(denied["sent"].abs().max()) == 0.0 and float(denied["denied"].min()) == 1.0
+    radar = m.vehicle_terms(1, others_radar=0, granted=False)
+    assert (
+        torch.allclose(radar["reward"], e * m.detect_reward) and float(radar["missed"].max()) == 0
+    )
+    alone = m.vehicle_terms(0, others_radar=0, granted=True)
+    assert torch.allclose(alone["missed"], e)  # nobody else watches: every event missed
+
+
+def test_independent_vehicles_add_up():
+    """Two vehicles with two channels and no sharing do not interact (only road and weather are
+    shared, and those follow their chains): N copies of the single optimum give twice its
+    reward and throughput and its miss detection, and the centralised optimum is no better."""
+    m = FleetModel(FleetSpec(vehicles=2, channels=2, share=0.0))
+    ref = value_iteration(m.single)
+    want = stationary_metrics(m.single, ref.policy)
+    got, per = fleet_metrics(m, joint_from_single(m, ref.policy))
+    assert got.avg_reward == pytest.approx(2 * want.avg_reward, abs=1e-10)
+    assert got.throughput == pytest.approx(2 * want.throughput, abs=1e-10)
+    assert got.miss_detection == pytest.approx(want.miss_detection, abs=1e-10)
+    assert per[0]["avg_reward"] == pytest.approx(per[1]["avg_reward"], abs=1e-10)
+    best, _ = fleet_metrics(m, value_iteration_fleet(m).policy)
+    assert best.avg_reward == pytest.approx(got.avg_reward, abs=1e-7)
+
+
+def test_collisions_deny_everyone_and_the_optimum_cooperates():
+    """Both always in comm on one channel: under ``collision`` nothing is sent and every request
+    is denied; under ``scheduled`` one is granted each step. The centralised optimum of the paper's
+    two vehicles (share 0.5, one channel) beats two copies of the single optimum."""
+    coll = FleetModel(FleetSpec(vehicles=2, channels=1, access="collision"))
+    both_comm = torch.zeros(coll.num_states, dtype=torch.int64)
+    got, per = fleet_metrics(coll, both_comm)
+    assert got.throughput == 0.0 and per[-1]["denial_rate"] == 1.0
+    sched = FleetModel(FleetSpec(vehicles=2, channels=1))
+    _, per = fleet_metrics(sched, both_comm)
+    assert per[-1]["denial_rate"] == pytest.approx(0.5, abs=1e-12)
+    opt, _ = fleet_metrics(sched, value_iteration_fleet(sched).policy)
+    copies, _ = fleet_metrics(sched, joint_from_single(sched, value_iteration(sched.single).policy))
+    assert opt.avg_reward > copies.avg_reward
+
+
+def test_bad_fleets_are_refused():
+    with pytest.raises(ValueError, match=r"env\.access"):
+        FleetSpec(access="aloha")
+    with pytest.raises(ValueError, match=r"env\.share"):
+        FleetSpec(share=1.5)
+    with pytest.raises(ValueError, match="joint states"):
+        FleetModel(FleetSpec(vehicles=3))

@@ -129,6 +129,7 @@ class FleetModel:
         # single index → (rw, x), and the single model's tables on the [RW, X] grid
         self.index = torch.empty(self.RW, self.X, dtype=torch.int64)
         self.index[rw, x] = torch.arange(S)
+        self.rw_of, self.x_of = rw, x  # single state → (rw, x)
         P = single.P[:, self.index.reshape(-1)][:, :, self.index.reshape(-1)]
         P = P.reshape(2, self.RW, self.X, self.RW, self.X)
         self.P_rw = P[0, :, 0].sum(-1)  # [RW, RW′] from any x

@@ -11,6 +11,7 @@ from irdrc.core.solve import stationary_metrics, value_iteration
 from irdrc.fleet.exact import (
     FleetModel,
     FleetSpec,
+    baselines,
     fleet_metrics,
     grants,
     joint_from_single,
@@ -113,6 +114,27 @@ def test_collisions_deny_everyone_and_the_optimum_cooperates():
     opt, _ = fleet_metrics(sched, value_iteration_fleet(sched).policy)
     copies, _ = fleet_metrics(sched, joint_from_single(sched, value_iteration(sched.single).policy))
     assert opt.avg_reward > copies.avg_reward
+
+
+def test_round_robin_and_rotations():
+    """Periodic baselines: with one vehicle, round-robin in phase is today's round-robin (exact
+    metrics to 1e-12); with two on one channel, in phase they ask together (half the requests
+    denied under scheduled access), in anti-phase and in the sensing rotation never."""
+    one = FleetModel(FleetSpec(vehicles=1))
+    ref = value_iteration(one.single).policy
+    got, _ = fleet_metrics(one, baselines(one, ref)["round-robin in phase"])
+    want = stationary_metrics(one.single, "round_robin")
+    for key in ("avg_reward", "throughput", "miss_detection", "radar_fraction", "mean_queue"):
+        assert getattr(got, key) == pytest.approx(getattr(want, key), abs=1e-12), key
+    two = FleetModel(FleetSpec(vehicles=2, channels=1))
+    base = baselines(two, ref)
+    denial = {k: fleet_metrics(two, base[k])[1][-1]["denial_rate"] for k in base}
+    assert denial["round-robin in phase"] == pytest.approx(0.5, abs=1e-12)
+    assert denial["round-robin in anti-phase"] == 0.0 and denial["sensing rotation"] == 0.0
+    rot, _ = fleet_metrics(two, base["sensing rotation"])
+    anti, _ = fleet_metrics(two, base["round-robin in anti-phase"])
+    assert rot.avg_reward == pytest.approx(anti.avg_reward, abs=1e-10)  # the same for N = 2
+    assert rot.radar_fraction == pytest.approx(0.5, abs=1e-12)
 
 
 def test_bad_fleets_are_refused():

@@ -1,5 +1,6 @@
-"""``python -m irdrc.fleet``: the fleet's exact optimum beside N copies of the single-vehicle optimum
-and the fixed policies, per vehicle and for the fleet (the paper's vehicles; MODEL.md § C).
+"""``python -m irdrc.fleet``: the fleet's exact optimum beside MODEL.md § C's baselines (N copies
+of the single-vehicle optimum, round-robin in phase and anti-phase, a sensing rotation) and
+radar-always, per vehicle and for the fleet (the paper's vehicles).
 
     python -m irdrc.fleet                          # N = 2, one channel, scheduled access, share 0.5
     python -m irdrc.fleet --channels 2 --share 0
@@ -19,8 +20,8 @@ from irdrc.fleet.exact import (
     ACCESS,
     FleetModel,
     FleetSpec,
+    baselines,
     fleet_metrics,
-    joint_from_single,
     value_iteration_fleet,
 )
 
@@ -62,9 +63,8 @@ def main(argv: list[str] | None = None) -> None:
     S = model.num_states
     policies = {
         "centralised optimum": sol.policy,
-        "N copies of the single optimum": joint_from_single(model, single),
+        **baselines(model, single),
         "always radar": torch.full((S,), 2**model.N - 1, dtype=torch.int64),
-        "always comm": torch.zeros(S, dtype=torch.int64),
     }
     print(
         f"fleet: {model.N} vehicles, {spec.channels} channel(s), {spec.access} access, share "

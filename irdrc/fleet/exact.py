@@ -39,7 +39,7 @@ import torch
 
 from irdrc.core.env import decode_state
 from irdrc.core.metrics import Metrics
-from irdrc.core.model import ExactModel, build_model
+from irdrc.core.model import build_model
 from irdrc.core.params import Params, check_choice, check_number
 
 ACCESS = ("scheduled", "collision")
@@ -344,35 +344,52 @@ def _as_probs(model: FleetModel, policy: torch.Tensor) -> torch.Tensor:
     )
 
 
+def _schedule(model: FleetModel, policy) -> list[torch.Tensor]:
+    """A stationary policy ([S] joint actions or [S, 2^N] probabilities) or a periodic one (a
+    list of them, one per phase) as per-phase probabilities [2^N, *shape]."""
+    phases = list(policy) if isinstance(policy, list | tuple) else [policy]
+    return [_as_probs(model, p).T.reshape(-1, *model.shape()) for p in phases]
+
+
+def _step_all(model: FleetModel, mu: torch.Tensor, probs: torch.Tensor) -> torch.Tensor:
+    """One step of the fleet chain from ``mu`` under per-state action probabilities ``probs``."""
+    nxt = torch.zeros_like(mu)
+    for a in range(2**model.N):
+        part = mu * probs[a]
+        if float(part.sum()) == 0.0:
+            continue
+        for p, names, _ in model.joint[a]:
+            nxt = nxt + p * model.push(part, names)
+    return nxt / nxt.sum()
+
+
 def stationary_fleet(
-    model: FleetModel, policy: torch.Tensor, tol: float = 1e-13, max_iter: int = 200_000
-) -> torch.Tensor:
-    """The stationary distribution [S] of a joint policy, by power iteration from uniform (one
-    recurrent class assumed, as ``irdrc.core.solve.stationary_distribution``)."""
-    probs = _as_probs(model, policy).T.reshape(-1, *model.shape())
+    model: FleetModel, policy, tol: float = 1e-13, max_iter: int = 200_000
+) -> list[torch.Tensor]:
+    """The stationary distribution of a joint policy at each of its phases (one for a stationary
+    policy; a list of per-phase policies is applied in turn, as round-robin is), by power
+    iteration from uniform over whole cycles (one recurrent class assumed, as
+    ``irdrc.core.solve.stationary_distribution``)."""
+    sched = _schedule(model, policy)
     mu = torch.full(model.shape(), 1.0 / model.num_states, dtype=torch.float64)
     for _ in range(max_iter):
-        nxt = torch.zeros_like(mu)
-        for a in range(2**model.N):
-            part = mu * probs[a]
-            if float(part.sum()) == 0.0:
-                continue
-            for p, names, _ in model.joint[a]:
-                nxt = nxt + p * model.push(part, names)
-        nxt = nxt / nxt.sum()
-        if float((nxt - mu).abs().sum()) < tol:
-            return nxt.reshape(-1)
-        mu = nxt
-    raise RuntimeError(f"the fleet's stationary distribution did not converge in {max_iter} steps")
+        start, path = mu, []
+        for probs in sched:
+            path.append(mu)
+            mu = _step_all(model, mu, probs)
+        if float((mu - start).abs().sum()) < tol:
+            return path
+    raise RuntimeError(f"the fleet's stationary distribution did not converge in {max_iter} cycles")
 
 
-def fleet_metrics(model: FleetModel, policy: torch.Tensor) -> tuple[Metrics, list[dict]]:
-    """Exact long-run metrics of a joint policy: the fleet's (``Metrics``, with the fleet's
-    average reward, throughput etc. per vehicle-step summed over vehicles where they are rates of
-    the fleet: reward and throughput are fleet totals per step) and each vehicle's (dicts of
-    ``FLEET_METRICS``)."""
-    mu = stationary_fleet(model, policy).reshape(model.shape())
-    probs = _as_probs(model, policy).T.reshape(-1, *model.shape())
+def fleet_metrics(model: FleetModel, policy) -> tuple[Metrics, list[dict]]:
+    """Exact long-run metrics of a joint policy (stationary, or periodic as a list of per-phase
+    policies, averaged over its phases): the fleet's ``Metrics`` (reward, throughput, drops and
+    capacity summed over the vehicles; miss detection a ratio of sums; radar fraction and mean
+    queue averaged over them) and each vehicle's, then the fleet's, as dicts of
+    ``FLEET_METRICS``."""
+    sched = _schedule(model, policy)
+    path = stationary_fleet(model, policy)
     keys = (
         "reward",
         "missed",
@@ -386,14 +403,15 @@ def fleet_metrics(model: FleetModel, policy: torch.Tensor) -> tuple[Metrics, lis
         "queue",
     )
     sums = [dict.fromkeys(keys, 0.0) for _ in range(model.N)]
-    for a in range(2**model.N):
-        w = mu * probs[a]
-        if float(w.sum()) == 0.0:
-            continue
-        for p, _, terms in model.joint[a]:
-            for i, t in enumerate(terms):
-                for k in keys:
-                    sums[i][k] += p * float((w * model._expand(t[k], i)).sum())
+    for mu, probs in zip(path, sched, strict=True):
+        for a in range(2**model.N):
+            w = mu * probs[a] / len(sched)
+            if float(w.sum()) == 0.0:
+                continue
+            for p, _, terms in model.joint[a]:
+                for i, t in enumerate(terms):
+                    for k in keys:
+                        sums[i][k] += p * float((w * model._expand(t[k], i)).sum())
 
     def rates(s: dict[str, float]) -> dict[str, float]:
         return {
@@ -444,6 +462,22 @@ def joint_from_single(model: FleetModel, actions: torch.Tensor) -> torch.Tensor:
     return joint.reshape(-1)
 
 
-def single_model(model: FleetModel) -> ExactModel:
-    """The single-vehicle exact model the fleet is built from."""
-    return model.single
+def baselines(model: FleetModel, single_optimum: torch.Tensor) -> dict[str, object]:
+    """MODEL.md § C's baselines as joint policies: every vehicle applying the single-vehicle
+    optimum ``single_optimum`` to its own state; round-robin in phase (all comm, then all radar)
+    and in anti-phase (odd and even vehicles alternate the other way round); a sensing rotation
+    (vehicle t mod N in radar at step t, the others in comm). Periodic ones are lists of per-phase
+    joint actions."""
+    S, N = model.num_states, model.N
+    every = 2**N - 1
+
+    def const(a: int) -> torch.Tensor:
+        return torch.full((S,), a, dtype=torch.int64)
+
+    odd = sum(1 << i for i in range(1, N, 2))  # vehicles 2, 4, … (bits 1, 3, …)
+    return {
+        "N copies of the single optimum": joint_from_single(model, single_optimum),
+        "round-robin in phase": [const(0), const(every)],
+        "round-robin in anti-phase": [const(odd), const(every ^ odd)],
+        "sensing rotation": [const(1 << t) for t in range(N)],
+    }

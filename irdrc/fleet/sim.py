@@ -22,12 +22,14 @@ from irdrc.fleet.exact import FleetModel
 @dataclass(frozen=True)
 class FleetStep:
     """One fleet step, [n, N] per vehicle: next single-vehicle ``state``, ``reward`` (float64),
-    ``event``, ``missed``, ``granted``, ``denied`` (bool), ``sent``, ``dropped`` (int64)."""
+    ``event``, ``missed``, ``by_other`` (an event only another vehicle detected), ``granted``,
+    ``denied`` (bool), ``sent``, ``dropped`` (int64)."""
 
     state: torch.Tensor
     reward: torch.Tensor
     event: torch.Tensor
     missed: torch.Tensor
+    by_other: torch.Tensor
     granted: torch.Tensor
     denied: torch.Tensor
     sent: torch.Tensor
@@ -99,7 +101,8 @@ class FleetDynamics:
         u = torch.rand(n, N, N, generator=gen, dtype=torch.float64)
         watching = radar[:, None, :] & ~torch.eye(N, dtype=torch.bool)[None]
         by_others = ((u < m.spec.share) & watching).any(-1)
-        undetected = event & ~by_others & (~radar | self_missed)
+        unseen = event & (~radar | self_missed)  # not detected by the vehicle's own radar
+        undetected = unseen & ~by_others
         s = states
         rc = torch.where(granted, self.r_comm[s], torch.zeros_like(self.r_comm[s]))
         alarm = v(as_radar.false_alarm) & radar
@@ -112,4 +115,6 @@ class FleetDynamics:
         reward = torch.where(undetected, torch.full_like(reward, -self.r3), reward)
         sent = torch.where(granted, v(as_comm.sent), torch.zeros_like(v(as_comm.sent)))
         dropped = torch.where(granted, v(as_comm.dropped), v(as_radar.dropped))
-        return FleetStep(nxt, reward, event, undetected, granted, denied, sent, dropped)
+        return FleetStep(
+            nxt, reward, event, undetected, unseen & by_others, granted, denied, sent, dropped
+        )

@@ -1,0 +1,190 @@
+"""``FleetEnv``: the fleet as a batched TorchRL multi-agent env (MODEL.md § C).
+
+TorchRL's multi-agent conventions (as its VMAS wrapper): the agents' entries under the group key
+``"agents"`` with shape [*batch, N] — each agent's ``observation`` (its own d, c, v, m and the
+shared r, w, as the single-vehicle env's observation), ``action`` (0 comm, 1 radar), ``reward``
+[*batch, N, 1], and the per-step signals ``event``, ``missed``, ``detected_by_other``, ``granted``,
+``denied``, ``sent``, ``dropped`` — and the shared entries at the root: ``state`` (the exact fleet
+model's joint index, for exact scoring), ``vehicle_state`` [*batch, N] (each vehicle's
+single-vehicle state), ``step_count`` and ``done`` / ``terminated`` / ``truncated`` (episodes end by
+truncation at the horizon). ``group_map`` is ``{"agents": ["vehicle_1", …]}``.
+"""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torchrl.data import Bounded, Categorical, Composite, Unbounded
+from torchrl.envs import EnvBase
+
+from irdrc.core.env import checked_actions, fresh_seed, observation_high
+from irdrc.fleet.exact import FleetModel, FleetSpec
+from irdrc.fleet.sim import FleetDynamics
+
+GROUP = "agents"
+"""The key of the agents' entries."""
+
+SIGNALS = ("event", "missed", "detected_by_other", "granted", "denied")
+"""Per-agent boolean signals of a step (with ``sent`` and ``dropped``, int64)."""
+
+
+class FleetEnv(EnvBase):
+    """A batch of fleets (see the module docstring).
+
+    Args:
+        spec: the fleet (``FleetSpec``), or a built ``FleetModel``.
+        batch_size: fleets stepped together (one dimension).
+        device: the device of the tensors.
+        seed: the generator's seed (None: a fresh one).
+    """
+
+    def __init__(
+        self,
+        spec: FleetSpec | FleetModel | None = None,
+        batch_size: int | tuple | list | torch.Size = (1,),
+        device: torch.device | str = "cpu",
+        seed: int | None = None,
+    ) -> None:
+        if isinstance(batch_size, int):
+            batch_size = (batch_size,)
+        batch_size = torch.Size(batch_size)
+        if len(batch_size) != 1 or batch_size[0] < 1:
+            raise ValueError(f"batch_size={list(batch_size)} must be one positive dimension")
+        super().__init__(device=device, batch_size=batch_size)
+        self.model = spec if isinstance(spec, FleetModel) else FleetModel(spec or FleetSpec())
+        self.sim = FleetDynamics(self.model)
+        self.n_agents = self.model.N
+        self.group_map = {GROUP: [f"vehicle_{i + 1}" for i in range(self.n_agents)]}
+        self.rng = torch.Generator()
+        self._make_specs()
+        self.set_seed(seed if seed is not None else fresh_seed())
+
+    def _make_specs(self) -> None:
+        B, N, dev = self.batch_size[0], self.n_agents, self.device
+        params = self.model.spec.vehicle
+        high = observation_high(params)
+        width = high.shape[0]
+        cap = int(self.sim.dyn.capacity.max())
+        agent = (B, N)
+        signals = {k: Categorical(2, shape=agent, dtype=torch.bool, device=dev) for k in SIGNALS}
+        self.observation_spec = Composite(
+            {
+                GROUP: Composite(
+                    observation=Bounded(
+                        low=torch.zeros(B, N, width, device=dev),
+                        high=high.to(dev).expand(B, N, width).clone(),
+                        shape=(B, N, width),
+                        dtype=torch.float32,
+                        device=dev,
+                    ),
+                    sent=Bounded(0, cap, shape=agent, dtype=torch.int64, device=dev),
+                    dropped=Unbounded(shape=agent, dtype=torch.int64, device=dev),
+                    **signals,
+                    shape=agent,
+                    device=dev,
+                ),
+                "state": Categorical(
+                    self.model.num_states, shape=(B,), dtype=torch.int64, device=dev
+                ),
+                "vehicle_state": Categorical(
+                    self.model.single.num_states, shape=agent, dtype=torch.int64, device=dev
+                ),
+                "step_count": Bounded(
+                    0, params.env.horizon, shape=(B, 1), dtype=torch.int64, device=dev
+                ),
+            },
+            shape=(B,),
+            device=dev,
+        )
+        self.action_spec = Composite(
+            {
+                GROUP: Composite(
+                    action=Categorical(2, shape=agent, dtype=torch.int64, device=dev),
+                    shape=agent,
+                    device=dev,
+                )
+            },
+            shape=(B,),
+            device=dev,
+        )
+        self.reward_spec = Composite(
+            {
+                GROUP: Composite(
+                    reward=Unbounded(shape=(B, N, 1), dtype=torch.float32, device=dev),
+                    shape=agent,
+                    device=dev,
+                )
+            },
+            shape=(B,),
+            device=dev,
+        )
+        self.done_spec = Composite(
+            done=Categorical(2, shape=(B, 1), dtype=torch.bool, device=dev),
+            terminated=Categorical(2, shape=(B, 1), dtype=torch.bool, device=dev),
+            truncated=Categorical(2, shape=(B, 1), dtype=torch.bool, device=dev),
+            shape=(B,),
+            device=dev,
+        )
+
+    def _set_seed(self, seed: int | None) -> None:
+        self.rng.manual_seed(int(seed if seed is not None else fresh_seed()))
+
+    def _out(self, states: torch.Tensor, steps: torch.Tensor, res=None) -> TensorDict:
+        B, N = self.batch_size[0], self.n_agents
+        obs = self.sim.dyn.obs[states.reshape(-1)].reshape(B, N, -1)
+        agents: dict[str, torch.Tensor] = {"observation": obs.to(self.device)}
+        falses = torch.zeros(B, N, dtype=torch.bool)
+        zeros = torch.zeros(B, N, dtype=torch.int64)
+        if res is None:
+            agents.update(dict.fromkeys(SIGNALS, falses), sent=zeros, dropped=zeros)
+        else:
+            agents.update(
+                event=res.event,
+                missed=res.missed,
+                detected_by_other=res.by_other,
+                granted=res.granted,
+                denied=res.denied,
+                sent=res.sent,
+                dropped=res.dropped,
+                reward=res.reward.to(torch.float32).unsqueeze(-1),
+            )
+        truncated = (steps >= self.model.spec.vehicle.env.horizon).reshape(B, 1)
+        return TensorDict(
+            {
+                GROUP: TensorDict(agents, batch_size=(B, N)),
+                "state": self.sim.fleet_index(states),
+                "vehicle_state": states,
+                "step_count": steps.reshape(B, 1),
+                "done": truncated,
+                "terminated": torch.zeros_like(truncated),
+                "truncated": truncated,
+            },
+            batch_size=(B,),
+            device=self.device,
+        )
+
+    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDict:
+        B, m = self.batch_size[0], self.model
+        rw = torch.randint(0, m.RW, (B, 1), generator=self.rng)
+        x = torch.randint(0, m.X, (B, self.n_agents), generator=self.rng)
+        states = m.index[rw.expand(B, self.n_agents), x]  # uniform over the joint states
+        return self._out(states, torch.zeros(B, dtype=torch.int64))
+
+    def _step(self, tensordict: TensorDictBase) -> TensorDict:
+        states = tensordict.get("vehicle_state", None)
+        action = tensordict.get((GROUP, "action"), None)
+        if states is None or tensordict.get("step_count", None) is None:
+            raise ValueError(
+                "FleetEnv.step needs the 'vehicle_state' and 'step_count' that reset() returns: "
+                "call env.reset() first"
+            )
+        if action is None:
+            raise ValueError(
+                f"FleetEnv.step needs ('{GROUP}', 'action'): per vehicle 0 (communication) or 1 "
+                "(radar)"
+            )
+        B, N = self.batch_size[0], self.n_agents
+        action = checked_actions(action.reshape(-1)).reshape(B, N)
+        res = self.sim.step(states.reshape(B, N).cpu(), action.cpu(), self.rng)
+        steps = tensordict.get("step_count").reshape(-1).cpu() + 1
+        return self._out(res.state, steps, res)

@@ -232,3 +232,31 @@ def test_fleet_env_specs_seeding_and_misuse():
     td["agents", "action"] = torch.full((2, 2), 2, dtype=torch.int64)
     with pytest.raises(ValueError, match="action"):
         env.step(td)
+
+
+def test_fleet_rows_and_independent_dqn_with_parameter_sharing():
+    """``FleetRowsEnv`` gives each vehicle a row with the fleet's team reward (both rows of a fleet
+    get the same sum); ``FleetScorer`` scores a shared single-vehicle table as N copies of it on
+    the fleet; ``fleet_dqn.train`` runs DQN's learner on the rows and records exact fleet ratios."""
+    from torchrl.envs.utils import check_env_specs
+
+    from irdrc.agents import dqn, fleet_dqn
+    from irdrc.fleet.env import FleetRowsEnv
+
+    model = FleetModel(FleetSpec(vehicles=2))
+    env = FleetRowsEnv(model, fleets=3, seed=0)
+    check_env_specs(env)
+    td = env.rollout(4)
+    r = td["next", "reward"]  # [rows, steps, 1]: rows 2b and 2b + 1 are fleet b
+    assert torch.equal(r[0::2], r[1::2])
+    scorer = fleet_dqn.FleetScorer(model)
+    single = value_iteration(model.single).policy
+    copies, _ = fleet_metrics(model, joint_from_single(model, single))
+    assert scorer.metrics(single).avg_reward == pytest.approx(copies.avg_reward, abs=1e-12)
+    assert scorer.optimal_metrics.avg_reward > copies.avg_reward
+    cfg = dqn.DQNConfig(num_envs=64, frames_per_batch=128, total_frames=2048, batch_size=64)
+    rec = fleet_dqn.train(model.spec, cfg, seed=0, scorer=scorer, eval_every_frames=1024)
+    assert [h["env_steps"] for h in rec.history] == [0, 1024, 2048]
+    assert all(-5 < h["optimality_ratio"] <= 1 + 1e-9 for h in rec.history)
+    with pytest.raises(ValueError, match="multiple of the 2 vehicles"):
+        fleet_dqn.train(model.spec, dqn.DQNConfig(num_envs=63, frames_per_batch=126), scorer=scorer)

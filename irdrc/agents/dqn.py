@@ -125,8 +125,13 @@ def train(
     eval_every_frames: int = DEFAULT_EVAL_EVERY_FRAMES,
     hooks: Hooks | None = None,
     resume: dict[str, Any] | None = None,
+    env: DFRCEnv | None = None,
 ) -> RunRecord:
     """Train DQN on the batched env and evaluate the greedy network exactly on a schedule.
+
+    ``env``: the batched env to learn from instead of ``DFRCEnv(params)`` — one with
+    ``cfg.num_envs`` rows and DFRCEnv's keys and ``dynamics.obs`` (e.g. the fleet's rows,
+    ``irdrc.fleet.env.FleetRowsEnv``, scored by a ``scorers`` of its own).
 
     The interface of ``irdrc.agents.base``: one scenario and one network per run (``num_learners``
     1); ``hooks.on_batch`` gets ``env_steps``, ``episodes``, ``loss``, ``beta``, ``buffer`` after
@@ -144,7 +149,10 @@ def train(
     (params,) = scenarios
     (scorer,) = make_scorers(scenarios, scorers)
     torch.manual_seed(seed)
-    env = DFRCEnv(params, batch_size=[cfg.num_envs], device=device, seed=seed)
+    if env is None:
+        env = DFRCEnv(params, batch_size=[cfg.num_envs], device=device, seed=seed)
+    elif tuple(env.batch_size) != (cfg.num_envs,):
+        raise ValueError(f"env has {list(env.batch_size)} rows, algo.num_envs={cfg.num_envs}")
 
     # Components in a fixed order: model → exploration → buffer → loss → target → optimiser.
     if cfg.distributional:

@@ -188,3 +188,111 @@ class FleetEnv(EnvBase):
         res = self.sim.step(states.reshape(B, N).cpu(), action.cpu(), self.rng)
         steps = tensordict.get("step_count").reshape(-1).cpu() + 1
         return self._out(res.state, steps, res)
+
+
+class FleetRowsEnv(EnvBase):
+    """The fleet as rows of one agent each, for learners written for a single-agent batched env
+    (independent learners with parameter sharing): ``fleets`` fleets of N vehicles give
+    ``fleets·N`` rows (vehicle i of fleet b is row b·N + i), each with its vehicle's
+    ``observation``, ``action`` and, as ``reward``, the fleet's team reward (the sum over its
+    vehicles, MODEL.md § C); a fleet's rows step together and end together. ``dynamics`` is the
+    single-vehicle ``Dynamics`` (its ``obs`` table is every row's observation space), so a
+    network's greedy table over the single-vehicle states is the whole decentralised policy.
+    """
+
+    def __init__(
+        self,
+        spec: FleetSpec | FleetModel | None = None,
+        fleets: int = 1,
+        device: torch.device | str = "cpu",
+        seed: int | None = None,
+        reward: str = "team",
+    ) -> None:
+        if reward not in ("team", "own"):
+            raise ValueError(f"reward={reward!r} must be team or own")
+        self.reward_kind = reward
+        self.model = spec if isinstance(spec, FleetModel) else FleetModel(spec or FleetSpec())
+        self.sim = FleetDynamics(self.model)
+        self.dynamics = self.sim.dyn
+        self.fleets, self.n_agents = int(fleets), self.model.N
+        if self.fleets < 1:
+            raise ValueError(f"fleets={fleets} must be >= 1")
+        rows = self.fleets * self.n_agents
+        super().__init__(device=device, batch_size=torch.Size([rows]))
+        self.params = self.model.spec.vehicle
+        self.rng = torch.Generator()
+        params, dev = self.params, self.device
+        high = observation_high(params)
+        width = high.shape[0]
+        self.observation_spec = Composite(
+            observation=Bounded(
+                low=torch.zeros(rows, width, device=dev),
+                high=high.to(dev).expand(rows, width).clone(),
+                shape=(rows, width),
+                dtype=torch.float32,
+                device=dev,
+            ),
+            state=Categorical(self.dynamics.num_states, shape=(rows,), dtype=torch.int64),
+            step_count=Bounded(0, params.env.horizon, shape=(rows, 1), dtype=torch.int64),
+            shape=(rows,),
+            device=dev,
+        )
+        self.action_spec = Categorical(2, shape=(rows,), dtype=torch.int64, device=dev)
+        self.reward_spec = Unbounded(shape=(rows, 1), dtype=torch.float32, device=dev)
+        self.done_spec = Composite(
+            done=Categorical(2, shape=(rows, 1), dtype=torch.bool, device=dev),
+            terminated=Categorical(2, shape=(rows, 1), dtype=torch.bool, device=dev),
+            truncated=Categorical(2, shape=(rows, 1), dtype=torch.bool, device=dev),
+            shape=(rows,),
+            device=dev,
+        )
+        self.set_seed(seed if seed is not None else fresh_seed())
+
+    @property
+    def num_states(self) -> int:
+        """The single-vehicle states (what one row observes)."""
+        return self.dynamics.num_states
+
+    def _set_seed(self, seed: int | None) -> None:
+        self.rng.manual_seed(int(seed if seed is not None else fresh_seed()))
+
+    def _out(self, states: torch.Tensor, steps: torch.Tensor, reward=None) -> TensorDict:
+        rows = self.batch_size[0]
+        truncated = (steps >= self.params.env.horizon).reshape(rows, 1)
+        out = {
+            "observation": self.dynamics.obs[states.reshape(-1)].to(self.device),
+            "state": states.reshape(-1),
+            "step_count": steps.reshape(rows, 1),
+            "done": truncated,
+            "terminated": torch.zeros_like(truncated),
+            "truncated": truncated,
+        }
+        if reward is not None:
+            out["reward"] = reward.reshape(rows, 1).to(torch.float32)
+        return TensorDict(out, batch_size=(rows,), device=self.device)
+
+    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDict:
+        # Fresh fleets for every row; torchrl keeps the rows the "_reset" mask selects, and a
+        # fleet's rows always end together.
+        m, B, N = self.model, self.fleets, self.n_agents
+        rw = torch.randint(0, m.RW, (B, 1), generator=self.rng)
+        x = torch.randint(0, m.X, (B, N), generator=self.rng)
+        states = m.index[rw.expand(B, N), x]
+        return self._out(states, torch.zeros(B * N, dtype=torch.int64))
+
+    def _step(self, tensordict: TensorDictBase) -> TensorDict:
+        states, action = tensordict.get("state", None), tensordict.get("action", None)
+        if states is None or tensordict.get("step_count", None) is None:
+            raise ValueError("FleetRowsEnv.step needs the 'state' and 'step_count' of reset()")
+        if action is None:
+            raise ValueError("FleetRowsEnv.step needs an 'action': 0 (communication) or 1 (radar)")
+        B, N = self.fleets, self.n_agents
+        action = checked_actions(action.reshape(-1)).reshape(B, N).cpu()
+        res = self.sim.step(states.reshape(B, N).cpu(), action, self.rng)
+        team = (
+            res.reward.sum(1, keepdim=True).expand(B, N)
+            if self.reward_kind == "team"
+            else res.reward
+        )
+        steps = tensordict.get("step_count").reshape(-1).cpu() + 1
+        return self._out(res.state, steps, team)

@@ -260,3 +260,25 @@ def test_fleet_rows_and_independent_dqn_with_parameter_sharing():
     assert all(-5 < h["optimality_ratio"] <= 1 + 1e-9 for h in rec.history)
     with pytest.raises(ValueError, match="multiple of the 2 vehicles"):
         fleet_dqn.train(model.spec, dqn.DQNConfig(num_envs=63, frames_per_batch=126), scorer=scorer)
+
+
+def test_agent_index_gives_each_vehicle_its_own_table():
+    """With ``agent_index`` each row also sees its vehicle's one-hot index, the observation table
+    has a row per (vehicle, state), and ``FleetScorer`` reads a [N·S] greedy table as vehicle i's
+    own table: vehicle 1 radar always and vehicle 2 the single optimum scores as that joint
+    policy."""
+    from irdrc.agents import fleet_dqn
+    from irdrc.fleet.env import FleetRowsEnv
+
+    model = FleetModel(FleetSpec(vehicles=2))
+    S = model.single.num_states
+    env = FleetRowsEnv(model, fleets=2, seed=0, agent_index=True)
+    assert env.observation_table.shape == (2 * S, 8) and env.num_states == 2 * S
+    obs = env.reset()["observation"]
+    assert obs[:, 6:].tolist() == [[1, 0], [0, 1], [1, 0], [0, 1]]
+    single = value_iteration(model.single).policy
+    tables = torch.cat([torch.ones(S, dtype=torch.int64), single])
+    joint = joint_from_single(model, single) | 1  # vehicle 1's bit set: radar
+    want, _ = fleet_metrics(model, joint)
+    got = fleet_dqn.FleetScorer(model).metrics(tables)
+    assert got.avg_reward == pytest.approx(want.avg_reward, abs=1e-12)

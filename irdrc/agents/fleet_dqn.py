@@ -35,7 +35,14 @@ class FleetScorer(ExactScorer):
         self._cache = {}
 
     def _evaluate(self, table: torch.Tensor) -> Metrics:
-        return fleet_metrics(self.model, joint_from_single(self.model, table))[0]
+        S = self.model.single.num_states
+        if table.numel() == S:  # one table every vehicle applies
+            return fleet_metrics(self.model, joint_from_single(self.model, table))[0]
+        per = table.reshape(self.model.N, S)  # vehicle i's own table (agent_index)
+        joint = sum(
+            (joint_from_single(self.model, per[i]) >> i & 1) << i for i in range(self.model.N)
+        )
+        return fleet_metrics(self.model, joint)[0]
 
 
 def train(
@@ -47,6 +54,7 @@ def train(
     eval_every_frames: int = dqn.DEFAULT_EVAL_EVERY_FRAMES,
     hooks: Hooks | None = None,
     reward: str = "team",
+    agent_index: bool = False,
 ) -> RunRecord:
     """Train the shared network on ``cfg.num_envs`` rows (``cfg.num_envs / N`` fleets); env steps
     count vehicle steps. The record's greedy tables are over the single-vehicle states."""
@@ -55,7 +63,9 @@ def train(
     N = model.N
     if cfg.num_envs % N:
         raise ValueError(f"algo.num_envs={cfg.num_envs} must be a multiple of the {N} vehicles")
-    env = FleetRowsEnv(model, fleets=cfg.num_envs // N, seed=seed, reward=reward)
+    env = FleetRowsEnv(
+        model, fleets=cfg.num_envs // N, seed=seed, reward=reward, agent_index=agent_index
+    )
     scorer = scorer or FleetScorer(model)
     record = dqn.train(
         model.spec.vehicle,

@@ -647,7 +647,9 @@ def policy_view(loss: nn.Module, cfg: OffPolicyConfig) -> Iterator[None]:
 def all_states(qnet: nn.Module, env: DFRCEnv) -> TensorDictBase:
     """``qnet`` (a Q-value actor) on the observation of every state, greedy."""
     with torch.no_grad():
-        obs = env.dynamics.obs
+        # an env that observes more than the state (the fleet's rows) brings its own table
+        obs = getattr(env, "observation_table", None)
+        obs = env.dynamics.obs if obs is None else obs
         return qnet(TensorDict({"observation": obs}, batch_size=[obs.shape[0]], device=obs.device))
 
 

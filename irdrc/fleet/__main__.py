@@ -51,6 +51,9 @@ def main(argv: list[str] | None = None) -> None:
     )
     ap.add_argument("--reward", choices=("team", "own"), default="team", help="--learn: reward")
     ap.add_argument("--frames", type=int, default=500_000, help="--learn: vehicle steps")
+    ap.add_argument(
+        "--agent-index", action="store_true", help="--learn: each vehicle also sees its index"
+    )
     ap.add_argument("--seed", type=int, default=0, help="--learn: seed")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
@@ -101,14 +104,16 @@ def main(argv: list[str] | None = None) -> None:
             seed=args.seed,
             scorer=scorer,
             reward=args.reward,
+            agent_index=args.agent_index,
         )
         curve = ", ".join(
             f"{h['env_steps']}: {h['optimality_ratio']:.4f}" for h in rec.history[::4]
         )
         final = rec.history[-1]["optimality_ratio"]
         print(
-            f"\nidqn ({args.reward} reward, seed {args.seed}, {args.frames} vehicle steps, "
-            f"{time.perf_counter() - t0:.0f} s): the shared greedy table on every vehicle reaches "
+            f"\nidqn ({args.reward} reward{', agent index' if args.agent_index else ''}, seed "
+            f"{args.seed}, {args.frames} vehicle steps, "
+            f"{time.perf_counter() - t0:.0f} s): the vehicles' greedy tables reach "
             f"{final:.4f} of the centralised optimum (exact); every 100 000 steps: {curve}"
         )
 

@@ -207,6 +207,7 @@ class FleetRowsEnv(EnvBase):
         device: torch.device | str = "cpu",
         seed: int | None = None,
         reward: str = "team",
+        agent_index: bool = False,
     ) -> None:
         if reward not in ("team", "own"):
             raise ValueError(f"reward={reward!r} must be team or own")
@@ -214,6 +215,13 @@ class FleetRowsEnv(EnvBase):
         self.model = spec if isinstance(spec, FleetModel) else FleetModel(spec or FleetSpec())
         self.sim = FleetDynamics(self.model)
         self.dynamics = self.sim.dyn
+        self.agent_index = bool(agent_index)
+        N, single = self.model.N, self.sim.dyn.obs
+        if self.agent_index:  # every (vehicle, state) pair: the vehicle's one-hot index appended
+            eye = torch.eye(N, dtype=single.dtype).repeat_interleave(single.shape[0], 0)
+            self.obs_table = torch.cat([single.repeat(N, 1), eye], 1)  # [N·S, width + N]
+        else:
+            self.obs_table = single
         self.fleets, self.n_agents = int(fleets), self.model.N
         if self.fleets < 1:
             raise ValueError(f"fleets={fleets} must be >= 1")
@@ -223,6 +231,8 @@ class FleetRowsEnv(EnvBase):
         self.rng = torch.Generator()
         params, dev = self.params, self.device
         high = observation_high(params)
+        if self.agent_index:
+            high = torch.cat([high, torch.ones(self.n_agents, dtype=high.dtype)])
         width = high.shape[0]
         self.observation_spec = Composite(
             observation=Bounded(
@@ -250,8 +260,14 @@ class FleetRowsEnv(EnvBase):
 
     @property
     def num_states(self) -> int:
-        """The single-vehicle states (what one row observes)."""
-        return self.dynamics.num_states
+        """The observation table's rows: the single-vehicle states, or with ``agent_index`` every
+        (vehicle, state) pair (vehicle-major)."""
+        return self.obs_table.shape[0]
+
+    @property
+    def observation_table(self) -> torch.Tensor:
+        """Every observation a row can see, one per ``num_states`` (greedy tables read it)."""
+        return self.obs_table
 
     def _set_seed(self, seed: int | None) -> None:
         self.rng.manual_seed(int(seed if seed is not None else fresh_seed()))
@@ -260,7 +276,7 @@ class FleetRowsEnv(EnvBase):
         rows = self.batch_size[0]
         truncated = (steps >= self.params.env.horizon).reshape(rows, 1)
         out = {
-            "observation": self.dynamics.obs[states.reshape(-1)].to(self.device),
+            "observation": self._observe(states).to(self.device),
             "state": states.reshape(-1),
             "step_count": steps.reshape(rows, 1),
             "done": truncated,
@@ -270,6 +286,13 @@ class FleetRowsEnv(EnvBase):
         if reward is not None:
             out["reward"] = reward.reshape(rows, 1).to(torch.float32)
         return TensorDict(out, batch_size=(rows,), device=self.device)
+
+    def _observe(self, states: torch.Tensor) -> torch.Tensor:
+        flat = states.reshape(-1)
+        if not self.agent_index:
+            return self.obs_table[flat]
+        vehicle = torch.arange(flat.shape[0]) % self.n_agents
+        return self.obs_table[vehicle * self.dynamics.num_states + flat]
 
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDict:
         # Fresh fleets for every row; torchrl keeps the rows the "_reset" mask selects, and a

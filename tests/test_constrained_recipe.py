@@ -223,7 +223,7 @@ def test_frontier_counts_every_solve_and_its_figure_names_the_targets(tmp_path, 
     (ticker,) = seen
     assert ticker.total == 5 + 2 and ticker.done == ticker.total  # 3 + 2 targets, 2 values of r4
     labels = figs[0].axes[0].get_legend_handles_labels()[1]
-    assert sum("target" in label for label in labels) == 1, labels
+    assert sum(label.startswith("the recipe's targets") for label in labels) == 1, labels
 
 
 def test_a_degenerate_optimum_is_explained():

@@ -125,13 +125,41 @@ def train(
     eval_every_frames: int = DEFAULT_EVAL_EVERY_FRAMES,
     hooks: Hooks | None = None,
     resume: dict[str, Any] | None = None,
-    env: DFRCEnv | None = None,
+) -> RunRecord:
+    """Train DQN on the batched env and evaluate the greedy network exactly on a schedule (the
+    learner interface of ``irdrc.agents.base``; ``train_on`` with ``DFRCEnv(params)``)."""
+    return train_on(
+        None,
+        params,
+        cfg,
+        num_learners=num_learners,
+        seed=seed,
+        device=device,
+        scorers=scorers,
+        eval_every_frames=eval_every_frames,
+        hooks=hooks,
+        resume=resume,
+    )
+
+
+def train_on(
+    env: DFRCEnv | None,
+    params: Params | Sequence[Params],
+    cfg: DQNConfig | None = None,
+    *,
+    num_learners: int = 1,
+    seed: int = 0,
+    device: str = "cpu",
+    scorers: ExactScorer | Sequence[ExactScorer] | None = None,
+    eval_every_frames: int = DEFAULT_EVAL_EVERY_FRAMES,
+    hooks: Hooks | None = None,
+    resume: dict[str, Any] | None = None,
 ) -> RunRecord:
     """Train DQN on the batched env and evaluate the greedy network exactly on a schedule.
 
-    ``env``: the batched env to learn from instead of ``DFRCEnv(params)`` — one with
+    ``env``: the batched env to learn from (None: ``DFRCEnv(params)``) — one with
     ``cfg.num_envs`` rows and DFRCEnv's keys and ``dynamics.obs`` (e.g. the fleet's rows,
-    ``irdrc.fleet.env.FleetRowsEnv``, scored by a ``scorers`` of its own).
+    ``irdrc.fleet.env.FleetRowsEnv``, scored by ``scorers`` of its own).
 
     The interface of ``irdrc.agents.base``: one scenario and one network per run (``num_learners``
     1); ``hooks.on_batch`` gets ``env_steps``, ``episodes``, ``loss``, ``beta``, ``buffer`` after

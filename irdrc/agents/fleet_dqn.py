@@ -67,13 +67,13 @@ def train(
         model, fleets=cfg.num_envs // N, seed=seed, reward=reward, agent_index=agent_index
     )
     scorer = scorer or FleetScorer(model)
-    record = dqn.train(
+    record = dqn.train_on(
+        env,
         model.spec.vehicle,
         replace(cfg, name="idqn"),
         seed=seed,
         scorers=scorer,
         eval_every_frames=eval_every_frames,
         hooks=hooks,
-        env=env,
     )
     return record

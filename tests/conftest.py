@@ -21,6 +21,20 @@ from irdrc.core.solve import stationary_metrics, value_iteration
 torch.set_num_threads(1)
 
 
+TINY_DQN = [
+    "algo.num_envs=8",
+    "algo.frames_per_batch=32",
+    "algo.total_frames=640",
+    "algo.init_random_frames=128",
+    "algo.buffer_size=640",
+    "algo.batch_size=32",
+    "eval.every_frames=320",
+    "progress=false",
+    "logger=none",
+]
+"""Overrides of a DQN run of a few seconds (640 env steps), for tests that need a run's files."""
+
+
 def one_step(params: Params, states, actions, seed: int = 0) -> TensorDict:
     """Step a fresh env once from hand-set ``states`` with ``actions``; returns the "next" td."""
     states = torch.as_tensor(states, dtype=torch.int64)

@@ -11,6 +11,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from conftest import TINY_DQN
 from omegaconf import OmegaConf
 
 from irdrc.experiments.config import compose, rename_overrides
@@ -90,17 +91,7 @@ def test_readme_command_passes_its_checks(recipe, args, example_files):
 def example_files(tmp_path_factory) -> dict[str, Path]:
     """Real files for the README's placeholders: a short DQN run's checkpoint and policy table."""
     out = tmp_path_factory.mktemp("example_run")
-    tiny = [
-        "algo.num_envs=8",
-        "algo.frames_per_batch=32",
-        "algo.total_frames=640",
-        "algo.buffer_size=640",
-        "algo.batch_size=32",
-        "eval.every_frames=320",
-        "eval.mc_episodes=0",
-        "progress=false",
-        "logger=none",
-    ]
+    tiny = [*TINY_DQN, "eval.mc_episodes=0"]
     r = subprocess.run(
         [sys.executable, str(ROOT / "recipes" / "dqn.py"), *tiny, f"hydra.run.dir={out}"],
         capture_output=True,

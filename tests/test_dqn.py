@@ -10,6 +10,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from conftest import TINY_DQN
 
 from irdrc import DFRCEnv, Params
 from irdrc.agents.dqn import DQNConfig, NetworkConfig, train
@@ -19,18 +20,10 @@ from irdrc.experiments.tracking import resolve_wandb_mode
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = [
-    "algo.num_envs=8",
-    "algo.frames_per_batch=32",
-    "algo.total_frames=640",
-    "algo.init_random_frames=128",
-    "algo.buffer_size=640",
-    "algo.batch_size=32",
-    "eval.every_frames=320",
+    *TINY_DQN,
     "eval.mc_episodes=8",
     "eval.mc_num_envs=8",
     "compare.qlearning_paper=false",
-    "progress=false",
-    "logger=none",
 ]
 
 

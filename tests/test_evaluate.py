@@ -8,21 +8,10 @@ import sys
 from pathlib import Path
 
 import pytest
+from conftest import TINY_DQN
 
 ROOT = Path(__file__).resolve().parents[1]
-TINY = [
-    "algo.num_envs=8",
-    "algo.frames_per_batch=32",
-    "algo.total_frames=640",
-    "algo.init_random_frames=128",
-    "algo.buffer_size=640",
-    "algo.batch_size=32",
-    "eval.every_frames=320",
-    "eval.mc_episodes=0",
-    "progress=false",
-    "logger=none",
-    "reward.r4=50",
-]
+TINY = [*TINY_DQN, "eval.mc_episodes=0", "reward.r4=50"]
 
 
 def run(recipe: str, *args: str) -> subprocess.CompletedProcess:

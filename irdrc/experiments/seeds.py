@@ -72,16 +72,25 @@ def group_rows(rows: list[dict[str, str]], keys: list[str]) -> dict[tuple, list[
     return dict(groups)
 
 
-def write_seed_summary(summary_csv: Path, out: Path) -> Path | None:
-    """``summary_by_point.csv`` next to ``summary_csv`` (see the module docstring); None when the
-    grid has no ``seed`` key."""
+def read_seed_grid(summary_csv: Path) -> tuple[list[str], list[str], list[dict]] | None:
+    """``summary.csv``'s (columns, grid keys without ``seed``, rows); None when the grid has no
+    ``seed`` key."""
     with Path(summary_csv).open() as f:
         reader = csv.DictReader(f)
         fields, rows = list(reader.fieldnames or []), list(reader)
     if "seed" not in fields:
         return None
-    keys = fields[: fields.index("status")]
-    keys.remove("seed")
+    keys = [k for k in fields[: fields.index("status")] if k != "seed"]
+    return fields, keys, rows
+
+
+def write_seed_summary(summary_csv: Path, out: Path) -> Path | None:
+    """``summary_by_point.csv`` next to ``summary_csv`` (see the module docstring); None when the
+    grid has no ``seed`` key."""
+    grid = read_seed_grid(summary_csv)
+    if grid is None:
+        return None
+    fields, keys, rows = grid
     values = [c for c in fields[fields.index("point_id") + 1 :] if c != "wall_seconds"]
     table = []
     for key, group in group_rows(rows, keys).items():
@@ -126,13 +135,10 @@ def plot_seed_curves(summary_csv: Path, trials_dir: Path, out: Path) -> Path | N
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    with Path(summary_csv).open() as f:
-        reader = csv.DictReader(f)
-        fields, rows = list(reader.fieldnames or []), list(reader)
-    if "seed" not in fields:
+    grid = read_seed_grid(summary_csv)
+    if grid is None:
         return None
-    keys = fields[: fields.index("status")]
-    keys.remove("seed")
+    _, keys, rows = grid
     series = []
     for key, group in group_rows(rows, keys).items():
         curves = [

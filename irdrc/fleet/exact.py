@@ -31,6 +31,7 @@ that another vehicle detects vehicle i's event (cooperative perception); P_d, P_
 
 from __future__ import annotations
 
+import functools
 import itertools
 import math
 from dataclasses import dataclass, field
@@ -279,11 +280,10 @@ class FleetModel:
             out.append(Q)
         return torch.stack(out)
 
-    @property
+    @functools.cached_property
     def _rewards(self) -> list[torch.Tensor]:
-        if not hasattr(self, "_reward_cache"):
-            self._reward_cache = [self.reward(a) for a in range(2**self.N)]
-        return self._reward_cache
+        """The fleet's expected reward tensor of every joint action."""
+        return [self.reward(a) for a in range(2**self.N)]
 
 
 @dataclass(frozen=True)

@@ -142,8 +142,12 @@ def test_bad_fleets_are_refused():
         FleetSpec(access="aloha")
     with pytest.raises(ValueError, match=r"env\.share"):
         FleetSpec(share=1.5)
+    three = FleetModel(FleetSpec(vehicles=3))  # the simulator's tables exist at any N …
+    assert not three.exact
+    with pytest.raises(ValueError, match="joint states"):  # … the exact solver stops at 2·10⁶
+        value_iteration_fleet(three)
     with pytest.raises(ValueError, match="joint states"):
-        FleetModel(FleetSpec(vehicles=3))
+        fleet_metrics(three, torch.zeros(1, dtype=torch.int64))
 
 
 @pytest.mark.parametrize("access", ["scheduled", "collision"])

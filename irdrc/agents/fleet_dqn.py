@@ -19,14 +19,15 @@ from irdrc.fleet.exact import (
     FleetModel,
     FleetSpec,
     fleet_metrics,
-    joint_from_single,
+    joint_policy,
     value_iteration_fleet,
 )
 
 
 class FleetScorer(ExactScorer):
-    """``ExactScorer`` for a shared single-vehicle table on the fleet: its metrics are the fleet's
-    when every vehicle applies the table to its own state, its optimum the centralised one."""
+    """``ExactScorer`` for the fleet's decentralised policies, against the centralised optimum:
+    a table [S] over the single-vehicle states every vehicle applies to its own state, one such
+    table per vehicle [N·S] (vehicle-major), or a joint action per joint state [S_fleet]."""
 
     def __init__(self, model: FleetModel, gamma: float = DEFAULT_OPTIMUM_GAMMA) -> None:
         self.model = model
@@ -35,14 +36,7 @@ class FleetScorer(ExactScorer):
         self._cache = {}
 
     def _evaluate(self, table: torch.Tensor) -> Metrics:
-        S = self.model.single.num_states
-        if table.numel() == S:  # one table every vehicle applies
-            return fleet_metrics(self.model, joint_from_single(self.model, table))[0]
-        per = table.reshape(self.model.N, S)  # vehicle i's own table (agent_index)
-        joint = sum(
-            (joint_from_single(self.model, per[i]) >> i & 1) << i for i in range(self.model.N)
-        )
-        return fleet_metrics(self.model, joint)[0]
+        return fleet_metrics(self.model, joint_policy(self.model, table))[0]
 
 
 def train(
@@ -55,11 +49,14 @@ def train(
     hooks: Hooks | None = None,
     reward: str = "team",
     agent_index: bool = False,
+    model: FleetModel | None = None,
 ) -> RunRecord:
     """Train the shared network on ``cfg.num_envs`` rows (``cfg.num_envs / N`` fleets); env steps
-    count vehicle steps. The record's greedy tables are over the single-vehicle states."""
+    count vehicle steps. The record's greedy tables are over the single-vehicle states.
+    ``scorer``: ``FleetScorer`` (default) or any scorer of such tables
+    (``irdrc.fleet.evaluate.FleetMCScorer``); ``model``: the fleet model built from ``spec``."""
     cfg = cfg or dqn.DQNConfig()
-    model = scorer.model if scorer is not None else FleetModel(spec)
+    model = model or (scorer.model if scorer is not None else FleetModel(spec))
     N = model.N
     if cfg.num_envs % N:
         raise ValueError(f"algo.num_envs={cfg.num_envs} must be a multiple of the {N} vehicles")
@@ -72,7 +69,7 @@ def train(
         model.spec.vehicle,
         replace(cfg, name="idqn"),
         seed=seed,
-        scorers=scorer,
+        scorers=[scorer],
         eval_every_frames=eval_every_frames,
         hooks=hooks,
     )

@@ -18,7 +18,7 @@ from __future__ import annotations
 import contextlib
 import math
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field, fields
 from typing import Any
 
@@ -266,7 +266,13 @@ def observation_top(env: DFRCEnv) -> torch.Tensor:
 def make_mlp(env: DFRCEnv, net: NetworkConfig, out_features: int) -> nn.Sequential:
     """The network body sized from the env's observation spec: scaled observation in,
     ``out_features`` out, each hidden layer Linear → LayerNorm (``net.layer_norm``) → activation."""
-    high = observation_top(env)
+    return make_body(observation_top(env), net, out_features, env.device)
+
+
+def make_body(
+    high: torch.Tensor, net: NetworkConfig, out_features: int, device: Any = "cpu"
+) -> nn.Sequential:
+    """``make_mlp`` for observations whose entries lie in [0, ``high``] (any leading dims)."""
     norm = (
         {"norm_class": nn.LayerNorm, "norm_kwargs": [{"normalized_shape": h} for h in net.hidden]}
         if net.layer_norm
@@ -277,10 +283,10 @@ def make_mlp(env: DFRCEnv, net: NetworkConfig, out_features: int) -> nn.Sequenti
         out_features=out_features,
         num_cells=list(net.hidden),
         activation_class=ACTIVATIONS[net.activation],
-        device=env.device,
+        device=device,
         **norm,
     )
-    return nn.Sequential(Scale(high).to(env.device), mlp)
+    return nn.Sequential(Scale(high).to(device), mlp)
 
 
 def make_qnet(env: DFRCEnv, net: NetworkConfig) -> QValueActor:
@@ -317,12 +323,21 @@ class LadderExploration(TensorDictModuleBase):
             (a leading batch dimension of that size, or one row broadcast to every batch entry).
         max_duration: the longest hold.
         num_actions: size of the discrete action space.
+        action_key: where the action is (a multi-agent env's ``("agents", "action")``: the
+            agents of a row share its rate, each holding its own random actions).
     """
 
-    def __init__(self, eps: torch.Tensor, max_duration: int = 1, num_actions: int = 2) -> None:
+    def __init__(
+        self,
+        eps: torch.Tensor,
+        max_duration: int = 1,
+        num_actions: int = 2,
+        action_key: Any = "action",
+    ) -> None:
         super().__init__()
-        self.in_keys = ["action"]
-        self.out_keys = ["action"]
+        self.action_key = action_key
+        self.in_keys = [action_key]
+        self.out_keys = [action_key]
         self.register_buffer("eps", eps.float())
         n = torch.arange(1, int(max_duration) + 1, dtype=torch.float64)
         self.register_buffer("duration_p", (n**-2.0 / (n**-2.0).sum()).float())
@@ -334,12 +349,12 @@ class LadderExploration(TensorDictModuleBase):
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         if exploration_type() not in (ExplorationType.RANDOM, None):
             return tensordict
-        action = tensordict.get("action")
+        action = tensordict.get(self.action_key)
         eps = self.eps.view(-1, *([1] * (action.dim() - 1))) if action.dim() else self.eps[0]
         if self.max_duration <= 1:
             explore = torch.rand(action.shape, device=action.device) < eps
             random = torch.randint_like(action, self.num_actions)
-            tensordict.set("action", torch.where(explore, random, action))
+            tensordict.set(self.action_key, torch.where(explore, random, action))
             return tensordict
         if self.remaining is None or self.remaining.shape != action.shape:
             self.remaining = torch.zeros(action.shape, dtype=torch.long, device=action.device)
@@ -352,7 +367,7 @@ class LadderExploration(TensorDictModuleBase):
                 0, self.num_actions, (k,), dtype=action.dtype, device=action.device
             )
         exploring = self.remaining > 0
-        tensordict.set("action", torch.where(exploring, self.held, action))
+        tensordict.set(self.action_key, torch.where(exploring, self.held, action))
         self.remaining = (self.remaining - 1).clamp(min=0)
         return tensordict
 
@@ -534,6 +549,8 @@ class OffPolicyLoop:
     """Collect from the batched env, store each batch in replay, and run the gradient updates that
     are due: the loop every value-based learner shares. The learner iterates ``batches()`` and
     calls ``learn`` with its own update, then reports, evaluates and checkpoints as it sees fit.
+    ``prepare`` (optional) rewrites each collected batch before anything reads it (the fleet's
+    value decomposition puts the team reward at the root there); ``keys`` are what replay keeps.
 
     Attributes:
         frames: env steps so far (a resumed run starts at its checkpoint's).
@@ -555,6 +572,7 @@ class OffPolicyLoop:
         start_frames: int = 0,
         keys: tuple = STORED_KEYS,
         center_key: Any = ("next", "reward"),
+        prepare: Callable[[TensorDictBase], TensorDictBase] | None = None,
     ) -> None:
         self.cfg = cfg
         self.collector = collector
@@ -568,6 +586,7 @@ class OffPolicyLoop:
         self.updates = record.updates
         self.keys = keys
         self.center_key = center_key
+        self.prepare = prepare
         self.episodes = EpisodeTracker(cfg.num_envs, record)
         # a fresh run learns once its random warm-up is stored; a resumed one (its replay is not
         # checkpointed) as soon as it holds a batch
@@ -591,6 +610,8 @@ class OffPolicyLoop:
             if data is None:
                 return
             n = data.numel()
+            if self.prepare is not None:
+                data = self.prepare(data)
             self.episodes.add(data, self.frames)
             self.center.update(data.get(self.center_key))
             stored = data.select(*self.keys)

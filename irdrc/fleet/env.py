@@ -1,13 +1,14 @@
 """``FleetEnv``: the fleet as a batched TorchRL multi-agent env (MODEL.md § C).
 
 TorchRL's multi-agent conventions (as its VMAS wrapper): the agents' entries under the group key
-``"agents"`` with shape [*batch, N] — each agent's ``observation`` (its own d, c, v, m and the
-shared r, w, as the single-vehicle env's observation), ``action`` (0 comm, 1 radar), ``reward``
-[*batch, N, 1], and the per-step signals ``event``, ``missed``, ``detected_by_other``, ``granted``,
-``denied``, ``sent``, ``dropped`` — and the shared entries at the root: ``state`` (the exact fleet
-model's joint index, for exact scoring), ``vehicle_state`` [*batch, N] (each vehicle's
-single-vehicle state), ``step_count`` and ``done`` / ``terminated`` / ``truncated`` (episodes end by
-truncation at the horizon). ``group_map`` is ``{"agents": ["vehicle_1", …]}``.
+``"agents"`` with shape [*batch, N] — each agent's ``observation`` (``OBSERVE``: by default its
+own d, c, v, m and the shared r, w, as the single-vehicle env's observation), ``action`` (0 comm,
+1 radar), ``reward`` [*batch, N, 1], and the per-step signals ``event``, ``missed``,
+``detected_by_other``, ``granted``, ``denied``, ``sent``, ``dropped`` — and the shared entries at
+the root: ``state`` (the exact fleet model's joint index, for exact scoring, where the exact model
+reaches), ``vehicle_state`` [*batch, N] (each vehicle's single-vehicle state), ``step_count`` and
+``done`` / ``terminated`` / ``truncated`` (episodes end by truncation at the horizon).
+``group_map`` is ``{"agents": ["vehicle_1", …]}``.
 """
 
 from __future__ import annotations
@@ -24,6 +25,37 @@ from irdrc.fleet.sim import FleetDynamics
 GROUP = "agents"
 """The key of the agents' entries."""
 
+OBSERVE = ("own", "fleet")
+"""What a vehicle observes: ``own`` — its own d, c, v, m and the shared r, w (the single-vehicle
+observation); ``fleet`` — that, then every other vehicle's d, c, v, m (vehicles i + 1, i + 2, …
+cyclically), as if the vehicles shared their states over V2V links."""
+
+
+def own_columns(params) -> list[int]:
+    """The single-vehicle observation's columns that are a vehicle's own (d, c, v, m[, phase])."""
+    width = observation_high(params).shape[0]
+    return [0, 1, *range(4, width)]
+
+
+def fleet_observation(obs: torch.Tensor, own: list[int], observe: str) -> torch.Tensor:
+    """Each vehicle's observation [..., N, W′] from the vehicles' single-vehicle observations
+    [..., N, W] (``OBSERVE``)."""
+    if observe == "own":
+        return obs
+    mine = obs[..., own]
+    n = obs.shape[-2]
+    others = [mine.roll(-k, dims=-2) for k in range(1, n)]  # vehicle (i + k) mod N at row i
+    return torch.cat([obs, *others], -1)
+
+
+def fleet_observation_high(params, n: int, observe: str) -> torch.Tensor:
+    """[W′] the largest value of each entry of ``fleet_observation``."""
+    high = observation_high(params)
+    if observe == "own":
+        return high
+    return torch.cat([high, *([high[own_columns(params)]] * (n - 1))])
+
+
 SIGNALS = ("event", "missed", "detected_by_other", "granted", "denied")
 """Per-agent boolean signals of a step (with ``sent`` and ``dropped``, int64)."""
 
@@ -36,6 +68,7 @@ class FleetEnv(EnvBase):
         batch_size: fleets stepped together (one dimension).
         device: the device of the tensors.
         seed: the generator's seed (None: a fresh one).
+        observe: ``own`` or ``fleet`` (``OBSERVE``).
     """
 
     def __init__(
@@ -44,7 +77,11 @@ class FleetEnv(EnvBase):
         batch_size: int | tuple | list | torch.Size = (1,),
         device: torch.device | str = "cpu",
         seed: int | None = None,
+        observe: str = "own",
     ) -> None:
+        if observe not in OBSERVE:
+            raise ValueError(f"observe={observe!r} must be one of {', '.join(OBSERVE)}")
+        self.observe = observe
         if isinstance(batch_size, int):
             batch_size = (batch_size,)
         batch_size = torch.Size(batch_size)
@@ -62,7 +99,8 @@ class FleetEnv(EnvBase):
     def _make_specs(self) -> None:
         B, N, dev = self.batch_size[0], self.n_agents, self.device
         params = self.model.spec.vehicle
-        high = observation_high(params)
+        high = fleet_observation_high(params, N, self.observe)
+        self.own = own_columns(params)
         width = high.shape[0]
         cap = int(self.sim.dyn.capacity.max())
         agent = (B, N)
@@ -83,8 +121,14 @@ class FleetEnv(EnvBase):
                     shape=agent,
                     device=dev,
                 ),
-                "state": Categorical(
-                    self.model.num_states, shape=(B,), dtype=torch.int64, device=dev
+                **(
+                    {
+                        "state": Categorical(
+                            self.model.num_states, shape=(B,), dtype=torch.int64, device=dev
+                        )
+                    }
+                    if self.model.exact
+                    else {}
                 ),
                 "vehicle_state": Categorical(
                     self.model.single.num_states, shape=agent, dtype=torch.int64, device=dev
@@ -132,6 +176,7 @@ class FleetEnv(EnvBase):
     def _out(self, states: torch.Tensor, steps: torch.Tensor, res=None) -> TensorDict:
         B, N = self.batch_size[0], self.n_agents
         obs = self.sim.dyn.obs[states.reshape(-1)].reshape(B, N, -1)
+        obs = fleet_observation(obs, self.own, self.observe)
         agents: dict[str, torch.Tensor] = {"observation": obs.to(self.device)}
         falses = torch.zeros(B, N, dtype=torch.bool)
         zeros = torch.zeros(B, N, dtype=torch.int64)
@@ -149,10 +194,11 @@ class FleetEnv(EnvBase):
                 reward=res.reward.to(torch.float32).unsqueeze(-1),
             )
         truncated = (steps >= self.model.spec.vehicle.env.horizon).reshape(B, 1)
+        root = {"state": self.sim.fleet_index(states)} if self.model.exact else {}
         return TensorDict(
             {
                 GROUP: TensorDict(agents, batch_size=(B, N)),
-                "state": self.sim.fleet_index(states),
+                **root,
                 "vehicle_state": states,
                 "step_count": steps.reshape(B, 1),
                 "done": truncated,
@@ -319,3 +365,112 @@ class FleetRowsEnv(EnvBase):
         )
         steps = tensordict.get("step_count").reshape(-1).cpu() + 1
         return self._out(res.state, steps, team)
+
+
+class FleetJointEnv(EnvBase):
+    """The fleet as one agent choosing the joint action: ``fleets`` rows, each fleet's
+    ``observation`` every vehicle's state (vehicle 1's ``fleet`` observation, ``OBSERVE``),
+    ``action`` the joint action a = Σ_i a_i·2^(i−1) (2^N of them), ``reward`` the team reward,
+    ``state`` the exact model's joint index. A network learned here is executed by every vehicle
+    alike — each sees the fleet's states (shared over V2V), computes the same joint action and
+    takes its own bit — so its greedy table over the joint states is the fleet's policy.
+    """
+
+    def __init__(
+        self,
+        spec: FleetSpec | FleetModel | None = None,
+        fleets: int = 1,
+        device: torch.device | str = "cpu",
+        seed: int | None = None,
+    ) -> None:
+        self.model = spec if isinstance(spec, FleetModel) else FleetModel(spec or FleetSpec())
+        self.model.check_exact()
+        self.sim = FleetDynamics(self.model)
+        self.dynamics = self.sim.dyn
+        self.fleets, self.n_agents = int(fleets), self.model.N
+        if self.fleets < 1:
+            raise ValueError(f"fleets={fleets} must be >= 1")
+        super().__init__(device=device, batch_size=torch.Size([self.fleets]))
+        self.params = params = self.model.spec.vehicle
+        self.own = own_columns(params)
+        self.vehicles = self.model.vehicle_states()  # [S, N]
+        self.obs_table = self._observe(self.vehicles)
+        high = fleet_observation_high(params, self.n_agents, "fleet")
+        B, width, dev = self.fleets, high.shape[0], self.device
+        self.observation_spec = Composite(
+            observation=Bounded(
+                low=torch.zeros(B, width, device=dev),
+                high=high.to(dev).expand(B, width).clone(),
+                shape=(B, width),
+                dtype=torch.float32,
+                device=dev,
+            ),
+            state=Categorical(self.model.num_states, shape=(B,), dtype=torch.int64),
+            step_count=Bounded(0, params.env.horizon, shape=(B, 1), dtype=torch.int64),
+            shape=(B,),
+            device=dev,
+        )
+        self.action_spec = Categorical(2**self.n_agents, shape=(B,), dtype=torch.int64, device=dev)
+        self.reward_spec = Unbounded(shape=(B, 1), dtype=torch.float32, device=dev)
+        self.done_spec = Composite(
+            done=Categorical(2, shape=(B, 1), dtype=torch.bool, device=dev),
+            terminated=Categorical(2, shape=(B, 1), dtype=torch.bool, device=dev),
+            truncated=Categorical(2, shape=(B, 1), dtype=torch.bool, device=dev),
+            shape=(B,),
+            device=dev,
+        )
+        self.rng = torch.Generator()
+        self.set_seed(seed if seed is not None else fresh_seed())
+
+    @property
+    def num_states(self) -> int:
+        """The fleet's joint states (the observation table's rows)."""
+        return self.model.num_states
+
+    @property
+    def observation_table(self) -> torch.Tensor:
+        """[S, W] the observation of every joint state (greedy tables read it)."""
+        return self.obs_table
+
+    def _observe(self, vehicle_states: torch.Tensor) -> torch.Tensor:
+        obs = self.sim.dyn.obs[vehicle_states]  # [n, N, W]
+        return fleet_observation(obs, self.own, "fleet")[:, 0]
+
+    def _set_seed(self, seed: int | None) -> None:
+        self.rng.manual_seed(int(seed if seed is not None else fresh_seed()))
+
+    def _out(self, states: torch.Tensor, steps: torch.Tensor, reward=None) -> TensorDict:
+        B = self.fleets
+        truncated = (steps >= self.params.env.horizon).reshape(B, 1)
+        joint = self.sim.fleet_index(states)
+        out = {
+            "observation": self.obs_table[joint].to(self.device),
+            "state": joint,
+            "step_count": steps.reshape(B, 1),
+            "done": truncated,
+            "terminated": torch.zeros_like(truncated),
+            "truncated": truncated,
+        }
+        if reward is not None:
+            out["reward"] = reward.reshape(B, 1).to(torch.float32)
+        return TensorDict(out, batch_size=(B,), device=self.device)
+
+    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDict:
+        joint = torch.randint(0, self.model.num_states, (self.fleets,), generator=self.rng)
+        return self._out(self.vehicles[joint], torch.zeros(self.fleets, dtype=torch.int64))
+
+    def _step(self, tensordict: TensorDictBase) -> TensorDict:
+        joint, action = tensordict.get("state", None), tensordict.get("action", None)
+        if joint is None or tensordict.get("step_count", None) is None:
+            raise ValueError("FleetJointEnv.step needs the 'state' and 'step_count' of reset()")
+        if action is None:
+            raise ValueError(
+                f"FleetJointEnv.step needs an 'action': a joint action in 0 … {2**self.n_agents - 1}"
+            )
+        action = action.reshape(-1).long().cpu()
+        if bool(((action < 0) | (action >= 2**self.n_agents)).any()):
+            raise ValueError(f"joint actions must lie in 0 … {2**self.n_agents - 1}")
+        bits = (action[:, None] >> torch.arange(self.n_agents)) & 1
+        res = self.sim.step(self.vehicles[joint.reshape(-1).cpu()], bits, self.rng)
+        steps = tensordict.get("step_count").reshape(-1).cpu() + 1
+        return self._out(res.state, steps, res.reward.sum(1))

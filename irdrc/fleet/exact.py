@@ -122,11 +122,6 @@ class FleetModel:
         self.F = self.X // radix[0]  # the components besides the queue
         self.N = spec.vehicles
         self.num_states = self.RW * self.X**self.N
-        if self.num_states > FLEET_STATE_LIMIT:
-            raise ValueError(
-                f"env.vehicles={self.N}: {self.num_states:,} joint states, above the exact fleet "
-                f"model's {FLEET_STATE_LIMIT:,} (N = 2 on the paper's sizes has 30 976)"
-            )
         # single index → (rw, x), and the single model's tables on the [RW, X] grid
         self.index = torch.empty(self.RW, self.X, dtype=torch.int64)
         self.index[rw, x] = torch.arange(S)
@@ -168,7 +163,38 @@ class FleetModel:
         self.dropped = {"comm": single.dropped[0][grid], "radar": single.dropped[1][grid]}
         self.capacity = single.capacity[0][grid]
         self.queue = single.queue.to(torch.float64)[grid]
-        self.joint = [self._joint(a) for a in range(2**self.N)]
+
+    @property
+    def exact(self) -> bool:
+        """Whether the joint state space is within ``FLEET_STATE_LIMIT`` (the exact solver and
+        metrics; the simulator works at any N)."""
+        return self.num_states <= FLEET_STATE_LIMIT
+
+    def check_exact(self) -> None:
+        """Raise a ``ValueError`` when the joint state space is beyond the exact model's reach."""
+        if not self.exact:
+            raise ValueError(
+                f"env.vehicles={self.N}: {self.num_states:,} joint states, above the exact fleet "
+                f"model's {FLEET_STATE_LIMIT:,} (N = 2 on the paper's sizes has 30 976); the "
+                "simulator and Monte-Carlo evaluation work at any N"
+            )
+
+    @functools.cached_property
+    def joint(self) -> list[list[tuple[float, list[str], list[dict[str, torch.Tensor]]]]]:
+        """Per joint action, its uplink outcomes (``_joint``), built on first use."""
+        self.check_exact()
+        return [self._joint(a) for a in range(2**self.N)]
+
+    def vehicle_states(self) -> torch.Tensor:
+        """[S, N] every joint state's vehicles as single-vehicle state indices."""
+        self.check_exact()
+        idx = torch.arange(self.num_states)
+        xs = []
+        for _ in range(self.N):
+            xs.append(idx % self.X)
+            idx = idx // self.X
+        rw = idx
+        return torch.stack([self.index[rw, x] for x in reversed(xs)], 1)
 
     # -- per joint action -----------------------------------------------------------------------
 
@@ -303,6 +329,7 @@ def value_iteration_fleet(
     < ``tol`` (as ``irdrc.core.solve.value_iteration``)."""
     if not 0.0 < gamma < 1.0:
         raise ValueError(f"gamma={gamma} must be in (0, 1)")
+    model.check_exact()
     V = torch.zeros(model.shape(), dtype=torch.float64)
     for it in range(1, max_iter + 1):  # noqa: B007 - reported after the loop
         Q = model.q_values(V, gamma)
@@ -370,6 +397,7 @@ def stationary_fleet(
     policy; a list of per-phase policies is applied in turn, as round-robin is), by power
     iteration from uniform over whole cycles (one recurrent class assumed, as
     ``irdrc.core.solve.stationary_distribution``)."""
+    model.check_exact()
     sched = _schedule(model, policy)
     mu = torch.full(model.shape(), 1.0 / model.num_states, dtype=torch.float64)
     for _ in range(max_iter):
@@ -388,6 +416,7 @@ def fleet_metrics(model: FleetModel, policy) -> tuple[Metrics, list[dict]]:
     capacity summed over the vehicles; miss detection a ratio of sums; radar fraction and mean
     queue averaged over them) and each vehicle's, then the fleet's, as dicts of
     ``FLEET_METRICS``."""
+    model.check_exact()
     sched = _schedule(model, policy)
     path = stationary_fleet(model, policy)
     keys = (
@@ -460,6 +489,24 @@ def joint_from_single(model: FleetModel, actions: torch.Tensor) -> torch.Tensor:
     for i in range(model.N):
         joint = joint + (model._expand(table, i) << i)
     return joint.reshape(-1)
+
+
+def joint_policy(model: FleetModel, table: torch.Tensor) -> torch.Tensor:
+    """[S_fleet] joint actions of a decentralised policy: a table [S] over the single-vehicle
+    states every vehicle applies to its own state, one per vehicle [N·S] (vehicle-major), or
+    already a joint action per joint state [S_fleet]."""
+    S, table = model.single.num_states, torch.as_tensor(table).long().reshape(-1)
+    if table.numel() == S:  # one table every vehicle applies
+        return joint_from_single(model, table)
+    if table.numel() == model.num_states:  # a joint action per joint state
+        return table
+    if table.numel() != model.N * S:
+        raise ValueError(
+            f"a fleet policy has {S}, {model.N * S} or {model.num_states} entries, not "
+            f"{table.numel()}"
+        )
+    per = table.reshape(model.N, S)  # vehicle i's own table (agent_index)
+    return sum((joint_from_single(model, per[i]) >> i & 1) << i for i in range(model.N))
 
 
 def baselines(model: FleetModel, single_optimum: torch.Tensor) -> dict[str, object]:

@@ -622,6 +622,12 @@ class Params:
         for key in ("env", "reward"):
             if strict and key not in cfg:
                 raise ValueError(f"missing key(s) {key}")
+        env = cfg.get("env", {})
+        if isinstance(env, Mapping) and "vehicles" in env:
+            raise ValueError(
+                "env=fleet (env.vehicles=…) is a fleet of vehicles; this takes one vehicle — run "
+                "the fleet with recipes/fleet.py (learners) or recipes/solve.py (its optimum)"
+            )
         return cls(
             env=EnvParams.from_dict(cfg.get("env", {}), strict=strict),
             reward=RewardParams.from_dict(cfg.get("reward", {}), strict=strict),

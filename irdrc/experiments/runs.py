@@ -53,6 +53,7 @@ from irdrc.experiments.results import (
     write_summary,
 )
 from irdrc.experiments.tracking import log_scalars, make_logger, resolve_wandb_mode
+from irdrc.fleet.config import is_fleet
 
 """Method name → learner module (``Config``, ``train``; see ``irdrc.agents.base``)."""
 
@@ -61,6 +62,10 @@ def run_solve(cfg: DictConfig, out: Path, scenario: str | None = None) -> dict[s
     """Solve, print the policy and the comparison table, write summary.json and policy.csv
     (above the dense model's size, on the factored operator: ``run_solve_factored``)."""
     torch.set_num_threads(1)
+    if is_fleet(cfg):
+        from irdrc.experiments.fleet import run_solve_fleet
+
+        return run_solve_fleet(cfg, out, scenario)
     params = Params.from_config(cfg)
     if 16 * params.env.num_states**2 > DENSE_MODEL_LIMIT_BYTES:
         return run_solve_factored(cfg, out, scenario)
@@ -341,8 +346,16 @@ def comparison_rows(cfg: DictConfig, params: Params) -> dict[str, Metrics]:
     return {"qlearning_paper": stationary_metrics(model, table)}
 
 
+def run_fleet(cfg: DictConfig, out: Path, scenario: str | None = None) -> dict[str, Any]:
+    """A multi-agent learner on a fleet (``irdrc.experiments.fleet.run_fleet``)."""
+    from irdrc.experiments.fleet import run_fleet as run
+
+    return run(cfg, out, scenario)
+
+
 RUNNERS = {
     "solve": run_solve,
+    "fleet": run_fleet,
     "qlearning": run_qlearning,
     "dqn": run_dqn,
     "constrained": run_constrained,

@@ -37,13 +37,14 @@ from irdrc.experiments.runs import RUNNERS
 from irdrc.experiments.seeds import plot_seed_curves, write_seed_summary
 from irdrc.experiments.validate import check_overrides, validate
 
-METHODS = ("dqn", "qlearning", "solve", "constrained")
+METHODS = ("dqn", "qlearning", "solve", "constrained", "fleet")
 # Settings a sweep gives every trial before the user's base overrides (which may change them).
 TRIAL_DEFAULTS = {
     "dqn": ["progress=false", "compare.qlearning_paper=false", "logger=none"],
     "qlearning": ["progress=false", "logger=none"],
     "solve": [],
     "constrained": ["progress=false", "logger=none"],
+    "fleet": ["progress=false", "logger=none"],
 }
 STATUSES = ("DONE", "ERROR", "INCOMPLETE")
 

@@ -29,6 +29,7 @@ from irdrc.experiments.grid import candidate_overrides, override_key, parse_grid
 from irdrc.experiments.guard import load_resume
 from irdrc.experiments.runs import RUNNERS, batch_points
 from irdrc.experiments.tracking import BACKENDS, WANDB_MODES
+from irdrc.fleet.config import is_fleet
 
 EPISODIC_LIMIT_FLOPS = 2e11
 """Exact episodic metrics step a distribution through ``env.horizon`` matrix-vector products
@@ -206,10 +207,15 @@ def check_episodic_cost(params: Params, key: str = "env.horizon") -> None:
         )
 
 
-def check_common(cfg: DictConfig, factored: bool = False) -> Params | None:
+def check_common(cfg: DictConfig, factored: bool = False, fleet: bool = False) -> Params | None:
     """Keys most recipes share: seed, device, threads, discount, evaluation, progress, logger
-    (``factored``: see ``check_params``)."""
-    params = check_params(cfg, factored) if "env" in cfg else None
+    (``factored``: see ``check_params``). With ``fleet`` a fleet scenario is checked as one
+    (``check_fleet``; None is returned); without, a fleet is refused naming the fleet's recipes."""
+    if fleet and "env" in cfg and is_fleet(cfg):
+        check_fleet(cfg)
+        params = None
+    else:
+        params = check_params(cfg, factored) if "env" in cfg else None
     if "seed" in cfg:
         check_number("seed", cfg.seed, 0, 2**32 - 1, integer=True)
     if "device" in cfg:
@@ -259,12 +265,45 @@ def _check_eval_period(cfg: DictConfig, total: int, explicit: frozenset[str]) ->
 # -- per recipe -------------------------------------------------------------------------------------
 
 
+def check_fleet(cfg: DictConfig, exact: bool = False):
+    """A fleet scenario (``env=fleet``): its keys and values, and with ``exact`` that the exact
+    fleet model reaches it. Returns (the fleet model, what each vehicle observes)."""
+    from irdrc.fleet.config import fleet_from_config
+    from irdrc.fleet.exact import FleetModel
+
+    spec, observe = fleet_from_config(cfg)
+    model = FleetModel(spec)
+    if exact:
+        model.check_exact()
+    return model, observe
+
+
 def _solve(cfg: DictConfig) -> None:
-    params = check_common(cfg, factored=True)  # large S: the factored operator
+    params = check_common(cfg, factored=True, fleet=True)  # large S: the factored operator
     check_number("tol", cfg.tol, 0, 1, open_lo=True)
     check_number("max_iter", cfg.max_iter, 1, 10**8, integer=True)
-    if 16 * params.env.num_states**2 <= DENSE_MODEL_LIMIT_BYTES:
+    if params is None:  # a fleet: the exact fleet model must reach it
+        check_fleet(cfg, exact=True)
+    elif 16 * params.env.num_states**2 <= DENSE_MODEL_LIMIT_BYTES:
         check_episodic_cost(params)
+
+
+def _fleet(cfg: DictConfig) -> None:
+    from irdrc.agents import fleet_learners
+
+    check_common(cfg, fleet=True)
+    model, observe = check_fleet(cfg)
+    check_choice("learner", cfg.learner, fleet_learners.LEARNERS)
+    config = fleet_learners.config(str(cfg.learner), cfg.algo, cfg.network)
+    fleet_learners.check(str(cfg.learner), model, observe)
+    if int(cfg.eval.every_frames) > config.total_frames:
+        raise ValueError(
+            f"eval.every_frames={cfg.eval.every_frames} is more than the run's "
+            f"{config.total_frames} fleet steps; use a smaller value"
+        )
+    check_number("eval.mc_fleets", cfg.eval.mc_fleets, 2, 10**6, integer=True)
+    check_number("eval.mc_steps", cfg.eval.mc_steps, 1, 10**7, integer=True)
+    check_number("eval.mc_burn_in", cfg.eval.mc_burn_in, 0, 10**7, integer=True)
 
 
 def _evaluate(cfg: DictConfig) -> None:
@@ -402,6 +441,37 @@ def _bench_robust(cfg: DictConfig) -> None:
     # every run's full config is composed and checked when the run plans them, before any trial
 
 
+def _bench_fleet(cfg: DictConfig) -> None:
+    from irdrc.agents.fleet_learners import LEARNERS
+
+    check_executor(cfg)
+    for key, choices in (("learners", LEARNERS), ("scale_learners", ("idqn", "vdn", "qmix"))):
+        values = to_plain(cfg[key])
+        if not isinstance(values, list):
+            raise ValueError(f"{key}={values!r} must be a list")
+        for i, v in enumerate(values):
+            check_choice(f"{key}[{i}]", v, choices)
+    for key, lo, hi, integer in (
+        ("seeds", 0, 2**32 - 1, True),
+        ("scale_seeds", 0, 2**32 - 1, True),
+        ("share", 0, 1, False),
+        ("channels", 1, 16, True),
+        ("vehicles", 1, 16, True),
+    ):
+        values = to_plain(cfg[key])
+        if not isinstance(values, list):
+            raise ValueError(f"{key}={values!r} must be a list")
+        for i, v in enumerate(values):
+            check_number(f"{key}[{i}]", v, lo, hi, integer=integer)
+    check_bool("search", cfg.search)
+    cell = to_plain(cfg.search_cell)
+    if not isinstance(cell, list) or len(cell) != 2:
+        raise ValueError(f"search_cell={cell!r} must be [share, channels]")
+    check_number("search_sweeps", cfg.search_sweeps, 1, 1000, integer=True)
+    check_choice("plot.format", cfg.plot.format, PLOT_FORMATS)
+    # every run's full config is composed and checked when the benchmark plans them
+
+
 def _demo(cfg: DictConfig) -> None:
     check_common(cfg)
 
@@ -477,6 +547,7 @@ def _constrained(cfg: DictConfig) -> None:
 VALIDATORS: dict[str, Callable[[DictConfig], None]] = {
     "constrained": _constrained,
     "solve": _solve,
+    "fleet": _fleet,
     "evaluate": _evaluate,
     "dqn": _dqn,
     "qlearning": _qlearning,
@@ -485,6 +556,7 @@ VALIDATORS: dict[str, Callable[[DictConfig], None]] = {
     "bench_env": _bench_env,
     "demo": _demo,
     "bench_robust": _bench_robust,
+    "bench_fleet": _bench_fleet,
     "bench_constrained": _bench_constrained,
     "bench_scale": _bench_scale,
 }

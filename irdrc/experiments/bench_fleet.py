@@ -1,0 +1,343 @@
+"""The fleet's benchmark (``recipes/bench_fleet.py``): multi-agent learners against the exact
+centralised optimum at N = 2, and against the baselines (Monte-Carlo) as the fleet grows.
+
+Part A — N = 2, every (share, channels) cell × learner × seed, one ``recipes/fleet.py`` run each
+through the sweep engine: the final ratio to the exact optimum, fleet steps and seconds to 95 % /
+99 %, beside the exact baselines of the cell; in one cell, the best decentralised policy local
+search finds from the best own-observation run (``irdrc.fleet.search``) — how far own observations
+can go. Part B — N = 2 (part A's runs) and ``vehicles`` (one channel, share 0.5), the own-observation
+learners against the baselines: fleet reward, miss detection, throughput, denial rate. A figure: the fleet's
+frontier (throughput against miss detection) at N = 2 for the optimum, the learners and the
+baselines, one panel per cell.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import statistics
+import time
+from pathlib import Path
+from typing import Any
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+import torch
+from omegaconf import DictConfig
+
+from irdrc.core.params import to_plain
+from irdrc.experiments.results import (
+    atomic_savefig,
+    md_table,
+    read_csv_rows,
+    write_rows_csv,
+    write_table_md,
+)
+
+OWN_LEARNERS = ("idqn", "vdn", "qmix")
+"""Learners whose vehicles see only their own state (``env.observe=own``)."""
+
+BASELINES = (
+    "N copies of the single optimum",
+    "round-robin in anti-phase",
+    "sensing rotation",
+    "always radar",
+)
+
+
+def observe_of(learner: str) -> str:
+    """What a learner's vehicles observe in the benchmark (joint: every vehicle's state)."""
+    return "fleet" if learner == "joint" else "own"
+
+
+def run_bench_fleet(cfg: DictConfig, out: Path) -> int:
+    """Plan and run both parts, then write ``bench_fleet.csv`` (a row per run),
+    ``bench_fleet.md`` (the tables) and ``fleet_frontier.<format>``."""
+    from irdrc.experiments.sweep import execute, plan
+
+    start = time.perf_counter()
+    out = Path(out)
+    seeds = [int(s) for s in to_plain(cfg.seeds)]
+    base = [str(o) for o in cfg.overrides] + [f"eval.every_frames={int(cfg.eval.every_frames)}"]
+    planned, part = [], {}
+    for learner in to_plain(cfg.learners):
+        extra = [f"learner={learner}", f"env.observe={observe_of(learner)}", "env.vehicles=2"]
+        grid = [
+            {"env.share": float(s), "env.channels": int(k), "seed": seed}
+            for s in to_plain(cfg.share)
+            for k in to_plain(cfg.channels)
+            for seed in seeds
+        ]
+        for p in plan("fleet", grid, [*base, *extra]):
+            planned.append(p)
+            part[p["point_id"]] = ("A", learner)
+    for learner in to_plain(cfg.scale_learners):
+        extra = [f"learner={learner}", "env.observe=own", "env.channels=1", "env.share=0.5"]
+        grid = [
+            {"env.vehicles": int(n), "seed": int(seed)}
+            for n in to_plain(cfg.vehicles)
+            for seed in to_plain(cfg.scale_seeds)
+        ]
+        for p in plan("fleet", grid, [*base, *extra]):
+            planned.append(p)
+            part[p["point_id"]] = ("B", learner)
+    code = execute(cfg, planned, out)
+    rows, tables = [], {}
+    for p in planned:
+        tdir = out / "trials" / p["point_id"]
+        if not (tdir / "summary.json").is_file():
+            continue
+        s = json.loads((tdir / "summary.json").read_text())
+        which, learner = part[p["point_id"]]
+        fleet = s["fleet"]
+        hist = read_csv_rows(tdir / "metrics.csv")
+        row = {
+            "part": which,
+            "learner": learner,
+            "vehicles": fleet["vehicles"],
+            "channels": fleet["channels"],
+            "share": fleet["share"],
+            "observe": fleet["observe"],
+            "seed": int(p["point"]["seed"]),
+            "reference": s["reference"],
+            "final_ratio": s["optimality_ratio"],
+            "fleet_steps": s["env_steps"],
+            "wall_seconds": s["wall_seconds"],
+            **_to(hist, 0.95),
+            **_to(hist, 0.99),
+            **{k: s["per_vehicle"][-1][k] for k in KEYS},
+            "point_id": p["point_id"],
+        }
+        rows.append(row)
+        tables[p["point_id"]] = s["table"]
+    write_rows_csv(out / cfg.csv, rows)
+    a = [r for r in rows if r["part"] == "A"]
+    # part B starts with part A's own-observation runs of its cell at N = 2
+    b = [
+        r
+        for r in a
+        if r["observe"] == "own"
+        and r["learner"] in to_plain(cfg.scale_learners)
+        and (r["share"], r["channels"]) == (0.5, 1)
+    ] + [r for r in rows if r["part"] == "B"]
+    text = []
+    if a:
+        text.append(exact_table(a, tables, len(seeds)))
+        search = decentralised_search(cfg, a, out) if cfg.search else None
+        if search:
+            text.append(search)
+    if b:
+        text.append(scale_table(b, tables))
+    table = "\n\n".join(text)
+    print("\n" + table)
+    if a:
+        frontier_figure(a, tables, out / f"fleet_frontier.{cfg.plot.format}")
+    write_table_md(out / "bench_fleet.md", table, time.perf_counter() - start)
+    print(f"\nwrote {out / cfg.csv}, {out / 'bench_fleet.md'} and the frontier figure")
+    return code
+
+
+KEYS = ("avg_reward", "throughput", "miss_detection", "denial_rate", "radar_fraction")
+
+
+def _to(hist: list[dict[str, str]], th: float) -> dict[str, Any]:
+    first = next((r for r in hist if float(r["optimality_ratio"]) >= th), None)
+    tag = f"{round(th * 100)}"
+    return {
+        f"fleet_steps_to_{tag}": int(first["env_steps"]) if first else None,
+        f"seconds_to_{tag}": float(first["wall_seconds"]) if first else None,
+    }
+
+
+def _med(values: list, fmt: str = "{:.4f}") -> str:
+    hit = [v for v in values if v is not None and not (isinstance(v, float) and math.isnan(v))]
+    return fmt.format(statistics.median(hit)) if hit else "—"
+
+
+def _steps(values: list) -> str:
+    hit = [v for v in values if v is not None]
+    if not hit:
+        return "—"
+    label = f"{statistics.median(hit):,.0f}".replace(",", " ")
+    return label if len(hit) == len(values) else f"{label} ({len(hit)}/{len(values)})"
+
+
+def exact_table(rows: list[dict[str, Any]], tables: dict[str, Any], seeds: int) -> str:
+    """Part A as Markdown: per cell, each learner's final ratio to the exact centralised optimum
+    (median, min–max over the seeds), runs ≥ 0.95, fleet steps and seconds to 95 % (median over
+    the runs that reached it), and the exact baselines' ratios."""
+    cells = sorted({(r["share"], r["channels"]) for r in rows})
+    learners = list(dict.fromkeys(r["learner"] for r in rows))
+    out = []
+    for share, k in cells:
+        mine = [r for r in rows if (r["share"], r["channels"]) == (share, k)]
+        table = tables[mine[0]["point_id"]]
+        opt = table["centralised optimum"][-1]["avg_reward"]
+        body = []
+        for learner in learners:
+            rs = [r for r in mine if r["learner"] == learner]
+            if not rs:
+                continue
+            ratios = [r["final_ratio"] for r in rs]
+            body.append(
+                [
+                    f"{learner} ({rs[0]['observe']})",
+                    f"{_med(ratios)} ({min(ratios):.4f}–{max(ratios):.4f})",
+                    f"{sum(x >= 0.95 for x in ratios)}/{len(rs)}",
+                    _steps([r["fleet_steps_to_95"] for r in rs]),
+                    _med([r["seconds_to_95"] for r in rs], "{:.0f}"),
+                    _med([r["miss_detection"] for r in rs]),
+                    _med([r["throughput"] for r in rs]),
+                ]
+            )
+        for name in BASELINES:
+            per = table[name]
+            body.append(
+                [
+                    f"*{name}* (exact)",
+                    f"{per[-1]['avg_reward'] / opt:.4f}",
+                    "",
+                    "",
+                    "",
+                    f"{per[-1]['miss_detection']:.4f}",
+                    f"{per[-1]['throughput']:.4f}",
+                ]
+            )
+        out.append(
+            f"**N = 2, share {share:g}, {k} channel(s)** — centralised optimum {opt:.4f} per "
+            f"fleet step (exact), {seeds} seeds per learner\n\n"
+            + md_table(
+                [
+                    "policy",
+                    "final ratio (median, range)",
+                    "≥ 0.95",
+                    "fleet steps to 95 %",
+                    "s to 95 %",
+                    "miss detection",
+                    "throughput",
+                ],
+                body,
+            )
+        )
+    return "\n\n".join(out)
+
+
+def decentralised_search(cfg: DictConfig, rows: list[dict[str, Any]], out: Path) -> str | None:
+    """Local search (``irdrc.fleet.search``) from the best own-observation run of the cell
+    ``search_cell``: the best decentralised policy it finds, against that run and the optimum."""
+    from irdrc.fleet.exact import FleetModel, FleetSpec
+    from irdrc.fleet.search import improve_tables
+
+    share, k = float(cfg.search_cell[0]), int(cfg.search_cell[1])
+    own = [r for r in rows if r["observe"] == "own" and (r["share"], r["channels"]) == (share, k)]
+    if not own:
+        return None
+    best = max(own, key=lambda r: r["final_ratio"])
+    model = FleetModel(FleetSpec(vehicles=2, channels=k, share=share))
+    lines = (out / "trials" / best["point_id"] / "policy.csv").read_text().splitlines()
+    header = lines[0].split(",")
+    cols = [header.index(f"action{i + 1}") for i in range(2)]
+    joint = torch.tensor([[int(x.split(",")[c]) for c in cols] for x in lines[1:]])
+    states = model.vehicle_states()
+    tables = torch.zeros(2, model.single.num_states, dtype=torch.int64)
+    for i in range(2):
+        tables[i, states[:, i]] = joint[:, i]
+    print(
+        f"\nlocal search from {best['learner']} seed {best['seed']} ({best['final_ratio']:.4f}) …"
+    )
+    res = improve_tables(
+        model,
+        tables.reshape(-1),
+        max_sweeps=int(cfg.search_sweeps),
+        progress=lambda s, v, f: print(
+            f"  sweep {s}: {v:.4f} per fleet step, {f} flips", flush=True
+        ),
+    )
+    opt = best["avg_reward"] / best["final_ratio"]
+    return (
+        f"**The best decentralised policy local search finds** (N = 2, share {share:g}, {k} "
+        f"channel(s), own observations): from {best['learner']} seed {best['seed']} at "
+        f"{res.start_reward / opt:.4f} of the centralised optimum, {res.flips} single-entry flips "
+        f"over {res.sweeps} sweeps ({res.evaluations} exact evaluations, {res.seconds:.0f} s) end "
+        f"at **{res.reward / opt:.4f}**: no single change of either vehicle's table improves it."
+    )
+
+
+def scale_table(rows: list[dict[str, Any]], tables: dict[str, Any]) -> str:
+    """Part B as Markdown: per N, each learner (median over seeds) and each baseline: fleet reward
+    per fleet step, miss detection, throughput, denial rate."""
+    body = []
+    for n in sorted({r["vehicles"] for r in rows}):
+        mine = [r for r in rows if r["vehicles"] == n]
+        table = tables[mine[0]["point_id"]]
+        how = "exact" if mine[0]["reference"].startswith("centralised") else "Monte-Carlo"
+        for learner in dict.fromkeys(r["learner"] for r in mine):
+            rs = [r for r in mine if r["learner"] == learner]
+            body.append(
+                [str(n), f"{learner} ({how}, {len(rs)} seed(s))"]
+                + [_med([r[k] for r in rs]) for k in KEYS[:4]]
+            )
+        for name in BASELINES:
+            per = next(v for key, v in table.items() if key.startswith(name))
+            body.append(
+                [str(n), f"*{name}* ({how})"]
+                + [f"{per[-1][k]:.4f}" if per[-1][k] is not None else "—" for k in KEYS[:4]]
+            )
+        if how == "exact":
+            per = table["centralised optimum"]
+            body.append(
+                [str(n), "*centralised optimum* (exact)"]
+                + [f"{per[-1][k]:.4f}" if per[-1][k] is not None else "—" for k in KEYS[:4]]
+            )
+    return "**The fleet as it grows** (one channel, share 0.5, own observations)\n\n" + md_table(
+        ["N", "policy", "fleet reward / step", "throughput", "miss detection", "denial rate"], body
+    )
+
+
+def frontier_figure(rows: list[dict[str, Any]], tables: dict[str, Any], path: Path) -> None:
+    """Throughput against miss detection at N = 2, one panel per cell: the optimum, each learner's
+    runs, the baselines."""
+    cells = sorted({(r["share"], r["channels"]) for r in rows})
+    cols = min(3, len(cells))
+    nrows = math.ceil(len(cells) / cols)
+    fig, axes = plt.subplots(nrows, cols, figsize=(4.6 * cols, 3.9 * nrows), squeeze=False)
+    marks = {"idqn": "o", "vdn": "s", "qmix": "^", "joint": "D"}
+    for ax, (share, k) in zip(axes.flat, cells, strict=False):
+        mine = [r for r in rows if (r["share"], r["channels"]) == (share, k)]
+        table = tables[mine[0]["point_id"]]
+        for learner in dict.fromkeys(r["learner"] for r in mine):
+            rs = [r for r in mine if r["learner"] == learner]
+            ax.scatter(
+                [r["miss_detection"] for r in rs],
+                [r["throughput"] for r in rs],
+                marker=marks.get(learner, "o"),
+                s=36,
+                alpha=0.7,
+                label=learner,
+            )
+        opt = table["centralised optimum"][-1]
+        ax.scatter(
+            [opt["miss_detection"]], [opt["throughput"]], marker="*", s=200, c="k", label="optimum"
+        )
+        for name in BASELINES:
+            b = table[name][-1]
+            ax.scatter([b["miss_detection"]], [b["throughput"]], marker="x", s=50, c="grey")
+            ax.annotate(
+                name.replace("N copies of the single optimum", "copies"),
+                (b["miss_detection"], b["throughput"]),
+                fontsize=7,
+                xytext=(3, 3),
+                textcoords="offset points",
+            )
+        ax.set_title(f"share {share:g}, {k} channel(s)", fontsize=10)
+        ax.set_xlabel("miss detection (fleet)", fontsize=9)
+        ax.set_ylabel("throughput (packets / fleet step)", fontsize=9)
+        ax.grid(alpha=0.3)
+    for ax in list(axes.flat)[len(cells) :]:
+        ax.axis("off")
+    axes.flat[0].legend(fontsize=8, loc="best")
+    fig.suptitle("Two vehicles: throughput against miss detection (exact)", fontsize=11)
+    fig.tight_layout()
+    atomic_savefig(fig, path, dpi=160)

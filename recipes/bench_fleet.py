@@ -1,0 +1,19 @@
+"""Benchmark: multi-agent learners on a fleet against the exact centralised optimum and the baselines.
+
+    python recipes/bench_fleet.py                                   # on Ray (loopback-only namespace)
+    python recipes/bench_fleet.py executor=local 'learners=[vdn]' 'seeds=[0]' 'vehicles=[2,4]'
+    python recipes/bench_fleet.py "overrides=['algo.total_frames=100000']" search=false
+
+Part A: N = 2, every (share, channels) cell × learner × seed, scored exactly; part B: N = 2 … 8,
+own-observation learners against the baselines by Monte-Carlo (docs/FLEET.md).
+"""
+
+from __future__ import annotations
+
+from irdrc.experiments.app import recipe
+from irdrc.experiments.bench_fleet import run_bench_fleet
+
+main = recipe("bench_fleet", run_bench_fleet)
+
+if __name__ == "__main__":
+    main()

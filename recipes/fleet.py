@@ -1,0 +1,17 @@
+"""Multi-agent learners on a fleet of vehicles (MODEL.md § C), scored against the centralised optimum.
+
+python recipes/fleet.py                                      # VDN, 2 vehicles, own observations
+python recipes/fleet.py learner=joint env.observe=fleet      # one network over the joint actions
+python recipes/fleet.py learner=qmix env.share=1.0 env.channels=2
+python recipes/fleet.py learner=idqn env.vehicles=4          # beyond the exact model: Monte-Carlo
+"""
+
+from __future__ import annotations
+
+from irdrc.experiments.app import recipe
+from irdrc.experiments.fleet import run_fleet
+
+main = recipe("fleet", run_fleet)
+
+if __name__ == "__main__":
+    main()

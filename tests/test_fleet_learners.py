@@ -1,0 +1,301 @@
+"""The fleet's learners, observations, Monte-Carlo evaluation and recipes (MODEL.md § C)."""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from irdrc.core.solve import value_iteration
+from irdrc.fleet.exact import FleetModel, FleetSpec, baselines, fleet_metrics
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def two():
+    return FleetModel(FleetSpec(vehicles=2))
+
+
+def test_vehicle_states_invert_the_joint_index(two):
+    """``vehicle_states`` lists every joint state's vehicles; the simulator's ``fleet_index`` of
+    them is the joint index back."""
+    from irdrc.fleet.sim import FleetDynamics
+
+    states = two.vehicle_states()
+    assert states.shape == (two.num_states, 2)
+    assert torch.equal(FleetDynamics(two).fleet_index(states), torch.arange(two.num_states))
+
+
+def test_monte_carlo_matches_the_exact_metrics(two):
+    """``simulate`` of the baselines' action rules agrees with ``fleet_metrics`` of the same
+    policies at N = 2: fleet reward within 5 standard errors (a seeded run of 256 fleets × 4 000
+    steps; 5 SE keeps 5 comparisons from failing by chance at ~6e-7 each), denial rate and mean
+    queue within 0.02 and 0.1 (both averaged over ~10⁶ vehicle steps; their spreads are below
+    0.5 and 5, so a few thousandths and hundredths: the bounds are loose)."""
+    from irdrc.fleet.evaluate import baseline_rules, simulate
+
+    single = value_iteration(two.single).policy
+    exact = baselines(two, single)
+    exact["always radar"] = torch.full((two.num_states,), 3)
+    for name, rule in baseline_rules(two, single).items():
+        got = simulate(two, rule, fleets=256, steps=4_000, burn_in=200, seed=5)
+        want = fleet_metrics(two, exact[name])[1][-1]
+        se = got.ci95 / 1.96
+        assert abs(got.fleet.avg_reward - want["avg_reward"]) <= 5 * se, name
+        if not math.isnan(want["denial_rate"]):
+            assert got.per_vehicle[-1]["denial_rate"] == pytest.approx(
+                want["denial_rate"], abs=0.02
+            )
+        assert got.per_vehicle[-1]["mean_queue"] == pytest.approx(want["mean_queue"], abs=0.1)
+
+
+def test_fleet_observation_shows_the_other_vehicles():
+    """With ``observe="fleet"`` vehicle i sees its own observation, then vehicle i + 1's d, c, v,
+    m (cyclically); with ``own`` only its own, as the single-vehicle env."""
+    from torchrl.envs.utils import check_env_specs
+
+    from irdrc.fleet.env import FleetEnv
+
+    spec = FleetSpec(vehicles=3)
+    env = FleetEnv(spec, batch_size=4, seed=0, observe="fleet")
+    check_env_specs(env)
+    td = env.reset()
+    obs = td["agents", "observation"]  # [4, 3, 6 + 2·4]
+    single = env.sim.dyn.obs[td["vehicle_state"]]  # [4, 3, 6]
+    assert obs.shape == (4, 3, 14)
+    for i in range(3):
+        assert torch.equal(obs[:, i, :6], single[:, i])
+        for k in (1, 2):
+            j = (i + k) % 3
+            assert torch.equal(
+                obs[:, i, 6 + 4 * (k - 1) : 10 + 4 * (k - 1)], single[:, j, [0, 1, 4, 5]]
+            )
+    own = FleetEnv(spec, batch_size=4, seed=0).reset()["agents", "observation"]
+    assert own.shape == (4, 3, 6)
+    with pytest.raises(ValueError, match="observe"):
+        FleetEnv(spec, observe="all")
+
+
+def test_joint_env_bits_and_team_reward(two):
+    """``FleetJointEnv``: specs check, a joint action's bits are the vehicles' actions (joint action
+    1: vehicle 1 in radar, vehicle 2 in comm), its reward the fleet's sum, its observation table
+    one row per joint state."""
+    from torchrl.envs.utils import check_env_specs
+
+    from irdrc.fleet.env import FleetJointEnv
+
+    env = FleetJointEnv(two, fleets=8, seed=0)
+    check_env_specs(env)
+    assert env.observation_table.shape == (two.num_states, 10)
+    td = env.reset()
+    td["action"] = torch.ones(8, dtype=torch.int64)
+    gen_state = env.rng.get_state()
+    out = env.step(td)["next"]
+    env.rng.set_state(gen_state)
+    res = env.sim.step(env.vehicles[td["state"]], torch.tensor([[1, 0]]).expand(8, 2), env.rng)
+    assert torch.equal(out["reward"].reshape(-1), res.reward.sum(1).float())
+    assert torch.equal(out["state"], env.sim.fleet_index(res.state))
+    td["action"] = torch.full((8,), 4, dtype=torch.int64)
+    with pytest.raises(ValueError, match="joint actions"):
+        env.step(td)
+
+
+def test_value_decomposition_trains_and_refuses_what_it_cannot_do(two):
+    """VDN and QMIX (TorchRL's ``QMixerLoss``) train on ``FleetEnv`` and record exact ratios
+    against the centralised optimum, with own and fleet observations; the greedy policy is per
+    vehicle over the single-vehicle states (own) or a joint action per joint state (fleet);
+    prioritised replay and double DQN are refused with the reason."""
+    from irdrc.agents import fleet_mix
+    from irdrc.agents.fleet_dqn import FleetScorer
+
+    scorer = FleetScorer(two)
+    small = {"num_envs": 16, "frames_per_batch": 32, "total_frames": 256, "batch_size": 32}
+    for mixer, observe, size in (("vdn", "own", 2 * 352), ("qmix", "fleet", two.num_states)):
+        cfg = fleet_mix.MixConfig(mixer=mixer, **small)
+        rec = fleet_mix.train(
+            two, cfg, seed=0, scorer=scorer, eval_every_frames=128, observe=observe
+        )
+        assert [h["env_steps"] for h in rec.history] == [0, 128, 256]
+        assert rec.greedy.shape == (1, size)
+        assert all(h["optimality_ratio"] <= 1 + 1e-9 for h in rec.history)
+    with pytest.raises(ValueError, match="importance"):
+        fleet_mix.MixConfig(prioritized=True)
+    with pytest.raises(ValueError, match="double_dqn"):
+        fleet_mix.MixConfig(double_dqn=True)
+    with pytest.raises(ValueError, match=r"algo\.mixer"):
+        fleet_mix.MixConfig(mixer="sum")
+
+
+def test_value_decomposition_sums_the_vehicles_values():
+    """``VDNMixer`` through ``QMixerLoss``: the fleet's value of a transition is the sum of the
+    vehicles' chosen action values, and the loss is (r + γ Σ max_a Q′ − Σ Q)² with the target
+    network's maxima (set equal to the online network's at the start)."""
+    from tensordict import TensorDict
+
+    from irdrc.agents import fleet_mix
+    from irdrc.fleet.env import FleetEnv
+
+    env = FleetEnv(FleetSpec(vehicles=2), batch_size=4, seed=0)
+    cfg = fleet_mix.MixConfig(num_envs=4, frames_per_batch=4)
+    qnet = fleet_mix.make_agent_qnet(env, cfg)
+    loss = fleet_mix.make_loss(qnet, fleet_mix.make_mixer(env, cfg), cfg)
+    td = fleet_mix.team_reward(env.rand_step(env.reset()))
+    with torch.no_grad():
+        now = qnet(td.clone())["agents", "action_value"]
+        nxt = qnet(td["next"].clone())["agents", "action_value"]
+    chosen = now.gather(-1, td["agents", "action"].unsqueeze(-1)).sum((-2, -1))
+    target = td["next", "reward"].reshape(-1) + cfg.gamma * nxt.max(-1).values.sum(-1)
+    want = ((target - chosen) ** 2).mean()
+    got = loss(td)["loss"]
+    assert float(got) == pytest.approx(float(want), rel=1e-5)
+    assert isinstance(td, TensorDict)
+
+
+def run_recipe(*args: str, cwd: Path) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, str(ROOT / "recipes" / args[0]), *args[1:]],
+        cwd=cwd,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+
+
+TINY = [
+    "algo.num_envs=16",
+    "algo.frames_per_batch=32",
+    "algo.total_frames=256",
+    "algo.batch_size=32",
+    "eval.every_frames=128",
+    "progress=false",
+    "logger=none",
+]
+
+
+def test_fleet_recipe_files_and_tables(tmp_path):
+    """``recipes/fleet.py`` (N = 2, exact): summary.json with the learner's per-vehicle and fleet
+    metrics beside the optimum and the baselines, policy.csv (joint state → each vehicle's action
+    and the optimum's), metrics.csv in fleet steps, the curve."""
+    out = tmp_path / "vdn"
+    r = run_recipe("fleet.py", *TINY, f"hydra.run.dir={out}", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr[-2000:]
+    s = json.loads((out / "summary.json").read_text())
+    assert s["method"] == "vdn" and s["reference"] == "centralised optimum (exact)"
+    assert s["fleet"] == {
+        "vehicles": 2,
+        "channels": 1,
+        "access": "scheduled",
+        "share": 0.5,
+        "observe": "own",
+        "joint_states": 30976,
+        "exact": True,
+    }
+    assert [row["vehicle"] for row in s["per_vehicle"]] == [1, 2, "fleet"]
+    assert s["per_vehicle"][-1]["avg_reward"] == pytest.approx(s["metrics"]["avg_reward"])
+    assert {"centralised optimum", "N copies of the single optimum", "sensing rotation"} <= set(
+        s["table"]
+    )
+    assert s["optimal"]["avg_reward"] == pytest.approx(1.8155, abs=1e-4)
+    assert s["env_steps"] == 256 and s["vehicle_steps"] == 512
+    lines = (out / "policy.csv").read_text().splitlines()
+    assert lines[0] == "r,w,d1,c1,v1,m1,d2,c2,v2,m2,action1,action2,optimal1,optimal2"
+    assert len(lines) == 1 + 30976
+    assert (out / "metrics.csv").read_text().splitlines()[-1].split(",")[1] == "256"
+    assert (out / "learning_curve.png").is_file()
+    assert "fleet reward / reference" in r.stdout
+
+
+def test_fleet_recipe_beyond_the_exact_model(tmp_path):
+    """N = 3 (2.7 M joint states): the learner and the baselines by Monte-Carlo, ratios to the best
+    baseline, a confidence half-width per row."""
+    out = tmp_path / "idqn3"
+    r = run_recipe(
+        "fleet.py",
+        "learner=idqn",
+        "env.vehicles=3",
+        *TINY,
+        "eval.mc_fleets=16",
+        "eval.mc_steps=50",
+        "eval.mc_burn_in=10",
+        f"hydra.run.dir={out}",
+        cwd=tmp_path,
+    )
+    assert r.returncode == 0, r.stderr[-2000:]
+    s = json.loads((out / "summary.json").read_text())
+    assert s["reference"] == "best baseline (Monte-Carlo)" and not s["fleet"]["exact"]
+    assert [row["vehicle"] for row in s["per_vehicle"]] == [1, 2, 3, "fleet"]
+    assert set(s["monte_carlo"]["ci95"]) == set(s["table"])
+    assert "Monte-Carlo 95 %" in r.stdout
+
+
+def test_solve_env_fleet_prints_what_cooperation_is_worth(tmp_path):
+    """``recipes/solve.py env=fleet``: the centralised optimum beside N independent single-vehicle
+    optima (1.8155 against 1.0962 per fleet step at N = 2, K = 1, share 0.5)."""
+    out = tmp_path / "solve"
+    r = run_recipe("solve.py", "env=fleet", f"hydra.run.dir={out}", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert "cooperation is worth +0.7192 per fleet step" in r.stdout
+    s = json.loads((out / "summary.json").read_text())
+    assert s["cooperation"]["independent_over_optimum"] == pytest.approx(0.6038, abs=1e-4)
+    assert (out / "policy.csv").read_text().splitlines()[0].endswith("action1,action2")
+
+
+@pytest.mark.parametrize(
+    ("recipe", "args", "message"),
+    [
+        ("fleet.py", ["env.share=2"], "env.share"),
+        ("fleet.py", ["env.vehicles=0"], "env.vehicles"),
+        ("fleet.py", ["env.access=aloha"], "env.access"),
+        ("fleet.py", ["env.observe=all"], "env.observe"),
+        ("fleet.py", ["learner=mappo"], "learner"),
+        ("fleet.py", ["learner=joint"], "env.observe=fleet"),
+        ("fleet.py", ["learner=idqn", "env.observe=fleet"], "env.observe=own"),
+        ("fleet.py", ["learner=joint", "env.observe=fleet", "env.vehicles=3"], "joint states"),
+        ("fleet.py", ["algo.prioritized=true"], "importance"),
+        ("fleet.py", ["env=paper"], "not a fleet"),
+        ("fleet.py", ["env.p1.speed=[0.1,1.0]"], "per-vehicle"),
+        ("fleet.py", ["env.horizon=-1"], "env.horizon"),
+        ("solve.py", ["env=fleet", "env.vehicles=3"], "joint states"),
+        ("dqn.py", ["env=fleet"], "recipes/fleet.py"),
+        ("qlearning.py", ["env=fleet"], "recipes/fleet.py"),
+    ],
+)
+def test_bad_fleet_configs_are_refused_before_work(tmp_path, recipe, args, message):
+    """Every bad fleet config fails with one line naming the key, and leaves no run directory."""
+    out = tmp_path / "run"
+    r = run_recipe(recipe, *args, f"hydra.run.dir={out}", cwd=tmp_path)
+    assert r.returncode == 2, r.stdout[-1000:]
+    assert message in r.stderr and "Traceback" not in r.stderr
+    assert not out.exists()
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", [11, 12])
+def test_joint_learner_reaches_the_centralised_optimum(seed, two):
+    """The joint learner (DQN over the joint actions on every vehicle's state, executed by each
+    vehicle alike) ends ≥ 0.95 of the exact centralised optimum at N = 2 (K = 1, share 0.5) on
+    seeds no tuning used, in 300 000 fleet steps."""
+    from irdrc.agents import fleet_learners
+    from irdrc.agents.fleet_dqn import FleetScorer
+    from irdrc.agents.offpolicy import NetworkConfig
+
+    cfg = fleet_learners.config(
+        "joint", {"total_frames": 300_000, "num_envs": 500, "frames_per_batch": 1000}, {}
+    )
+    assert isinstance(cfg.network, NetworkConfig)
+    rec = fleet_learners.train(
+        "joint",
+        two,
+        cfg,
+        observe="fleet",
+        seed=seed,
+        scorer=FleetScorer(two),
+        eval_every_frames=100_000,
+    )
+    assert rec.history[-1]["optimality_ratio"] >= 0.95, rec.history

@@ -95,8 +95,8 @@ class MixConfig(OffPolicyConfig):
         if self.prioritized:
             raise ValueError(
                 "algo.prioritized=true: TorchRL's QMixerLoss does not weigh samples by their "
-                "importance, and prioritised replay without that correction ends at radar always "
-                "(N = 1: 0.4228 of the optimum against 0.998 uniform); set algo.prioritized=false"
+                "importance, and prioritised replay without that correction biases the values "
+                "(docs/FLEET.md); set algo.prioritized=false"
             )
         if self.target_update != "soft":
             raise ValueError(f"algo.target_update={self.target_update!r}: only soft is supported")

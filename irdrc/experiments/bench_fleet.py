@@ -84,7 +84,7 @@ def run_bench_fleet(cfg: DictConfig, out: Path) -> int:
             planned.append(p)
             part[p["point_id"]] = ("B", learner)
     code = execute(cfg, planned, out)
-    rows, tables = [], {}
+    rows, tables, configs = [], {}, {}
     for p in planned:
         tdir = out / "trials" / p["point_id"]
         if not (tdir / "summary.json").is_file():
@@ -112,6 +112,7 @@ def run_bench_fleet(cfg: DictConfig, out: Path) -> int:
         }
         rows.append(row)
         tables[p["point_id"]] = s["table"]
+        configs[p["point_id"]] = p["cfg"]
     write_rows_csv(out / cfg.csv, rows)
     a = [r for r in rows if r["part"] == "A"]
     # part B starts with part A's own-observation runs of its cell at N = 2
@@ -125,7 +126,7 @@ def run_bench_fleet(cfg: DictConfig, out: Path) -> int:
     text = []
     if a:
         text.append(exact_table(a, tables, len(seeds)))
-        search = decentralised_search(cfg, a, out) if cfg.search else None
+        search = decentralised_search(cfg, a, configs, out) if cfg.search else None
         if search:
             text.append(search)
     if b:
@@ -224,10 +225,14 @@ def exact_table(rows: list[dict[str, Any]], tables: dict[str, Any], seeds: int) 
     return "\n\n".join(out)
 
 
-def decentralised_search(cfg: DictConfig, rows: list[dict[str, Any]], out: Path) -> str | None:
+def decentralised_search(
+    cfg: DictConfig, rows: list[dict[str, Any]], configs: dict[str, Any], out: Path
+) -> str | None:
     """Local search (``irdrc.fleet.search``) from the best own-observation run of the cell
-    ``search_cell``: the best decentralised policy it finds, against that run and the optimum."""
-    from irdrc.fleet.exact import FleetModel, FleetSpec
+    ``search_cell``: the best decentralised policy it finds, against that run and the optimum
+    (the run's own fleet: ``configs`` holds every run's composed config by point id)."""
+    from irdrc.fleet.config import fleet_from_config
+    from irdrc.fleet.exact import FleetModel
     from irdrc.fleet.search import improve_tables
 
     share, k = float(cfg.search_cell[0]), int(cfg.search_cell[1])
@@ -235,7 +240,7 @@ def decentralised_search(cfg: DictConfig, rows: list[dict[str, Any]], out: Path)
     if not own:
         return None
     best = max(own, key=lambda r: r["final_ratio"])
-    model = FleetModel(FleetSpec(vehicles=2, channels=k, share=share))
+    model = FleetModel(fleet_from_config(configs[best["point_id"]])[0])
     lines = (out / "trials" / best["point_id"] / "policy.csv").read_text().splitlines()
     header = lines[0].split(",")
     cols = [header.index(f"action{i + 1}") for i in range(2)]

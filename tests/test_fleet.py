@@ -69,18 +69,19 @@ def test_cooperative_perception_and_denial_rewards_by_hand():
     P_d = 1. Event probability e; granted: (1 − e)·r_comm + e·(0.5·r_comm − 0.5·r3); denied: the
     comm reward is lost, the penalty stays; in radar: e·r4·(b + 1)."""
     m = FleetModel(FleetSpec(vehicles=2, share=0.5))
-    e, rc = m.event, m.r_comm
-    granted = m.vehicle_terms(0, others_radar=1, granted=True)
+    t = m.tables[0]
+    e, rc = t.event, t.r_comm
+    granted = m.vehicle_terms(0, 0, others_radar=1, granted=True)
     assert torch.allclose(granted["reward"], (1 - e) * rc + e * (0.5 * rc - 0.5 * 50.0))
     assert torch.allclose(granted["missed"], 0.5 * e)
-    denied = m.vehicle_terms(0, others_radar=1, granted=False)
+    denied = m.vehicle_terms(0, 0, others_radar=1, granted=False)
     assert torch.allclose(denied["reward"], -0.5 * 50.0 * e)
     assert float(denied["sent"].abs().max()) == 0.0 and float(denied["denied"].min()) == 1.0
-    radar = m.vehicle_terms(1, others_radar=0, granted=False)
+    radar = m.vehicle_terms(0, 1, others_radar=0, granted=False)
     assert (
-        torch.allclose(radar["reward"], e * m.detect_reward) and float(radar["missed"].max()) == 0
+        torch.allclose(radar["reward"], e * t.detect_reward) and float(radar["missed"].max()) == 0
     )
-    alone = m.vehicle_terms(0, others_radar=0, granted=True)
+    alone = m.vehicle_terms(0, 0, others_radar=0, granted=True)
     assert torch.allclose(alone["missed"], e)  # nobody else watches: every event missed
 
 
@@ -98,6 +99,34 @@ def test_independent_vehicles_add_up():
     assert per[0]["avg_reward"] == pytest.approx(per[1]["avg_reward"], abs=1e-10)
     best, _ = fleet_metrics(m, value_iteration_fleet(m).policy)
     assert best.avg_reward == pytest.approx(got.avg_reward, abs=1e-7)
+
+
+def test_different_independent_vehicles_add_up():
+    """Vehicles that differ (env.p1.speed 0.1 and 1.0, reward.r4 5 and 50), with two channels and
+    no sharing, do not interact: each vehicle's row is its own single-vehicle optimum's exact
+    metrics, the fleet's reward their sum, and the centralised optimum no better than each
+    vehicle's own optimum (``single_optima``)."""
+    from irdrc.fleet.exact import single_optima
+
+    a = Params.from_overrides({"env.p1.speed": 0.1})
+    b = Params.from_overrides({"env.p1.speed": 1.0, "reward.r4": 50.0})
+    m = FleetModel(FleetSpec(vehicles=2, channels=2, share=0.0, per_vehicle=(a, b)))
+    tables = single_optima(m)
+    assert not torch.equal(tables[0], tables[1])  # r4 = 50 changes the single optimum
+    want = [
+        stationary_metrics(t.single, value_iteration(t.single).policy).avg_reward for t in m.tables
+    ]
+    got, per = fleet_metrics(m, baselines(m, tables)["N copies of the single optimum"])
+    assert [r["avg_reward"] for r in per[:2]] == pytest.approx(want, abs=1e-10)
+    assert got.avg_reward == pytest.approx(sum(want), abs=1e-10)
+    best, _ = fleet_metrics(m, value_iteration_fleet(m).policy)
+    assert best.avg_reward == pytest.approx(got.avg_reward, abs=1e-7)
+    with pytest.raises(ValueError, match="per-vehicle models"):
+        FleetSpec(vehicles=3, per_vehicle=(a, b))
+    with pytest.raises(ValueError, match="share one road"):
+        FleetModel(
+            FleetSpec(per_vehicle=(a, Params.from_overrides({"env.stay_good.weather": 0.8})))
+        )
 
 
 def test_collisions_deny_everyone_and_the_optimum_cooperates():
@@ -150,11 +179,14 @@ def test_bad_fleets_are_refused():
         fleet_metrics(three, torch.zeros(1, dtype=torch.int64))
 
 
-@pytest.mark.parametrize("access", ["scheduled", "collision"])
-def test_simulator_matches_the_exact_fleet_model_chi2(access):
+@pytest.mark.parametrize(
+    ("access", "differ"), [("scheduled", False), ("collision", False), ("scheduled", True)]
+)
+def test_simulator_matches_the_exact_fleet_model_chi2(access, differ):
     """The fleet simulator (single-vehicle ``Dynamics`` per vehicle, shared road and weather,
     uplink grants, cooperative perception) against the exact fleet model, every feature of § C on
-    (imperfect radar, radar reaction, sharing, one channel) at D = 1: from 12 joint states under
+    (imperfect radar, radar reaction, sharing, one channel; vehicles alike, and differing in
+    probabilities, arrivals, radar and rewards) at D = 1: from 12 joint states under
     each of the 4 joint actions, 4 000 steps each, the next joint state's counts pass Pearson's χ²
     (``assert_chi2``: 5 sd above the mean) and the fleet reward's mean is within 5 standard errors
     of the model's expectation (a seeded run; 5 SE keeps the 48 comparisons from failing by
@@ -172,7 +204,22 @@ def test_simulator_matches_the_exact_fleet_model_chi2(access):
             "env.p1.speed": 0.6,
         }
     )
-    m = FleetModel(FleetSpec(vehicle=params, vehicles=2, channels=1, access=access, share=0.5))
+    per = None
+    if differ:  # vehicle 2 differs in its event probability, arrivals, radar and reward weights
+        other = params.with_overrides(
+            {
+                "env.p1.speed": 0.2,
+                "env.arrival_rate": 0.5,
+                "env.detection_prob": 0.95,
+                "env.false_alarm_prob": 0.02,
+                "reward.r4": 9.0,
+                "reward.r3": 30.0,
+            }
+        )
+        per = (params, other)
+    m = FleetModel(
+        FleetSpec(vehicle=params, vehicles=2, channels=1, access=access, share=0.5, per_vehicle=per)
+    )
     sim = FleetDynamics(m)
     gen = torch.Generator().manual_seed(7)
     starts = torch.randperm(m.num_states, generator=gen)[:12]

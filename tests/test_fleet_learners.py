@@ -195,6 +195,7 @@ def test_fleet_recipe_files_and_tables(tmp_path):
         "observe": "own",
         "joint_states": 30976,
         "exact": True,
+        "per_vehicle": {},
     }
     assert [row["vehicle"] for row in s["per_vehicle"]] == [1, 2, "fleet"]
     assert s["per_vehicle"][-1]["avg_reward"] == pytest.approx(s["metrics"]["avg_reward"])
@@ -234,6 +235,22 @@ def test_fleet_recipe_beyond_the_exact_model(tmp_path):
     assert "Monte-Carlo 95 %" in r.stdout
 
 
+def test_per_vehicle_values(tmp_path):
+    """``env.p1.speed=[0.1,1.0]``: vehicle 2 is the paper's vehicle at speed 1.0 — its row in the
+    summary is its own, the summary names what differs, and the copies' baseline gives each
+    vehicle its own single-vehicle optimum."""
+    out = tmp_path / "solve"
+    r = run_recipe(
+        "solve.py", "env=fleet", "env.p1.speed=[0.1,1.0]", f"hydra.run.dir={out}", cwd=tmp_path
+    )
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert "vehicles differ in env.p1.speed=[0.1, 1.0]" in r.stdout
+    s = json.loads((out / "summary.json").read_text())
+    assert s["fleet"]["per_vehicle"] == {"env.p1.speed": [0.1, 1.0]}
+    copies = s["table"]["N copies of the single optimum"]
+    assert copies[0]["avg_reward"] != pytest.approx(copies[1]["avg_reward"], abs=1e-3)
+
+
 def test_solve_env_fleet_prints_what_cooperation_is_worth(tmp_path):
     """``recipes/solve.py env=fleet``: the centralised optimum beside N independent single-vehicle
     optima (1.8155 against 1.0962 per fleet step at N = 2, K = 1, share 0.5)."""
@@ -259,7 +276,9 @@ def test_solve_env_fleet_prints_what_cooperation_is_worth(tmp_path):
         ("fleet.py", ["learner=joint", "env.observe=fleet", "env.vehicles=3"], "joint states"),
         ("fleet.py", ["algo.prioritized=true"], "importance"),
         ("fleet.py", ["env=paper"], "not a fleet"),
-        ("fleet.py", ["env.p1.speed=[0.1,1.0]"], "per-vehicle"),
+        ("fleet.py", ["env.p1.speed=[0.1,1.0,0.5]"], "one value per vehicle"),
+        ("fleet.py", ["env.queue_capacity=[10,5]"], "not in their states"),
+        ("fleet.py", ["env.p1.speed=[0.1,1.5]"], "vehicle 2: env.p1.speed"),
         ("fleet.py", ["env.horizon=-1"], "env.horizon"),
         ("solve.py", ["env=fleet", "env.vehicles=3"], "joint states"),
         ("dqn.py", ["env=fleet"], "recipes/fleet.py"),

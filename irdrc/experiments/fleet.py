@@ -23,7 +23,6 @@ from irdrc.agents import fleet_learners
 from irdrc.agents.base import Hooks, RunRecord
 from irdrc.agents.fleet_dqn import FleetScorer
 from irdrc.core.metrics import Metrics
-from irdrc.core.solve import value_iteration
 from irdrc.experiments.config import scenario_name
 from irdrc.experiments.finish import curve_file, plot_learning_curve
 from irdrc.experiments.guard import RunInterrupted, stop_on_signals
@@ -44,6 +43,7 @@ from irdrc.fleet.exact import (
     baselines,
     fleet_metrics,
     joint_policy,
+    single_optima,
     value_iteration_fleet,
 )
 
@@ -58,12 +58,33 @@ COLUMNS = (
 """The printed columns of a fleet table."""
 
 
+def differences(spec: FleetSpec) -> dict[str, list[Any]]:
+    """The model keys whose values differ between the vehicles, each with every vehicle's value."""
+
+    def flat(prefix: str, node: Any) -> dict[str, Any]:
+        if isinstance(node, dict):
+            return {
+                k: v for key, sub in node.items() for k, v in flat(f"{prefix}{key}.", sub).items()
+            }
+        return {prefix[:-1]: node}
+
+    per = [flat("", p.to_dict()) for p in spec.vehicle_params]
+    return {k: [d.get(k) for d in per] for k in per[0] if len({repr(d.get(k)) for d in per}) > 1}
+
+
 def describe(spec: FleetSpec, observe: str, model: FleetModel) -> str:
     """One line naming the fleet."""
     reach = "exact" if model.exact else "beyond the exact model: Monte-Carlo"
+    differ = differences(spec)
+    alike = (
+        "vehicles alike"
+        if not differ
+        else "vehicles differ in " + ", ".join(f"{k}={v}" for k, v in differ.items())
+    )
     return (
-        f"fleet: {spec.vehicles} vehicles, {spec.channels} channel(s), {spec.access} access, "
-        f"share {spec.share:g}, observe {observe}; {model.num_states:,} joint states ({reach})"
+        f"fleet: {spec.vehicles} vehicles ({alike}), {spec.channels} channel(s), {spec.access} "
+        f"access, share {spec.share:g}, observe {observe}; {model.num_states:,} joint states "
+        f"({reach})"
     )
 
 
@@ -119,7 +140,7 @@ def run_solve_fleet(cfg: DictConfig, out: Path, scenario: str | None = None) -> 
     sol = value_iteration_fleet(
         model, gamma=float(cfg.optimum_gamma), tol=float(cfg.tol), max_iter=int(cfg.max_iter)
     )
-    single = value_iteration(model.single, gamma=float(cfg.optimum_gamma)).policy
+    single = single_optima(model, gamma=float(cfg.optimum_gamma))
     wall = time.perf_counter() - t0
     print(describe(spec, observe, model))
     print(
@@ -171,6 +192,7 @@ def _fleet_info(spec: FleetSpec, observe: str, model: FleetModel) -> dict[str, A
         "observe": observe,
         "joint_states": model.num_states,
         "exact": model.exact,
+        "per_vehicle": differences(spec),
     }
 
 
@@ -217,7 +239,7 @@ def run_fleet(cfg: DictConfig, out: Path, scenario: str | None = None) -> dict[s
     atomic_write_text(out / "config.yaml", OmegaConf.to_yaml(cfg))
     print(describe(spec, observe, model), flush=True)
     gamma = float(cfg.optimum_gamma)
-    single = value_iteration(model.single, gamma=gamma).policy
+    single = single_optima(model, gamma=gamma)
     mc = {
         "fleets": int(cfg.eval.mc_fleets),
         "steps": int(cfg.eval.mc_steps),

@@ -15,13 +15,13 @@ import time
 import torch
 
 from irdrc.core.params import Params
-from irdrc.core.solve import value_iteration
 from irdrc.fleet.exact import (
     ACCESS,
     FleetModel,
     FleetSpec,
     baselines,
     fleet_metrics,
+    single_optima,
     value_iteration_fleet,
 )
 
@@ -71,7 +71,7 @@ def main(argv: list[str] | None = None) -> None:
         raise SystemExit(f"error: {err}") from err
     sol = value_iteration_fleet(model)
     solve_s = time.perf_counter() - t0
-    single = value_iteration(model.single).policy
+    single = single_optima(model)
     S = model.num_states
     policies = {
         "centralised optimum": sol.policy,

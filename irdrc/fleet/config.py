@@ -29,30 +29,56 @@ def _lists(node: Any, prefix: str) -> list[str]:
     return [prefix[:-1]] if isinstance(node, list | tuple) else []
 
 
+def _pick(node: Any, i: int) -> Any:
+    """``node`` with every list replaced by its ``i``-th element (vehicle i + 1's value)."""
+    if isinstance(node, Mapping):
+        return {k: _pick(v, i) for k, v in node.items()}
+    return node[i] if isinstance(node, list | tuple) else node
+
+
 def fleet_from_config(cfg: Any) -> tuple[FleetSpec, str]:
     """The fleet (``FleetSpec``) and what each vehicle observes (``env.observe``) from a config
-    holding ``env`` (a fleet scenario) and ``reward``.
+    holding ``env`` (a fleet scenario) and ``reward``. Any single-vehicle key may be a list of one
+    value per vehicle (``env.p1.speed=[0.1,1.0]``, ``reward.r4=[5,50]``) where they differ.
 
     Raises:
         ValueError: not a fleet, a bad fleet value, a bad vehicle value (as the single-vehicle
-            recipes say it), or per-vehicle lists.
+            recipes say it, naming the vehicle), or a list of the wrong length.
     """
     plain = to_plain(cfg)
     env = dict(plain.get("env", {}))
     if "vehicles" not in env:
         raise ValueError("not a fleet: choose env=fleet (or set +env.vehicles=N)")
     fleet = {k: env.pop(k) for k in FLEET_KEYS if k in env}
-    lists = _lists(env, "env.") + _lists(plain.get("reward", {}), "reward.")
-    if lists:
-        raise ValueError(
-            f"{', '.join(lists)}: per-vehicle values are not supported yet — the fleet's vehicles "
-            "are alike (one single-vehicle model for all); give one value"
-        )
-    vehicle = Params.from_config({"env": env, "reward": plain.get("reward", {})})
+    reward = plain.get("reward", {})
     observe = fleet.pop("observe", "own")
     check_choice("env.observe", observe, OBSERVE)
-    spec = FleetSpec(vehicle=vehicle, **fleet)
-    return spec, observe
+    lists = _lists(env, "env.") + _lists(reward, "reward.")
+    if not lists:
+        return FleetSpec(
+            vehicle=Params.from_config({"env": env, "reward": reward}), **fleet
+        ), observe
+    n = fleet.get("vehicles")
+    sizes = {k: len(list_at(env, reward, k)) for k in lists}
+    wrong = {k: m for k, m in sizes.items() if m != n}
+    if wrong:
+        k, m = next(iter(wrong.items()))
+        raise ValueError(f"{k} has {m} values for env.vehicles={n}: give one value per vehicle")
+    per = []
+    for i in range(n):
+        try:
+            per.append(Params.from_config({"env": _pick(env, i), "reward": _pick(reward, i)}))
+        except ValueError as err:
+            raise ValueError(f"vehicle {i + 1}: {err}") from err
+    return FleetSpec(vehicle=per[0], per_vehicle=tuple(per), **fleet), observe
+
+
+def list_at(env: Mapping, reward: Mapping, key: str) -> list:
+    """The list at dotted ``key`` (``env.…`` or ``reward.…``)."""
+    node: Any = {"env": env, "reward": reward}
+    for part in key.split("."):
+        node = node[part]
+    return list(node)
 
 
 def single_vehicle_only(cfg: Any, recipe: str) -> None:

@@ -50,14 +50,11 @@ def table_rule(tables: torch.Tensor, num_single_states: int) -> ActionRule:
 
 
 def baseline_rules(model: FleetModel, single_optimum: torch.Tensor) -> dict[str, ActionRule]:
-    """MODEL.md § C's baselines (as ``irdrc.fleet.exact.baselines``) and radar always, as rules
-    at any N."""
+    """MODEL.md § C's baselines (as ``irdrc.fleet.exact.baselines``; ``single_optimum`` [S] or
+    each vehicle's own [N, S]) and radar always, as rules at any N."""
     N = model.N
-    table = torch.as_tensor(single_optimum).long()
+    copies = table_rule(single_optimum, model.single.num_states)
     odd = torch.arange(N) % 2 == 1  # vehicles 2, 4, …
-
-    def copies(states: torch.Tensor, _t: int) -> torch.Tensor:
-        return table[states]
 
     def in_phase(states: torch.Tensor, t: int) -> torch.Tensor:
         return torch.full_like(states, t % 2)

@@ -1,7 +1,8 @@
 """The exact fleet MDP of MODEL.md § C on factored kernels, and its centralised optimum.
 
-N vehicles alike (each with the single-vehicle model of ``params``) share road r and weather w;
-each has its own queue, channel, speed, object (and traffic phase). The joint state is
+N vehicles (each with a single-vehicle model: alike, or differing in probabilities, rates and
+rewards) share road r and weather w; each has its own queue, channel, speed, object (and traffic
+phase). The joint state is
 (r, w, x_1, …, x_N) with x_i the vehicle's own components, index mixed radix with (r, w) most
 significant, then vehicle 1 … N in the single-vehicle order of their components. The joint action
 a = Σ_i a_i·2^(i−1) (bit i − 1 is vehicle i's: 0 comm, 1 radar).
@@ -57,11 +58,15 @@ class FleetSpec:
     """A fleet of identical vehicles (MODEL.md § C).
 
     Attributes:
-        vehicle: each vehicle's single-vehicle model.
+        vehicle: each vehicle's single-vehicle model (vehicle 1's with ``per_vehicle``).
         vehicles: N.
         channels: K, uplink channels at the base station.
         access: ``scheduled`` or ``collision`` (``ACCESS``).
         share: the probability that another vehicle in radar mode detects a vehicle's event.
+        per_vehicle: None (every vehicle is ``vehicle``), or N single-vehicle models where the
+            vehicles differ — in their probabilities, rates and rewards; their state spaces, the
+            shared road and weather chains and the horizon must be the same (``FleetModel``
+            checks).
     """
 
     vehicle: Params = field(default_factory=Params)
@@ -69,12 +74,32 @@ class FleetSpec:
     channels: int = 1
     access: str = "scheduled"
     share: float = 0.5
+    per_vehicle: tuple[Params, ...] | None = None
 
     def __post_init__(self) -> None:
         check_number("env.vehicles", self.vehicles, 1, 16, integer=True)
         check_number("env.channels", self.channels, 1, 16, integer=True)
         check_choice("env.access", self.access, ACCESS)
         check_number("env.share", self.share, 0.0, 1.0)
+        if self.per_vehicle is not None:
+            per = tuple(self.per_vehicle)
+            if len(per) != self.vehicles:
+                raise ValueError(
+                    f"{len(per)} per-vehicle models for env.vehicles={self.vehicles}: give one "
+                    "value per vehicle"
+                )
+            object.__setattr__(self, "per_vehicle", per)
+            object.__setattr__(self, "vehicle", per[0])
+
+    @property
+    def vehicle_params(self) -> tuple[Params, ...]:
+        """Each vehicle's single-vehicle model."""
+        return self.per_vehicle or (self.vehicle,) * self.vehicles
+
+    @property
+    def alike(self) -> bool:
+        """Whether every vehicle has the same model."""
+        return len(set(self.vehicle_params)) == 1
 
 
 def grants(comm: tuple[int, ...], channels: int, access: str) -> list[tuple[float, frozenset]]:
@@ -89,25 +114,115 @@ def grants(comm: tuple[int, ...], channels: int, access: str) -> list[tuple[floa
     return [(1.0 / len(sets), frozenset(s)) for s in sets]
 
 
+class VehicleTables:
+    """One vehicle's kernels and expectations on the fleet's [RW, X] grid, from its single-vehicle
+    exact model (see the module docstring: the factorisations are checked here).
+
+    Attributes:
+        single: the vehicle's single-vehicle exact model.
+        P_rw: [RW, RW] the road and weather chain it implies.
+        K: {"comm", "radar", "denied"} → [X, X] the vehicle's kernel.
+    """
+
+    def __init__(self, params: Params, model: FleetModel) -> None:
+        single = build_model(params)
+        self.single = single
+        RW, X, F = model.RW, model.X, model.F
+        D1 = params.env.queue_capacity + 1
+        grid = model.index
+        P = single.P[:, grid.reshape(-1)][:, :, grid.reshape(-1)]
+        P = P.reshape(2, RW, X, RW, X)
+        self.P_rw = P[0, :, 0].sum(-1)  # [RW, RW′] from any x
+        kern = []
+        for a in (0, 1):
+            K = P[a, 0, :, :, :].sum(1)  # [X, X′] from rw = 0
+            want = self.P_rw[:, None, :, None] * K[None, :, None, :]
+            if not torch.allclose(P[a], want, atol=1e-12, rtol=0):
+                raise ValueError("the single-vehicle model does not factorise over (r, w)")
+            kern.append(K)
+        # queue × other components: K_a[(d, f), (d′, f′)] = Q_a[(d, f), d′]·F_a[f, f′]
+        split = [k.reshape(D1, F, D1, F) for k in kern]
+        Q = [k.sum(3) for k in split]  # [D1, F, D1′]
+        Fk = [k.sum(2)[0] for k in split]  # [F, F′] from d = 0
+        for k, q, f in zip(split, Q, Fk, strict=True):
+            if not torch.allclose(k, q[:, :, :, None] * f[None, :, None, :], atol=1e-12, rtol=0):
+                raise ValueError("the single-vehicle kernel does not factorise into queue × rest")
+        denied = (Q[1][:, :, :, None] * Fk[0][None, :, None, :]).reshape(X, X)
+        self.K = {"comm": kern[0], "radar": kern[1], "denied": denied}
+        cols = model.cols
+        self.event = single.event[grid]  # [RW, X]
+        env, rew = params.env, params.reward
+        b = (cols[:, 2] + cols[:, 3] + cols[:, 4] + cols[:, 5]).to(torch.float64)[grid]
+        channel = params.factor("channel")
+        self.r_comm = torch.tensor(channel.comm_reward, dtype=torch.float64)[cols[:, 1][grid]]
+        self.detect_reward = rew.r4 * (b + 1.0)
+        self.r3, self.r5 = float(rew.r3), float(rew.r5)
+        self.p_detect, self.p_alarm = float(env.detection_prob), float(env.false_alarm_prob)
+        self.sent = {"comm": single.sent[0][grid], "radar": single.sent[1][grid]}
+        self.dropped = {"comm": single.dropped[0][grid], "radar": single.dropped[1][grid]}
+        self.capacity = single.capacity[0][grid]
+        self.queue = single.queue.to(torch.float64)[grid]
+
+    def terms(
+        self, act: int, others_radar: int, granted: bool, share: float
+    ) -> dict[str, torch.Tensor]:
+        """The vehicle's expected reward, missed events, events, sent, dropped, capacity, comm and
+        denied steps per step ([RW, X]) given its action, how many others watch the road, whether
+        its uplink request is granted, and the fleet's ``share``."""
+        e = self.event
+        q = 1.0 - (1.0 - share) ** others_radar  # another vehicle detects the event
+        zero = torch.zeros_like(e)
+        if act == 1:
+            nobody = (1.0 - self.p_detect) * (1.0 - q)
+            reward = e * (self.p_detect * self.detect_reward - nobody * self.r3)
+            reward = reward - (1.0 - e) * self.p_alarm * self.r5
+            return {
+                "reward": reward,
+                "missed": e * nobody,
+                "event": e,
+                "sent": self.sent["radar"],
+                "dropped": self.dropped["radar"],
+                "capacity": zero,
+                "radar": torch.ones_like(e),
+                "comm": zero,
+                "denied": zero,
+                "queue": self.queue,
+            }
+        r_ok = self.r_comm if granted else zero
+        reward = (1.0 - e) * r_ok + e * (q * r_ok - (1.0 - q) * self.r3)
+        key = "comm" if granted else "radar"  # a denied vehicle's queue moves as in radar mode
+        return {
+            "reward": reward,
+            "missed": e * (1.0 - q),
+            "event": e,
+            "sent": self.sent[key],
+            "dropped": self.dropped[key],
+            "capacity": self.capacity if granted else zero,
+            "radar": zero,
+            "comm": torch.ones_like(e),
+            "denied": zero if granted else torch.ones_like(e),
+            "queue": self.queue,
+        }
+
+
 class FleetModel:
     """The exact fleet model of ``spec`` (see the module docstring).
 
     Attributes:
         spec: the fleet.
-        single: the single-vehicle exact model the kernels come from.
+        single: vehicle 1's single-vehicle exact model.
         RW, X: sizes of the shared (r, w) axis and of one vehicle's own components.
         P_rw: [RW, RW] the road and weather chain.
-        K: {"comm", "radar", "denied"} → [X, X] one vehicle's kernel.
+        tables: each vehicle's ``VehicleTables`` (kernels and expectations; shared where the
+            vehicles are alike).
         num_states: RW · X^N.
     """
 
     def __init__(self, spec: FleetSpec) -> None:
         self.spec = spec
         params = spec.vehicle
-        single = build_model(params)
-        self.single = single
         levels = params.env.levels  # (c, r, w, v, m, phases)
-        S = single.num_states
+        S = params.env.num_states
         cols = decode_state(torch.arange(S), levels)  # d, c, r, w, v, m[, phase]
         Lr, Lw = levels[1], levels[2]
         self.RW = Lr * Lw
@@ -122,47 +237,36 @@ class FleetModel:
         self.F = self.X // radix[0]  # the components besides the queue
         self.N = spec.vehicles
         self.num_states = self.RW * self.X**self.N
-        # single index → (rw, x), and the single model's tables on the [RW, X] grid
+        # single index → (rw, x)
         self.index = torch.empty(self.RW, self.X, dtype=torch.int64)
         self.index[rw, x] = torch.arange(S)
         self.rw_of, self.x_of = rw, x  # single state → (rw, x)
-        P = single.P[:, self.index.reshape(-1)][:, :, self.index.reshape(-1)]
-        P = P.reshape(2, self.RW, self.X, self.RW, self.X)
-        self.P_rw = P[0, :, 0].sum(-1)  # [RW, RW′] from any x
-        kern = []
-        for a in (0, 1):
-            K = P[a, 0, :, :, :].sum(1)  # [X, X′] from rw = 0
-            want = self.P_rw[:, None, :, None] * K[None, :, None, :]
-            if not torch.allclose(P[a], want, atol=1e-12, rtol=0):
-                raise ValueError("the single-vehicle model does not factorise over (r, w)")
-            kern.append(K)
-        # queue × other components: K_a[(d, f), (d′, f′)] = Q_a[(d, f), d′]·F_a[f, f′]
-        D1 = radix[0]
-        split = [k.reshape(D1, self.F, D1, self.F) for k in kern]
-        Q = [k.sum(3) for k in split]  # [D1, F, D1′]
-        Fk = [k.sum(2)[0] for k in split]  # [F, F′] from d = 0
-        for k, q, f in zip(split, Q, Fk, strict=True):
-            if not torch.allclose(k, q[:, :, :, None] * f[None, :, None, :], atol=1e-12, rtol=0):
-                raise ValueError("the single-vehicle kernel does not factorise into queue × rest")
-        denied = (Q[1][:, :, :, None] * Fk[0][None, :, None, :]).reshape(self.X, self.X)
-        self.K = {"comm": kern[0], "radar": kern[1], "denied": denied}
-
-        # per-vehicle expectations on the [RW, X] grid
-        grid = self.index
-        self.event = single.event[grid]  # [RW, X]
-        env, rew = params.env, params.reward
-        b = (cols[:, 2] + cols[:, 3] + cols[:, 4] + cols[:, 5]).to(torch.float64)[grid]
-        channel = params.factor("channel")
-        c = cols[:, 1][grid]
-        r_comm = torch.tensor(channel.comm_reward, dtype=torch.float64)[c]
-        self.r_comm = r_comm
-        self.detect_reward = rew.r4 * (b + 1.0)
-        self.r3, self.r5 = float(rew.r3), float(rew.r5)
-        self.p_detect, self.p_alarm = float(env.detection_prob), float(env.false_alarm_prob)
-        self.sent = {"comm": single.sent[0][grid], "radar": single.sent[1][grid]}
-        self.dropped = {"comm": single.dropped[0][grid], "radar": single.dropped[1][grid]}
-        self.capacity = single.capacity[0][grid]
-        self.queue = single.queue.to(torch.float64)[grid]
+        self.cols = cols
+        for i, p in enumerate(spec.vehicle_params):
+            for what, a, b in (
+                ("state space (env.queue_capacity, the factors' levels)", p.env.levels, levels),
+                ("env.queue_capacity", p.env.queue_capacity, params.env.queue_capacity),
+                ("env.horizon", p.env.horizon, params.env.horizon),
+            ):
+                if a != b:
+                    raise ValueError(
+                        f"vehicle {i + 1}'s {what} differs from vehicle 1's: the vehicles may "
+                        "differ in probabilities, rates and rewards, not in their states"
+                    )
+        built: dict[Params, VehicleTables] = {}
+        for p in spec.vehicle_params:
+            if p not in built:
+                built[p] = VehicleTables(p, self)
+        self.tables = [built[p] for p in spec.vehicle_params]
+        self.P_rw = self.tables[0].P_rw
+        for i, t in enumerate(self.tables):
+            if not torch.allclose(t.P_rw, self.P_rw, atol=1e-12, rtol=0):
+                raise ValueError(
+                    f"vehicle {i + 1}'s road and weather chains (env.stay_good / env.stay_bad of "
+                    "road and weather) differ from vehicle 1's: the vehicles share one road"
+                )
+        self.single = self.tables[0].single
+        """Vehicle 1's single-vehicle exact model (every vehicle's state space)."""
 
     @property
     def exact(self) -> bool:
@@ -202,44 +306,13 @@ class FleetModel:
         """Each vehicle's action (0 comm, 1 radar) in joint action ``a``."""
         return tuple((a >> i) & 1 for i in range(self.N))
 
-    def vehicle_terms(self, act: int, others_radar: int, granted: bool) -> dict[str, torch.Tensor]:
-        """One vehicle's expected reward, missed events, events, sent, dropped, capacity, comm and
-        denied steps per step ([RW, X]) given its action, how many others watch the road and
-        whether its uplink request is granted."""
-        e = self.event
-        q = 1.0 - (1.0 - self.spec.share) ** others_radar  # another vehicle detects the event
-        zero = torch.zeros_like(e)
-        if act == 1:
-            nobody = (1.0 - self.p_detect) * (1.0 - q)
-            reward = e * (self.p_detect * self.detect_reward - nobody * self.r3)
-            reward = reward - (1.0 - e) * self.p_alarm * self.r5
-            return {
-                "reward": reward,
-                "missed": e * nobody,
-                "event": e,
-                "sent": self.sent["radar"],
-                "dropped": self.dropped["radar"],
-                "capacity": zero,
-                "radar": torch.ones_like(e),
-                "comm": zero,
-                "denied": zero,
-                "queue": self.queue,
-            }
-        r_ok = self.r_comm if granted else zero
-        reward = (1.0 - e) * r_ok + e * (q * r_ok - (1.0 - q) * self.r3)
-        key = "comm" if granted else "radar"  # a denied vehicle's queue moves as in radar mode
-        return {
-            "reward": reward,
-            "missed": e * (1.0 - q),
-            "event": e,
-            "sent": self.sent[key],
-            "dropped": self.dropped[key],
-            "capacity": self.capacity if granted else zero,
-            "radar": zero,
-            "comm": torch.ones_like(e),
-            "denied": zero if granted else torch.ones_like(e),
-            "queue": self.queue,
-        }
+    def vehicle_terms(
+        self, i: int, act: int, others_radar: int, granted: bool
+    ) -> dict[str, torch.Tensor]:
+        """Vehicle ``i``'s expected reward, missed events, events, sent, dropped, capacity, comm
+        and denied steps per step ([RW, X]) given its action, how many others watch the road and
+        whether its uplink request is granted (``VehicleTables.terms``)."""
+        return self.tables[i].terms(act, others_radar, granted, self.spec.share)
 
     def _joint(self, a: int) -> list[tuple[float, list[str], list[dict[str, torch.Tensor]]]]:
         """For joint action ``a``: per uplink outcome, (probability, each vehicle's kernel name,
@@ -256,7 +329,7 @@ class FleetModel:
                     names.append("radar")
                 else:
                     names.append("comm" if i in granted else "denied")
-                terms.append(self.vehicle_terms(x, others, x == 0 and i in granted))
+                terms.append(self.vehicle_terms(i, x, others, x == 0 and i in granted))
             out.append((p, names, terms))
         return out
 
@@ -276,7 +349,7 @@ class FleetModel:
         """E[V(s′) | s] for every joint state when vehicle i moves by kernel ``names[i]``."""
         W = torch.tensordot(self.P_rw, V, dims=([1], [0]))  # [RW, X, …]
         for i, name in enumerate(names):
-            W = torch.tensordot(self.K[name], W, dims=([1], [1 + i]))  # new axis first
+            W = torch.tensordot(self.tables[i].K[name], W, dims=([1], [1 + i]))  # new axis first
             W = W.movedim(0, 1 + i)
         return W
 
@@ -285,7 +358,7 @@ class FleetModel:
         with kernels ``names``."""
         W = torch.tensordot(self.P_rw, mu, dims=([0], [0]))
         for i, name in enumerate(names):
-            W = torch.tensordot(self.K[name], W, dims=([0], [1 + i])).movedim(0, 1 + i)
+            W = torch.tensordot(self.tables[i].K[name], W, dims=([0], [1 + i])).movedim(0, 1 + i)
         return W
 
     def reward(self, a: int) -> torch.Tensor:
@@ -509,9 +582,20 @@ def joint_policy(model: FleetModel, table: torch.Tensor) -> torch.Tensor:
     return sum((joint_from_single(model, per[i]) >> i & 1) << i for i in range(model.N))
 
 
+def single_optima(model: FleetModel, gamma: float = 0.99) -> torch.Tensor:
+    """[N, S] each vehicle's own single-vehicle optimum (value iteration on its model alone)."""
+    from irdrc.core.solve import value_iteration
+
+    done: dict[int, torch.Tensor] = {}
+    for t in model.tables:
+        if id(t) not in done:
+            done[id(t)] = value_iteration(t.single, gamma=gamma).policy
+    return torch.stack([done[id(t)] for t in model.tables])
+
+
 def baselines(model: FleetModel, single_optimum: torch.Tensor) -> dict[str, object]:
     """MODEL.md § C's baselines as joint policies: every vehicle applying the single-vehicle
-    optimum ``single_optimum`` to its own state; round-robin in phase (all comm, then all radar)
+    optimum ``single_optimum`` ([S], or its own [N, S]: ``single_optima``) to its own state; round-robin in phase (all comm, then all radar)
     and in anti-phase (odd and even vehicles alternate the other way round); a sensing rotation
     (vehicle t mod N in radar at step t, the others in comm). Periodic ones are lists of per-phase
     joint actions."""
@@ -523,7 +607,7 @@ def baselines(model: FleetModel, single_optimum: torch.Tensor) -> dict[str, obje
 
     odd = sum(1 << i for i in range(1, N, 2))  # vehicles 2, 4, … (bits 1, 3, …)
     return {
-        "N copies of the single optimum": joint_from_single(model, single_optimum),
+        "N copies of the single optimum": joint_policy(model, single_optimum.reshape(-1)),
         "round-robin in phase": [const(0), const(every)],
         "round-robin in anti-phase": [const(odd), const(every ^ odd)],
         "sensing rotation": [const(1 << t) for t in range(N)],

@@ -1,6 +1,7 @@
 """The fleet's simulator: N vehicles stepped by the single-vehicle ``Dynamics`` (MODEL.md § C).
 
-Each vehicle's own components move by one ``Dynamics.step`` of its single-vehicle state; road and
+Each vehicle's own components move by one ``Dynamics.step`` of its single-vehicle state (its own
+dynamics where the vehicles differ); road and
 weather are the first vehicle's draw, copied to every vehicle (they follow their own chain,
 whatever the vehicles do). A vehicle denied the uplink takes its queue from a radar-mode step
 (nothing sent) and its other components from a comm-mode step (no radar reaction); the two steps
@@ -43,15 +44,28 @@ class FleetDynamics:
     def __init__(self, model: FleetModel) -> None:
         self.model = model
         spec = model.spec
-        params = spec.vehicle
-        self.dyn = Dynamics(params)
+        per = spec.vehicle_params
+        distinct = list(dict.fromkeys(per))
+        self.dyns = [Dynamics(p) for p in distinct]
+        self.dyn = self.dyns[0]  # every vehicle's state space and observation table
+        self.groups = [
+            torch.tensor([i for i, q in enumerate(per) if q == p], dtype=torch.int64)
+            for p in distinct
+        ]
         S = model.single.num_states
-        cols = decode_state(torch.arange(S), params.env.levels)
-        channel = params.factor("channel")
-        self.r_comm = torch.tensor(channel.comm_reward, dtype=torch.float64)[cols[:, 1]]
+        cols = decode_state(torch.arange(S), spec.vehicle.env.levels)
         b = (cols[:, 2] + cols[:, 3] + cols[:, 4] + cols[:, 5]).to(torch.float64)
-        self.detect_reward = params.reward.r4 * (b + 1.0)
-        self.r3, self.r5 = float(params.reward.r3), float(params.reward.r5)
+        # [N, S] per vehicle: its comm reward and detection reward in every state; [N] r3, r5
+        self.r_comm = torch.stack(
+            [
+                torch.tensor(p.factor("channel").comm_reward, dtype=torch.float64)[cols[:, 1]]
+                for p in per
+            ]
+        )
+        self.detect_reward = torch.stack([p.reward.r4 * (b + 1.0) for p in per])
+        self.r3 = torch.tensor([float(p.reward.r3) for p in per], dtype=torch.float64)
+        self.r5 = torch.tensor([float(p.reward.r5) for p in per], dtype=torch.float64)
+        self.vehicle = torch.arange(model.N)
 
     def fleet_index(self, states: torch.Tensor) -> torch.Tensor:
         """[n] joint state indices of the exact model from [n, N] single-vehicle states."""
@@ -73,21 +87,41 @@ class FleetDynamics:
         rank = score.argsort(1).argsort(1)  # 0 = the smallest score
         return comm & (rank < K)
 
+    def _dynamics(self, states: torch.Tensor, action: int, gen: torch.Generator) -> dict:
+        """Every vehicle's single-vehicle step from [n, N] ``states`` under one ``action``, by its
+        own dynamics: ``state``, ``event``, ``missed``, ``false_alarm``, ``sent``, ``dropped``
+        as [n, N]."""
+        n, N = states.shape
+        keys = ("state", "event", "missed", "false_alarm", "sent", "dropped")
+        if len(self.dyns) == 1:
+            flat = states.reshape(-1)
+            res = self.dyn.step(flat, torch.full_like(flat, action), gen)
+            out = {k: getattr(res, k) for k in keys}
+            if out["false_alarm"] is None:
+                out["false_alarm"] = torch.zeros_like(out["event"])
+            return {k: v.reshape(n, N) for k, v in out.items()}
+        out: dict = {}
+        for dyn, idx in zip(self.dyns, self.groups, strict=True):
+            flat = states[:, idx].reshape(-1)
+            res = dyn.step(flat, torch.full_like(flat, action), gen)
+            for k in keys:
+                v = getattr(res, k)
+                v = torch.zeros_like(res.event) if v is None else v
+                if k not in out:
+                    out[k] = torch.empty((n, N), dtype=v.dtype)
+                out[k][:, idx] = v.reshape(n, len(idx))
+        return out
+
     def step(self, states: torch.Tensor, actions: torch.Tensor, gen: torch.Generator) -> FleetStep:
         """One step of every fleet from [n, N] ``states`` under [n, N] ``actions``."""
         n, N = states.shape
-        flat = states.reshape(-1)
-        as_comm = self.dyn.step(flat, torch.zeros_like(flat), gen)
-        as_radar = self.dyn.step(flat, torch.ones_like(flat), gen)
-
-        def v(t: torch.Tensor) -> torch.Tensor:
-            return t.reshape(n, N)
-
+        as_comm = self._dynamics(states, 0, gen)
+        as_radar = self._dynamics(states, 1, gen)
         radar = actions == 1
         granted = self.grant(actions, gen)
         denied = ~radar & ~granted
-        d_c, f_c = (v(t) for t in self.dyn.split(as_comm.state))
-        d_r, f_r = (v(t) for t in self.dyn.split(as_radar.state))
+        d_c, f_c = self.dyn.split(as_comm["state"])
+        d_r, f_r = self.dyn.split(as_radar["state"])
         f_next = torch.where(radar, f_r, f_c)  # a denied vehicle's components move as in comm
         d_next = torch.where(granted, d_c, d_r)  # … and its queue as in radar
         nxt = d_next * self.dyn.num_configs + f_next
@@ -95,26 +129,26 @@ class FleetDynamics:
         x = m.x_of[nxt]
         shared = m.rw_of[nxt[:, :1]].expand(n, N)  # road and weather: the first vehicle's draw
         nxt = m.index[shared, x]
-        event = torch.where(radar, v(as_radar.event), v(as_comm.event))
-        self_missed = v(as_radar.missed) & radar  # radar mode, event, not detected by itself
+        event = torch.where(radar, as_radar["event"], as_comm["event"])
+        self_missed = as_radar["missed"] & radar  # radar mode, event, not detected by itself
         # another vehicle in radar mode detects it with probability share, independently
         u = torch.rand(n, N, N, generator=gen, dtype=torch.float64)
         watching = radar[:, None, :] & ~torch.eye(N, dtype=torch.bool)[None]
         by_others = ((u < m.spec.share) & watching).any(-1)
         unseen = event & (~radar | self_missed)  # not detected by the vehicle's own radar
         undetected = unseen & ~by_others
-        s = states
-        rc = torch.where(granted, self.r_comm[s], torch.zeros_like(self.r_comm[s]))
-        alarm = v(as_radar.false_alarm) & radar
+        r_comm = self.r_comm[self.vehicle, states]  # [n, N]: vehicle i's table at its state
+        detect = self.detect_reward[self.vehicle, states]
+        rc = torch.where(granted, r_comm, torch.zeros_like(r_comm))
+        alarm = as_radar["false_alarm"] & radar
         reward = torch.where(
             radar,
-            torch.where(event & ~self_missed, self.detect_reward[s], 0.0)
-            - self.r5 * alarm.to(torch.float64),
+            torch.where(event & ~self_missed, detect, 0.0) - self.r5 * alarm.to(torch.float64),
             rc,
         )
-        reward = torch.where(undetected, torch.full_like(reward, -self.r3), reward)
-        sent = torch.where(granted, v(as_comm.sent), torch.zeros_like(v(as_comm.sent)))
-        dropped = torch.where(granted, v(as_comm.dropped), v(as_radar.dropped))
+        reward = torch.where(undetected, -self.r3.expand(n, N), reward)
+        sent = torch.where(granted, as_comm["sent"], torch.zeros_like(as_comm["sent"]))
+        dropped = torch.where(granted, as_comm["dropped"], as_radar["dropped"])
         return FleetStep(
             nxt, reward, event, undetected, unseen & by_others, granted, denied, sent, dropped
         )

@@ -82,6 +82,43 @@ def test_qnet_sized_from_specs_and_greedy_table():
     assert table.shape == (6 * 32,) and set(table.unique().tolist()) <= {0, 1}
 
 
+def test_polyak_update_is_torchrls_soft_update():
+    """``PolyakUpdate`` (one foreach lerp over cached tensors) moves every target tensor exactly as
+    TorchRL's ``SoftUpdate`` does, step after step, on two identical DQN losses whose online
+    networks move alike."""
+    from torchrl.objectives import SoftUpdate
+
+    from irdrc.agents.offpolicy import (
+        OffPolicyConfig,
+        PolyakUpdate,
+        make_dqn_loss,
+        make_qnet,
+    )
+
+    env = DFRCEnv(Params(), batch_size=[4], seed=0)
+    cfg = OffPolicyConfig(num_envs=4, frames_per_batch=4)
+    losses = []
+    for _ in range(2):
+        torch.manual_seed(0)
+        losses.append(make_dqn_loss(make_qnet(env, cfg.network), env, cfg))
+    ours, theirs = PolyakUpdate(losses[0], tau=0.1), SoftUpdate(losses[1], tau=0.1)
+    for step in range(5):
+        for loss in losses:
+            with torch.no_grad():
+                for i, p in enumerate(loss.value_network_params.values(True, True)):
+                    p.add_(0.01 * (step + 1) * (i + 1))
+        ours.step()
+        theirs.step()
+    a = dict(losses[0].target_value_network_params.items(True, True))
+    b = dict(losses[1].target_value_network_params.items(True, True))
+    online = dict(losses[0].value_network_params.items(True, True))
+    assert a.keys() == b.keys() and len(a) > 4
+    for k in a:
+        assert torch.equal(a[k], b[k]), k
+    moved = [k for k in a if k[-1] == "weight" and not torch.equal(a[k], online[k])]
+    assert moved  # the targets lag the online network, as a soft update should
+
+
 def test_train_function_counts_and_history():
     cfg = DQNConfig(
         num_envs=8,

@@ -24,7 +24,6 @@ from tensordict.nn import TensorDictModule, TensorDictSequential
 from torch import nn
 from torchrl.modules import QValueModule
 from torchrl.modules.models.multiagent import QMixer, VDNMixer
-from torchrl.objectives import SoftUpdate
 from torchrl.objectives.multiagent import QMixerLoss
 
 from irdrc.agents.base import Hooks, RunRecord, progress_record
@@ -33,6 +32,7 @@ from irdrc.agents.offpolicy import (
     LadderExploration,
     OffPolicyConfig,
     OffPolicyLoop,
+    PolyakUpdate,
     RewardCenter,
     Scale,
     clip_and_step,
@@ -254,7 +254,7 @@ def train(
     )
     buffer, sampler = make_buffer(cfg)
     loss = make_loss(qnet, make_mixer(env, cfg), cfg)
-    target = SoftUpdate(loss, tau=cfg.tau)
+    target = PolyakUpdate(loss, tau=cfg.tau)
     optimizer = make_optimizer(loss, cfg)
     record = RunRecord(method=cfg.mixer, greedy=torch.zeros(1, 1, dtype=torch.int64))
     record.info["replay_sampler"] = type(sampler).__name__

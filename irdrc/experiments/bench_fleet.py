@@ -45,6 +45,13 @@ BASELINES = (
     "sensing rotation",
     "always radar",
 )
+SHORT = {
+    "N copies of the single optimum": "copies",
+    "round-robin in anti-phase": "anti-phase",
+    "sensing rotation": "rotation",
+    "always radar": "radar always",
+}
+"""The baselines' labels in the figure."""
 
 
 def observe_of(learner: str) -> str:
@@ -326,15 +333,20 @@ def frontier_figure(rows: list[dict[str, Any]], tables: dict[str, Any], path: Pa
         ax.scatter(
             [opt["miss_detection"]], [opt["throughput"]], marker="*", s=200, c="k", label="optimum"
         )
+        spots: dict[tuple[float, float], list[str]] = {}
         for name in BASELINES:
             b = table[name][-1]
-            ax.scatter([b["miss_detection"]], [b["throughput"]], marker="x", s=50, c="grey")
+            spot = (round(b["miss_detection"], 6), round(b["throughput"], 6))
+            spots.setdefault(spot, []).append(SHORT[name])
+        for (miss, thr), names in spots.items():
+            ax.scatter([miss], [thr], marker="x", s=50, c="grey")
             ax.annotate(
-                name.replace("N copies of the single optimum", "copies"),
-                (b["miss_detection"], b["throughput"]),
+                " = ".join(names),
+                (miss, thr),
                 fontsize=7,
-                xytext=(3, 3),
+                xytext=(-4, -11),
                 textcoords="offset points",
+                ha="right",
             )
         ax.set_title(f"share {share:g}, {k} channel(s)", fontsize=10)
         ax.set_xlabel("miss detection (fleet)", fontsize=9)

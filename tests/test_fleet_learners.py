@@ -56,14 +56,14 @@ def test_monte_carlo_matches_the_exact_metrics(two):
 
 
 def test_fleet_observation_shows_the_other_vehicles():
-    """With ``observe="fleet"`` vehicle i sees its own observation, then vehicle i + 1's d, c, v,
+    """With ``observe="full"`` vehicle i sees its own observation, then vehicle i + 1's d, c, v,
     m (cyclically); with ``own`` only its own, as the single-vehicle env."""
     from torchrl.envs.utils import check_env_specs
 
     from irdrc.fleet.env import FleetEnv
 
     spec = FleetSpec(vehicles=3)
-    env = FleetEnv(spec, batch_size=4, seed=0, observe="fleet")
+    env = FleetEnv(spec, batch_size=4, seed=0, observe="full")
     check_env_specs(env)
     td = env.reset()
     obs = td["agents", "observation"]  # [4, 3, 6 + 2·4]
@@ -116,7 +116,7 @@ def test_value_decomposition_trains_and_refuses_what_it_cannot_do(two):
 
     scorer = FleetScorer(two)
     small = {"num_envs": 16, "frames_per_batch": 32, "total_frames": 256, "batch_size": 32}
-    for mixer, observe, size in (("vdn", "own", 2 * 352), ("qmix", "fleet", two.num_states)):
+    for mixer, observe, size in (("vdn", "own", 2 * 352), ("qmix", "full", two.num_states)):
         cfg = fleet_mix.MixConfig(mixer=mixer, **small)
         rec = fleet_mix.train(
             two, cfg, seed=0, scorer=scorer, eval_every_frames=128, observe=observe
@@ -271,9 +271,9 @@ def test_solve_env_fleet_prints_what_cooperation_is_worth(tmp_path):
         ("fleet.py", ["env.access=aloha"], "env.access"),
         ("fleet.py", ["env.observe=all"], "env.observe"),
         ("fleet.py", ["learner=mappo"], "learner"),
-        ("fleet.py", ["learner=joint"], "env.observe=fleet"),
-        ("fleet.py", ["learner=idqn", "env.observe=fleet"], "env.observe=own"),
-        ("fleet.py", ["learner=joint", "env.observe=fleet", "env.vehicles=3"], "joint states"),
+        ("fleet.py", ["learner=joint"], "env.observe=full"),
+        ("fleet.py", ["learner=idqn", "env.observe=full"], "env.observe=own"),
+        ("fleet.py", ["learner=joint", "env.observe=full", "env.vehicles=3"], "joint states"),
         ("fleet.py", ["algo.prioritized=true"], "importance"),
         ("fleet.py", ["env=paper"], "not a fleet"),
         ("fleet.py", ["env.p1.speed=[0.1,1.0,0.5]"], "one value per vehicle"),
@@ -312,7 +312,7 @@ def test_joint_learner_reaches_the_centralised_optimum(seed, two):
         "joint",
         two,
         cfg,
-        observe="fleet",
+        observe="full",
         seed=seed,
         scorer=FleetScorer(two),
         eval_every_frames=100_000,

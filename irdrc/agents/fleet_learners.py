@@ -26,9 +26,9 @@ LEARNERS = ("idqn", "vdn", "qmix", "joint")
 
 OBSERVES = {
     "idqn": ("own",),
-    "vdn": ("own", "fleet"),
-    "qmix": ("own", "fleet"),
-    "joint": ("fleet",),
+    "vdn": ("own", "full"),
+    "qmix": ("own", "full"),
+    "joint": ("full",),
 }
 """What each learner's vehicles may observe (``env.observe``)."""
 
@@ -55,7 +55,7 @@ def check(learner: str, model: FleetModel, observe: str) -> None:
             f"learner={learner} with env.observe={observe}: {learner} takes env.observe="
             f"{' or '.join(OBSERVES[learner])}"
         )
-    if not model.exact and (learner == "joint" or observe == "fleet"):
+    if not model.exact and (learner == "joint" or observe == "full"):
         model.check_exact()  # joint actions and fleet observations are scored on joint states
 
 

@@ -195,7 +195,7 @@ def make_loss(qnet: TensorDictSequential, mixer: TensorDictModule, cfg: MixConfi
 
 def greedy_policy(qnet: TensorDictSequential, env: FleetEnv) -> torch.Tensor:
     """The vehicles' greedy policy as ``FleetScorer`` reads it: with ``own`` observations each
-    vehicle's action in every single-vehicle state ([N·S], vehicle-major); with ``fleet``
+    vehicle's action in every single-vehicle state ([N·S], vehicle-major); with ``full``
     observations the joint action of every joint state ([S_fleet])."""
     n, model = env.n_agents, env.model
     if env.observe == "own":

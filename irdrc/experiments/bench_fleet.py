@@ -56,7 +56,7 @@ SHORT = {
 
 def observe_of(learner: str) -> str:
     """What a learner's vehicles observe in the benchmark (joint: every vehicle's state)."""
-    return "fleet" if learner == "joint" else "own"
+    return "full" if learner == "joint" else "own"
 
 
 def run_bench_fleet(cfg: DictConfig, out: Path) -> int:

@@ -25,9 +25,9 @@ from irdrc.fleet.sim import FleetDynamics
 GROUP = "agents"
 """The key of the agents' entries."""
 
-OBSERVE = ("own", "fleet")
+OBSERVE = ("own", "full")
 """What a vehicle observes: ``own`` — its own d, c, v, m and the shared r, w (the single-vehicle
-observation); ``fleet`` — that, then every other vehicle's d, c, v, m (vehicles i + 1, i + 2, …
+observation); ``full`` — that, then every other vehicle's d, c, v, m (vehicles i + 1, i + 2, …
 cyclically), as if the vehicles shared their states over V2V links."""
 
 
@@ -68,7 +68,7 @@ class FleetEnv(EnvBase):
         batch_size: fleets stepped together (one dimension).
         device: the device of the tensors.
         seed: the generator's seed (None: a fresh one).
-        observe: ``own`` or ``fleet`` (``OBSERVE``).
+        observe: ``own`` or ``full`` (``OBSERVE``).
     """
 
     def __init__(
@@ -369,7 +369,7 @@ class FleetRowsEnv(EnvBase):
 
 class FleetJointEnv(EnvBase):
     """The fleet as one agent choosing the joint action: ``fleets`` rows, each fleet's
-    ``observation`` every vehicle's state (vehicle 1's ``fleet`` observation, ``OBSERVE``),
+    ``observation`` every vehicle's state (vehicle 1's ``full`` observation, ``OBSERVE``),
     ``action`` the joint action a = Σ_i a_i·2^(i−1) (2^N of them), ``reward`` the team reward,
     ``state`` the exact model's joint index. A network learned here is executed by every vehicle
     alike — each sees the fleet's states (shared over V2V), computes the same joint action and
@@ -395,7 +395,7 @@ class FleetJointEnv(EnvBase):
         self.own = own_columns(params)
         self.vehicles = self.model.vehicle_states()  # [S, N]
         self.obs_table = self._observe(self.vehicles)
-        high = fleet_observation_high(params, self.n_agents, "fleet")
+        high = fleet_observation_high(params, self.n_agents, "full")
         B, width, dev = self.fleets, high.shape[0], self.device
         self.observation_spec = Composite(
             observation=Bounded(
@@ -434,7 +434,7 @@ class FleetJointEnv(EnvBase):
 
     def _observe(self, vehicle_states: torch.Tensor) -> torch.Tensor:
         obs = self.sim.dyn.obs[vehicle_states]  # [n, N, W]
-        return fleet_observation(obs, self.own, "fleet")[:, 0]
+        return fleet_observation(obs, self.own, "full")[:, 0]
 
     def _set_seed(self, seed: int | None) -> None:
         self.rng.manual_seed(int(seed if seed is not None else fresh_seed()))

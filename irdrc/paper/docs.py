@@ -57,7 +57,7 @@ def block_names(text: str) -> list[str]:
 def run_command(run_dir: Path) -> str:
     """The command that made ``run_dir``: ``python recipes/<recipe>.py <overrides>`` from Hydra's
     record of the run (``.hydra/hydra.yaml``: the job name every recipe sets to its own name, and
-    the task overrides), ``hydra.*`` overrides left out.
+    the task overrides), ``hydra.*`` and ``resume=…`` overrides left out.
 
     Raises:
         ValueError: ``run_dir`` holds no Hydra record.
@@ -66,7 +66,8 @@ def run_command(run_dir: Path) -> str:
     if not record.is_file():
         raise ValueError(f"{run_dir} is not a recipe's run directory (no .hydra/hydra.yaml)")
     hydra = OmegaConf.load(record).hydra
-    overrides = [o for o in hydra.overrides.task if not o.startswith("hydra.")]
+    # a resumed run's table is the original command's: resume=… is left out with hydra.*
+    overrides = [o for o in hydra.overrides.task if not o.startswith(("hydra.", "resume="))]
     return " ".join(["python", f"recipes/{hydra.job.name}.py", *map(shell_quote, overrides)])
 
 

@@ -38,6 +38,7 @@ from irdrc.experiments.tracking import log_scalars, make_logger
 from irdrc.fleet.config import fleet_from_config
 from irdrc.fleet.evaluate import FleetMCScorer, baseline_rules, simulate, table_rule
 from irdrc.fleet.exact import (
+    PRINTED,
     FleetModel,
     FleetSpec,
     baselines,
@@ -46,16 +47,6 @@ from irdrc.fleet.exact import (
     single_optima,
     value_iteration_fleet,
 )
-
-COLUMNS = (
-    "avg_reward",
-    "throughput",
-    "miss_detection",
-    "radar_fraction",
-    "denial_rate",
-    "drop_rate",
-)
-"""The printed columns of a fleet table."""
 
 
 def differences(spec: FleetSpec) -> dict[str, list[Any]]:
@@ -91,11 +82,11 @@ def describe(spec: FleetSpec, observe: str, model: FleetModel) -> str:
 def format_rows(rows: dict[str, list[dict]], reference: float) -> str:
     """The per-vehicle table: one line per vehicle and one for the fleet with its ratio to
     ``reference``."""
-    head = f"{'policy':<34} {'vehicle':>7} " + " ".join(f"{c:>14}" for c in COLUMNS)
+    head = f"{'policy':<34} {'vehicle':>7} " + " ".join(f"{c:>14}" for c in PRINTED)
     lines = [head, "-" * len(head)]
     for name, per in rows.items():
         for row in per:
-            cells = " ".join(f"{row.get(c, math.nan):>14.4f}" for c in COLUMNS)
+            cells = " ".join(f"{row.get(c, math.nan):>14.4f}" for c in PRINTED)
             label = name if row["vehicle"] == 1 else ""
             lines.append(f"{label:<34} {row['vehicle']!s:>7} {cells}")
         lines.append(

@@ -17,21 +17,13 @@ import torch
 from irdrc.core.params import Params
 from irdrc.fleet.exact import (
     ACCESS,
+    PRINTED,
     FleetModel,
     FleetSpec,
     baselines,
     fleet_metrics,
     single_optima,
     value_iteration_fleet,
-)
-
-COLUMNS = (
-    "avg_reward",
-    "throughput",
-    "miss_detection",
-    "radar_fraction",
-    "denial_rate",
-    "drop_rate",
 )
 
 
@@ -83,12 +75,12 @@ def main(argv: list[str] | None = None) -> None:
         f"{spec.share:g}, p1.speed {args.p1_speed:g}: S = {S:,} joint states, value iteration "
         f"{sol.iterations} sweeps, {solve_s:.1f} s\n"
     )
-    print(f"{'policy':<32} {'vehicle':>7} " + " ".join(f"{c:>14}" for c in COLUMNS))
+    print(f"{'policy':<32} {'vehicle':>7} " + " ".join(f"{c:>14}" for c in PRINTED))
     best = None
     for name, pol in policies.items():
         _, per = fleet_metrics(model, pol)
         for row in per:
-            cells = " ".join(f"{row[c]:>14.4f}" for c in COLUMNS)
+            cells = " ".join(f"{row[c]:>14.4f}" for c in PRINTED)
             print(f"{name:<32} {row['vehicle']!s:>7} {cells}")
         fleet = per[-1]["avg_reward"]
         best = fleet if best is None else best

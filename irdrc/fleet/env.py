@@ -60,6 +60,37 @@ SIGNALS = ("event", "missed", "detected_by_other", "granted", "denied")
 """Per-agent boolean signals of a step (with ``sent`` and ``dropped``, int64)."""
 
 
+def set_row_specs(
+    env: EnvBase, high: torch.Tensor, num_states: int, num_actions: int, horizon: int
+) -> None:
+    """The specs of a single-agent view of the fleet (one row per vehicle or per fleet): an
+    ``observation`` in [0, ``high``], the exact ``state`` index, ``step_count``, a categorical
+    ``action``, a [rows, 1] ``reward`` and the done flags."""
+    rows, width, dev = env.batch_size[0], high.shape[0], env.device
+    env.observation_spec = Composite(
+        observation=Bounded(
+            low=torch.zeros(rows, width, device=dev),
+            high=high.to(dev).expand(rows, width).clone(),
+            shape=(rows, width),
+            dtype=torch.float32,
+            device=dev,
+        ),
+        state=Categorical(num_states, shape=(rows,), dtype=torch.int64),
+        step_count=Bounded(0, horizon, shape=(rows, 1), dtype=torch.int64),
+        shape=(rows,),
+        device=dev,
+    )
+    env.action_spec = Categorical(num_actions, shape=(rows,), dtype=torch.int64, device=dev)
+    env.reward_spec = Unbounded(shape=(rows, 1), dtype=torch.float32, device=dev)
+    env.done_spec = Composite(
+        done=Categorical(2, shape=(rows, 1), dtype=torch.bool, device=dev),
+        terminated=Categorical(2, shape=(rows, 1), dtype=torch.bool, device=dev),
+        truncated=Categorical(2, shape=(rows, 1), dtype=torch.bool, device=dev),
+        shape=(rows,),
+        device=dev,
+    )
+
+
 class FleetEnv(EnvBase):
     """A batch of fleets (see the module docstring).
 
@@ -275,33 +306,11 @@ class FleetRowsEnv(EnvBase):
         super().__init__(device=device, batch_size=torch.Size([rows]))
         self.params = self.model.spec.vehicle
         self.rng = torch.Generator()
-        params, dev = self.params, self.device
+        params = self.params
         high = observation_high(params)
         if self.agent_index:
             high = torch.cat([high, torch.ones(self.n_agents, dtype=high.dtype)])
-        width = high.shape[0]
-        self.observation_spec = Composite(
-            observation=Bounded(
-                low=torch.zeros(rows, width, device=dev),
-                high=high.to(dev).expand(rows, width).clone(),
-                shape=(rows, width),
-                dtype=torch.float32,
-                device=dev,
-            ),
-            state=Categorical(self.dynamics.num_states, shape=(rows,), dtype=torch.int64),
-            step_count=Bounded(0, params.env.horizon, shape=(rows, 1), dtype=torch.int64),
-            shape=(rows,),
-            device=dev,
-        )
-        self.action_spec = Categorical(2, shape=(rows,), dtype=torch.int64, device=dev)
-        self.reward_spec = Unbounded(shape=(rows, 1), dtype=torch.float32, device=dev)
-        self.done_spec = Composite(
-            done=Categorical(2, shape=(rows, 1), dtype=torch.bool, device=dev),
-            terminated=Categorical(2, shape=(rows, 1), dtype=torch.bool, device=dev),
-            truncated=Categorical(2, shape=(rows, 1), dtype=torch.bool, device=dev),
-            shape=(rows,),
-            device=dev,
-        )
+        set_row_specs(self, high, self.dynamics.num_states, 2, params.env.horizon)
         self.set_seed(seed if seed is not None else fresh_seed())
 
     @property
@@ -396,29 +405,7 @@ class FleetJointEnv(EnvBase):
         self.vehicles = self.model.vehicle_states()  # [S, N]
         self.obs_table = self._observe(self.vehicles)
         high = fleet_observation_high(params, self.n_agents, "full")
-        B, width, dev = self.fleets, high.shape[0], self.device
-        self.observation_spec = Composite(
-            observation=Bounded(
-                low=torch.zeros(B, width, device=dev),
-                high=high.to(dev).expand(B, width).clone(),
-                shape=(B, width),
-                dtype=torch.float32,
-                device=dev,
-            ),
-            state=Categorical(self.model.num_states, shape=(B,), dtype=torch.int64),
-            step_count=Bounded(0, params.env.horizon, shape=(B, 1), dtype=torch.int64),
-            shape=(B,),
-            device=dev,
-        )
-        self.action_spec = Categorical(2**self.n_agents, shape=(B,), dtype=torch.int64, device=dev)
-        self.reward_spec = Unbounded(shape=(B, 1), dtype=torch.float32, device=dev)
-        self.done_spec = Composite(
-            done=Categorical(2, shape=(B, 1), dtype=torch.bool, device=dev),
-            terminated=Categorical(2, shape=(B, 1), dtype=torch.bool, device=dev),
-            truncated=Categorical(2, shape=(B, 1), dtype=torch.bool, device=dev),
-            shape=(B,),
-            device=dev,
-        )
+        set_row_specs(self, high, self.model.num_states, 2**self.n_agents, params.env.horizon)
         self.rng = torch.Generator()
         self.set_seed(seed if seed is not None else fresh_seed())
 

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import torch
 
 from irdrc.core.metrics import Metrics
-from irdrc.fleet.exact import FleetModel
+from irdrc.fleet.exact import FleetModel, long_run_rates
 from irdrc.fleet.sim import FleetDynamics
 
 ActionRule = Callable[[torch.Tensor, int], torch.Tensor]
@@ -120,9 +120,9 @@ def simulate(
     per_fleet_reward = sums["reward"].sum(1) / steps
     ci = 1.96 * float(per_fleet_reward.std()) / math.sqrt(fleets)
     n = fleets * steps
-    per = [_rates({k: float(v[:, i].sum()) / n for k, v in sums.items()}) for i in range(N)]
+    per = [long_run_rates({k: float(v[:, i].sum()) / n for k, v in sums.items()}) for i in range(N)]
     total = {k: float(v.sum()) / n for k, v in sums.items()}
-    fleet = _rates(total)
+    fleet = long_run_rates(total)
     for i, r in enumerate(per):
         r["vehicle"] = i + 1
     per.append(
@@ -144,18 +144,6 @@ def simulate(
         mean_queue=total["queue"] / N,
     )
     return SimulatedMetrics(metrics, per, ci, fleets * (burn_in + steps))
-
-
-def _rates(s: dict[str, float]) -> dict[str, float]:
-    return {
-        "avg_reward": s["reward"],
-        "throughput": s["sent"],
-        "miss_detection": s["missed"] / s["event"] if s["event"] > 0 else math.nan,
-        "radar_fraction": s["radar"],
-        "drop_rate": s["dropped"],
-        "denial_rate": s["denied"] / s["comm"] if s["comm"] > 0 else math.nan,
-        "mean_queue": s["queue"],
-    }
 
 
 class FleetMCScorer:

@@ -483,6 +483,35 @@ def stationary_fleet(
     raise RuntimeError(f"the fleet's stationary distribution did not converge in {max_iter} cycles")
 
 
+PRINTED = (
+    "avg_reward",
+    "throughput",
+    "miss_detection",
+    "radar_fraction",
+    "denial_rate",
+    "drop_rate",
+)
+"""The columns of a printed fleet table."""
+
+
+def long_run_rates(s: dict[str, float]) -> dict[str, float]:
+    """``FLEET_METRICS`` (but link capacity) from per-step sums of one vehicle's (or the fleet's)
+    ``reward``, ``missed``, ``event``, ``sent``, ``dropped``, ``radar``, ``comm``, ``denied``,
+    ``queue`` (and ``capacity`` where known)."""
+    out = {
+        "avg_reward": s["reward"],
+        "throughput": s["sent"],
+        "miss_detection": s["missed"] / s["event"] if s["event"] > 0 else math.nan,
+        "radar_fraction": s["radar"],
+        "drop_rate": s["dropped"],
+        "denial_rate": s["denied"] / s["comm"] if s["comm"] > 0 else math.nan,
+        "mean_queue": s["queue"],
+    }
+    if "capacity" in s:
+        out["link_capacity"] = s["capacity"]
+    return out
+
+
 def fleet_metrics(model: FleetModel, policy) -> tuple[Metrics, list[dict]]:
     """Exact long-run metrics of a joint policy (stationary, or periodic as a list of per-phase
     policies, averaged over its phases): the fleet's ``Metrics`` (reward, throughput, drops and
@@ -515,21 +544,9 @@ def fleet_metrics(model: FleetModel, policy) -> tuple[Metrics, list[dict]]:
                     for k in keys:
                         sums[i][k] += p * float((w * model._expand(t[k], i)).sum())
 
-    def rates(s: dict[str, float]) -> dict[str, float]:
-        return {
-            "avg_reward": s["reward"],
-            "throughput": s["sent"],
-            "miss_detection": s["missed"] / s["event"] if s["event"] > 0 else math.nan,
-            "radar_fraction": s["radar"],
-            "drop_rate": s["dropped"],
-            "denial_rate": s["denied"] / s["comm"] if s["comm"] > 0 else math.nan,
-            "link_capacity": s["capacity"],
-            "mean_queue": s["queue"],
-        }
-
-    per = [rates(s) for s in sums]
+    per = [long_run_rates(s) for s in sums]
     total = {k: sum(s[k] for s in sums) for k in keys}
-    fleet = rates(total)
+    fleet = long_run_rates(total)
     n = model.N
     fleet_m = Metrics(
         avg_reward=fleet["avg_reward"],

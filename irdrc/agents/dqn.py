@@ -250,15 +250,7 @@ def train_on(
         before = loop.frames - data.numel()
         if selection.due(before, loop.frames):
             selection.take(loop.frames, *policy())
-        hooks.batch(
-            {
-                "env_steps": loop.frames,
-                "episodes": len(record.episode_rewards),
-                "loss": loop.last_loss,
-                "beta": getattr(sampler, "beta", math.nan),
-                "buffer": len(buffer),
-            }
-        )
+        hooks.batch(loop.scalars())
         stop = loop.stop_due()
         if loop.frames >= next_eval or loop.frames >= cfg.total_frames or stop:
             evaluate_now()

@@ -33,6 +33,10 @@ OBSERVES = {
 """What each learner's vehicles may observe (``env.observe``)."""
 
 
+READ_BY = {"mixing_embed_dim": ("qmix",), "agent_index": ("vdn", "qmix")}
+"""Keys of the fleet recipe's ``algo`` that only some learners read (set for another: refused)."""
+
+
 def config(learner: str, algo: Any, network: Any) -> dqn.DQNConfig | fleet_mix.MixConfig:
     """The learner's config from the fleet recipe's ``algo`` node (``num_envs`` fleets,
     ``frames_per_batch`` and ``total_frames`` in fleet steps); null values take the learner's
@@ -41,7 +45,15 @@ def config(learner: str, algo: Any, network: Any) -> dqn.DQNConfig | fleet_mix.M
         raise ValueError(f"learner={learner!r} must be one of {', '.join(LEARNERS)}")
     cls = fleet_mix.MixConfig if learner in ("vdn", "qmix") else dqn.DQNConfig
     known = cls.keys()
-    data = {k: v for k, v in dict(to_plain(algo)).items() if v is not None and k in known}
+    given = dict(to_plain(algo))
+    defaults = fleet_mix.MixConfig()
+    for key, readers in READ_BY.items():
+        if learner not in readers and key in given and given[key] != getattr(defaults, key):
+            raise ValueError(
+                f"algo.{key}={given[key]!r} is read by learner={' or '.join(readers)} only, not "
+                f"{learner}"
+            )
+    data = {k: v for k, v in given.items() if v is not None and k in known}
     data["name"] = learner
     if cls is fleet_mix.MixConfig:
         data["mixer"] = learner

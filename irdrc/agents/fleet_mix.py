@@ -14,7 +14,6 @@ table over its single-vehicle states — is scored exactly against the centralis
 
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import dataclass
 
@@ -302,15 +301,7 @@ def train(
     next_eval = eval_every_frames
     for _ in loop.batches():
         loop.learn(update)
-        hooks.batch(
-            {
-                "env_steps": loop.frames,
-                "episodes": len(record.episode_rewards),
-                "loss": loop.last_loss,
-                "beta": getattr(sampler, "beta", math.nan),
-                "buffer": len(buffer),
-            }
-        )
+        hooks.batch(loop.scalars())
         stop = loop.stop_due()
         if loop.frames >= next_eval or loop.frames >= cfg.total_frames or stop:
             evaluate_now()

@@ -447,16 +447,7 @@ def train(
         if loop.learn(update) is not None and not math.isnan(measured):
             mu.fill_(dual_step(float(mu), measured, n, cfg))  # dual ascent
         mu_trace.append({"env_steps": loop.frames, "mu": float(mu), "measured_miss": measured})
-        hooks.batch(
-            {
-                "env_steps": loop.frames,
-                "episodes": len(record.episode_rewards),
-                "loss": loop.last_loss,
-                "mu": float(mu),
-                "measured_miss": measured,
-                "buffer": len(buffer),
-            }
-        )
+        hooks.batch(loop.scalars(mu=float(mu), measured_miss=measured))
         stop = loop.stop_due()
         if loop.frames >= next_eval or loop.frames >= dq.total_frames or stop:
             evaluate_now()

@@ -661,6 +661,18 @@ class OffPolicyLoop:
         self.seconds["learn"] += time.perf_counter() - t0
         return self.last_loss
 
+    def scalars(self, **extra: Any) -> dict[str, Any]:
+        """What a learner reports after each batch (``Hooks.on_batch``): env steps, episodes, the
+        last loss, PER's β (NaN for uniform replay), the replay's size, and ``extra``."""
+        return {
+            "env_steps": self.frames,
+            "episodes": len(self.record.episode_rewards),
+            "loss": self.last_loss,
+            "beta": getattr(self.sampler, "beta", math.nan),
+            "buffer": len(self.buffer),
+            **extra,
+        }
+
     def stop_due(self) -> bool:
         """Whether the caller asked to stop (polled once per batch)."""
         return self.hooks.stop_requested()

@@ -22,7 +22,6 @@ from omegaconf import DictConfig, OmegaConf
 from irdrc.agents import fleet_learners
 from irdrc.agents.base import Hooks, RunRecord
 from irdrc.agents.fleet_dqn import FleetScorer
-from irdrc.core.metrics import Metrics
 from irdrc.experiments.config import scenario_name
 from irdrc.experiments.finish import curve_file, plot_learning_curve
 from irdrc.experiments.guard import RunInterrupted, stop_on_signals
@@ -36,7 +35,7 @@ from irdrc.experiments.results import (
 )
 from irdrc.experiments.tracking import log_scalars, make_logger
 from irdrc.fleet.config import fleet_from_config
-from irdrc.fleet.evaluate import FleetMCScorer, baseline_rules, simulate, table_rule
+from irdrc.fleet.evaluate import FleetMCScorer, baseline_rules
 from irdrc.fleet.exact import (
     PRINTED,
     FleetModel,
@@ -379,8 +378,3 @@ def _table_rows(model: FleetModel, greedy: torch.Tensor) -> list[dict[str, int]]
             row[f"action{i + 1}" if per.shape[0] > 1 else "action"] = int(per[i, s])
         rows.append(row)
     return rows
-
-
-def simulated_rows(model: FleetModel, greedy: torch.Tensor, **mc: int) -> Metrics:
-    """The fleet metrics of single-vehicle tables by Monte-Carlo (benchmarks beyond N = 2)."""
-    return simulate(model, table_rule(greedy, model.single.num_states), **mc).fleet

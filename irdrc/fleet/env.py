@@ -91,6 +91,31 @@ def set_row_specs(
     )
 
 
+def row_output(
+    obs: torch.Tensor,
+    state: torch.Tensor,
+    steps: torch.Tensor,
+    horizon: int,
+    device: torch.device,
+    reward: torch.Tensor | None = None,
+) -> TensorDict:
+    """One step's output of a single-agent view (``set_row_specs``): episodes end by truncation at
+    ``horizon``."""
+    rows = obs.shape[0]
+    truncated = (steps >= horizon).reshape(rows, 1)
+    out = {
+        "observation": obs.to(device),
+        "state": state,
+        "step_count": steps.reshape(rows, 1),
+        "done": truncated,
+        "terminated": torch.zeros_like(truncated),
+        "truncated": truncated,
+    }
+    if reward is not None:
+        out["reward"] = reward.reshape(rows, 1).to(torch.float32)
+    return TensorDict(out, batch_size=(rows,), device=device)
+
+
 class FleetEnv(EnvBase):
     """A batch of fleets (see the module docstring).
 
@@ -328,19 +353,14 @@ class FleetRowsEnv(EnvBase):
         self.rng.manual_seed(int(seed if seed is not None else fresh_seed()))
 
     def _out(self, states: torch.Tensor, steps: torch.Tensor, reward=None) -> TensorDict:
-        rows = self.batch_size[0]
-        truncated = (steps >= self.params.env.horizon).reshape(rows, 1)
-        out = {
-            "observation": self._observe(states).to(self.device),
-            "state": states.reshape(-1),
-            "step_count": steps.reshape(rows, 1),
-            "done": truncated,
-            "terminated": torch.zeros_like(truncated),
-            "truncated": truncated,
-        }
-        if reward is not None:
-            out["reward"] = reward.reshape(rows, 1).to(torch.float32)
-        return TensorDict(out, batch_size=(rows,), device=self.device)
+        return row_output(
+            self._observe(states),
+            states.reshape(-1),
+            steps,
+            self.params.env.horizon,
+            self.device,
+            reward,
+        )
 
     def _observe(self, states: torch.Tensor) -> torch.Tensor:
         flat = states.reshape(-1)
@@ -427,20 +447,10 @@ class FleetJointEnv(EnvBase):
         self.rng.manual_seed(int(seed if seed is not None else fresh_seed()))
 
     def _out(self, states: torch.Tensor, steps: torch.Tensor, reward=None) -> TensorDict:
-        B = self.fleets
-        truncated = (steps >= self.params.env.horizon).reshape(B, 1)
         joint = self.sim.fleet_index(states)
-        out = {
-            "observation": self.obs_table[joint].to(self.device),
-            "state": joint,
-            "step_count": steps.reshape(B, 1),
-            "done": truncated,
-            "terminated": torch.zeros_like(truncated),
-            "truncated": truncated,
-        }
-        if reward is not None:
-            out["reward"] = reward.reshape(B, 1).to(torch.float32)
-        return TensorDict(out, batch_size=(B,), device=self.device)
+        return row_output(
+            self.obs_table[joint], joint, steps, self.params.env.horizon, self.device, reward
+        )
 
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDict:
         joint = torch.randint(0, self.model.num_states, (self.fleets,), generator=self.rng)

@@ -16,7 +16,8 @@ their own scale whatever μ is, and gives the greedy policy for *every* μ from 
 comm wins in state s while μ < ΔJ(s)/ΔC(s) (Δ = comm − radar), so as μ grows the greedy table
 changes one state at a time at those breakpoints.
 
-The final policy is chosen the way a vehicle could, by measured rates along that path of tables
+The final policy is chosen the way a vehicle could, by measured rates: along that path of tables,
+and along the states ranked by their measured data per missed event in comm
 (``irdrc.agents.policy_search``); it may randomise in one state, as the exact LP optimum does. The
 exact model only scores (``history``, the final metrics).
 """
@@ -100,21 +101,21 @@ class LagrangianConfig:
             measurement of a candidate final policy runs ``measure_envs`` chains for
             ``measure_burn_in`` steps, then blocks of ``measure_steps`` until two consecutive
             blocks agree (at most ``measure_max_blocks``; ``irdrc.core.evaluate.long_run``).
-        mix_steps: bisection steps on the log-odds of the final policy's randomisation.
+        mix_steps: at most this many measurements to find the final policy's randomisation
+            (regula falsi on its log-odds).
         confirm: re-measure the search's result on fresh random numbers before the final choice
             (``final_policy``): the search keeps the tables whose measured miss detection fell at
             or below the target, so a table whose measurement read low by chance is kept
             (selection on noise); the confirmation moves up the path while the fresh measurement
             is above the target, and the randomisation is found on the fresh measurements.
-        prune: also look for the final neighbours by giving the comm states of the path's
-            neighbour above the target to radar in the order of their measured objective per
-            missed event (``prune_order``), and keep whichever pair promises more at the target
-            (objectives ``throughput`` and ``link_capacity``; ``final_policy``). The heads'
-            ordering of rarely visited states can be wrong where a state's measured rates are not.
+
+    For objectives ``throughput`` and ``link_capacity`` the search also ranks the states by their
+    measured objective per missed event in comm and keeps whichever pair of neighbours, the
+    path's or the ranking's, promises more at the target (``irdrc.agents.policy_search``).
     """
 
-    # DQN's machinery at the previous learner's sizes: DQN's own sizes with 128-chain measurements
-    # kept the target but reached 95 % of the LP in 21 of 40 runs (docs/CONSTRAINED.md).
+    # DQN's machinery at small sizes (80 000 env steps, a few seconds): in the cells where the
+    # target binds, the measured ranking rather than the heads' order decides (docs/CONSTRAINED.md).
     dqn: OffPolicyConfig = field(
         default_factory=lambda: OffPolicyConfig(
             num_envs=8,

@@ -7,9 +7,11 @@ common random numbers across candidates, the signals' rates per state and action
 every measurement), the two neighbouring tables on either side of the
 miss-detection target, and randomises between them in the one state where they differ — the
 shape of the exact LP optimum. A confirmation re-measures the result on fresh random numbers
-(the search keeps what read low by chance), and a prune finds a second pair of neighbours from
-per-state measurements where the heads misorder rarely seen states. The exact model never steers
-the choice; every measurement step is counted.
+(the search keeps what read low by chance), and a second family of tables, ranked by each
+state's *measured* data per missed event in comm (``rate_order``), gives a second pair of
+neighbours where the heads misorder states — the learned heads resolve the rare events of one
+state poorly, the measured rates do not. The exact model never steers the choice; every
+measurement step is counted.
 """
 
 from __future__ import annotations
@@ -36,6 +38,21 @@ more slowly than a measurement block can see."""
 CONFIRM_SEED_OFFSET = 104_729
 """The confirmation's random numbers: the search's seed plus this (independent of the search's)."""
 
+PROBE_COMM = 0.1
+"""The probe (one measurement before the ranking) communicates with this probability in every
+state: mostly radar lets the queue fill, so the long-queue states where a comm step fills the link
+are seen in comm too (a table's own measurements see comm only where the table communicates)."""
+
+RATE_PRIOR_STEPS = 500.0
+"""The ranking shrinks each state's measured missed events per comm step towards the average over
+every state seen in comm, with the weight of this many comm steps: at the paper's rates (0.02 missed
+events per comm step in the all-favourable states) a state seen 200 times in comm has missed about
+4, too few to rank it by alone (``rate_order``)."""
+
+MIX_TOLERANCE = 0.02
+"""The randomisation's search stops once a measured miss detection at or below the target is
+within this fraction of it (``FinalPolicySearch.mix``)."""
+
 
 @dataclass(frozen=True)
 class SearchConfig:
@@ -46,22 +63,19 @@ class SearchConfig:
         measure_envs, measure_steps, measure_burn_in, measure_max_blocks: each long-run
             measurement runs ``measure_envs`` chains for ``measure_burn_in`` steps, then blocks of
             ``measure_steps`` until two consecutive blocks agree (at most ``measure_max_blocks``).
-        mix_steps: bisection steps on the log-odds of the final randomisation.
+        mix_steps: at most this many measurements (regula falsi on the log-odds) to find the
+            final randomisation.
         confirm: re-measure the search's result on fresh random numbers and climb the path while
             that measurement is above the target; mix on the fresh numbers.
-        prune: also give the comm states of the path's neighbour above the target to radar in
-            the order of their measured objective per missed event, and keep the pair that
-            promises more at the target (not for the average-reward objective: radar earns it too).
     """
 
     search_span: float = 4.0
-    measure_envs: int = 2048
-    measure_steps: int = 2_000
-    measure_burn_in: int = 2_000
+    measure_envs: int = 128
+    measure_steps: int = 1_500
+    measure_burn_in: int = 1_000
     measure_max_blocks: int = 8
     mix_steps: int = 10
     confirm: bool = True
-    prune: bool = True
 
     def __post_init__(self) -> None:
         def num(key: str, lo: float, hi: float = math.inf, **kw: Any) -> None:
@@ -76,7 +90,6 @@ class SearchConfig:
         num("measure_max_blocks", 1, 10**6, integer=True)
         num("mix_steps", 0, 60, integer=True)
         check_bool("algo.confirm", self.confirm)
-        check_bool("algo.prune", self.prune)
 
 
 def greedy_path(q: torch.Tensor) -> tuple[list[float], list[torch.Tensor]]:
@@ -107,14 +120,23 @@ def path_index(breaks: list[float], mu: float) -> int:
     return bisect.bisect_right(breaks, mu)
 
 
-def prune_order(by_state: dict[str, torch.Tensor], table: torch.Tensor, key: str) -> list[int]:
-    """The states where ``table`` (1 = radar) communicates, in the order the prune gives them to
-    radar: ascending measured objective per missed event in their comm steps, Σ``key`` / (Σmissed
-    + 1) over ``by_state`` (``long_run(..., by_state=True)``). The + 1 keeps states seen too
-    seldom to have missed an event from looking best: they go early, which costs little data."""
-    comm = (table == 0).nonzero().flatten().tolist()
-    score = by_state[key].double() / (by_state["missed"].double() + 1.0)
-    return sorted(comm, key=lambda s: (float(score[s]), s))
+def rate_order(pool: dict[str, torch.Tensor], key: str) -> list[int]:
+    """The states seen in comm in ``pool`` (per state and action sums, as ``long_run(...,
+    by_state=True)`` returns them, summed over measurements), in the order the ranked family
+    gives them to radar: ascending measured objective per comm step over missed events per comm
+    step, the latter shrunk towards the average over every state seen in comm with the weight of
+    ``RATE_PRIOR_STEPS`` comm steps (a state seen seldom has the average's rate, not its own few
+    events'). Ties go to the lower state first."""
+    n = pool["steps"][:, 0].double()
+    seen = (n > 0).nonzero().flatten().tolist()
+    if not seen:
+        return []
+    missed = pool["missed"][:, 0].double()
+    average = float(missed.sum() / n.sum())
+    gain = pool[key][:, 0].double() / n.clamp_min(1.0)
+    risk = (missed + RATE_PRIOR_STEPS * average) / (n + RATE_PRIOR_STEPS)
+    score = gain / risk.clamp_min(1e-12)
+    return sorted(seen, key=lambda s: (float(score[s]), s))
 
 
 def pooled(visits: torch.Tensor, pool: dict[str, torch.Tensor], signal: str) -> tuple[float, float]:
@@ -162,10 +184,9 @@ class FinalPolicySearch:
         self.breaks, self.tables = greedy_path(q)
         self.params, self.mu, self.target, self.cfg, self.seed = params, mu, target, cfg, seed
         self.signal = signal
-        self.prune = cfg.prune and signal != "reward"  # radar earns reward too: no per-step trade
+        self.rank = signal != "reward"  # radar earns reward too: no per-step trade to rank by
         self.steps = 0
         self.visits: dict[tuple[bool, bytes], torch.Tensor] = {}
-        self.comm_sums: dict[tuple[bool, bytes], dict[str, torch.Tensor]] = {}
         n = len(self.tables[0])
         self.pool = {  # one pool per stream: the confirmation's numbers stay independent
             fresh: {
@@ -209,7 +230,6 @@ class FinalPolicySearch:
             for k, total in self.pool[fresh].items():
                 total += sums[k]
             self.visits[key] = sums["visits"]
-            self.comm_sums[key] = {k: v[:, 0] for k, v in sums.items()}
         return pooled(self.visits[key], self.pool[fresh], self.signal)
 
     def miss(self, p_radar: torch.Tensor, fresh: bool = False) -> float:
@@ -297,29 +317,35 @@ class FinalPolicySearch:
         w = (m_lo - self.target) / (m_lo - m_hi)  # the weight of t_hi that lands on the target
         return (1 - w) * j_lo + w * j_hi
 
-    def prune_search(self, top: torch.Tensor, fresh: bool) -> tuple[Pair, int, int]:
-        """Neighbours on either side of the target among ``top`` with its first k comm states
-        (``prune_order``) given to radar; also k (of the upper neighbour) and how many there are."""
-        self.rates(top, fresh)
-        order = prune_order(self.comm_sums[(fresh, top.numpy().tobytes())], top, self.signal)
+    def rank_search(self, fresh: bool) -> tuple[Pair, int, int]:
+        """Neighbours on either side of the target in the ranked family: the probe (comm with
+        probability ``PROBE_COMM`` everywhere) is measured on the search's numbers, the states
+        seen in comm by every measurement so far are ranked (``rate_order``), and table k of the
+        family gives the first k of them to radar (communicating in the rest, radar elsewhere).
+        A bisection on k (on the ``fresh`` stream) finds the pair; also the number of states the
+        safer table communicates in, and the number ranked."""
+        n = len(self.tables[0])
+        self.rates(torch.full((n,), 1.0 - PROBE_COMM, dtype=torch.float64))
+        order = rate_order(self.pool[False], self.signal)
 
-        def pruned(k: int) -> torch.Tensor:
-            t = top.clone()
-            t[order[:k]] = 1.0
+        def ranked(k: int) -> torch.Tensor:
+            t = torch.ones(n, dtype=torch.float64)
+            t[order[k:]] = 0.0
             return t
 
-        n = len(order)
-        if self.miss(top, fresh) <= self.target:
-            return (None, top), 0, n
-        if self.miss(pruned(n), fresh) > self.target:
-            return (None, pruned(n)), n, n
-        lo, hi = self.bracket(0, n, fresh, miss_of=lambda k, f: self.miss(pruned(k), f))
-        return (pruned(lo), pruned(hi)), hi, n
+        m = len(order)
+        if self.miss(ranked(0), fresh) <= self.target:
+            return (None, ranked(0)), m, m
+        if self.miss(ranked(m), fresh) > self.target:
+            return (None, ranked(m)), 0, m
+        lo, hi = self.bracket(0, m, fresh, miss_of=lambda k, f: self.miss(ranked(k), f))
+        return (ranked(lo), ranked(hi)), m - hi, m
 
     def mix(self, pair: Pair, fresh: bool) -> tuple[torch.Tensor, int | None, bool]:
         """The final radar probabilities: the safer table, randomised in the one state where the
-        pair differs with the weight found by bisection (on its log-odds) on measured miss
-        detection; returns (probabilities, that state, whether it was mixed at all)."""
+        pair differs with the weight found on its log-odds by regula falsi (Illinois) on measured
+        miss detection, keeping the side at or below the target; returns (probabilities, that
+        state, whether it was mixed at all)."""
         t_lo, t_hi = pair
         if t_lo is None:
             return t_hi, None, False
@@ -332,46 +358,60 @@ class FinalPolicySearch:
             p[s] = w * a_hi + (1 - w) * a_lo
             return p
 
+        def excess(z: float) -> float:
+            return self.miss(mixed(z), fresh) - self.target
+
         span = math.log(max(2.0, self.cfg.measure_steps / MIXING_STEPS_PER_BLOCK))
         z_lo, z_hi = -span, span
-        if self.miss(mixed(z_hi), fresh) > self.target:
+        f_hi = excess(z_hi)
+        if f_hi > 0:
             return t_hi, s, False
-        if self.miss(mixed(z_lo), fresh) <= self.target:
-            z_hi = z_lo
-        else:
-            for _ in range(self.cfg.mix_steps):
-                z = 0.5 * (z_lo + z_hi)
-                if self.miss(mixed(z), fresh) > self.target:
-                    z_lo = z
-                else:
-                    z_hi = z
+        f_lo = excess(z_lo)
+        if f_lo <= 0:
+            return mixed(z_lo), s, True
+        side, g_lo, g_hi = 0, f_lo, f_hi  # g: the secant's weights (Illinois halves a stale end)
+        for _ in range(self.cfg.mix_steps):
+            if f_hi >= -MIX_TOLERANCE * self.target:
+                break
+            z = z_hi - g_hi * (z_hi - z_lo) / (g_hi - g_lo)
+            f = excess(z)
+            if f > 0:
+                z_lo, g_lo = z, f
+                if side == -1:
+                    g_hi /= 2
+                side = -1
+            else:
+                z_hi, f_hi, g_hi = z, f, f
+                if side == 1:
+                    g_lo /= 2
+                side = 1
         return mixed(z_hi), s, True
 
     def run(self) -> tuple[torch.Tensor, dict[str, Any]]:
         """The final [S, 2] policy (comm, radar probabilities) and facts about the search:
         ``path_tables``, ``measured_final_miss``, ``measurements``, ``measure_env_steps``,
-        ``confirmed``, ``switch_state``, ``p_switch``, ``mu_switch``, and the prune's
-        (``pruned``, ``prune_states``, ``prune_candidates``, ``path_promise``, ``prune_promise``)."""
+        ``confirmed``, ``switch_state``, ``p_switch``, ``mu_switch``, and the ranked family's
+        (``ranked``: whether its pair was kept, None where it is not tried; ``ranked_states``,
+        ``rank_candidates``, ``path_promise``, ``rank_promise``)."""
         t_lo, t_hi, fresh, mu_switch = self.path_search()
-        extra: dict[str, Any] = {"pruned": None}
-        if self.prune and (t_lo is not None or self.miss(t_hi, fresh) > self.target):
-            top = t_lo if t_lo is not None else t_hi
-            pruned, k, n = self.prune_search(top, fresh)
-            path_promise, prune_promise = (
-                self.promise((t_lo, t_hi), fresh),
-                self.promise(pruned, fresh),
-            )
-            won = prune_promise > path_promise
+        extra: dict[str, Any] = {"ranked": None}
+        if self.rank:
+            # Each pair is judged when found: by its promise at the target, then by the safer
+            # table's miss detection (a path whose safest table misses the target loses).
+            path = (self.promise((t_lo, t_hi), fresh), -self.miss(t_hi, fresh))
+            pair, k, n = self.rank_search(fresh)
+            rank = (self.promise(pair, fresh), -self.miss(pair[1], fresh))
+            won = rank > path
             extra = {
-                "pruned": won,
-                "prune_states": k,
-                "prune_candidates": n,
+                "ranked": won,
+                "ranked_states": k,
+                "rank_candidates": n,
                 # −∞ (neither table of the pair meets the target) is written as None
-                "path_promise": path_promise if math.isfinite(path_promise) else None,
-                "prune_promise": prune_promise if math.isfinite(prune_promise) else None,
+                "path_promise": path[0] if math.isfinite(path[0]) else None,
+                "rank_promise": rank[0] if math.isfinite(rank[0]) else None,
             }
             if won:
-                (t_lo, t_hi), mu_switch = pruned, None
+                (t_lo, t_hi), mu_switch = pair, None
         p, state, mixed = self.mix((t_lo, t_hi), fresh)
         facts = {
             "path_tables": len(self.tables),

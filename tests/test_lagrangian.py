@@ -446,6 +446,24 @@ def test_meets_a_loose_target():
         assert m.throughput >= 0.95 * lp.value, (seed, m.throughput)
 
 
+@pytest.mark.slow
+def test_meets_the_binding_target_on_unseen_seeds():
+    """p^v_1 = 0.1, target 0.05, where the LP communicates only in the all-favourable long-queue
+    states (0.413 packets per step): on two seeds beyond both benchmarks' (0–19), the learner must
+    meet the benchmark's criteria (exact miss ≤ 0.06, throughput ≥ 0.95 of the LP's) within 20 M env
+    steps. Without the ranked family (the heads' path alone) seed 21 ends at 0.81 of the LP's
+    throughput (measured when this was written)."""
+    params = Params()
+    model = build_model(params)
+    lp = solve_cmdp(model, 0.05)
+    for seed in (20, 21):
+        rec = L.train(params, L.LagrangianConfig(target_miss=0.05), seed=seed)
+        m = stationary_metrics(model, rec.policy[0])
+        assert m.miss_detection <= 0.06, (seed, m.miss_detection, rec.info)
+        assert m.throughput >= 0.95 * lp.value, (seed, m.throughput / lp.value, rec.info)
+        assert rec.env_steps <= 20_000_000, (seed, rec.env_steps)
+
+
 def test_objective_centering_shifts_the_objective_signal_only():
     params = Params()
     env = DFRCEnv(params, batch_size=[1])

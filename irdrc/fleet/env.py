@@ -60,6 +60,18 @@ SIGNALS = ("event", "missed", "detected_by_other", "granted", "denied")
 """Per-agent boolean signals of a step (with ``sent`` and ``dropped``, int64)."""
 
 
+def done_spec(rows: int, dev: torch.device | str) -> Composite:
+    """The done / terminated / truncated flags of ``rows`` env rows (one per row)."""
+    flag = Categorical(2, shape=(rows, 1), dtype=torch.bool, device=dev)
+    return Composite(
+        done=flag.clone(),
+        terminated=flag.clone(),
+        truncated=flag.clone(),
+        shape=(rows,),
+        device=dev,
+    )
+
+
 def set_row_specs(
     env: EnvBase, high: torch.Tensor, num_states: int, num_actions: int, horizon: int
 ) -> None:
@@ -82,13 +94,7 @@ def set_row_specs(
     )
     env.action_spec = Categorical(num_actions, shape=(rows,), dtype=torch.int64, device=dev)
     env.reward_spec = Unbounded(shape=(rows, 1), dtype=torch.float32, device=dev)
-    env.done_spec = Composite(
-        done=Categorical(2, shape=(rows, 1), dtype=torch.bool, device=dev),
-        terminated=Categorical(2, shape=(rows, 1), dtype=torch.bool, device=dev),
-        truncated=Categorical(2, shape=(rows, 1), dtype=torch.bool, device=dev),
-        shape=(rows,),
-        device=dev,
-    )
+    env.done_spec = done_spec(rows, dev)
 
 
 def row_output(
@@ -218,13 +224,7 @@ class FleetEnv(EnvBase):
             shape=(B,),
             device=dev,
         )
-        self.done_spec = Composite(
-            done=Categorical(2, shape=(B, 1), dtype=torch.bool, device=dev),
-            terminated=Categorical(2, shape=(B, 1), dtype=torch.bool, device=dev),
-            truncated=Categorical(2, shape=(B, 1), dtype=torch.bool, device=dev),
-            shape=(B,),
-            device=dev,
-        )
+        self.done_spec = done_spec(B, dev)
 
     def _set_seed(self, seed: int | None) -> None:
         self.rng.manual_seed(int(seed if seed is not None else fresh_seed()))

@@ -1,56 +1,58 @@
 """irdrc: the iRDRC radar/communication mode-selection model — simulator, exact optimum, learners.
 
-The package is four layers, each importing only the layers below it (``tests/test_layers.py``
+The package is five layers, each importing only the layers below it (``tests/test_layers.py``
 checks this):
 
-- ``irdrc.core``: the model and everything exact (params, env, model, solve, metrics, policies,
-  evaluate, gym);
-- ``irdrc.agents``: the learners (Q-learning, DQN, replay), one interface;
-- ``irdrc.experiments``: configs to run directories (run functions, grids, sweeps, results files,
-  tracking, the ``irdrc`` command);
+- ``irdrc.core``: the model and everything exact (params, env, the exact core ``core.exact``,
+  the constrained LP, metrics, policies, Monte-Carlo evaluation, gym);
+- ``irdrc.fleet``: several vehicles (MODEL.md § C) on the exact core and the single-vehicle
+  simulator;
+- ``irdrc.agents``: the learners, one loop;
+- ``irdrc.experiments``: configs to run directories (one module per recipe, one run scaffold,
+  sweeps, results files, tracking, the ``irdrc`` command);
 - ``irdrc.paper``: the paper's figures, claims, trade-off and the reproduction report.
 
-``import irdrc`` registers the gymnasium id ``irdrc/DFRC-v0``.
+``import irdrc`` registers the gymnasium id ``irdrc/DFRC-v0`` and imports nothing heavy: the
+names below (``DFRCEnv`` …) load torch on first use.
 """
 
-import sys as _sys
+from __future__ import annotations
 
-from irdrc.core import env as _env
-from irdrc.core import evaluate as _evaluate
-from irdrc.core import gym as _gym
-from irdrc.core import metrics as _metrics
-from irdrc.core import model as _model
-from irdrc.core import params as _params
-from irdrc.core import policies as _policies
-from irdrc.core import solve as _solve
-from irdrc.core.env import DFRCEnv, Dynamics, decode_state, state_index
-from irdrc.core.params import EnvParams, Params, RewardParams
+import importlib
+from typing import Any
 
 __version__ = "0.1.0"
 
-__all__ = [
-    "DFRCEnv",
-    "Dynamics",
-    "EnvParams",
-    "Params",
-    "RewardParams",
-    "decode_state",
-    "state_index",
-]
+_LAZY = {
+    "DFRCEnv": "irdrc.core.env",
+    "Dynamics": "irdrc.core.dynamics",
+    "decode_state": "irdrc.core.dynamics",
+    "state_index": "irdrc.core.dynamics",
+    "EnvParams": "irdrc.core.params",
+    "Params": "irdrc.core.params",
+    "RewardParams": "irdrc.core.params",
+}
 
-# Deprecated import paths from before the layers (``irdrc.model``, ``irdrc.solve`` …) keep working
-# as aliases of the ``irdrc.core`` modules; new code imports ``irdrc.core.<module>``.
-for _name, _module in {
-    "env": _env,
-    "evaluate": _evaluate,
-    "gym": _gym,
-    "metrics": _metrics,
-    "model": _model,
-    "params": _params,
-    "policies": _policies,
-    "solve": _solve,
-}.items():
-    _sys.modules.setdefault(f"{__name__}.{_name}", _module)
-    globals()[_name] = _module
+__all__ = sorted(_LAZY)
 
-_gym.register()
+
+def __getattr__(name: str) -> Any:
+    if name in _LAZY:
+        return getattr(importlib.import_module(_LAZY[name]), name)
+    raise AttributeError(f"module 'irdrc' has no attribute {name!r}")
+
+
+def _register_gym() -> None:
+    """Register ``irdrc/DFRC-v0`` (single and vector) with gymnasium (idempotent), by name: the
+    env's module loads when an env is made."""
+    import gymnasium
+
+    if "irdrc/DFRC-v0" not in gymnasium.registry:
+        gymnasium.register(
+            id="irdrc/DFRC-v0",
+            entry_point="irdrc.core.gym:DFRCGymEnv",
+            vector_entry_point="irdrc.core.gym:DFRCVectorEnv",
+        )
+
+
+_register_gym()

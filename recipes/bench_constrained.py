@@ -9,12 +9,7 @@ the sweep engine (Ray: start it in a loopback-only namespace where the network m
 see recipes/sweep.py), scored exactly against the LP optimum of its own cell.
 """
 
-from __future__ import annotations
-
-from irdrc.experiments.app import recipe
-from irdrc.experiments.bench import run_bench_constrained
-
-main = recipe("bench_constrained", run_bench_constrained, scenario_overrides=True)
+from irdrc.experiments import app, bench_constrained
 
 if __name__ == "__main__":
-    main()
+    app.main(bench_constrained)

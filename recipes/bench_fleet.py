@@ -8,12 +8,7 @@ Part A: N = 2, every (share, channels) cell × learner × seed, scored exactly; 
 own-observation learners against the baselines by Monte-Carlo (docs/FLEET.md).
 """
 
-from __future__ import annotations
-
-from irdrc.experiments.app import recipe
-from irdrc.experiments.bench_fleet import run_bench_fleet
-
-main = recipe("bench_fleet", run_bench_fleet)
+from irdrc.experiments import app, bench_fleet
 
 if __name__ == "__main__":
-    main()
+    app.main(bench_fleet)

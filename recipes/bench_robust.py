@@ -8,12 +8,7 @@ Each (scenario, seed) is one run of ``recipes/dqn.py`` through the sweep engine 
 loopback-only namespace where the network must stay local, see recipes/sweep.py).
 """
 
-from __future__ import annotations
-
-from irdrc.experiments.app import recipe
-from irdrc.experiments.bench import run_bench_robust
-
-main = recipe("bench_robust", run_bench_robust, scenario_overrides=True)
+from irdrc.experiments import app, bench_robust
 
 if __name__ == "__main__":
-    main()
+    app.main(bench_robust)

@@ -7,12 +7,7 @@ Each solve (value iteration to ``tol`` on the factored operator, then the exact 
 its policy) runs in a fresh process; the dense solver runs beside it where S × S fits.
 """
 
-from __future__ import annotations
-
-from irdrc.experiments.app import recipe
-from irdrc.experiments.bench_scale import run_bench_scale
-
-main = recipe("bench_scale", run_bench_scale)
+from irdrc.experiments import app, bench_scale
 
 if __name__ == "__main__":
-    main()
+    app.main(bench_scale)

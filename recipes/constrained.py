@@ -4,14 +4,10 @@ python recipes/constrained.py target_miss=0.05               # LP optimum, summa
 python recipes/constrained.py target_miss=0.15 env.p1.speed=1.0 objective=avg_reward
 python recipes/constrained.py target_miss=0.05 max_drop=0.01 min_radar=0.5
 python recipes/constrained.py frontier=true                  # frontier vs the r4 route
+python recipes/constrained.py learner=dqn_lagrangian target_miss=0.05 seed=3
 """
 
-from __future__ import annotations
-
-from irdrc.experiments.app import recipe
-from irdrc.paper.frontier import run_constrained_recipe
-
-main = recipe("constrained", run_constrained_recipe)
+from irdrc.experiments import app, constrained
 
 if __name__ == "__main__":
-    main()
+    app.main(constrained)

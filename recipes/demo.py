@@ -4,12 +4,7 @@ python recipes/demo.py                       # paper scenario
 python recipes/demo.py env=ref_impl reward.r4=50 eval.mc_num_envs=4096
 """
 
-from __future__ import annotations
-
-from irdrc.experiments.app import recipe
-from irdrc.experiments.demo import run_demo
-
-main = recipe("demo", run_demo)
+from irdrc.experiments import app, demo
 
 if __name__ == "__main__":
-    main()
+    app.main(demo)

@@ -4,15 +4,10 @@ python recipes/dqn.py                                   # our profile, paper sce
 python recipes/dqn.py reward.r4=50 network=large env=ref_impl
 python recipes/dqn.py algo=dqn_paper                    # the reference profile (1 M steps)
 python recipes/dqn.py logger=wandb logger.mode=offline
-python recipes/dqn.py resume=outputs/…/checkpoint.pt algo.total_frames=40000
+python recipes/dqn.py resume=outputs/…/checkpoint.pt algo.total_frames=1000000
 """
 
-from __future__ import annotations
-
-from irdrc.experiments.app import recipe
-from irdrc.experiments.runs import run_dqn
-
-main = recipe("dqn", run_dqn)
+from irdrc.experiments import app, dqn
 
 if __name__ == "__main__":
-    main()
+    app.main(dqn)

@@ -2,7 +2,7 @@
 
     python recipes/figure2.py                                     # the default run (docs/REPRODUCTION.md)
     python recipes/figure2.py seeds=[0,1,2] p1_speed=[0.1,0.5,1.0] methods=[dqn,qlearning]
-    python recipes/figure2.py 'learners.dqn_paper.overrides=[algo=dqn_paper,algo.total_frames=200000]'
+    python recipes/figure2.py "learners.dqn_paper.overrides=['algo=dqn_paper','algo.total_frames=200000']"
     python recipes/figure2.py executor=local                      # without Ray, one run after another
     python recipes/figure2.py resume=true hydra.run.dir=outputs/figure2   # finish an interrupted run
 
@@ -10,12 +10,8 @@ Training runs go through the sweep engine (Ray Tune by default); on machines wit
 network start it inside a loopback-only namespace: ``unshare -n sh -c 'ip link set lo up; …'``.
 """
 
-from __future__ import annotations
-
-from irdrc.experiments.app import recipe
-from irdrc.paper.figure2 import run_figure2, validate_figure2
-
-main = recipe("figure2", run_figure2, scenario_overrides=True, check=validate_figure2)
+from irdrc.experiments import app
+from irdrc.paper import figure2
 
 if __name__ == "__main__":
-    main()
+    app.main(figure2)

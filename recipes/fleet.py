@@ -6,12 +6,7 @@ python recipes/fleet.py learner=qmix env.share=1.0 env.channels=2
 python recipes/fleet.py learner=idqn env.vehicles=4          # beyond the exact model: Monte-Carlo
 """
 
-from __future__ import annotations
-
-from irdrc.experiments.app import recipe
-from irdrc.experiments.fleet import run_fleet
-
-main = recipe("fleet", run_fleet)
+from irdrc.experiments import app, fleet
 
 if __name__ == "__main__":
-    main()
+    app.main(fleet)

@@ -1,16 +1,11 @@
-"""Tabular Q-learning: train (vectorised over learners), evaluate exactly and by Monte-Carlo.
+"""Vectorised tabular Q-learning: several learners, several scenarios in one batch, scored exactly.
 
-python recipes/qlearning.py                                  # our profile, paper scenario
-python recipes/qlearning.py algo=qlearning_paper num_learners=5
-python recipes/qlearning.py env.p1.speed=0.5 reward.r4=50 seed=3 hydra.run.dir=runs/q3
+python recipes/qlearning.py                               # our profile
+python recipes/qlearning.py algo=qlearning_paper          # the reference profile
+python recipes/qlearning.py num_learners=5 'batch_grid={env.p1.speed: [0.1,0.5,1.0]}'
 """
 
-from __future__ import annotations
-
-from irdrc.experiments.app import recipe
-from irdrc.experiments.runs import run_qlearning
-
-main = recipe("qlearning", run_qlearning)
+from irdrc.experiments import app, qlearning
 
 if __name__ == "__main__":
-    main()
+    app.main(qlearning)

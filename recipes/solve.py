@@ -2,14 +2,11 @@
 
 python recipes/solve.py                            # paper scenario
 python recipes/solve.py env.p1.speed=1.0 reward.r4=50 hydra.run.dir=runs/solve_v1
+python recipes/solve.py env=large                  # S = 100 800, on the factored operator
+python recipes/solve.py env=fleet env.share=1.0    # two vehicles: the joint optimum
 """
 
-from __future__ import annotations
-
-from irdrc.experiments.app import recipe
-from irdrc.experiments.runs import run_solve
-
-main = recipe("solve", run_solve)
+from irdrc.experiments import app, solve
 
 if __name__ == "__main__":
-    main()
+    app.main(solve)

@@ -7,12 +7,8 @@
 DQN runs (``dqn.r4``) go through the sweep engine like any sweep (Ray: see recipes/sweep.py).
 """
 
-from __future__ import annotations
-
-from irdrc.experiments.app import recipe
-from irdrc.paper.tradeoff import run_tradeoff, validate_tradeoff
-
-main = recipe("tradeoff", run_tradeoff, scenario_overrides=True, check=validate_tradeoff)
+from irdrc.experiments import app
+from irdrc.paper import tradeoff
 
 if __name__ == "__main__":
-    main()
+    app.main(tradeoff)

@@ -9,16 +9,90 @@ import torch
 from tensordict import TensorDict
 
 from irdrc import DFRCEnv, Params
-from irdrc.core.factored import (
+from irdrc.core.exact import (
+    as_probs,
     build_factored,
+    build_model,
+    metrics_from_occupancy,
     stationary_distribution_factored,
-    stationary_metrics_factored,
-    value_iteration_factored,
+    stationary_metrics,
+    value_iteration,
 )
-from irdrc.core.model import build_model
-from irdrc.core.solve import stationary_metrics, value_iteration
 
 torch.set_num_threads(1)
+
+TIERS = {
+    "not slow and not e2e": "the default suite (about 4 min on 2 cores)",
+    "slow": "the learning tests (-m slow)",
+    "e2e": "the end-to-end tier (-m e2e: whole recipes, sweeps, kills and resumes)",
+}
+
+
+def pytest_report_header(config):
+    """Which tier runs, in words, on the first lines of every test run."""
+    expr = config.getoption("markexpr") or ""
+    return f"irdrc: {TIERS.get(expr, f'tests selected by -m {expr!r}' if expr else 'every test')}"
+
+
+class _Clock:
+    """A line every 30 s while the tests run: how many are done and how long it has been."""
+
+    def __init__(self, config) -> None:
+        import time
+
+        self.config, self.time = config, time
+        self.t0 = self.last = time.monotonic()
+        self.done = 0
+
+    def pytest_runtest_logreport(self, report) -> None:
+        if report.when != "teardown":
+            return
+        self.done += 1
+        now = self.time.monotonic()
+        if now - self.last >= 30:
+            self.last = now
+            tr = self.config.pluginmanager.get_plugin("terminalreporter")
+            if tr is not None:
+                m, sec = divmod(int(now - self.t0), 60)
+                tr.write_line(f"  … {self.done} tests done, {m}:{sec:02d} so far")
+
+
+def pytest_configure(config):
+    if not hasattr(config, "workerinput"):  # the controller (or a run without workers)
+        config.pluginmanager.register(_Clock(config), "irdrc-clock")
+
+
+def recipe_module(name: str):
+    """The recipe module behind ``recipes/<name>.py``."""
+    import importlib
+
+    for pkg in ("irdrc.experiments", "irdrc.paper"):
+        try:
+            return importlib.import_module(f"{pkg}.{name}")
+        except ModuleNotFoundError:
+            continue
+    raise ValueError(f"no recipe {name}")
+
+
+def load(recipe: str, *overrides: str):
+    """The typed config ``recipes/<recipe>.py`` runs with these overrides (composed once and checked,
+    as the recipe does before any work)."""
+    from irdrc.experiments.app import prepare
+
+    return prepare(recipe_module(recipe), list(overrides)).config
+
+
+def run_recipe(recipe: str, run_dir, *overrides: str) -> int:
+    """Run ``recipes/<recipe>.py`` in this process with ``overrides``, writing to ``run_dir``;
+    returns its exit status."""
+    from irdrc.experiments.app import execute
+
+    return execute(recipe_module(recipe), [*overrides, f"hydra.run.dir={run_dir}"])
+
+
+def scenario(*overrides: str) -> Params:
+    """The single-vehicle model the command line ``overrides`` names (``env=large`` …)."""
+    return load("solve", *overrides).model
 
 
 TINY_DQN = [
@@ -80,12 +154,12 @@ def assert_factored_equals_dense(params, seed: int) -> None:
     gen = torch.Generator().manual_seed(seed)
     V = torch.randn(S, generator=gen, dtype=torch.float64)
     x = torch.rand(S, generator=gen, dtype=torch.float64)
+    assert torch.allclose(fac.expect(V), dense.P @ V, rtol=0, atol=1e-9)
     for a in (0, 1):
-        assert torch.allclose(fac.expect(V, a), dense.P[a] @ V, rtol=0, atol=1e-9)
         assert torch.allclose(fac.push(x, a), x @ dense.P[a], rtol=0, atol=1e-9)
     for key, table in fac.tables().items():
         assert torch.allclose(table, getattr(dense, key), rtol=0, atol=1e-9), key
-    opt, fopt = value_iteration(dense), value_iteration_factored(fac, tol=1e-9)
+    opt, fopt = value_iteration(dense), value_iteration(fac, tol=1e-9)
     assert torch.equal(opt.policy, fopt.policy)
     assert torch.allclose(fopt.values, opt.values, rtol=0, atol=1e-8)
     mixed = torch.rand(S, 2, generator=gen, dtype=torch.float64)
@@ -95,33 +169,13 @@ def assert_factored_equals_dense(params, seed: int) -> None:
         for method in ("auto", "gmres", "iad", "power"):
             mu, _ = stationary_distribution_factored(fac, policy, method=method)
             assert mu.shape == (S,) and abs(float(mu.sum()) - 1) < 1e-12
-            got = stationary_metrics_factored(fac, policy, mu=mu).as_dict()
+            got = metrics_at(fac, policy, mu).as_dict()
             assert set(got) == set(want)  # false_alarm_rate in both, or in neither
             for k in want:
                 assert got[k] == pytest.approx(want[k], rel=1e-9, abs=1e-9), (method, k)
 
 
-def assert_dqn_trains_and_resumes(**options) -> None:
-    """A tiny DQN run with ``options`` (DQNConfig keys) counts its updates and evaluations,
-    returns a policy and values for every state, and resumes from its checkpoint to a longer run."""
-    from irdrc.agents.dqn import DQNConfig, NetworkConfig, train
-
-    base = dict(
-        num_envs=8,
-        frames_per_batch=32,
-        total_frames=320,
-        init_random_frames=64,
-        buffer_size=320,
-        batch_size=16,
-        updates_per_batch=2,
-        network=NetworkConfig(hidden=(16,)),
-    )
-    cfg = DQNConfig(**base, **options)
-    run = train(Params(), cfg, seed=0, eval_every_frames=160)
-    # learning starts at 64 frames: (320 − 32)/32 = 9 batches × 2 updates
-    assert run.updates == 18 and run.greedy.shape == (1, 352) and run.q.shape == (1, 352, 2)
-    assert [e["env_steps"] for e in run.history] == [0, 160, 320]
-    longer = DQNConfig(**{**base, "total_frames": 480}, **options)
-    resumed = train(Params(), longer, seed=0, eval_every_frames=160, resume=run.state)
-    assert resumed.env_steps == 480 and resumed.updates == 18 + 5 * 2
-    assert [e["env_steps"] for e in resumed.history] == [0, 160, 320, 480]
+def metrics_at(model, policy, mu: torch.Tensor):
+    """The exact metrics of ``policy`` given its stationary distribution ``mu``."""
+    probs = as_probs(policy, model.num_states, model.num_actions)
+    return metrics_from_occupancy(model, (mu[:, None] * probs).T.contiguous())

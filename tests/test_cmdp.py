@@ -9,7 +9,8 @@ import math
 import pytest
 import torch
 
-from irdrc import DFRCEnv, Params, policies
+from irdrc import DFRCEnv, Params
+from irdrc.core import policies
 from irdrc.core.cmdp import (
     Constraint,
     InfeasibleTarget,
@@ -18,8 +19,7 @@ from irdrc.core.cmdp import (
     solve_lp,
 )
 from irdrc.core.evaluate import evaluate
-from irdrc.core.model import build_model
-from irdrc.core.solve import episodic_metrics, stationary_metrics, value_iteration
+from irdrc.core.exact import build_model, episodic_metrics, stationary_metrics, value_iteration
 
 
 @pytest.fixture(scope="module")
@@ -158,7 +158,7 @@ def test_objective_tables(paper):
 
 
 def test_randomised_policy_csv_round_trip(paper, tmp_path):
-    from irdrc.experiments.results import read_policy_csv, write_policy_csv
+    from irdrc.experiments.tables import read_policy_csv, write_policy_csv
 
     sol = solve_cmdp(paper, 0.05)
     write_policy_csv(tmp_path / "policy.csv", sol.policy)

@@ -191,10 +191,11 @@ def test_frontier_counts_every_solve_and_its_figure_names_the_targets(tmp_path, 
     """The frontier's progress counts the LP solves and the r4 solves in one total (its first
     ETA then covers the whole run, not the r4 part alone), every unit is ticked, and the target
     lines have a legend entry."""
-    from omegaconf import OmegaConf
+    from types import SimpleNamespace
 
-    from irdrc.experiments.config import compose
-    from irdrc.paper import frontier, plots
+    from conftest import load
+
+    from irdrc.experiments import frontier
 
     seen = []
 
@@ -205,21 +206,18 @@ def test_frontier_counts_every_solve_and_its_figure_names_the_targets(tmp_path, 
 
     figs = []
     monkeypatch.setattr(frontier, "Ticker", Recorder)
-    monkeypatch.setattr(plots, "atomic_savefig", lambda fig, path, dpi: figs.append(fig))
-    cfg = compose(
+    monkeypatch.setattr(frontier, "atomic_savefig", lambda fig, path, dpi: figs.append(fig))
+    cfg = load(
         "constrained",
-        [
-            "frontier=true",
-            "frontier_grid.p1_speed=[0.1]",
-            "frontier_grid.points=3",
-            "frontier_grid.r4.lo=40",
-            "frontier_grid.r4.hi=50",
-            "frontier_grid.r4.step=10",
-            "frontier_grid.targets=[0.05,0.1]",
-        ],
+        "frontier=true",
+        "frontier_grid.p1_speed=[0.1]",
+        "frontier_grid.points=3",
+        "frontier_grid.r4.lo=40",
+        "frontier_grid.r4.hi=50",
+        "frontier_grid.r4.step=10",
+        "frontier_grid.targets=[0.05,0.1]",
     )
-    OmegaConf.set_struct(cfg, False)
-    frontier.run_frontier(cfg, tmp_path)
+    frontier.run_frontier(cfg, SimpleNamespace(dir=tmp_path))
     (ticker,) = seen
     assert ticker.total == 5 + 2 and ticker.done == ticker.total  # 3 + 2 targets, 2 values of r4
     labels = figs[0].axes[0].get_legend_handles_labels()[1]
@@ -229,10 +227,9 @@ def test_frontier_counts_every_solve_and_its_figure_names_the_targets(tmp_path, 
 def test_a_degenerate_optimum_is_explained():
     """r4 = 50 at p^v_1 = 0.1: the optimum never communicates, and the note says why; at the
     paper's r4 = 5 there is no note."""
-    from irdrc.core.model import build_model
+    from irdrc.core.exact import build_model, stationary_metrics, value_iteration
     from irdrc.core.params import Params
-    from irdrc.core.solve import stationary_metrics, value_iteration
-    from irdrc.experiments.finish import degenerate_note
+    from irdrc.experiments.report import degenerate_note
 
     notes = []
     for r4 in (5, 50):

@@ -1,6 +1,7 @@
 """The README and docs/ stay true to the code: every command they give runs its recipe's own
-pre-run checks (keys, values, combinations) without an error, every script and linked file exists,
-every anchor names a heading, and the model keys the README's table lists are keys of the config."""
+pre-run checks (keys, values, combinations) without an error, every config key they name exists,
+every script and linked file exists, every anchor names a heading, and the model keys the README's
+table lists are keys of the config."""
 
 from __future__ import annotations
 
@@ -11,19 +12,23 @@ import sys
 from pathlib import Path
 
 import pytest
-from conftest import TINY_DQN
+from conftest import TINY_DQN, load, recipe_module
 from omegaconf import OmegaConf
 
-from irdrc.experiments.config import compose, rename_overrides
+from irdrc.experiments.compose import (
+    CONF_DIR,
+    OPTIONAL_KEYS,
+    _flat_keys,
+    compose,
+    config_groups,
+    rename_overrides,
+)
 from irdrc.experiments.grid import override_key
-from irdrc.experiments.validate import GENERAL_MODEL_KEYS, check_overrides, flat_keys, validate
 from irdrc.paper.docs import shell_quote
 
 ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"
 DOCS = sorted((ROOT / "docs").glob("*.md"))
-STUDIES = {p for p in DOCS if p.name.startswith("STUDY_")}
-"""Study documents record what was measured on the commit they name; their commands run there."""
 
 COMMAND = re.compile(
     r"(?:python|\.venv/bin/python) recipes/(\w+)\.py([^`\n]*)|`irdrc (\w+)([^`\n]*)"
@@ -31,11 +36,28 @@ COMMAND = re.compile(
 PLACEHOLDER = re.compile(r"DATE|TIME|…|\.\.\.")
 
 
+AT_TAG = re.compile(r"<!-- at-tag: ([\w.-]+) -->.*?<!-- /at-tag -->", re.S)
+"""A region of a doc about an earlier commit (its keys and commands run at that tag only)."""
+
+
+def current(text: str) -> str:
+    """``text`` without its ``at-tag`` regions."""
+    return AT_TAG.sub("", text)
+
+
+def test_at_tag_regions_are_closed_and_cut():
+    text = "a `algo.lr`\n<!-- at-tag: v1 -->`algo.n_steps=3`\n<!-- /at-tag -->\nb"
+    assert current(text) == "a `algo.lr`\n\nb"
+    for doc in [README, *DOCS]:
+        body = doc.read_text()
+        assert body.count("<!-- at-tag:") == body.count("<!-- /at-tag -->"), doc.name
+
+
 def commands(text: str) -> list[tuple[str, list[str]]]:
-    """(recipe, arguments) of every ``python recipes/NAME.py …`` and ``irdrc NAME …`` in ``text``,
-    comments after ``#`` dropped."""
+    """(recipe, arguments) of every ``python recipes/NAME.py …`` and ``irdrc NAME …`` in ``text``
+    outside its ``at-tag`` regions, comments after ``#`` dropped."""
     out = []
-    for m in COMMAND.finditer(text):
+    for m in COMMAND.finditer(current(text)):
         recipe = m.group(1) or m.group(3)
         rest = (m.group(2) if m.group(1) else m.group(4)) or ""
         rest = re.split(r"\s+#\s", rest)[0]
@@ -47,31 +69,22 @@ def commands(text: str) -> list[tuple[str, list[str]]]:
     return out
 
 
-def config_name(recipe: str) -> str:
-    """The config a recipe composes: the name its ``recipe("…", …)`` call gives."""
-    source = (ROOT / "recipes" / f"{recipe}.py").read_text()
-    return re.search(r'recipe\(\s*"(\w+)"', source).group(1)
-
-
 def check_command(recipe: str, args: list[str], files: dict[str, Path] | None = None) -> None:
     """What a recipe checks before any work, on ``args``; an argument holding a placeholder
     (``outputs/DATE/TIME/…``) has its key checked, and its value replaced by a real file of that
     kind where ``files`` has one (``checkpoint`` / ``resume``: a DQN checkpoint, ``policy``: a
     policy table), else left out."""
     assert (ROOT / "recipes" / f"{recipe}.py").is_file(), f"recipes/{recipe}.py does not exist"
-    name = config_name(recipe)
-    args, _ = rename_overrides(name, [a for a in args if not a.startswith("-")])
-    check_overrides(name, args)
     files = files or {}
     args = [
         f"{override_key(a)}={files[override_key(a)]}"
         if PLACEHOLDER.search(a) and override_key(a) in files
         else a
         for a in args
+        if not a.startswith("-")
     ]
-    concrete = [a for a in args if not PLACEHOLDER.search(a)]
-    plain = [a for a in concrete if not override_key(a).startswith("hydra")]
-    validate(name, compose(name, plain), concrete)
+    concrete = [a for a in args if not PLACEHOLDER.search(a) or override_key(a) == "hydra.run.dir"]
+    load(recipe, *(a for a in concrete if not override_key(a).startswith("hydra")))
 
 
 def readme_commands() -> list[tuple[str, list[str]]]:
@@ -103,6 +116,15 @@ def example_files(tmp_path_factory) -> dict[str, Path]:
     return {"checkpoint": ckpt, "resume": ckpt, "policy": out / "policy.csv"}
 
 
+def test_readme_python_api_runs():
+    """The README's Python example runs as printed (about 6 s: a 10⁶-state factored solve)."""
+    code = README.read_text().split("```python\n", 1)[1].split("```", 1)[0]
+    r = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=300, cwd=ROOT
+    )
+    assert r.returncode == 0, r.stderr[-2000:]
+
+
 def test_readme_has_the_commands_it_promises():
     found = {r for r, _ in readme_commands()}
     recipes = {p.stem for p in (ROOT / "recipes").glob("*.py")}
@@ -112,14 +134,63 @@ def test_readme_has_the_commands_it_promises():
         assert (ROOT / script).is_file(), script
 
 
-@pytest.mark.parametrize("doc", [p for p in DOCS if p not in STUDIES], ids=lambda p: p.name)
+@pytest.mark.parametrize("doc", DOCS, ids=lambda p: p.name)
 def test_docs_commands_name_existing_recipes_and_keys(doc):
+    """Every command in docs/ composes (its keys and group choices exist); the ones a doc gives
+    for a whole benchmark are not run, only composed."""
     for recipe, args in commands(doc.read_text()):
         assert (ROOT / "recipes" / f"{recipe}.py").is_file(), f"{doc.name}: recipes/{recipe}.py"
-        name = config_name(recipe)
+        module = recipe_module(recipe)
         args = [a for a in args if not a.startswith("-") and "=" in a]
-        args, _ = rename_overrides(name, [a for a in args if not PLACEHOLDER.search(a)])
-        check_overrides(name, args)
+        args = [a for a in args if not PLACEHOLDER.search(a)]
+        args, _ = rename_overrides(args, getattr(module, "RENAMED", {}), {})
+        compose(module.NAME, [a for a in args if not override_key(a).startswith("hydra")])
+
+
+def every_key() -> set[str]:
+    """Every dotted key any recipe's config has or any option of its groups sets, the groups, the
+    general model's optional keys, and the keys of earlier versions a recipe still answers (renamed,
+    removed or retired, each with its message)."""
+    from irdrc.agents.configs.value import RETIRED
+
+    keys = set(OPTIONAL_KEYS) | set(config_groups()) | {f"algo.{k}" for k in RETIRED}
+    for path in (ROOT / "recipes").glob("*.py"):
+        module = recipe_module(path.stem)
+        keys |= set(getattr(module, "RENAMED", {})) | set(getattr(module, "REMOVED", {}))
+    for path in CONF_DIR.glob("*.yaml"):
+        keys |= _flat_keys(compose(path.stem, []).cfg)
+    for path in CONF_DIR.glob("*/*.yaml"):
+        node = OmegaConf.to_container(OmegaConf.load(path), resolve=False)
+        node.pop("defaults", None)
+        top = path.read_text().startswith("# @package _global_")
+        keys |= _flat_keys(node if top else {path.parent.name: node})
+    return keys
+
+
+KEY_IN_TEXT = re.compile(
+    r"`((?:algo|env|reward|eval|logger|network|checkpoint|plot|compare|sweep|frontier_grid|"
+    r"search|dqn|ray|learners)\.[a-z0-9_.{},]+)(?:=[^`]*)?`"
+)
+"""A config key a document names: in backquotes, with its section."""
+FILES = (".csv", ".pt", ".log", ".md", ".json", ".png", ".yaml", ".py")
+"""… not a file name (``learners.csv``, ``checkpoint.pt``)."""
+
+
+def test_every_config_key_docs_name_exists():
+    """A key named in README.md or docs/ (in backquotes, with its section: ``algo.lr``,
+    ``env.p1.speed=…``) is a key of some recipe's config — a doc naming a key that is gone fails."""
+    keys = every_key()
+    missing = []
+    for doc in [README, *DOCS]:
+        for match in KEY_IN_TEXT.finditer(current(doc.read_text())):
+            for key in expand(match.group(1).rstrip(".")):
+                if key.endswith(FILES):
+                    continue
+                known = key in keys or any(k.startswith(key + ".") for k in keys)
+                general = any(key == g or key.startswith(g + ".") for g in OPTIONAL_KEYS)
+                if not (known or general or "*" in key or key.startswith("env.factors.")):
+                    missing.append(f"{doc.name}: {key}")
+    assert not missing, missing
 
 
 def expand(key: str) -> list[str]:
@@ -131,14 +202,14 @@ def expand(key: str) -> list[str]:
 
 
 def test_readme_model_keys_exist():
-    keys = flat_keys(OmegaConf.to_container(compose("solve"), resolve=False))
+    keys = _flat_keys(compose("solve", []).cfg)
     table = README.read_text().split("### Configuration names")[1].split("**One name per idea")[0]
     first = [row.split("|")[1] for row in table.splitlines() if row.startswith("| `")]
     listed = [k for cell in first for t in re.findall(r"`([^`]+)`", cell) for k in expand(t)]
     listed = [k for k in listed if "…" not in k]
     assert len(listed) >= 20
     for key in listed:
-        general = any(key == g or key.startswith(g + ".") for g in GENERAL_MODEL_KEYS)
+        general = any(key == g or key.startswith(g + ".") for g in OPTIONAL_KEYS)
         assert key in keys or general, f"README lists {key}, which the config does not have"
 
 
@@ -235,14 +306,14 @@ def test_shell_quote_round_trips_through_a_shell(arg: str) -> None:
         ("algo=qlearning", "use python recipes/qlearning.py"),
         ("algo=qlearning_paper", "use python recipes/qlearning.py algo=qlearning_paper"),
         ("algo=dqn_lagrangian", "use python recipes/constrained.py learner=dqn_lagrangian"),
-        ("executor=ray", "executor= is for python recipes/sweep.py"),
+        ("executor=ray", "executor= is for python recipes/bench_constrained.py"),
     ],
 )
 def test_a_choice_of_another_recipe_names_that_recipe(override: str, says: str) -> None:
-    """``dqn.py --help`` lists every group option; one that belongs elsewhere says where (it gave
-    ~10 unknown-key errors, or Hydra's raw 'Could not override')."""
+    """A group option that belongs to another recipe says where (it gave ~10 unknown-key errors,
+    or Hydra's raw 'Could not override')."""
     with pytest.raises(ValueError, match=re.escape(says)):
-        check_overrides("dqn", [override])
+        load("dqn", override)
 
 
 def test_citation_license_and_the_files_docs_name_exist() -> None:
@@ -254,3 +325,38 @@ def test_citation_license_and_the_files_docs_name_exist() -> None:
     assert cff.license == "MIT" and (ROOT / "LICENSE").read_text().startswith("MIT License")
     assert 'license = { text = "MIT" }' in (ROOT / "pyproject.toml").read_text()
     assert "@article{hieu2020irdrc" in (ROOT / "README.md").read_text()
+
+
+DOTTED = re.compile(r"`(irdrc(?:\.\w+)+)")
+"""A Python name a document gives (``irdrc.core.exact.value_iteration``), in backquotes."""
+
+
+def resolve(name: str) -> bool:
+    """Whether ``name`` is an importable module or an attribute of one."""
+    import importlib
+
+    parts = name.split(".")
+    for i in range(len(parts), 0, -1):
+        try:
+            obj = importlib.import_module(".".join(parts[:i]))
+        except ModuleNotFoundError:
+            continue
+        for attr in parts[i:]:
+            if not hasattr(obj, attr):
+                return False
+            obj = getattr(obj, attr)
+        return True
+    return False
+
+
+def test_every_python_name_docs_give_exists():
+    """A module, class or function named in README.md or docs/ exists — a doc naming one that
+    moved fails (the test itself: ``resolve`` refuses a made-up name)."""
+    assert resolve("irdrc.core.exact.value_iteration") and not resolve("irdrc.core.solve")
+    missing = [
+        f"{doc.name}: {m.group(1)}"
+        for doc in [README, *DOCS]
+        for m in DOTTED.finditer(current(doc.read_text()))
+        if not resolve(m.group(1))
+    ]
+    assert not missing, missing

@@ -11,11 +11,12 @@ from pathlib import Path
 import pytest
 import torch
 from conftest import TINY_DQN
+from conftest import scenario as scenario_of
 
 from irdrc import DFRCEnv, Params
-from irdrc.agents.dqn import DQNConfig, NetworkConfig, train
+from irdrc.agents.configs import DQNConfig, NetworkConfig
+from irdrc.agents.dqn import train
 from irdrc.agents.offpolicy import greedy_table, make_qnet
-from irdrc.experiments.config import compose
 from irdrc.experiments.tracking import resolve_wandb_mode
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -23,7 +24,6 @@ TINY = [
     *TINY_DQN,
     "eval.mc_episodes=8",
     "eval.mc_num_envs=8",
-    "compare.qlearning_paper=false",
 ]
 
 
@@ -53,7 +53,7 @@ def run_dqn(tmp_path, *overrides, env=None, timeout=300):
         ),
         ({"buffer_size": 64, "batch_size": 128}, ["algo.buffer_size", "algo.batch_size"]),
         ({"frames_per_batch": 30, "num_envs": 8}, ["algo.frames_per_batch", "algo.num_envs"]),
-        ({"loss_function": "huber"}, ["algo.loss_function"]),
+        ({"policy_network": "both"}, ["algo.policy_network"]),
         ({"gamma": 1.0}, ["algo.gamma"]),
         ({"tau": 2.0}, ["algo.tau"]),
     ],
@@ -66,7 +66,7 @@ def test_invalid_config_names_keys(kwargs, keys):
 
 def test_unknown_keys_and_network():
     with pytest.raises(ValueError, match=r"algo\.bogus"):
-        DQNConfig.from_dict({"bogus": 1})
+        DQNConfig.from_sections({"bogus": 1})
     with pytest.raises(ValueError, match=r"network\.hidden"):
         NetworkConfig(hidden=[0])
     with pytest.raises(ValueError, match=r"network\.activation"):
@@ -86,21 +86,17 @@ def test_polyak_update_is_torchrls_soft_update():
     """``PolyakUpdate`` (one foreach lerp over cached tensors) moves every target tensor exactly as
     TorchRL's ``SoftUpdate`` does, step after step, on two identical DQN losses whose online
     networks move alike."""
-    from torchrl.objectives import SoftUpdate
+    from torchrl.objectives import DQNLoss, SoftUpdate
 
-    from irdrc.agents.offpolicy import (
-        OffPolicyConfig,
-        PolyakUpdate,
-        make_dqn_loss,
-        make_qnet,
-    )
+    from irdrc.agents.offpolicy import PolyakUpdate, make_qnet
 
     env = DFRCEnv(Params(), batch_size=[4], seed=0)
-    cfg = OffPolicyConfig(num_envs=4, frames_per_batch=4)
+    cfg = DQNConfig(num_envs=4, frames_per_batch=4)
     losses = []
     for _ in range(2):
         torch.manual_seed(0)
-        losses.append(make_dqn_loss(make_qnet(env, cfg.network), env, cfg))
+        qnet = make_qnet(env, cfg.network)
+        losses.append(DQNLoss(qnet, delay_value=True, action_space=env.action_spec_unbatched))
     ours, theirs = PolyakUpdate(losses[0], tau=0.1), SoftUpdate(losses[1], tau=0.1)
     for step in range(5):
         for loss in losses:
@@ -287,9 +283,7 @@ def test_default_profile_holds_on_unseen_seeds(scenario):
     run here is a regression, not noise."""
     finals = {}
     for r4 in (5, 50):
-        params = Params.from_config(
-            compose("dqn", [f"env={scenario}", "env.p1.speed=0.1", f"reward.r4={r4}"])
-        )
+        params = scenario_of(f"env={scenario}", "env.p1.speed=0.1", f"reward.r4={r4}")
         for seed in (25, 26, 27):
             run = train(params, DQNConfig(), seed=seed, eval_every_frames=100_000)
             finals[(r4, seed)] = round(run.history[-1]["optimality_ratio"], 4)

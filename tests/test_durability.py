@@ -14,8 +14,8 @@ from pathlib import Path
 import pytest
 import torch
 
-from irdrc.experiments.guard import resumed_config
 from irdrc.experiments.results import FILE_MODE, atomic_write, atomic_write_text
+from irdrc.experiments.scaffold import resumed_config
 
 ROOT = Path(__file__).resolve().parents[1]
 # 4 000 env steps, a checkpoint every 640 (about a second apart here)
@@ -240,37 +240,90 @@ def test_umask_is_honoured_by_a_whole_run(tmp_path):
         assert (tmp_path / name).stat().st_mode & 0o777 == 0o640, name
 
 
-def test_cached_comparison_is_recomputed_from_its_policy_not_trusted(tmp_path, monkeypatch):
-    """The opt-in Q-learning comparison is cached; an edited cache entry cannot print a wrong number
-    (only its policy is read, and its metrics are recomputed exactly), a broken one is retrained."""
-    from irdrc.core.model import build_model
-    from irdrc.core.params import Params
-    from irdrc.core.solve import stationary_metrics, value_iteration
-    from irdrc.experiments import runs
-    from irdrc.experiments.config import compose
-    from irdrc.experiments.results import write_policy_csv
+LEARNERS = {
+    "fleet": (
+        "recipes/fleet.py",
+        [
+            "algo.num_envs=8",
+            "algo.frames_per_batch=32",
+            "algo.total_frames=3200",
+            "algo.batch_size=32",
+            "eval.every_frames=320",
+            "checkpoint.every_frames=640",
+            "logger=none",
+        ],
+        3200,
+    ),
+    "constrained": (
+        "recipes/constrained.py",
+        [
+            "learner=dqn_lagrangian",
+            "algo.num_envs=8",
+            "algo.frames_per_batch=32",
+            "algo.total_frames=3200",
+            "algo.init_random_frames=128",
+            "algo.batch_size=32",
+            "algo.measure_envs=4",
+            "algo.measure_steps=20",
+            "algo.measure_burn_in=0",
+            "algo.mix_steps=2",
+            "eval.every_frames=320",
+            "checkpoint.every_frames=640",
+            "logger=none",
+        ],
+        3200,
+    ),
+    "qlearning": (
+        "recipes/qlearning.py",
+        ["algo.episodes=40", "eval.every_frames=800", "checkpoint.every_frames=800"],
+        16000,
+    ),
+}
+"""Every training recipe but DQN (above): its command, its checkpoint period, its length in
+env steps (fleet steps for the fleet)."""
 
-    params = Params()
-    model = build_model(params)
-    optimal = value_iteration(model).policy
-    trained = []
 
-    def fake_run(method, cfg, out, scenario=None):  # stands in for 1 M steps of training
-        trained.append(method)
-        Path(out).mkdir(parents=True, exist_ok=True)
-        write_policy_csv(Path(out) / "policy.csv", optimal)
-        (Path(out) / "summary.json").write_text(json.dumps({"metrics": {"avg_reward": 999}}))
-
-    monkeypatch.setattr(runs, "run_learner", fake_run)
-    cfg = compose(
-        "dqn", ["compare.qlearning_paper=true", f"cache_dir={tmp_path}", "progress=false"]
+def _learner(name: str, out: Path, *extra: str, wait: bool = True):
+    script, overrides, _ = LEARNERS[name]
+    cmd = [sys.executable, script, *overrides, "progress=false", *extra, f"hydra.run.dir={out}"]
+    if wait:
+        return subprocess.run(cmd, capture_output=True, text=True, timeout=300, cwd=ROOT)
+    return subprocess.Popen(
+        cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT
     )
-    first = runs.comparison_rows(cfg, params)["qlearning_paper"]
-    assert trained == ["qlearning"]
-    assert first == stationary_metrics(model, optimal)  # not the 999 of the summary
-    second = runs.comparison_rows(cfg, params)["qlearning_paper"]
-    assert trained == ["qlearning"] and second == first  # cached
-    (entry,) = tmp_path.glob("qlearning_paper-*")
-    (entry / "policy.csv").write_text("d,c,r,w,v,m,action\n0,0,0,0,0,0,7\n")
-    runs.comparison_rows(cfg, params)
-    assert trained == ["qlearning", "qlearning"]  # a broken entry is retrained, not printed
+
+
+@pytest.mark.e2e
+@pytest.mark.parametrize("name", sorted(LEARNERS))
+def test_every_learner_survives_kill_9_and_sigterm(name, tmp_path):
+    """kill -9 during training leaves a checkpoint that ``resume=`` finishes, in the same
+    directory, every evaluation once; SIGTERM saves, exits 143 and prints the command that goes on.
+    (The fleet lost everything on kill -9 and could not resume before.)"""
+    total = LEARNERS[name][2]
+    out = tmp_path / "killed"
+    proc = _learner(name, out, wait=False)
+    wait_for(out / "checkpoint.pt", proc)
+    proc.kill()
+    proc.communicate(timeout=60)
+    saved = torch.load(out / "checkpoint.pt", weights_only=True)
+    assert saved["frames"] > 0
+    r = subprocess.run(
+        [sys.executable, LEARNERS[name][0], f"resume={out / 'checkpoint.pt'}", "progress=false"],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        cwd=ROOT,
+    )
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert "resumed from" in r.stdout
+    steps = steps_of(out / "metrics.csv")
+    assert steps[-1] == total and len(steps) == len(set(steps)) and steps == sorted(steps)
+    assert json.loads((out / "summary.json").read_text())["interrupted"] is False
+
+    out = tmp_path / "stopped"
+    proc = _learner(name, out, wait=False)
+    wait_for(out / "checkpoint.pt", proc)
+    proc.send_signal(signal.SIGTERM)
+    _, stderr = proc.communicate(timeout=120)
+    assert proc.returncode == 128 + signal.SIGTERM, stderr[-2000:]
+    assert "go on with: " in stderr and "resume=" in stderr and "Traceback" not in stderr

@@ -9,7 +9,7 @@ import torch
 from torchrl.envs.utils import check_env_specs
 
 from irdrc import DFRCEnv, Params, decode_state, state_index
-from irdrc.core.env import queue_update
+from irdrc.core.dynamics import queue_update
 
 
 @pytest.mark.parametrize("batch_size", [[], [1], [4], [1024], [2, 3]])
@@ -167,7 +167,7 @@ def test_cuda_device():
 
 
 def test_unseeded_env_leaves_global_rng_alone():
-    from irdrc import policies
+    from irdrc.core import policies
 
     torch.manual_seed(123)
     expected = torch.rand(3)
@@ -184,7 +184,7 @@ def test_grouped_dynamics_match_each_scenario_row_by_row():
     group k must equal, bit for bit, the rows of a batch stepped with scenario k alone. The scenarios
     differ in every table (event probabilities, rewards, chains, link rates, arrival rate).
     """
-    from irdrc.core.env import Dynamics
+    from irdrc.core.dynamics import Dynamics
 
     scenarios = [
         Params(),
@@ -219,7 +219,7 @@ def test_grouped_dynamics_match_each_scenario_row_by_row():
 
 
 def test_grouped_dynamics_reject_different_state_spaces():
-    from irdrc.core.env import Dynamics
+    from irdrc.core.dynamics import Dynamics
 
     with pytest.raises(ValueError, match="queue_capacity"):
         Dynamics([Params(), Params.from_overrides({"env.queue_capacity": 5})])

@@ -6,6 +6,7 @@ a few go through the command line to check that the answer is one line, exit sta
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -14,28 +15,21 @@ import gymnasium
 import numpy as np
 import pytest
 import torch
+from conftest import load
 from tensordict import TensorDict
 
 import irdrc  # noqa: F401 - registers irdrc/DFRC-v0
 from irdrc.core.env import DFRCEnv
 from irdrc.core.params import Params
-from irdrc.experiments.config import compose, rename_overrides
-from irdrc.experiments.sweep import plan
-from irdrc.experiments.validate import check_overrides, validate
-from irdrc.paper.figure2 import validate_figure2
-from irdrc.paper.tradeoff import validate_tradeoff
+from irdrc.experiments.trials import plan
 
 ROOT = Path(__file__).resolve().parents[1]
-CHECKS = {"figure2": validate_figure2, "tradeoff": validate_tradeoff}
 
 
 def refused(recipe: str, *overrides: str) -> str:
     """The message a recipe refuses ``overrides`` with, before any work (fails if it accepts)."""
     with pytest.raises(ValueError) as err:
-        args, _ = rename_overrides(recipe, list(overrides))
-        check_overrides(recipe, args)
-        cfg = compose(recipe, args)
-        CHECKS.get(recipe, lambda c: validate(recipe, c, args))(cfg)
+        load(recipe, *overrides)
     return str(err.value)
 
 
@@ -77,7 +71,7 @@ def refused(recipe: str, *overrides: str) -> str:
         ("tradeoff", ["search.resolution=0.001"], "exact solves"),
         ("sweep", ["sweep.grid={}"], "sweep.grid is empty"),
         ("sweep", ["method=sarsa", "sweep.grid={seed: [0]}"], "method='sarsa'"),
-        ("dqn", ["compare.qlearning_paper=true", "cache_dir=/proc/irdrc"], "cache_dir=/proc/irdrc"),
+        ("dqn", ["compare.qlearning_paper=true"], "recipes/qlearning.py algo=qlearning_paper"),
     ],
 )
 def test_bad_input_is_refused_naming_the_key(recipe, overrides, named):
@@ -91,12 +85,12 @@ def test_cuda_without_a_device_is_refused():
 
 def test_long_horizon_is_cheap_not_refused():
     # exact episodic metrics use repeated squaring: a horizon of 1e9 costs ~log2(1e9) products
-    validate("solve", compose("solve", ["env.horizon=1000000000", "eval.mc_episodes=0"]))
+    load("solve", "env.horizon=1000000000", "eval.mc_episodes=0")
 
 
 def test_all_zero_rewards_warn():
     with pytest.warns(UserWarning, match="all 0"):
-        validate("solve", compose("solve", [f"reward.r{i}=0" for i in range(1, 5)]))
+        load("solve", *(f"reward.r{i}=0" for i in range(1, 5)))
 
 
 def test_sweep_values_are_validated_before_any_trial():
@@ -192,18 +186,19 @@ def test_gym_env_step_before_reset_is_refused():
         gymnasium.make_vec("irdrc/DFRC-v0", num_envs=2).step(np.array([0, 1]))
 
 
-def test_a_run_refused_after_hydra_started_leaves_no_directory_and_logs_what_it_printed(tmp_path):
-    """A recipe whose run refuses (a ``ValueError`` after Hydra made the run directory) removes
-    the directory it made: one line, exit 2, nothing left. A run that works keeps what it printed
-    in ``<recipe>.log``."""
+def test_a_run_refused_after_its_directory_exists_leaves_none_and_logs_what_it_printed(tmp_path):
+    """A recipe whose run refuses (a ``ValueError`` after the scaffold made the run directory)
+    removes the directory it made: one line, exit 2, nothing left. A run that works keeps what it
+    printed in ``<recipe>.log``."""
     script = (
-        "import sys\n"
-        "from irdrc.experiments.app import recipe\n"
-        "def run(cfg, out):\n"
+        "import types\n"
+        "from irdrc.experiments import app, solve\n"
+        "def run(cfg, run):\n"
         "    print('working on it')\n"
         "    if cfg.seed == 1:\n"
         "        raise ValueError('refused on purpose')\n"
-        "recipe('solve', run)()\n"
+        "module = types.SimpleNamespace(NAME='solve', load=solve.load, run=run)\n"
+        "app.main(module)\n"
     )
     refused, kept = tmp_path / "refused", tmp_path / "kept"
     r = subprocess.run(
@@ -224,3 +219,87 @@ def test_a_run_refused_after_hydra_started_leaves_no_directory_and_logs_what_it_
     )
     assert r.returncode == 0, r.stderr
     assert "working on it" in (kept / "solve.log").read_text()
+
+
+# -- the run directory and long solves ------------------------------------------------------------
+
+
+def _run(*args: str, timeout: float = 120) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, *args], capture_output=True, text=True, timeout=timeout, cwd=ROOT
+    )
+
+
+def test_a_second_run_into_a_directory_in_use_is_refused_naming_the_first(tmp_path):
+    """A run holds its directory (``.lock``, with its process id): another run started there is
+    refused with one line naming that process, exit 2, and writes nothing there."""
+    from irdrc.experiments.compose import compose
+    from irdrc.experiments.scaffold import Run
+
+    out = tmp_path / "run"
+    first = Run("solve", compose("solve", ["seed=1"]), out).open()
+    try:
+        before = (out / "config.yaml").read_text()
+        r = _run("recipes/solve.py", "seed=2", f"hydra.run.dir={out}")
+        assert r.returncode == 2, r.stderr
+        assert r.stderr.strip() == (
+            f"error: hydra.run.dir={out} is in use by process {os.getpid()} (python "
+            "recipes/solve.py): two runs would mix their files; wait for it to finish or choose "
+            "another hydra.run.dir"
+        )
+        assert (out / "config.yaml").read_text() == before and not (out / "policy.csv").exists()
+    finally:
+        first.close(refused=False)
+    r = _run("recipes/solve.py", "seed=2", "eval.mc_episodes=0", f"hydra.run.dir={out}")
+    assert r.returncode == 0, r.stderr  # once the first run is done, the directory is free
+
+
+@pytest.mark.parametrize("where", ["/proc/irdrc", "/etc/hostname/run"])
+def test_an_unwritable_run_directory_is_one_line(where):
+    r = _run("recipes/solve.py", f"hydra.run.dir={where}")
+    assert r.returncode == 2 and "Traceback" not in r.stderr and "HYDRA_FULL_ERROR" not in r.stderr
+    assert r.stderr.startswith(f"error: hydra.run.dir={where}: cannot create the run directory")
+
+
+def test_a_solve_past_its_time_limit_is_refused_with_its_estimate(tmp_path):
+    """A factored solve says its size and estimate first; past ``max_minutes`` it is refused,
+    before any sweep, naming the key that allows it."""
+    out = tmp_path / "run"
+    r = _run("recipes/solve.py", "env=large", "max_minutes=0.001", f"hydra.run.dir={out}")
+    assert r.returncode == 2, r.stderr
+    assert r.stdout.startswith("scenario=large: S = 100,800 states, factored value iteration;")
+    assert "estimate here" in r.stdout and "value iteration:" not in r.stdout
+    assert "above max_minutes=0.001; raise max_minutes to solve it anyway" in r.stderr
+    assert not out.exists()
+
+
+@pytest.mark.e2e
+def test_ctrl_c_in_a_long_solve_is_one_line(tmp_path):
+    """SIGINT while a 10⁶-state solve runs: its estimate and progress were shown, the answer is
+    one line, exit 130."""
+    import signal
+    import time
+
+    out = tmp_path / "run"
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "recipes/solve.py",
+            "env=large",
+            "env.queue_capacity=6944",
+            f"hydra.run.dir={out}",
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=ROOT,
+    )
+    time.sleep(15)  # the estimate, then sweeps with a progress line every 5 s
+    proc.send_signal(signal.SIGINT)
+    stdout, stderr = proc.communicate(timeout=60)
+    assert proc.returncode == 130, stderr
+    assert "estimate here" in stdout and "[solve] value iteration: sweep" in stdout
+    assert "Traceback" not in stderr
+    assert (
+        stderr.strip().startswith("error: interrupted (Ctrl-C)") and len(stderr.splitlines()) == 1
+    )

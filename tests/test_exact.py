@@ -8,18 +8,20 @@ import pytest
 import torch
 from conftest import assert_chi2
 
-from irdrc import DFRCEnv, Params, policies
+from irdrc import DFRCEnv, Params
+from irdrc.core import policies
 from irdrc.core.evaluate import evaluate
-from irdrc.core.metrics import METRIC_NAMES
-from irdrc.core.model import ExactModel, build_model
-from irdrc.core.solve import (
+from irdrc.core.exact import (
+    DenseModel,
     as_schedule,
+    build_model,
     episodic_metrics,
     policy_evaluation,
     stationary_distribution,
     stationary_metrics,
     value_iteration,
 )
+from irdrc.core.metrics import METRIC_NAMES
 
 SCENARIOS = {
     "paper": {},
@@ -33,9 +35,10 @@ def paper():
     return build_model(Params())
 
 
-def tiny_model(P, R) -> ExactModel:
+def tiny_model(P, R) -> DenseModel:
     z = torch.zeros(P.shape[-1], dtype=torch.float64)
-    return ExactModel(Params(), P, R, z, 0 * R, 0 * R, 0 * R, z)
+    radar = torch.tensor([0.0, 1.0], dtype=torch.float64)
+    return DenseModel(Params(), P, R, z, 0 * R, 0 * R, 0 * R, 0 * R, 0 * R, z, radar)
 
 
 def test_value_iteration_on_hand_solved_mdp():
@@ -46,7 +49,7 @@ def test_value_iteration_on_hand_solved_mdp():
     sol = value_iteration(tiny_model(P, R), gamma=0.9)
     assert sol.policy.tolist() == [1, 0]
     assert torch.allclose(sol.values, torch.tensor([18.0, 20.0], dtype=torch.float64), atol=1e-9)
-    with pytest.raises(RuntimeError, match="did not converge"):
+    with pytest.raises(RuntimeError, match="did not reach tol"):
         value_iteration(tiny_model(P, R), gamma=0.9, max_iter=3)
     with pytest.raises(ValueError, match="gamma"):
         value_iteration(tiny_model(P, R), gamma=1.0)

@@ -1,4 +1,4 @@
-"""The factored exact operator (irdrc.core.factored) against the dense model, and at scale."""
+"""The factored exact operator (irdrc.core.exact.factored) against the dense model, and at scale."""
 
 from __future__ import annotations
 
@@ -7,17 +7,11 @@ import sys
 
 import pytest
 import torch
-from conftest import assert_factored_equals_dense
+from conftest import assert_factored_equals_dense, metrics_at, scenario
 
-from irdrc.core.factored import (
-    build_factored,
-    stationary_metrics_factored,
-    value_iteration_factored,
-)
-from irdrc.core.model import DENSE_MAX_STATES, build_model
+from irdrc.core.exact import build_factored, build_model, stationary_metrics, value_iteration
+from irdrc.core.exact.dense import DENSE_MAX_STATES
 from irdrc.core.params import Params
-from irdrc.core.solve import stationary_metrics, value_iteration
-from irdrc.experiments.config import compose
 from tests.test_constrained_recipe import ROOT
 
 
@@ -58,9 +52,9 @@ def test_deep_queue_is_solved_without_the_dense_matrix():
     optimal average reward is the D = 10 one; solved in seconds (the dense matrix would be 160 GB)."""
     deep = build_factored(Params.from_overrides({"env.queue_capacity": 3124}))
     assert deep.num_states == 100_000
-    sol = value_iteration_factored(deep, tol=1e-6)
+    sol = value_iteration(deep, tol=1e-6)
     small = stationary_metrics(build_model(Params()), value_iteration(build_model(Params())).policy)
-    got = stationary_metrics_factored(deep, sol.policy)
+    got = stationary_metrics(deep, sol.policy)
     assert got.avg_reward == pytest.approx(small.avg_reward, abs=1e-9)
     with pytest.raises(ValueError, match="factored"):
         build_model(Params.from_overrides({"env.queue_capacity": DENSE_MAX_STATES // 32}))
@@ -81,7 +75,7 @@ def test_solve_recipe_switches_to_the_factored_operator(tmp_path):
         cwd=ROOT,
     )
     assert res.returncode == 0, res.stderr
-    assert "S = 10080 states, factored value iteration" in res.stdout
+    assert "S = 10,080 states, factored value iteration" in res.stdout
     assert "C×" in res.stdout or "R×" in res.stdout or "radar" in res.stdout
     import json
 
@@ -130,16 +124,15 @@ def test_scale_benchmark_table(tmp_path):
 def test_factored_scorer_scores_as_the_dense_one(monkeypatch):
     """exact_scorer switches to the factored model above the dense limit (forced low here), and
     the factored scorer's optimum and its ratios of arbitrary tables are the dense scorer's."""
-    import irdrc.core.model as model_mod
-    from irdrc.core.factored import FactoredScorer, exact_scorer
-    from irdrc.core.solve import ExactScorer
+    import irdrc.core.exact.dense as dense_mod
+    from irdrc.core.exact import DenseModel, FactoredModel, exact_scorer
 
     params = random_params(3)
     dense = exact_scorer(params)
-    assert type(dense) is ExactScorer
-    monkeypatch.setattr(model_mod, "DENSE_MODEL_LIMIT_BYTES", 16 * params.env.num_states**2 - 1)
+    assert isinstance(dense.model, DenseModel)
+    monkeypatch.setattr(dense_mod, "DENSE_MODEL_LIMIT_BYTES", 16 * params.env.num_states**2 - 1)
     fac = exact_scorer(params)
-    assert isinstance(fac, FactoredScorer)
+    assert isinstance(fac.model, FactoredModel)
     assert torch.equal(fac.optimal.policy, dense.optimal.policy)
     assert fac.optimal_metrics.avg_reward == pytest.approx(dense.optimal_metrics.avg_reward, 1e-9)
     g = torch.Generator().manual_seed(0)
@@ -152,16 +145,16 @@ def test_auto_hands_a_slow_chain_to_aggregation(monkeypatch):
     """A sticky, bursty, deep-queue chain (large's dynamics, D = 5, S = 864): ``auto`` after a
     few power steps (forced to 5) finishes by aggregation-disaggregation, to the dense model's
     metrics; ``iad`` alone and ``power`` alone agree."""
-    import irdrc.core.factored as fmod
+    import irdrc.core.exact.stationary as fmod
 
-    params = Params.from_config(compose("solve", ["env=large", "env.queue_capacity=5"]))
+    params = scenario("env=large", "env.queue_capacity=5")
     dense, fac = build_model(params), build_factored(params)
     policy = value_iteration(dense).policy
     want = stationary_metrics(dense, policy)
     monkeypatch.setattr(fmod, "AUTO_POWER_STEPS", 5)
     for method in ("auto", "iad", "power"):
         mu, steps = fmod.stationary_distribution_factored(fac, policy, method=method)
-        got = stationary_metrics_factored(fac, policy, mu=mu)
+        got = metrics_at(fac, policy, mu)
         assert got.avg_reward == pytest.approx(want.avg_reward, abs=1e-9), method
         assert got.mean_queue == pytest.approx(want.mean_queue, abs=1e-8), method
         if method == "auto":
@@ -172,14 +165,14 @@ def test_aggregation_where_the_queue_never_empties():
     """Radar always on large's dynamics: the queue fills and stays full, so short queues are
     transient. The aggregated solve fixes the scale at the queue length holding the most mass (a
     recurrent one, not d = 0) and gives the dense model's metrics."""
-    import irdrc.core.factored as fmod
+    import irdrc.core.exact.stationary as fmod
 
-    params = Params.from_config(compose("solve", ["env=large", "env.queue_capacity=5"]))
+    params = scenario("env=large", "env.queue_capacity=5")
     dense, fac = build_model(params), build_factored(params)
     policy = torch.ones(dense.num_states, dtype=torch.int64)
     want = stationary_metrics(dense, policy)
     mu, _ = fmod.stationary_distribution_factored(fac, policy, method="iad")
-    got = stationary_metrics_factored(fac, policy, mu=mu)
+    got = metrics_at(fac, policy, mu)
     assert want.mean_queue == pytest.approx(5.0, abs=1e-9)  # full for good
     assert got.mean_queue == pytest.approx(want.mean_queue, abs=1e-9)
     assert got.avg_reward == pytest.approx(want.avg_reward, abs=1e-9)
@@ -212,3 +205,39 @@ def test_growth_exponent_of_the_scale_table():
     assert 1.5 < g["k_fit"] < 3.0
     three = growth_exponents(rows[:3])[0]
     assert three["k_fit"] == pytest.approx(1.5) and three["k_last"] == pytest.approx(1.5)
+
+
+def test_banded_stationary_is_exact_across_hundreds_of_orders_of_magnitude():
+    """``banded_stationary`` (GTH on the aggregated queue): a random banded chain's stationary
+    distribution as the dense solve gives it; a queue that climbs (up 0.9, down 0.1: π_d ∝ 9^d,
+    700 orders of magnitude over 740 states) without overflow, to the closed form; and a chain whose
+    lower states cannot be reached from the top (their mass is 0)."""
+    import numpy as np
+
+    from irdrc.core.exact.stationary import banded_stationary
+
+    rng = np.random.default_rng(0)
+    n = 60
+    P = np.zeros((n, n))
+    for i in range(n):
+        for o in range(-3, 6):
+            P[i, min(max(i + o, 0), n - 1)] += rng.random()
+    P /= P.sum(1, keepdims=True)
+    src, dst = np.nonzero(P)
+    pi = banded_stationary(src, dst, P[src, dst], n)
+    A = np.vstack([P.T - np.eye(n), np.ones(n)])
+    ref = np.linalg.lstsq(A, np.r_[np.zeros(n), 1.0], rcond=None)[0]
+    assert np.abs(pi - ref).max() < 1e-12
+    n = 740
+    src = np.r_[np.arange(n), np.arange(n)]
+    dst = np.r_[np.minimum(np.arange(n) + 1, n - 1), np.maximum(np.arange(n) - 1, 0)]
+    vals = np.r_[np.full(n, 0.9), np.full(n, 0.1)]
+    pi = banded_stationary(src, dst, vals, n)
+    assert np.isfinite(pi).all() and pi[-1] == pytest.approx(8 / 9, rel=1e-12)
+    assert pi[-2] == pytest.approx(pi[-1] / 9, rel=1e-12)  # detailed balance: 0.9·π_d = 0.1·π_d+1
+    assert pi[0] == 0.0  # 9^-739 of the top: below the smallest double, as it should be
+    # only up: from the top nothing below is reached again, so everything ends there
+    src = np.arange(n)
+    dst = np.minimum(np.arange(n) + 1, n - 1)
+    pi = banded_stationary(src, dst, np.ones(n), n)
+    assert pi[-1] == 1.0 and pi[:-1].sum() == 0.0

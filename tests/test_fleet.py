@@ -6,17 +6,12 @@ from __future__ import annotations
 import pytest
 import torch
 
+from irdrc.core.exact import stationary_metrics, value_iteration
 from irdrc.core.params import Params
-from irdrc.core.solve import stationary_metrics, value_iteration
-from irdrc.fleet.exact import (
-    FleetModel,
-    FleetSpec,
-    baselines,
-    fleet_metrics,
-    grants,
-    joint_from_single,
-    value_iteration_fleet,
-)
+from irdrc.fleet.model import FleetModel
+from irdrc.fleet.policies import baselines, joint_from_single
+from irdrc.fleet.scorer import FleetScorer, fleet_metrics
+from irdrc.fleet.spec import FleetSpec, grants
 
 
 @pytest.fixture(scope="module")
@@ -31,7 +26,7 @@ def test_one_vehicle_is_todays_model(one):
     for a in (0, 1):
         R = one.reward(a).reshape(one.RW, one.X)
         assert torch.equal(R, single.R[a][one.index])
-    sol = value_iteration_fleet(one)
+    sol = value_iteration(one)
     ref = value_iteration(single)
     assert torch.equal(sol.policy.reshape(one.RW, one.X), ref.policy[one.index])
     # the fleet's values are value iteration's (within tol·γ/(1 − γ)); the reference's are exact
@@ -69,7 +64,7 @@ def test_cooperative_perception_and_denial_rewards_by_hand():
     P_d = 1. Event probability e; granted: (1 − e)·r_comm + e·(0.5·r_comm − 0.5·r3); denied: the
     comm reward is lost, the penalty stays; in radar: e·r4·(b + 1)."""
     m = FleetModel(FleetSpec(vehicles=2, share=0.5))
-    t = m.tables[0]
+    t = m.kernels[0]
     e, rc = t.event, t.r_comm
     granted = m.vehicle_terms(0, 0, others_radar=1, granted=True)
     assert torch.allclose(granted["reward"], (1 - e) * rc + e * (0.5 * rc - 0.5 * 50.0))
@@ -97,7 +92,7 @@ def test_independent_vehicles_add_up():
     assert got.throughput == pytest.approx(2 * want.throughput, abs=1e-10)
     assert got.miss_detection == pytest.approx(want.miss_detection, abs=1e-10)
     assert per[0]["avg_reward"] == pytest.approx(per[1]["avg_reward"], abs=1e-10)
-    best, _ = fleet_metrics(m, value_iteration_fleet(m).policy)
+    best, _ = fleet_metrics(m, value_iteration(m).policy)
     assert best.avg_reward == pytest.approx(got.avg_reward, abs=1e-7)
 
 
@@ -106,7 +101,7 @@ def test_different_independent_vehicles_add_up():
     no sharing, do not interact: each vehicle's row is its own single-vehicle optimum's exact
     metrics, the fleet's reward their sum, and the centralised optimum no better than each
     vehicle's own optimum (``single_optima``)."""
-    from irdrc.fleet.exact import single_optima
+    from irdrc.fleet.policies import single_optima
 
     a = Params.from_overrides({"env.p1.speed": 0.1})
     b = Params.from_overrides({"env.p1.speed": 1.0, "reward.r4": 50.0})
@@ -114,12 +109,12 @@ def test_different_independent_vehicles_add_up():
     tables = single_optima(m)
     assert not torch.equal(tables[0], tables[1])  # r4 = 50 changes the single optimum
     want = [
-        stationary_metrics(t.single, value_iteration(t.single).policy).avg_reward for t in m.tables
+        stationary_metrics(t.single, value_iteration(t.single).policy).avg_reward for t in m.kernels
     ]
     got, per = fleet_metrics(m, baselines(m, tables)["N copies of the single optimum"])
     assert [r["avg_reward"] for r in per[:2]] == pytest.approx(want, abs=1e-10)
     assert got.avg_reward == pytest.approx(sum(want), abs=1e-10)
-    best, _ = fleet_metrics(m, value_iteration_fleet(m).policy)
+    best, _ = fleet_metrics(m, value_iteration(m).policy)
     assert best.avg_reward == pytest.approx(got.avg_reward, abs=1e-7)
     with pytest.raises(ValueError, match="per-vehicle models"):
         FleetSpec(vehicles=3, per_vehicle=(a, b))
@@ -140,7 +135,7 @@ def test_collisions_deny_everyone_and_the_optimum_cooperates():
     sched = FleetModel(FleetSpec(vehicles=2, channels=1))
     _, per = fleet_metrics(sched, both_comm)
     assert per[-1]["denial_rate"] == pytest.approx(0.5, abs=1e-12)
-    opt, _ = fleet_metrics(sched, value_iteration_fleet(sched).policy)
+    opt, _ = fleet_metrics(sched, value_iteration(sched).policy)
     copies, _ = fleet_metrics(sched, joint_from_single(sched, value_iteration(sched.single).policy))
     assert opt.avg_reward > copies.avg_reward
 
@@ -174,7 +169,7 @@ def test_bad_fleets_are_refused():
     three = FleetModel(FleetSpec(vehicles=3))  # the simulator's tables exist at any N …
     assert not three.exact
     with pytest.raises(ValueError, match="joint states"):  # … the exact solver stops at 2·10⁶
-        value_iteration_fleet(three)
+        value_iteration(three)
     with pytest.raises(ValueError, match="joint states"):
         fleet_metrics(three, torch.zeros(1, dtype=torch.int64))
 
@@ -288,11 +283,12 @@ def test_fleet_env_specs_seeding_and_misuse():
 def test_fleet_rows_and_independent_dqn_with_parameter_sharing():
     """``FleetRowsEnv`` gives each vehicle a row with the fleet's team reward (both rows of a fleet
     get the same sum); ``FleetScorer`` scores a shared single-vehicle table as N copies of it on
-    the fleet; ``fleet_dqn.train`` runs DQN's learner on the rows and records exact fleet ratios."""
+    the fleet; ``marl.train_idqn`` runs DQN's learner on the rows and records exact fleet ratios."""
     from torchrl.envs.utils import check_env_specs
 
-    from irdrc.agents import dqn, fleet_dqn
-    from irdrc.fleet.env import FleetRowsEnv
+    from irdrc.agents import marl
+    from irdrc.agents.configs import FleetLearnerConfig
+    from irdrc.fleet.views import FleetRowsEnv
 
     model = FleetModel(FleetSpec(vehicles=2))
     env = FleetRowsEnv(model, fleets=3, seed=0)
@@ -300,17 +296,17 @@ def test_fleet_rows_and_independent_dqn_with_parameter_sharing():
     td = env.rollout(4)
     r = td["next", "reward"]  # [rows, steps, 1]: rows 2b and 2b + 1 are fleet b
     assert torch.equal(r[0::2], r[1::2])
-    scorer = fleet_dqn.FleetScorer(model)
+    scorer = FleetScorer(model)
     single = value_iteration(model.single).policy
     copies, _ = fleet_metrics(model, joint_from_single(model, single))
     assert scorer.metrics(single).avg_reward == pytest.approx(copies.avg_reward, abs=1e-12)
     assert scorer.optimal_metrics.avg_reward > copies.avg_reward
-    cfg = dqn.DQNConfig(num_envs=64, frames_per_batch=128, total_frames=2048, batch_size=64)
-    rec = fleet_dqn.train(model.spec, cfg, seed=0, scorer=scorer, eval_every_frames=1024)
-    assert [h["env_steps"] for h in rec.history] == [0, 1024, 2048]
+    cfg = FleetLearnerConfig.from_sections(
+        "idqn", {"num_envs": 32, "frames_per_batch": 64, "total_frames": 1024, "batch_size": 64}
+    )
+    rec = marl.train(model, cfg, seed=0, scorer=scorer, eval_every_frames=512)
+    assert [h["env_steps"] for h in rec.history] == [0, 512, 1024]  # fleet steps
     assert all(-5 < h["optimality_ratio"] <= 1 + 1e-9 for h in rec.history)
-    with pytest.raises(ValueError, match="multiple of the 2 vehicles"):
-        fleet_dqn.train(model.spec, dqn.DQNConfig(num_envs=63, frames_per_batch=126), scorer=scorer)
 
 
 def test_agent_index_gives_each_vehicle_its_own_table():
@@ -318,8 +314,7 @@ def test_agent_index_gives_each_vehicle_its_own_table():
     has a row per (vehicle, state), and ``FleetScorer`` reads a [N·S] greedy table as vehicle i's
     own table: vehicle 1 radar always and vehicle 2 the single optimum scores as that joint
     policy."""
-    from irdrc.agents import fleet_dqn
-    from irdrc.fleet.env import FleetRowsEnv
+    from irdrc.fleet.views import FleetRowsEnv
 
     model = FleetModel(FleetSpec(vehicles=2))
     S = model.single.num_states
@@ -331,5 +326,5 @@ def test_agent_index_gives_each_vehicle_its_own_table():
     tables = torch.cat([torch.ones(S, dtype=torch.int64), single])
     joint = joint_from_single(model, single) | 1  # vehicle 1's bit set: radar
     want, _ = fleet_metrics(model, joint)
-    got = fleet_dqn.FleetScorer(model).metrics(tables)
+    got = FleetScorer(model).metrics(tables)
     assert got.avg_reward == pytest.approx(want.avg_reward, abs=1e-12)

@@ -11,8 +11,12 @@ from pathlib import Path
 import pytest
 import torch
 
-from irdrc.core.solve import value_iteration
-from irdrc.fleet.exact import FleetModel, FleetSpec, baselines, fleet_metrics
+from irdrc.agents.configs import FleetLearnerConfig
+from irdrc.core.exact import value_iteration
+from irdrc.fleet.model import FleetModel
+from irdrc.fleet.policies import baselines
+from irdrc.fleet.scorer import fleet_metrics
+from irdrc.fleet.spec import FleetSpec
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -88,7 +92,7 @@ def test_joint_env_bits_and_team_reward(two):
     one row per joint state."""
     from torchrl.envs.utils import check_env_specs
 
-    from irdrc.fleet.env import FleetJointEnv
+    from irdrc.fleet.views import FleetJointEnv
 
     env = FleetJointEnv(two, fleets=8, seed=0)
     check_env_specs(env)
@@ -111,44 +115,42 @@ def test_value_decomposition_trains_and_refuses_what_it_cannot_do(two):
     against the centralised optimum, with own and fleet observations; the greedy policy is per
     vehicle over the single-vehicle states (own) or a joint action per joint state (fleet);
     prioritised replay and double DQN are refused with the reason."""
-    from irdrc.agents import fleet_mix
-    from irdrc.agents.fleet_dqn import FleetScorer
+    from irdrc.agents import marl
+    from irdrc.fleet.scorer import FleetScorer
 
     scorer = FleetScorer(two)
     small = {"num_envs": 16, "frames_per_batch": 32, "total_frames": 256, "batch_size": 32}
     for mixer, observe, size in (("vdn", "own", 2 * 352), ("qmix", "full", two.num_states)):
-        cfg = fleet_mix.MixConfig(mixer=mixer, **small)
-        rec = fleet_mix.train(
-            two, cfg, seed=0, scorer=scorer, eval_every_frames=128, observe=observe
-        )
+        cfg = FleetLearnerConfig.from_sections(mixer, small)
+        rec = marl.train(two, cfg, seed=0, scorer=scorer, eval_every_frames=128, observe=observe)
         assert [h["env_steps"] for h in rec.history] == [0, 128, 256]
         assert rec.greedy.shape == (1, size)
         assert all(h["optimality_ratio"] <= 1 + 1e-9 for h in rec.history)
     with pytest.raises(ValueError, match="importance"):
-        fleet_mix.MixConfig(prioritized=True)
+        FleetLearnerConfig.from_sections("vdn", {"prioritized": True})
     with pytest.raises(ValueError, match="double_dqn"):
-        fleet_mix.MixConfig(double_dqn=True)
-    with pytest.raises(ValueError, match=r"algo\.mixer"):
-        fleet_mix.MixConfig(mixer="sum")
+        FleetLearnerConfig.from_sections("qmix", {"double_dqn": True})
+    with pytest.raises(ValueError, match=r"learner='sum'"):
+        FleetLearnerConfig.from_sections("sum", {})
 
 
 def test_value_decomposition_sums_the_vehicles_values():
     """``VDNMixer`` through ``QMixerLoss``: the fleet's value of a transition is the sum of the
     vehicles' chosen action values, and the loss is (r + γ Σ max_a Q′ − Σ Q)² with the target
     network's maxima (set equal to the online network's at the start)."""
-    from irdrc.agents import fleet_mix
+    from irdrc.agents import marl
     from irdrc.fleet.env import FleetEnv
 
     env = FleetEnv(FleetSpec(vehicles=2), batch_size=4, seed=0)
-    cfg = fleet_mix.MixConfig(num_envs=4, frames_per_batch=4)
-    qnet = fleet_mix.make_agent_qnet(env, cfg)
-    loss = fleet_mix.make_loss(qnet, fleet_mix.make_mixer(env, cfg), cfg)
-    td = fleet_mix.team_reward(env.rand_step(env.reset()))
+    cfg = FleetLearnerConfig.from_sections("vdn", {"num_envs": 4, "frames_per_batch": 4})
+    qnet = marl.make_agent_qnet(env, cfg)
+    loss, _ = marl.make_loss(qnet, marl.make_mixer(env, cfg), cfg.dqn)
+    td = marl.team_reward(env.rand_step(env.reset()))
     with torch.no_grad():
         now = qnet(td.clone())["agents", "action_value"]
         nxt = qnet(td["next"].clone())["agents", "action_value"]
     chosen = now.gather(-1, td["agents", "action"].unsqueeze(-1)).sum((-2, -1))
-    target = td["next", "reward"].reshape(-1) + cfg.gamma * nxt.max(-1).values.sum(-1)
+    target = td["next", "reward"].reshape(-1) + cfg.dqn.gamma * nxt.max(-1).values.sum(-1)
     want = ((target - chosen) ** 2).mean()
     got = loss(td)["loss"].detach()
     assert float(got) == pytest.approx(float(want), rel=1e-5)
@@ -299,16 +301,13 @@ def test_joint_learner_reaches_the_centralised_optimum(seed, two):
     """The joint learner (DQN over the joint actions on every vehicle's state, executed by each
     vehicle alike) ends ≥ 0.95 of the exact centralised optimum at N = 2 (K = 1, share 0.5) on
     seeds no tuning used, in 300 000 fleet steps."""
-    from irdrc.agents import fleet_learners
-    from irdrc.agents.fleet_dqn import FleetScorer
-    from irdrc.agents.offpolicy import NetworkConfig
+    from irdrc.agents import marl
+    from irdrc.fleet.scorer import FleetScorer
 
-    cfg = fleet_learners.config(
-        "joint", {"total_frames": 300_000, "num_envs": 500, "frames_per_batch": 1000}, {}
+    cfg = FleetLearnerConfig.from_sections(
+        "joint", {"total_frames": 300_000, "num_envs": 500, "frames_per_batch": 1000}
     )
-    assert isinstance(cfg.network, NetworkConfig)
-    rec = fleet_learners.train(
-        "joint",
+    rec = marl.train(
         two,
         cfg,
         observe="full",

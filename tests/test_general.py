@@ -17,13 +17,9 @@ import torch
 from conftest import assert_chi2, assert_factored_equals_dense, one_step
 
 from irdrc import Params
-from irdrc.core.env import decode_state, state_index
-from irdrc.core.factored import (
-    build_factored,
-)
+from irdrc.core.dynamics import decode_state, state_index
+from irdrc.core.exact import build_factored, build_model, stationary_metrics
 from irdrc.core.gym import DFRCGymEnv
-from irdrc.core.model import build_model
-from irdrc.core.solve import stationary_metrics
 
 SPEED3 = {
     "levels": ["low", "medium", "high"],
@@ -387,14 +383,15 @@ def test_solve_recipe_on_the_named_scenarios(tmp_path, args, states):
 
 
 def test_the_lp_on_sparse_factored_transitions_equals_the_dense_lp():
-    """MODEL.md § B.4: the CMDP LP's flow constraints built sparse from the factors give the dense
+    """MODEL.md § B.4: the CMDP LP's flow constraints built sparse from the factors
+    (``FactoredModel.sparse``) give the dense
     model's matrices (to rounding) and the same constrained optimum."""
-    from irdrc.core.cmdp import solve_cmdp, sparse_transitions
+    from irdrc.core.cmdp import solve_cmdp
 
     for p, sparse_enough in ((_random_params(0), False), (params_of("levels", queue=30), True)):
         dense, fac = build_model(p), build_factored(p)
         for a in (0, 1):
-            sp = sparse_transitions(fac, a)
+            sp = fac.sparse(a)
             assert sp.nnz <= int((dense.P[a] > 0).sum())  # arrivals past 1e-17 are folded in
             if sparse_enough:  # O(S · fan-out): arrivals kept × the factors' row support
                 fan_out = fac.pmf.shape[-1] * int((fac.F[a] > 0).sum(1).max())

@@ -10,8 +10,8 @@ from conftest import assert_chi2
 from gymnasium.utils.env_checker import check_env
 
 import irdrc  # noqa: F401 - registers irdrc/DFRC-v0
+from irdrc.core.exact import build_model
 from irdrc.core.gym import DFRCGymEnv
-from irdrc.core.model import build_model
 from irdrc.core.params import Params
 
 

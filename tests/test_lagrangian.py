@@ -9,13 +9,15 @@ import math
 
 import pytest
 import torch
-from omegaconf import OmegaConf
+from conftest import load
 from tensordict import TensorDict
+from torchrl.objectives import SoftUpdate
 
 from irdrc.agents import lagrangian as L
 from irdrc.agents import policy_search
 from irdrc.agents.base import Hooks
-from irdrc.agents.offpolicy import OffPolicyConfig
+from irdrc.agents.configs import LagrangianConfig, OffPolicyConfig
+from irdrc.agents.offpolicy import RewardCenter
 from irdrc.agents.policy_search import (
     SearchConfig,
     greedy_path,
@@ -26,10 +28,8 @@ from irdrc.agents.policy_search import (
 from irdrc.core.cmdp import solve_cmdp
 from irdrc.core.env import DFRCEnv
 from irdrc.core.evaluate import STATE_ACTION_SUMS, long_run
-from irdrc.core.model import build_model
+from irdrc.core.exact import build_model, stationary_metrics, stationary_occupancy
 from irdrc.core.params import Params
-from irdrc.core.solve import stationary_metrics, stationary_occupancy
-from tests.test_constrained_recipe import ROOT
 
 
 @pytest.fixture(scope="module")
@@ -38,9 +38,10 @@ def paper():
 
 
 def test_yaml_profile_equals_the_dataclass_defaults():
-    node = OmegaConf.load(ROOT / "recipes" / "conf" / "algo" / "dqn_lagrangian.yaml")
-    assert L.LagrangianConfig.from_dict(node) == L.LagrangianConfig()
-    assert L.LagrangianConfig().dqn.total_frames == 80_000
+    """The composed profile (DQN's YAML and the differences stated over it) is the code's."""
+    got = load("constrained", "learner=dqn_lagrangian").algo
+    assert got == LagrangianConfig() and got.name == "dqn_lagrangian"
+    assert LagrangianConfig().dqn.total_frames == 80_000
 
 
 @pytest.mark.parametrize(
@@ -59,14 +60,14 @@ def test_yaml_profile_equals_the_dataclass_defaults():
 )
 def test_bad_settings_named(key, value):
     with pytest.raises(ValueError, match=key):
-        L.LagrangianConfig.from_dict({key: value})
+        LagrangianConfig.from_sections({key: value})
 
 
 def test_bad_target_and_objective_named():
     with pytest.raises(ValueError, match="target_miss"):
-        L.LagrangianConfig(target_miss=1.5)
+        LagrangianConfig(target_miss=1.5)
     with pytest.raises(ValueError, match="objective"):
-        L.LagrangianConfig(objective="packets")
+        LagrangianConfig(objective="packets")
 
 
 def test_greedy_path_is_greedy_at_every_multiplier():
@@ -112,6 +113,7 @@ def test_loss_is_double_dqn_on_both_heads():
     heads = L.TwoHeads(torch.nn.Linear(3, 4))
     mu = torch.tensor(2.0)
     loss = L.LagrangianDQNLoss(heads, mu, gamma=0.9, objective_key="sent", target_miss=0.1)
+    SoftUpdate(loss, tau=0.01)  # the learner's target updater (the loss warns without one)
     with torch.no_grad():  # make the target network differ from the online one
         for p in loss.target_value_network_params.values(True, True):
             p.add_(0.3)
@@ -170,7 +172,7 @@ def test_final_policy_lands_on_the_target_by_measurement(paper):
     q = torch.zeros(paper.num_states, 2, 2, dtype=torch.float64)
     q[:, 0, 0] = 1.0
     q[:, 1, 0] = event * (11 - d) + 1e-6 * torch.arange(paper.num_states)  # distinct breakpoints
-    cfg = L.LagrangianConfig(
+    cfg = LagrangianConfig(
         target_miss=0.1,
         search=SearchConfig(measure_envs=64, measure_steps=1500, measure_burn_in=300, mix_steps=6),
     )
@@ -239,7 +241,7 @@ def test_ranking_recovers_what_misordered_heads_lose(paper, monkeypatch):
     randomisation's search."""
     monkeypatch.setattr(policy_search, "long_run", _exact_long_run(paper))
     q, bad = _misordered_heads(paper)
-    cfg = L.LagrangianConfig(target_miss=0.05)
+    cfg = LagrangianConfig(target_miss=0.05)
     breaks, _ = greedy_path(q)
     policy, facts = L.final_policy(q, Params(), breaks[len(breaks) // 2], cfg, seed=0)
     exact = stationary_metrics(paper, policy)
@@ -260,7 +262,7 @@ def test_ranking_loses_to_a_path_that_promises_more(paper, monkeypatch):
     q = _path_heads(paper)
     breaks, _ = greedy_path(q)
     mu = breaks[len(breaks) // 2]
-    cfg = L.LagrangianConfig(target_miss=0.1)
+    cfg = LagrangianConfig(target_miss=0.1)
     search = policy_search.FinalPolicySearch(q, Params(), mu, 0.1, "sent", cfg.search, 0)
     lo, hi, fresh, _ = search.path_search()
     want, _, _ = search.mix((lo, hi), fresh)
@@ -269,7 +271,7 @@ def test_ranking_loses_to_a_path_that_promises_more(paper, monkeypatch):
     policy, facts = L.final_policy(q, Params(), mu, cfg, 0)
     assert facts["ranked"] is False and facts["rank_promise"] == 0.0, facts
     assert torch.allclose(policy[:, 1], want, atol=1e-9, rtol=0)
-    cfg = L.LagrangianConfig(target_miss=0.1, objective="avg_reward")
+    cfg = LagrangianConfig(target_miss=0.1, objective="avg_reward")
     assert L.final_policy(q, Params(), mu, cfg, 0)[1]["ranked"] is None
 
 
@@ -314,7 +316,7 @@ def test_mix_lands_within_the_tolerance_of_the_target(paper, monkeypatch):
     monkeypatch.setattr(policy_search, "long_run", _exact_long_run(paper))
     q = _path_heads(paper)
     breaks, _ = greedy_path(q)
-    cfg = L.LagrangianConfig(target_miss=0.1).search
+    cfg = LagrangianConfig(target_miss=0.1).search
     search = policy_search.FinalPolicySearch(
         q, Params(), breaks[len(breaks) // 2], 0.1, "sent", cfg, 0
     )
@@ -385,7 +387,7 @@ def test_confirmation_undoes_a_search_measured_low(paper, monkeypatch, confirm):
         policy_search, "long_run", _exact_long_run(paper, low_seed=0 + 7919, low=5 / 6)
     )
     q = _path_heads(paper)
-    cfg = L.LagrangianConfig(target_miss=0.1, search=SearchConfig(mix_steps=12, confirm=confirm))
+    cfg = LagrangianConfig(target_miss=0.1, search=SearchConfig(mix_steps=12, confirm=confirm))
     breaks, _ = greedy_path(q)
     policy, facts = L.final_policy(q, Params(), breaks[len(breaks) // 2], cfg, seed=0)
     exact = stationary_metrics(paper, policy).miss_detection
@@ -399,7 +401,7 @@ def test_confirmation_undoes_a_search_measured_low(paper, monkeypatch, confirm):
 
 
 def test_dual_step_is_relative_and_bounded():
-    cfg = L.LagrangianConfig(target_miss=0.05, mu_lr=1.0, mu_min=1e-3, mu_max=1e3)
+    cfg = LagrangianConfig(target_miss=0.05, mu_lr=1.0, mu_min=1e-3, mu_max=1e3)
     assert L.dual_step(10.0, 0.05, 1000, cfg) == pytest.approx(10.0)
     assert L.dual_step(10.0, 1.0, 1000, cfg) == pytest.approx(10.0 * math.e)  # error clipped at 1
     assert L.dual_step(10.0, 0.0, 500, cfg) == pytest.approx(10.0 * math.exp(-0.5))
@@ -409,9 +411,13 @@ def test_dual_step_is_relative_and_bounded():
 
 
 def test_short_run_reports_mu_measured_miss_and_a_probability_policy():
-    cfg = L.LagrangianConfig(
+    cfg = LagrangianConfig(
         dqn=OffPolicyConfig(
-            num_envs=8, frames_per_batch=32, total_frames=1024, init_random_frames=256, name=L.NAME
+            num_envs=8,
+            frames_per_batch=32,
+            total_frames=1024,
+            init_random_frames=256,
+            name="dqn_lagrangian",
         ),
         search=SearchConfig(measure_envs=8, measure_steps=50, measure_burn_in=10, mix_steps=2),
     )
@@ -440,7 +446,7 @@ def test_meets_a_loose_target():
     model = build_model(params)
     lp = solve_cmdp(model, 0.15)
     for seed in (0, 1):
-        rec = L.train(params, L.LagrangianConfig(target_miss=0.15), seed=seed)
+        rec = L.train(params, LagrangianConfig(target_miss=0.15), seed=seed)
         m = stationary_metrics(model, rec.policy[0])
         assert m.miss_detection <= 0.16, (seed, m.miss_detection)
         assert m.throughput >= 0.95 * lp.value, (seed, m.throughput)
@@ -457,7 +463,7 @@ def test_meets_the_binding_target_on_unseen_seeds():
     model = build_model(params)
     lp = solve_cmdp(model, 0.05)
     for seed in (20, 21):
-        rec = L.train(params, L.LagrangianConfig(target_miss=0.05), seed=seed)
+        rec = L.train(params, LagrangianConfig(target_miss=0.05), seed=seed)
         m = stationary_metrics(model, rec.policy[0])
         assert m.miss_detection <= 0.06, (seed, m.miss_detection, rec.info)
         assert m.throughput >= 0.95 * lp.value, (seed, m.throughput / lp.value, rec.info)
@@ -467,10 +473,11 @@ def test_meets_the_binding_target_on_unseen_seeds():
 def test_objective_centering_shifts_the_objective_signal_only():
     params = Params()
     env = DFRCEnv(params, batch_size=[1])
-    heads, _, _ = L.make_network(env, L.LagrangianConfig())
+    heads, _, _ = L.make_network(env, LagrangianConfig())
     loss = L.LagrangianDQNLoss(
         heads, torch.tensor(1.0), gamma=0.99, objective_key="sent", target_miss=0.05
     )
+    SoftUpdate(loss, tau=0.01)
     td = TensorDict(
         {
             ("next", "sent"): torch.tensor([[3.0], [0.0]]),
@@ -481,7 +488,7 @@ def test_objective_centering_shifts_the_objective_signal_only():
     )
     plain = loss.signals(td)
     # the shared loop centres the objective's key in every sample (``OffPolicyLoop.center_key``)
-    center = L.RewardCenter(0.01, 0.99, value=0.75)
+    center = RewardCenter(0.01, value=0.75)
     centred = loss.signals(center.center(td.clone(), ("next", "sent")))
     assert torch.allclose(centred[:, 0], plain[:, 0] - 0.75)
     assert torch.equal(centred[:, 1], plain[:, 1])  # the cost signal is untouched
@@ -489,14 +496,14 @@ def test_objective_centering_shifts_the_objective_signal_only():
 
 def test_centering_runs_and_tracks_the_objective_mean(monkeypatch):
     seen = []
-    original = L.RewardCenter.update
+    original = RewardCenter.update
 
     def spy(self, reward):
         original(self, reward)
         seen.append(self.value)
 
-    monkeypatch.setattr(L.RewardCenter, "update", spy)
-    dqn = L.OffPolicyConfig(
+    monkeypatch.setattr(RewardCenter, "update", spy)
+    dqn = OffPolicyConfig(
         num_envs=8,
         frames_per_batch=32,
         total_frames=256,
@@ -504,9 +511,9 @@ def test_centering_runs_and_tracks_the_objective_mean(monkeypatch):
         buffer_size=256,
         batch_size=32,
         reward_centering=0.01,
-        name=L.NAME,
+        name="dqn_lagrangian",
     )
-    cfg = L.LagrangianConfig(
+    cfg = LagrangianConfig(
         dqn=dqn, search=SearchConfig(measure_envs=4, measure_steps=20, measure_burn_in=0)
     )
     L.train(Params(), cfg, seed=0, eval_every_frames=128)

@@ -7,15 +7,16 @@ from dataclasses import asdict, replace
 
 import pytest
 import torch
-from omegaconf import OmegaConf
+from conftest import load
 
-from irdrc import DFRCEnv, Params, policies
+from irdrc import DFRCEnv, Params
 from irdrc.agents.base import PROGRESS_FIELDS
-from irdrc.agents.qlearning import DEFAULT, PAPER, QLearningConfig, train
+from irdrc.agents.configs import QLearningConfig
+from irdrc.agents.qlearning import DEFAULT, PAPER, train
+from irdrc.core import policies
 from irdrc.core.evaluate import evaluate, ratio_ci
-from irdrc.core.model import build_model
-from irdrc.core.solve import ExactScorer
-from irdrc.experiments.config import CONF_DIR
+from irdrc.core.exact import Scorer as ExactScorer
+from irdrc.core.exact import build_model
 
 
 def test_round_robin_alternates_from_each_reset():
@@ -76,8 +77,9 @@ def test_config_validation():
 
 @pytest.mark.parametrize(("name", "profile"), [("qlearning", DEFAULT), ("qlearning_paper", PAPER)])
 def test_yaml_profiles_match_code(name, profile):
-    node = OmegaConf.to_container(OmegaConf.load(CONF_DIR / "algo" / f"{name}.yaml"))["algo"]
-    assert QLearningConfig.from_dict(node) == profile, asdict(profile)
+    """The composed profile (Hydra defaults included) is the code's."""
+    got = load("qlearning", f"algo={name}").algo
+    assert got == profile and got.name == profile.name, asdict(profile)
 
 
 def test_learners_are_independent_and_reproducible():

@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-from irdrc.experiments.finish import end_warning
 from irdrc.experiments.progress import RunProgress
+from irdrc.experiments.report import end_warning
 
 
 def _eval(steps: int, ratio: float) -> list[dict]:

@@ -16,9 +16,10 @@ import pytest
 
 from irdrc import Params
 from irdrc.core.metrics import first_reaching
+from irdrc.experiments.frontier import optimal_at
 from irdrc.paper import claims as cl
 from irdrc.paper.figures import band_rows, mean_ci, moving_average, t975
-from irdrc.paper.tradeoff import optimal_at, smallest_r4
+from irdrc.paper.tradeoff import smallest_r4
 
 ROOT = Path(__file__).resolve().parents[1]
 P = [0.1, 0.4, 0.7, 1.0]
@@ -258,17 +259,16 @@ def test_figure2_end_to_end_tiny_local(tiny_figure):
     ("override", "msg"),
     [
         ("seeds=[0,0]", "seeds"),
-        ("p1_speed=[0.1,1.5]", "p1_speed value 1.5"),
-        ("methods=[dqn,sarsa]", "'sarsa' is not in learners"),
+        ("p1_speed=[0.1,1.5]", "p1_speed[1]=1.5"),
+        ("methods=[dqn,sarsa]", "methods[1]='sarsa'"),
         ("learners.dqn.panels=[e]", "learners.dqn.panels"),
     ],
 )
 def test_figure2_rejects_bad_settings(override, msg):
-    from irdrc.experiments.config import compose
-    from irdrc.paper.figure2 import validate_figure2
+    from conftest import load
 
     with pytest.raises(ValueError, match=re.escape(msg)):
-        validate_figure2(compose("figure2", [override, "executor=local"]))
+        load("figure2", override, "executor=local")
 
 
 def _unshare_works() -> bool:

@@ -8,33 +8,24 @@ import json
 
 import pytest
 import torch
-from omegaconf import OmegaConf
+from conftest import run_recipe, scenario
 
-from irdrc.core.model import build_model
-from irdrc.core.params import Params
-from irdrc.core.solve import ExactScorer
-from irdrc.experiments.config import compose
-from irdrc.experiments.study import TimedScorer, check_study, run_study
+from irdrc.core.exact import Scorer as ExactScorer
+from irdrc.core.exact import build_model
+from irdrc.experiments.study import Config, TimedScorer
 
-
-def study_cfg(**kw):
-    cfg = compose("study", [])
-    OmegaConf.set_struct(cfg, False)  # a key the command line would refuse reaches the check
-    base = {
-        "scenarios": ["paper"],
-        "seeds": [0, 1],
-        "evals": {"default": 2},
-        "overrides": {
-            "dqn": ["algo.num_envs=8", "algo.frames_per_batch=32", "algo.total_frames=640"],
-            "qlearning": ["algo.episodes=2"],
-        },
-    }
-    base.update(kw)
-    return OmegaConf.merge(cfg, base)
+SMALL = [
+    "scenarios=[paper]",
+    "seeds=[0,1]",
+    "evals={default:2}",
+    "overrides={dqn:['algo.num_envs=8','algo.frames_per_batch=32','algo.total_frames=640'],"
+    "qlearning:['algo.episodes=2']}",
+]
+"""A study of a few seconds: both learners, two seeds, the paper scenario, tiny budgets."""
 
 
 def test_study_rows_and_table(tmp_path):
-    assert run_study(study_cfg(), tmp_path) == 0
+    assert run_recipe("study", tmp_path, *SMALL) == 0
     rows = list(csv.DictReader((tmp_path / "study.csv").open()))
     assert [(r["learner"], r["seed"]) for r in rows] == [
         ("dqn", "0"),
@@ -60,11 +51,11 @@ def test_study_rows_and_table(tmp_path):
     assert len(table) == 2 + 2 + 2 and table[2].startswith("| paper (352) | dqn | 640 |")
     assert table[-1].startswith("Measured on ")  # where and when, once under the table
     summary = json.loads((tmp_path / "summary.json").read_text())
-    assert summary["scenarios"]["paper"]["solver"] == "ExactScorer"
+    assert summary["scenarios"]["paper"]["solver"] == "DenseModel"
 
 
 def test_timed_scorer_counts_every_call():
-    scorer = ExactScorer(build_model(Params.from_config(compose("solve", []))))
+    scorer = ExactScorer(build_model(scenario()))
     timed = TimedScorer(scorer)
     table = scorer.optimal.policy
     assert timed.metrics(table).avg_reward == scorer.optimal_metrics.avg_reward
@@ -86,4 +77,4 @@ def test_timed_scorer_counts_every_call():
 )
 def test_bad_studies_refused(kw, match):
     with pytest.raises(ValueError, match=match):
-        check_study(study_cfg(**kw))
+        Config(**kw)

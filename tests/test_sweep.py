@@ -11,6 +11,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from conftest import load
 
 from irdrc.experiments.grid import format_value, parse_grid, point_id, point_overrides, scenario_of
 
@@ -102,14 +103,8 @@ def test_parse_grid_rejects(grid, match):
 def test_bad_grid_is_refused_before_ray_starts(overrides, msg):
     """The checks a sweep runs before starting Ray (the command line runs the same, see
     tests/test_errors.py for the one-line answer)."""
-    from irdrc.experiments.config import compose
-    from irdrc.experiments.sweep import run_sweep
-    from irdrc.experiments.validate import validate
-
-    cfg = compose("sweep", overrides)
     with pytest.raises(ValueError, match=msg):
-        validate("sweep", cfg)
-        run_sweep(cfg, Path("/nonexistent"))  # plans (composes every point) before any trial
+        load("sweep", *overrides)  # plans (composes and checks every point) before any trial
 
 
 TINY_DQN = "sweep.base=['algo.num_envs=8','algo.frames_per_batch=32','algo.total_frames=640','algo.init_random_frames=128','algo.buffer_size=640','algo.batch_size=32','eval.every_frames=320','eval.mc_episodes=0']"
@@ -260,14 +255,14 @@ def test_constrained_method_sweeps_targets(tmp_path):
 
 
 def test_point_ids_separate_methods_and_bases():
-    from irdrc.experiments.sweep import plan
+    from irdrc.experiments.trials import plan
 
     a = plan("solve", [{"seed": 0}], ["mc_episodes=0"])
     b = plan("solve", [{"seed": 0}], ["mc_episodes=0", "reward.r4=50"])
     c = plan("qlearning", [{"seed": 0}], ["mc_episodes=0"])
     ids = {x[0]["point_id"] for x in (a, b, c)}
     assert len(ids) == 3 and all(i.startswith("seed=0__") for i in ids)
-    assert b[0]["cfg"]["reward"]["r4"] == 50 and c[0]["cfg"]["algo"]["name"] == "qlearning"
+    assert b[0]["config"].model.reward.r4 == 50 and c[0]["config"].algo.name == "qlearning"
 
 
 def _sweep_popen(tmp_path: Path, *overrides: str) -> subprocess.Popen:
@@ -321,7 +316,7 @@ def test_driver_killed_mid_sweep_keeps_finished_trials_and_resume_runs_the_rest(
     _wait_for_done(tmp_path, proc, 1)
     os.killpg(proc.pid, signal.SIGKILL)
     proc.communicate(timeout=60)
-    from irdrc.experiments.sweep import read_status
+    from irdrc.experiments.trials import read_status
 
     # Done = a DONE status beside its summary. A trial killed between writing its summary and its
     # status (the other trial runs in parallel) is not done: resume reruns it.
@@ -361,7 +356,7 @@ def test_ctrl_c_leaves_a_valid_summary_with_incomplete_rows(tmp_path):
 
 
 def test_status_files_are_checked(tmp_path, capsys):
-    from irdrc.experiments.sweep import read_status
+    from irdrc.experiments.trials import read_status
 
     d = tmp_path / "p"
     d.mkdir()

@@ -1,28 +1,21 @@
-"""The one learner interface: every learner's ``train`` takes the same arguments and returns a
-``RunRecord`` whose progress is one schema (``PROGRESS_FIELDS``), whatever the method.
+"""What every learner shares: the hooks it reports through and the record it returns, whose
+progress is one schema (``PROGRESS_FIELDS``), whatever the method.
 
-A learner module (``irdrc.agents.qlearning``, ``irdrc.agents.dqn``) provides:
-
-- ``NAME``, and a frozen ``Config`` dataclass with ``from_node(cfg)`` reading its config groups;
-- ``train(scenarios, config, *, num_learners, seed, device, scorers, eval_every_frames, hooks,
-  resume) -> RunRecord``.
-
-Learners know nothing of files or loggers: they report through ``Hooks`` and return their record;
-``irdrc.experiments.runs`` turns that into a run directory the same way for every method.
+Learners know nothing of files or loggers: they report through ``Hooks`` and return their
+``RunRecord``; the run scaffold (``irdrc.experiments.scaffold``) turns that into a run directory
+the same way for every method.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import torch
 
 from irdrc.core.metrics import METRIC_NAMES, Metrics, first_reaching
-from irdrc.core.model import build_model
-from irdrc.core.params import Params
-from irdrc.core.solve import DEFAULT_OPTIMUM_GAMMA, ExactScorer
 
 PROGRESS_FIELDS = (
     "learner",
@@ -34,16 +27,9 @@ PROGRESS_FIELDS = (
     *METRIC_NAMES,
 )
 """One exact evaluation of one learner's greedy policy: the columns of every ``metrics.csv``
-(``false_alarm_rate`` joins them in a scenario with radar false alarms: ``progress_fields``).
+(``false_alarm_rate`` joins them in a scenario with radar false alarms:
+``irdrc.experiments.results.write_metrics_csv``).
 ``env_steps`` and ``episodes`` count this learner's own interaction; metrics are exact stationary."""
-
-
-def progress_fields(rows: Iterable[dict[str, Any]]) -> tuple[str, ...]:
-    """The columns of a ``metrics.csv`` holding ``rows``: ``PROGRESS_FIELDS``, and
-    ``false_alarm_rate`` after them when a row has it (a scenario with radar false alarms,
-    ``Metrics.as_dict``)."""
-    extra = any("false_alarm_rate" in r for r in rows)
-    return (*PROGRESS_FIELDS, "false_alarm_rate") if extra else PROGRESS_FIELDS
 
 
 EPISODE_FIELDS = ("learner", "episode", "env_steps", "reward")
@@ -63,8 +49,6 @@ class Hooks:
             (learners that checkpoint; 0: never during the run).
         should_stop: polled after each batch; True makes the learner stop there, evaluate, and
             return its record with ``interrupted`` set (and ``state`` to resume from).
-        on_values: after each exact evaluation, with the env steps and the learner's action
-            values [N, S, 2] (comm, radar), for learners that have them; diagnostics only.
     """
 
     on_eval: Callable[[list[dict[str, Any]]], None] | None = None
@@ -73,7 +57,6 @@ class Hooks:
     on_checkpoint: Callable[[dict[str, Any]], None] | None = None
     checkpoint_every_frames: int = 0
     should_stop: Callable[[], bool] | None = None
-    on_values: Callable[[int, torch.Tensor], None] | None = None
 
     def start(self, info: dict[str, Any]) -> None:
         """Call ``on_start`` (what the learner built, before the first step) if set."""
@@ -94,15 +77,33 @@ class Hooks:
         if self.on_eval is not None:
             self.on_eval(records)
 
-    def values(self, env_steps: int, q: torch.Tensor) -> None:
-        """Call ``on_values`` if set."""
-        if self.on_values is not None:
-            self.on_values(env_steps, q)
-
     def batch(self, info: dict[str, Any]) -> None:
         """Call ``on_batch`` if set."""
         if self.on_batch is not None:
             self.on_batch(info)
+
+
+@dataclass
+class RunContext:
+    """How a learner's run is watched and continued — what every learner takes beside its model and
+    hyperparameters, passed down as one.
+
+    Attributes:
+        scorer: scores the learner's policy tables (``metrics(table)``, ``optimal_metrics``).
+        eval_every_frames: exact evaluation period, env steps.
+        hooks: where progress, checkpoints and stop requests go.
+        resume: a checkpoint (a ``RunRecord.state``) to go on from, or None.
+    """
+
+    scorer: Any
+    eval_every_frames: int
+    hooks: Hooks = field(default_factory=Hooks)
+    resume: dict[str, Any] | None = None
+
+    def __post_init__(self) -> None:
+        if self.eval_every_frames < 1:
+            raise ValueError(f"eval.every_frames={self.eval_every_frames!r} must be >= 1")
+        self.hooks = self.hooks or Hooks()
 
 
 @dataclass
@@ -187,21 +188,28 @@ def progress_record(
     }
 
 
-def scenario_list(params: Params | Sequence[Params]) -> list[Params]:
-    """One ``Params`` or several, as a non-empty list."""
-    scenarios = [params] if isinstance(params, Params) else list(params)
-    if not scenarios:
-        raise ValueError("train needs at least one scenario")
-    return scenarios
+CHECKPOINT_KEYS = ("frames", "updates", "wall_seconds", "history", "config")
+"""What every learner's checkpoint holds (its ``RunRecord.state`` and the run's ``config``)."""
 
 
-def make_scorers(
-    scenarios: Sequence[Params], scorers: ExactScorer | Sequence[ExactScorer] | None
-) -> list[ExactScorer]:
-    """One exact scorer per scenario: the given ones, or built at the model's discount."""
-    if scorers is None:
-        return [ExactScorer(build_model(p), DEFAULT_OPTIMUM_GAMMA) for p in scenarios]
-    out = [scorers] if isinstance(scorers, ExactScorer) else list(scorers)
-    if len(out) != len(scenarios):
-        raise ValueError(f"{len(out)} scorers for {len(scenarios)} scenarios")
-    return out
+def load_checkpoint(path: Path | str, key: str = "resume") -> dict[str, Any]:
+    """Load a learner's checkpoint (``RunRecord.state`` plus the run's ``config``).
+
+    Raises:
+        ValueError: one line naming ``key`` and the file when it is missing, truncated, corrupt
+            or not a checkpoint of a learner of this package.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"{key}={path}: no such checkpoint file")
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as err:  # truncated or corrupt: EOFError, RuntimeError, UnpicklingError …
+        raise ValueError(
+            f"{key}={path}: not a readable checkpoint ({type(err).__name__}); it may be truncated "
+            "or from another program"
+        ) from err
+    missing = [k for k in CHECKPOINT_KEYS if not isinstance(state, dict) or k not in state]
+    if missing:
+        raise ValueError(f"{key}={path}: not an irdrc checkpoint (no {', '.join(missing)})")
+    return state

@@ -19,13 +19,13 @@ from __future__ import annotations
 import bisect
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
 from typing import Any
 
 import torch
 
+from irdrc.agents.configs import SearchConfig
 from irdrc.core.evaluate import long_run
-from irdrc.core.params import Params, check_bool, check_number
+from irdrc.core.params import Params
 
 SEARCH_FLOOR = 1e-6
 """The search goes down the path no further than this fraction of the trained μ."""
@@ -52,44 +52,6 @@ events per comm step in the all-favourable states) a state seen 200 times in com
 MIX_TOLERANCE = 0.02
 """The randomisation's search stops once a measured miss detection at or below the target is
 within this fraction of it (``FinalPolicySearch.mix``)."""
-
-
-@dataclass(frozen=True)
-class SearchConfig:
-    """How the final policy is searched (the ``algo.*`` keys of the same names).
-
-    Attributes:
-        search_span: the search moves along the path by this factor in μ at a time.
-        measure_envs, measure_steps, measure_burn_in, measure_max_blocks: each long-run
-            measurement runs ``measure_envs`` chains for ``measure_burn_in`` steps, then blocks of
-            ``measure_steps`` until two consecutive blocks agree (at most ``measure_max_blocks``).
-        mix_steps: at most this many measurements (regula falsi on the log-odds) to find the
-            final randomisation.
-        confirm: re-measure the search's result on fresh random numbers and climb the path while
-            that measurement is above the target; mix on the fresh numbers.
-    """
-
-    search_span: float = 4.0
-    measure_envs: int = 128
-    measure_steps: int = 1_500
-    measure_burn_in: int = 1_000
-    measure_max_blocks: int = 8
-    mix_steps: int = 10
-    confirm: bool = True
-
-    def __post_init__(self) -> None:
-        def num(key: str, lo: float, hi: float = math.inf, **kw: Any) -> None:
-            object.__setattr__(
-                self, key, check_number(f"algo.{key}", getattr(self, key), lo, hi, **kw)
-            )
-
-        num("search_span", 1)
-        num("measure_envs", 2, 10**7, integer=True)
-        num("measure_steps", 1, 10**9, integer=True)
-        num("measure_burn_in", 0, 10**9, integer=True)
-        num("measure_max_blocks", 1, 10**6, integer=True)
-        num("mix_steps", 0, 60, integer=True)
-        check_bool("algo.confirm", self.confirm)
 
 
 def greedy_path(q: torch.Tensor) -> tuple[list[float], list[torch.Tensor]]:

@@ -2,7 +2,7 @@
 
 Row n of the batch is learner n: its own table, its own ε-greedy actions, its own trajectory. All
 rows share episode boundaries (every episode is ``env.horizon`` steps from a uniform reset), so the
-loop steps ``irdrc.core.env.Dynamics`` directly — the same step code as the env, without the per-step
+loop steps ``irdrc.core.dynamics.Dynamics`` directly — the same step code as the env, without the per-step
 tensordict overhead that dominates at small batch sizes. Given several scenarios (e.g. every p^v_1
 value of a figure), the batch holds ``num_learners`` rows per scenario and trains them all at once.
 
@@ -12,113 +12,27 @@ Two profiles: ``PAPER`` (the reference profile of MODEL.md: α = 0.01, ε = 0.1 
 
 from __future__ import annotations
 
-import math
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, fields
 from typing import Any
 
 import torch
 
-from irdrc.agents.base import (
-    Hooks,
-    RunRecord,
-    make_scorers,
-    progress_record,
-    scenario_list,
-)
-from irdrc.core.env import Dynamics
-from irdrc.core.params import Params, check_choice, check_number, reject_unknown_keys, to_plain
-from irdrc.core.solve import ExactScorer
+from irdrc.agents.base import Hooks, RunRecord, progress_record
+from irdrc.agents.configs import QLearningConfig
+from irdrc.core.dynamics import Dynamics
+from irdrc.core.params import Params
 
-NAME = "qlearning"
 DEFAULT_EVAL_EVERY_FRAMES = 4_000
 """Exact evaluation period when the caller gives none: every 10 episodes of 400 steps."""
 
-
-@dataclass(frozen=True)
-class QLearningConfig:
-    """Hyperparameters of tabular Q-learning (config group ``algo`` for ``recipes/qlearning.py``).
-
-    Attributes:
-        episodes: training episodes per learner (each ``env.horizon`` steps).
-        gamma: discount γ.
-        alpha: step size; with ``alpha_schedule="count"`` the step size of the k-th update of a
-            (state, action) pair is ``max(alpha_min, alpha / k**alpha_power)``.
-        alpha_schedule: ``constant`` or ``count``.
-        alpha_power: ω of the count schedule (1/2 < ω ≤ 1 keeps the Robbins–Monro conditions).
-        alpha_min: floor of the count schedule.
-        epsilon_start: exploration rate at the first episode.
-        epsilon_end: exploration rate after ``epsilon_decay_episodes`` (linear in between).
-        epsilon_decay_episodes: episodes over which ε decays; 0 keeps ``epsilon_end`` throughout.
-        init_q: initial value of every Q entry.
-    """
-
-    episodes: int = 600
-    gamma: float = 0.99
-    alpha: float = 1.0
-    alpha_schedule: str = "count"
-    alpha_power: float = 1.0
-    alpha_min: float = 0.0
-    epsilon_start: float = 1.0
-    epsilon_end: float = 1.0
-    epsilon_decay_episodes: int = 0
-    init_q: float = 0.0
-
-    def __post_init__(self) -> None:
-        def num(key: str, lo: float, hi: float = math.inf, **kw: Any) -> None:
-            object.__setattr__(
-                self, key, check_number(f"algo.{key}", getattr(self, key), lo, hi, **kw)
-            )
-
-        num("episodes", 1, 10**9, integer=True)
-        num("gamma", 0, 1, open_hi=True)
-        num("alpha", 0, 1, open_lo=True)
-        check_choice("algo.alpha_schedule", self.alpha_schedule, ("constant", "count"))
-        num("alpha_power", 0, 1)
-        num("alpha_min", 0, 1)
-        num("epsilon_start", 0, 1)
-        num("epsilon_end", 0, 1)
-        num("epsilon_decay_episodes", 0, 10**9, integer=True)
-        num("init_q", -1e12, 1e12)
-
-    @classmethod
-    def from_dict(cls, data: Any) -> QLearningConfig:
-        """From a mapping of the fields above; unknown keys are rejected (``name`` is ignored)."""
-        data = {k: v for k, v in dict(to_plain(data)).items() if k != "name"}
-        reject_unknown_keys("algo.", data, {f.name for f in fields(cls)})
-        return cls(**data)
-
-    @classmethod
-    def from_node(cls, cfg: Any) -> QLearningConfig:
-        """From a recipe's config (its ``algo`` group)."""
-        return cls.from_dict(cfg["algo"])
-
-    def env_steps(self, horizon: int) -> int:
-        """Env steps per learner of the whole run."""
-        return self.episodes * horizon
-
-    def epsilon(self, episode: int) -> float:
-        """ε during ``episode`` (0-based)."""
-        if self.epsilon_decay_episodes == 0 or episode >= self.epsilon_decay_episodes:
-            return self.epsilon_end
-        frac = episode / self.epsilon_decay_episodes
-        return self.epsilon_start + frac * (self.epsilon_end - self.epsilon_start)
-
-
-Config = QLearningConfig
-"""This learner's config class (the interface of ``irdrc.agents.base``)."""
-
 PAPER = QLearningConfig(
     episodes=2500,
-    gamma=0.99,
     alpha=0.01,
     alpha_schedule="constant",
-    alpha_power=0.0,
-    alpha_min=0.0,
     epsilon_start=0.1,
     epsilon_end=0.1,
-    epsilon_decay_episodes=0,
+    name="qlearning_paper",
 )
 """The reference profile (MODEL.md § Learning setup): α = 0.01, γ = 0.99, ε = 0.1, 2 500 episodes."""
 
@@ -134,7 +48,7 @@ def train(
     num_learners: int = 1,
     seed: int = 0,
     device: str = "cpu",
-    scorers: ExactScorer | Sequence[ExactScorer] | None = None,
+    scorers: Any = None,
     eval_every_frames: int = DEFAULT_EVAL_EVERY_FRAMES,
     hooks: Hooks | None = None,
     resume: dict[str, Any] | None = None,
@@ -151,20 +65,21 @@ def train(
         num_learners: learners per scenario.
         seed: seed of the dynamics and of the exploration generator.
         device: torch device.
-        scorers: exact evaluator per scenario (built at the model's discount if omitted).
+        scorers: exact scorer per scenario, or one for a single scenario
+            (``irdrc.core.exact.exact_scorer`` if omitted).
         eval_every_frames: exact evaluation of every greedy table at the end of the first episode
             reaching each multiple of this many env steps (per learner), and at the end.
-        hooks: progress callbacks (``on_eval`` per evaluation, ``on_batch`` per episode).
-        resume: not supported (tabular runs are short); must be None.
+        hooks: progress callbacks (``on_eval`` per evaluation, ``on_batch`` per episode,
+            ``on_checkpoint`` every ``checkpoint_every_frames`` env steps).
+        resume: an earlier run's ``RunRecord.state``: the tables, counts and both random streams,
+            so a resumed run goes on exactly as the uninterrupted one would have.
     """
-    if resume is not None:
-        raise ValueError("Q-learning runs do not resume; start a new run")
     if num_learners < 1:
         raise ValueError(f"num_learners={num_learners!r} must be >= 1")
     if eval_every_frames < 1:
         raise ValueError(f"eval.every_frames={eval_every_frames!r} must be >= 1")
     hooks = hooks or Hooks()
-    scenarios = scenario_list(params)
+    scenarios = [params] if isinstance(params, Params) else list(params)
     horizons = {p.env.horizon for p in scenarios}
     if len(horizons) > 1:
         raise ValueError(
@@ -172,7 +87,14 @@ def train(
         )
     dyn = Dynamics(scenarios, device)
     G = len(scenarios)
-    scorers = make_scorers(scenarios, scorers)
+    if scorers is None:
+        from irdrc.core.exact import exact_scorer
+
+        scorers = [exact_scorer(p) for p in scenarios]
+    elif not isinstance(scorers, Sequence):
+        scorers = [scorers]
+    if len(scorers) != G:
+        raise ValueError(f"{len(scorers)} scorers for {G} scenarios")
     S, L, T = dyn.num_states, num_learners, scenarios[0].env.horizon
     N = G * L
     group_of = [n // L for n in range(N)]
@@ -185,9 +107,42 @@ def train(
     q = torch.full((N * S * 2,), float(cfg.init_q), dtype=torch.float32, device=device)
     visits = torch.zeros(N * S * 2, dtype=torch.float32, device=device)
     row = torch.arange(N, device=device) * (S * 2)
-    record = RunRecord(method=NAME, greedy=q.view(N, S, 2).argmax(-1), group=group_of)
+    record = RunRecord(method=cfg.name, greedy=q.view(N, S, 2).argmax(-1), group=group_of)
     optima = [sc.optimal_metrics.avg_reward for sc in scorers]
     t0 = time.perf_counter()
+    start = 0
+    if resume is not None:
+        missing = [k for k in ("q", "visits", "rng", "gen", "frames", "history") if k not in resume]
+        if missing:
+            raise ValueError(
+                f"resume: the checkpoint has no {', '.join(missing)}: not a Q-learning checkpoint"
+            )
+        if resume["q"].shape != q.shape:
+            raise ValueError(
+                f"resume: the checkpoint holds {resume['q'].numel() // (S * 2)} learners' tables "
+                f"of this model, this run {N}"
+            )
+        q.copy_(resume["q"])
+        visits.copy_(resume["visits"])
+        rng.set_state(resume["rng"])
+        gen.set_state(resume["gen"])
+        start = int(resume["frames"]) // T
+        record.history = list(resume["history"])
+        record.episode_rewards = list(resume["episode_rewards"])
+        t0 -= float(resume["wall_seconds"])
+
+    def state(done: int) -> dict[str, Any]:
+        return {
+            "q": q.clone(),
+            "visits": visits.clone(),
+            "rng": rng.get_state(),
+            "gen": gen.get_state(),
+            "frames": done * T,
+            "updates": done * T,
+            "wall_seconds": time.perf_counter() - t0,
+            "history": list(record.history),
+            "episode_rewards": list(record.episode_rewards),
+        }
 
     def evaluate(episodes: int) -> None:
         greedy = q.view(N, S, 2).argmax(-1).cpu()
@@ -202,9 +157,10 @@ def train(
         record.history += records
         hooks.eval(records)
 
-    evaluate(0)
-    next_eval = eval_every_frames
-    for episode in range(cfg.episodes):
+    if resume is None:
+        evaluate(0)
+    next_eval = (start * T // eval_every_frames + 1) * eval_every_frames
+    for episode in range(start, cfg.episodes):
         eps = cfg.epsilon(episode)
         total = _episode(cfg, dyn, q, visits, row, eps, T, rng, gen, group)
         done = episode + 1
@@ -217,6 +173,8 @@ def train(
         if done * T >= next_eval or done == cfg.episodes or stop:
             evaluate(done)
             next_eval = (done * T // eval_every_frames + 1) * eval_every_frames
+        if hooks.checkpoint_due((done - 1) * T, done * T) and done < cfg.episodes:
+            hooks.on_checkpoint(state(done))
         if stop:
             record.interrupted = True
             break
@@ -225,6 +183,7 @@ def train(
     record.greedy = record.q.argmax(-1)
     record.episodes = len(record.episode_rewards) // N
     record.env_steps = record.updates = record.episodes * T
+    record.state = state(record.episodes)
     return record
 
 

@@ -1,11 +1,15 @@
 """The model and everything exact: parameters, the simulator, the exact MDP and its solutions.
 
-- ``params``: validated model parameters (frozen dataclasses, config names as in MODEL.md);
-- ``env``: ``Dynamics`` (the step on integer state tensors) and ``DFRCEnv`` (the batched TorchRL env);
-- ``gym``: the gymnasium wrapper (``irdrc/DFRC-v0``);
-- ``model``: the exact transition and expectation tensors;
-- ``solve``: value iteration, policy evaluation, stationary and episodic exact metrics;
-- ``metrics``: the ``Metrics`` record and its names;
+- ``checks``: the one validation toolkit every layer's configs use (numbers, choices, lists, keys);
+- ``params``: validated model parameters (frozen dataclasses, config names as in MODEL.md), with
+  ``factors`` (the Markov factors) and ``overrides`` (dotted keys onto nested mappings);
+- ``tables``: the per-(action, factors) tables the simulator and the exact models share;
+- ``dynamics``: ``Dynamics``, the step on integer state tensors, and the state index;
+- ``env``: ``DFRCEnv``, the batched TorchRL env; ``gym``: the gymnasium wrapper (``irdrc/DFRC-v0``);
+- ``exact``: everything exact on one interface generic over the number of actions (dense and
+  factored models, one value iteration, stationary and episodic metrics, scorers);
+- ``cmdp``: the constrained optimum, a linear program on any exact model;
+- ``metrics``: the ``Metrics`` record, its names and the one definition of every rate;
 - ``policies``: baseline and table policies as TensorDictModules;
 - ``evaluate``: Monte-Carlo evaluation with confidence intervals.
 

@@ -23,9 +23,8 @@ from typing import Any
 import numpy as np
 import torch
 
+from irdrc.core.exact import ExactMDP, stationary_metrics
 from irdrc.core.metrics import Metrics
-from irdrc.core.model import ExactModel
-from irdrc.core.solve import stationary_metrics
 
 OBJECTIVES = ("throughput", "avg_reward", "link_capacity")
 """What the LP maximises: packets sent, the paper's reward, or link capacity used (per step)."""
@@ -54,13 +53,13 @@ class Constraint:
     """One long-run average constraint Σ x(s, a)·coef(a, s) ≤ bound, named for messages."""
 
     name: str
-    coef: torch.Tensor  # [2, S]
+    coef: torch.Tensor  # [A, S]
     bound: float
 
 
 @dataclass(frozen=True)
 class LPResult:
-    """The LP's solution: occupancy x [2, S], policy [S, 2], objective value, HiGHS status."""
+    """The LP's solution: occupancy x [A, S], policy [S, A], objective value, HiGHS status."""
 
     occupancy: torch.Tensor
     policy: torch.Tensor
@@ -73,8 +72,8 @@ class CMDPSolution:
     """The exact constrained optimum.
 
     Attributes:
-        policy: [S, 2] probabilities of (comm, radar) per state.
-        occupancy: [2, S] long-run state-action frequencies x(s, a).
+        policy: [S, A] probabilities of each action per state (v1: comm, radar).
+        occupancy: [A, S] long-run state-action frequencies x(s, a).
         objective: what was maximised (``OBJECTIVES``) and ``value``, the policy's exact long-run
             value of it per step.
         metrics: exact stationary metrics of ``policy``.
@@ -95,112 +94,20 @@ class CMDPSolution:
 
     @property
     def p_radar(self) -> torch.Tensor:
-        """[S] probability of radar per state."""
-        return self.policy[:, 1]
+        """[S] probability of the radar action (the last) per state."""
+        return self.policy[:, -1]
 
 
-@dataclass(frozen=True)
-class LPModel:
-    """What the LP needs of a model, dense or factored: per-action sparse transition matrices and
-    the [2, S] (or [S]) expectation tables, under ``ExactModel``'s names."""
-
-    params: Any
-    P: tuple  # two scipy.sparse CSR matrices [S, S]
-    R: torch.Tensor
-    event: torch.Tensor
-    missed: torch.Tensor
-    sent: torch.Tensor
-    dropped: torch.Tensor
-    capacity: torch.Tensor
-    source: Any  # the ExactModel or FactoredModel it came from
-
-    @property
-    def num_states(self) -> int:
-        """S."""
-        return int(self.R.shape[-1])
-
-    def metrics(self, policy: torch.Tensor) -> Metrics:
-        """Exact stationary metrics of ``policy`` on the source model."""
-        from irdrc.core.factored import FactoredModel, stationary_metrics_factored
-
-        if isinstance(self.source, FactoredModel):
-            return stationary_metrics_factored(self.source, policy)
-        return stationary_metrics(self.source, policy)
-
-
-def lp_model(model: Any) -> LPModel:
-    """The LP's view of an ``ExactModel`` or a ``irdrc.core.factored.FactoredModel``. For the
-    factored one the transition matrices are built sparse from its factors (MODEL.md § B.4:
-    O(S · fan-out) non-zeros, never S × S dense)."""
-    from scipy import sparse
-
-    from irdrc.core.factored import FactoredModel
-
-    if isinstance(model, LPModel):
-        return model
-    if isinstance(model, FactoredModel):
-        t = {k: v.cpu() for k, v in model.tables().items()}
-        P = tuple(sparse_transitions(model, a) for a in (0, 1))
-        return LPModel(
-            model.params,
-            P,
-            t["R"],
-            t["event"],
-            t["missed"],
-            t["sent"],
-            t["dropped"],
-            t["capacity"],
-            model,
-        )
-    P = tuple(sparse.csr_matrix(model.P[a].numpy()) for a in (0, 1))
-    return LPModel(
-        model.params,
-        P,
-        model.R,
-        model.event,
-        model.missed,
-        model.sent,
-        model.dropped,
-        model.capacity,
-        model,
-    )
-
-
-def sparse_transitions(model: Any, a: int):
-    """P_a of a factored model as a SciPy CSR matrix: P[(d, f), (d′, f′)] = Q(d′ | d, ν, λ)·F[a, f,
-    f′], the queue's arrivals (``model.pmf``, tail folded into the last entry) clamped at 0 and D."""
-    from scipy import sparse
-
-    D1, nf = model.queue_capacity + 1, model.num_configs
-    F = model.F[a].cpu().numpy()
-    rows, cols, vals = [], [], []
-    d = np.arange(D1)
-    for sel, nu, prow in model._cols[a]:
-        pmf = model.pmf[prow].cpu().numpy()
-        keep = np.nonzero(pmf)[0]
-        dn = np.clip(d[:, None] + keep[None, :] - nu, 0, D1 - 1)  # [D + 1, K]
-        q = sparse.coo_matrix(
-            (np.broadcast_to(pmf[keep], dn.shape).ravel(), (np.repeat(d, keep.size), dn.ravel())),
-            shape=(D1, D1),
-        ).tocsr()  # duplicates (the clamped ends) summed
-        q = q.tocoo()
-        fsel = np.arange(nf)[sel.cpu().numpy() if isinstance(sel, torch.Tensor) else sel]
-        fr, fc = np.nonzero(F[fsel])
-        fv = F[fsel][fr, fc]
-        fr = fsel[fr]
-        rows.append((q.row[:, None] * nf + fr[None, :]).ravel())
-        cols.append((q.col[:, None] * nf + fc[None, :]).ravel())
-        vals.append((q.data[:, None] * fv[None, :]).ravel())
-    S = D1 * nf
-    return sparse.csr_matrix(
-        (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(S, S)
-    )
+def transitions(model: ExactMDP) -> list:
+    """P_a of every action as SciPy sparse matrices (``ExactMDP.sparse``: dense, or built from a
+    factored model's factors with O(S · fan-out) non-zeros)."""
+    return [model.sparse(a) for a in range(model.num_actions)]
 
 
 def solve_lp(P: Any, objective: torch.Tensor, constraints: list[Constraint] = ()) -> LPResult:
-    """The average-criterion LP over occupation measures for transitions ``P`` (a dense [2, S, S]
-    tensor or two SciPy sparse matrices) and a per-(action, state) ``objective`` [2, S], maximised
-    subject to ``constraints``.
+    """The average-criterion LP over occupation measures for transitions ``P`` (a dense [A, S, S]
+    tensor or A SciPy sparse matrices) and a per-(action, state) ``objective`` [A, S], maximised
+    subject to ``constraints``. A state the optimum never visits gets the last action (radar).
 
     Raises:
         InfeasibleTarget: when HiGHS finds no feasible occupancy.
@@ -209,14 +116,14 @@ def solve_lp(P: Any, objective: torch.Tensor, constraints: list[Constraint] = ()
     from scipy import sparse
     from scipy.optimize import linprog
 
-    S = P[0].shape[-1]
+    A, S = len(P), P[0].shape[-1]
     # Variables x(a, s) in order a·S + s. Flow rows: x(·, s′) summed over a, minus inflow.
     blocks = []
-    for a in range(2):
+    for a in range(A):
         Pa = P[a] if sparse.issparse(P[a]) else sparse.csr_matrix(P[a].numpy())
         blocks.append(sparse.identity(S, format="csr") - Pa.T)
     A_flow = sparse.hstack(blocks, format="csr")
-    A_eq = sparse.vstack([A_flow[1:], sparse.csr_matrix(np.ones((1, 2 * S)))], format="csr")
+    A_eq = sparse.vstack([A_flow[1:], sparse.csr_matrix(np.ones((1, A * S)))], format="csr")
     b_eq = np.zeros(A_eq.shape[0])
     b_eq[-1] = 1.0
     A_ub = b_ub = None
@@ -237,18 +144,18 @@ def solve_lp(P: Any, objective: torch.Tensor, constraints: list[Constraint] = ()
         raise InfeasibleTarget(res.message)
     if res.status != 0:
         raise RuntimeError(f"the LP solver failed: {res.message}")
-    x = torch.from_numpy(res.x).to(torch.float64).clamp(min=0).reshape(2, S)
+    x = torch.from_numpy(res.x).to(torch.float64).clamp(min=0).reshape(A, S)
     x = x / x.sum()
     mass = x.sum(0)
-    policy = torch.zeros(S, 2, dtype=torch.float64)
+    policy = torch.zeros(S, A, dtype=torch.float64)
     visited = mass > 0
     policy[visited] = (x[:, visited] / mass[visited]).T
-    policy[~visited, 1] = 1.0
+    policy[~visited, -1] = 1.0
     return LPResult(occupancy=x, policy=policy, value=-float(res.fun), message=res.message)
 
 
-def objective_table(model: ExactModel, objective: str) -> torch.Tensor:
-    """[2, S] per-step expectation of ``objective`` (``OBJECTIVES``) for each action and state."""
+def objective_table(model: ExactMDP, objective: str) -> torch.Tensor:
+    """[A, S] per-step expectation of ``objective`` (``OBJECTIVES``) for each action and state."""
     tables = {"throughput": model.sent, "avg_reward": model.R, "link_capacity": model.capacity}
     if objective not in tables:
         raise ValueError(f"objective={objective!r} must be one of {', '.join(OBJECTIVES)}")
@@ -265,7 +172,7 @@ def _check_bound(key: str, value: float | None, hi: float = 1.0) -> float | None
 
 
 def build_constraints(
-    model: ExactModel,
+    model: ExactMDP,
     target_miss: float,
     max_drop: float | None = None,
     min_radar: float | None = None,
@@ -276,29 +183,29 @@ def build_constraints(
         raise ValueError("target_miss must be given (a number in [0, 1])")
     max_drop = _check_bound("max_drop", max_drop, hi=math.inf)
     min_radar = _check_bound("min_radar", min_radar)
-    S = model.num_states
-    event = model.event.to(torch.float64)
+    A, S = model.num_actions, model.num_states
+    event = model.event.to(torch.float64).cpu()
     out = [
         Constraint(
             f"target_miss={target_miss:g}",
-            model.missed.to(torch.float64) - target_miss * event[None].expand(2, S),
+            model.missed.to(torch.float64).cpu() - target_miss * event[None].expand(A, S),
             0.0,
         )
     ]
     if max_drop is not None:
-        out.append(Constraint(f"max_drop={max_drop:g}", model.dropped.to(torch.float64), max_drop))
+        dropped = model.dropped.to(torch.float64).cpu()
+        out.append(Constraint(f"max_drop={max_drop:g}", dropped, max_drop))
     if min_radar is not None:
-        radar = torch.zeros(2, S, dtype=torch.float64)
-        radar[1] = -1.0
+        radar = -model.radar_share().cpu()
         out.append(Constraint(f"min_radar={min_radar:g}", radar, -min_radar))
     return out
 
 
-def _explain_infeasible(model: LPModel, constraints: list[Constraint]) -> str:
+def _explain_infeasible(P: list, constraints: list[Constraint]) -> str:
     """Which constraint no policy can meet alone (its best achievable value), or that they
     conflict only together."""
     for c in constraints:
-        best = solve_lp(model.P, -c.coef).value * -1  # the smallest Σ x·coef any policy reaches
+        best = solve_lp(P, -c.coef).value * -1  # the smallest Σ x·coef any policy reaches
         if best > c.bound + 1e-12:
             return f"{c.name} is infeasible: no stationary policy reaches it (best {best:.6g} vs bound {c.bound:.6g})"
     names = ", ".join(c.name for c in constraints)
@@ -315,19 +222,20 @@ def solve_cmdp(
     """The best stationary randomised policy for ``objective`` with miss detection ≤
     ``target_miss`` (and optionally drop rate ≤ ``max_drop``, radar fraction ≥ ``min_radar``).
 
-    ``model``: an ``ExactModel`` or a factored one (``irdrc.core.factored.build_factored``, whose
-    transitions go to the LP as sparse matrices built from its factors).
+    ``model``: any exact model with sparse transitions (``irdrc.core.exact``: dense, or factored,
+    whose transitions go to the LP as sparse matrices built from its factors), any number of
+    actions (v1's two, or G levels of the radar share).
 
     Raises:
         ValueError: on a bad value (named).
         InfeasibleTarget: when no policy meets the constraints (the message says which).
     """
-    model = lp_model(model)
-    table = objective_table(model, objective)
+    table = objective_table(model, objective).cpu()
     build_constraints(model, target_miss, max_drop, min_radar)  # checks the values as given
+    P = transitions(model)
     margin = MISS_MARGIN
     for _ in range(4):
-        sol = _solve_once(model, table, objective, target_miss, margin, max_drop, min_radar)
+        sol = _solve_once(model, P, table, objective, target_miss, margin, max_drop, min_radar)
         # The policy's own exact metrics decide, not the LP's occupancy (equal to ~1e-7).
         if not sol.metrics.miss_detection > target_miss:
             return sol
@@ -339,7 +247,8 @@ def solve_cmdp(
 
 
 def _solve_once(
-    model: LPModel,
+    model: ExactMDP,
+    P: list,
     table: torch.Tensor,
     objective: str,
     target_miss: float,
@@ -351,17 +260,18 @@ def _solve_once(
     constraints = build_constraints(model, inner, max_drop, min_radar)
     constraints[0] = dataclasses.replace(constraints[0], name=f"target_miss={target_miss:g}")
     try:
-        lp = solve_lp(model.P, table, constraints)
+        lp = solve_lp(P, table, constraints)
     except InfeasibleTarget:
-        raise InfeasibleTarget(_explain_infeasible(model, constraints)) from None
+        raise InfeasibleTarget(_explain_infeasible(P, constraints)) from None
     # Ties (e.g. throughput is capped at λ, reached by many policies): among the optimal
     # occupancies, the one with the fewest missed events per step.
     keep = Constraint("optimum", -table, -(lp.value - TIE_TOL * max(1.0, abs(lp.value))))
     with contextlib.suppress(InfeasibleTarget):  # numerically at the edge: keep the first
-        lp = solve_lp(model.P, -model.missed.to(torch.float64), [*constraints, keep])
+        lp = solve_lp(P, -model.missed.to(torch.float64).cpu(), [*constraints, keep])
     mass = lp.occupancy.sum(0)
-    randomised = ((lp.policy > RANDOMISED_TOL).all(-1) & (mass > 0)).nonzero().flatten().tolist()
-    metrics = model.metrics(lp.policy)
+    several = (lp.policy > RANDOMISED_TOL).sum(-1) > 1
+    randomised = (several & (mass > 0)).nonzero().flatten().tolist()
+    metrics = stationary_metrics(model, lp.policy.to(model.device))
     achieved = {"miss_detection": (metrics.miss_detection, float(target_miss))}
     if max_drop is not None:
         achieved["drop_rate"] = (metrics.drop_rate, float(max_drop))

@@ -138,7 +138,7 @@ def evaluate(policy, env: DFRCEnv, episodes: int | None = None) -> Evaluation:
 
 STATE_ACTION_SUMS = ("steps", "sent", "capacity", "reward", "event", "missed")
 """What ``long_run(..., by_state=True)`` sums per state and action over every step run: the steps
-taken and the step's signals of ``irdrc.core.env`` (``Step``)."""
+taken and the step's signals of ``irdrc.core.dynamics`` (``StepResult``)."""
 
 STATIONARITY_KEYS = ("miss_detection", "throughput", "mean_queue")
 """Rates that two consecutive blocks of ``long_run`` must agree on (it checks stationarity)."""
@@ -161,7 +161,7 @@ def long_run(
     probability of radar per state) on the simulator: ``envs`` independent chains from uniform
     states, never reset, run ``burn_in`` steps and then measured over blocks of ``steps`` steps.
 
-    The counterpart of ``irdrc.core.solve.stationary_metrics`` by sampling, with no episode
+    The counterpart of ``irdrc.core.exact.stationary_metrics`` by sampling, with no episode
     boundary: a policy that lingers in some states (e.g. a full queue) is measured as it would
     run on a vehicle, not biased by resets. With ``max_blocks`` > 1 the chains run block after
     block until two consecutive blocks agree on ``STATIONARITY_KEYS`` (within twice the combined
@@ -173,7 +173,7 @@ def long_run(
     run and the last block's visits (``Evaluation.by_state``); the random numbers, and so the
     metrics, are the same either way.
     """
-    from irdrc.core.env import Dynamics
+    from irdrc.core.dynamics import Dynamics
 
     if envs < 2 or steps < 1 or burn_in < 0 or max_blocks < 1:
         raise ValueError(
@@ -288,7 +288,7 @@ def chain_rewards(
     their difference with far less noise than two independent runs. ``K·envs·(burn_in + steps)``
     env steps in all.
     """
-    from irdrc.core.env import Dynamics
+    from irdrc.core.dynamics import Dynamics
 
     if envs < 2 or steps < 1 or burn_in < 0:
         raise ValueError(

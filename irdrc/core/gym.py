@@ -1,7 +1,7 @@
 """Gymnasium entry points, registered by ``import irdrc``:
 
 - ``gymnasium.make("irdrc/DFRC-v0", **overrides)``: one env, for SB3, CleanRL and other single-env
-  code. It steps the same tables as ``irdrc.core.env.Dynamics`` in plain Python (a batched torch
+  code. It steps the same tables as ``irdrc.core.dynamics.Dynamics`` in plain Python (a batched torch
   step costs ~100 µs of overhead for one env; this costs a few µs), so its transitions have exactly
   the distribution of the batched env's, not the same draws for a seed.
 - ``gymnasium.make_vec("irdrc/DFRC-v0", num_envs=N, **overrides)``: N envs stepped together by
@@ -24,8 +24,9 @@ import torch
 from gymnasium import spaces
 from gymnasium.vector import AutoresetMode, VectorEnv
 
-from irdrc.core.env import Dynamics, checked_actions, observation_high
-from irdrc.core.params import Params, full_key
+from irdrc.core.dynamics import Dynamics, checked_actions, observation_high
+from irdrc.core.overrides import full_key
+from irdrc.core.params import Params
 
 ENV_ID = "irdrc/DFRC-v0"
 
@@ -236,13 +237,3 @@ class DFRCVectorEnv(VectorEnv):
         }
         terminated = np.zeros(self.num_envs, dtype=bool)
         return self.dynamics.obs[state].numpy(), reward, terminated, truncated, info
-
-
-def register() -> None:
-    """Register ``irdrc/DFRC-v0`` (single and vector) with gymnasium (idempotent)."""
-    if ENV_ID not in gymnasium.registry:
-        gymnasium.register(
-            id=ENV_ID,
-            entry_point="irdrc.core.gym:DFRCGymEnv",
-            vector_entry_point="irdrc.core.gym:DFRCVectorEnv",
-        )

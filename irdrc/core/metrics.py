@@ -59,6 +59,34 @@ class Metrics:
         )
 
 
+def long_run_rates(s: Mapping[str, float]) -> dict[str, float]:
+    """Rates from per-step sums (expected or counted) of ``reward``, ``missed``, ``event``,
+    ``sent``, ``dropped``, ``radar`` (time in radar mode), ``queue``, and where known ``capacity``,
+    ``false_alarms`` with ``quiet_radar`` (radar time without an event), ``denied`` with ``comm``:
+    each an expectation per step, except miss detection (missed / events), the false-alarm rate
+    (false alarms / quiet radar time) and the denial rate (denied / comm steps), ratios of sums;
+    NaN where a ratio is undefined. The one definition of every metric, exact or simulated."""
+
+    def ratio(a: str, b: str) -> float:
+        return s[a] / s[b] if s.get(b, 0.0) > 0 else math.nan
+
+    out = {
+        "avg_reward": s["reward"],
+        "throughput": s["sent"],
+        "miss_detection": ratio("missed", "event"),
+        "radar_fraction": s["radar"],
+        "drop_rate": s["dropped"],
+        "mean_queue": s["queue"],
+    }
+    if "capacity" in s:
+        out["link_capacity"] = s["capacity"]
+    if "false_alarms" in s:
+        out["false_alarm_rate"] = ratio("false_alarms", "quiet_radar")
+    if "denied" in s:
+        out["denial_rate"] = ratio("denied", "comm")
+    return out
+
+
 def _fmt(x: float) -> str:
     if x is None or (isinstance(x, float) and math.isnan(x)):
         return "n/a"

@@ -9,100 +9,19 @@ allowed range.
 from __future__ import annotations
 
 import dataclasses
-import difflib
 import math
-from collections.abc import Iterable, Mapping
+from collections.abc import Mapping
 from dataclasses import MISSING, dataclass, field, fields
 from typing import Any
+
+from irdrc.core.checks import check_bool, check_choice, check_number, reject_unknown_keys
+from irdrc.core.factors import MARKOV_FACTORS, BurstySpec, FactorSpec, _factor_specs
+from irdrc.core.overrides import apply_overrides, deep_set
 
 EVENT_FACTORS = ("road", "weather", "speed", "object")
 """Factors that drive the unexpected event, in state order (r, w, v, m)."""
 
-MARKOV_FACTORS = ("channel", *EVENT_FACTORS)
-"""Factors that follow two-state Markov chains, in state order (c, r, w, v, m)."""
-
 EVENT_MODELS = ("noisy_or", "sum")
-
-
-def to_plain(node: Any) -> Any:
-    """Turn an OmegaConf node (or anything mapping-like) into plain Python containers."""
-    try:
-        from omegaconf import DictConfig, ListConfig, OmegaConf
-
-        if isinstance(node, DictConfig | ListConfig):
-            return OmegaConf.to_container(node, resolve=True)
-    except ImportError:  # pragma: no cover - omegaconf is a dependency
-        pass
-    if isinstance(node, Mapping):
-        return {k: to_plain(v) for k, v in node.items()}
-    return node
-
-
-def check_number(
-    key: str,
-    value: Any,
-    lo: float = -math.inf,
-    hi: float = math.inf,
-    *,
-    integer: bool = False,
-    open_lo: bool = False,
-    open_hi: bool = False,
-) -> Any:
-    """``value`` as an int or float if it is a finite number within the bounds, else a ``ValueError``
-    naming ``key``, the value and the allowed range (``open_lo`` / ``open_hi`` exclude a bound)."""
-    kind = "an integer" if integer else "a number"
-    left, right = "(" if open_lo else "[", ")" if open_hi else "]"
-    if hi == math.inf:
-        bounds = f"> {lo}" if open_lo else f">= {lo}"
-    elif lo == -math.inf:
-        bounds = f"< {hi}" if open_hi else f"<= {hi}"
-    else:
-        bounds = f"{left}{lo}, {hi}{right}"
-    if isinstance(value, bool) or not isinstance(value, int | float):
-        raise ValueError(
-            f"{key}={value!r} must be {kind} {'in ' if lo > -math.inf and hi < math.inf else ''}{bounds}"
-        )
-    if integer and not (
-        isinstance(value, int) or (math.isfinite(value) and float(value).is_integer())
-    ):
-        raise ValueError(f"{key}={value!r} must be {kind} (a whole number)")
-    ok = (lo < value if open_lo else lo <= value) and (value < hi if open_hi else value <= hi)
-    if not math.isfinite(value) or not ok:
-        raise ValueError(f"{key}={value!r} is outside the allowed range {bounds}")
-    return int(value) if integer else float(value)
-
-
-def check_choice(key: str, value: Any, choices: Iterable[Any]) -> Any:
-    """``value`` if it is one of ``choices``, else a ``ValueError`` naming the key and the choices."""
-    choices = list(choices)
-    if isinstance(value, bool) and not any(isinstance(c, bool) for c in choices):
-        raise ValueError(f"{key}={value!r} must be one of {', '.join(map(str, choices))}")
-    if value not in choices:
-        raise ValueError(f"{key}={value!r} must be one of {', '.join(map(str, choices))}")
-    return value
-
-
-def check_bool(key: str, value: Any) -> bool:
-    """``value`` if it is true or false, else a ``ValueError`` naming the key."""
-    if not isinstance(value, bool):
-        raise ValueError(f"{key}={value!r} must be true or false")
-    return value
-
-
-def reject_unknown_keys(prefix: str, keys: Iterable[Any], allowed: Iterable[str]) -> None:
-    """Raise a ``ValueError`` naming every key of ``keys`` not in ``allowed`` (with ``prefix``), the
-    closest allowed key for each, and the allowed ones. The one check behind every config section."""
-    allowed = sorted(allowed)
-    extra = sorted(str(k) for k in set(keys) - set(allowed))
-    if not extra:
-        return
-    hints = []
-    for k in extra:
-        close = difflib.get_close_matches(k, allowed, n=1, cutoff=0.6)
-        hints.append(f"{prefix}{k}" + (f" (did you mean {prefix}{close[0]}?)" if close else ""))
-    raise ValueError(
-        f"unknown key(s) {', '.join(hints)}; allowed: {', '.join(prefix + n for n in allowed)}"
-    )
 
 
 def _check_keys(prefix: str, data: Mapping, cls: type, *, strict: bool) -> None:
@@ -115,7 +34,6 @@ def _check_keys(prefix: str, data: Mapping, cls: type, *, strict: bool) -> None:
 
 
 def _from_mapping(cls: type, data: Any, prefix: str, *, strict: bool) -> Any:
-    data = to_plain(data)
     if not isinstance(data, Mapping):
         raise ValueError(f"{prefix.rstrip('.')} must be a mapping, got {data!r}")
     _check_keys(prefix, data, cls, strict=strict)
@@ -195,161 +113,16 @@ def _stay_bad() -> StayProbs:
     return StayProbs(*(0.1,) * 5, _prefix="env.stay_bad.")  # ref impl: P(1→1) = 0.1
 
 
-def _factor_specs(value: Any) -> tuple[FactorSpec, ...]:
-    """``env.factors`` (a mapping factor name → its levels, transition, …) as FactorSpecs in state
-    order; an empty mapping (v1) gives ()."""
-    value = to_plain(value)
-    if value is None or (isinstance(value, tuple | list) and not value):
-        return ()
-    if isinstance(value, tuple) and all(isinstance(v, FactorSpec) for v in value):
-        return value
-    if not isinstance(value, Mapping):
-        raise ValueError(
-            f"env.factors={value!r} must be a mapping: factor name → levels, transition, …"
-        )
-    reject_unknown_keys("env.factors.", value, MARKOV_FACTORS)
-    specs = []
-    for name in MARKOV_FACTORS:
-        if name not in value:
-            continue
-        spec = to_plain(value[name])
-        if not isinstance(spec, Mapping):
-            raise ValueError(f"env.factors.{name}={spec!r} must be a mapping")
-        reject_unknown_keys(f"env.factors.{name}.", spec, FACTOR_SPEC_KEYS)
-        if "transition" not in spec:
-            raise ValueError(f"env.factors.{name} needs a transition matrix")
-        specs.append(FactorSpec(name=name, **spec))
-    return tuple(specs)
-
-
-def _matrix(key: str, value: Any, n: int | None = None) -> tuple[tuple[float, ...], ...]:
-    """A row-stochastic square matrix (n × n when ``n`` is given) as a tuple of tuples, else a
-    ``ValueError`` naming ``key``."""
-    value = to_plain(value)
-    if not isinstance(value, list | tuple) or not all(isinstance(r, list | tuple) for r in value):
-        raise ValueError(f"{key}={value!r} must be a square matrix (a list of rows)")
-    size = len(value)
-    if size < 2 or any(len(r) != size for r in value) or (n is not None and size != n):
-        want = f"{n} × {n}" if n is not None else "square, at least 2 × 2"
-        raise ValueError(f"{key} must be {want}; got rows of lengths {[len(r) for r in value]}")
-    rows = tuple(
-        tuple(check_number(f"{key}[{i}][{j}]", x, 0.0, 1.0) for j, x in enumerate(r))
-        for i, r in enumerate(value)
-    )
-    for i, r in enumerate(rows):
-        if abs(sum(r) - 1.0) > 1e-9:
-            raise ValueError(f"{key}[{i}]={list(r)} must sum to 1 (it sums to {sum(r):.12g})")
-    return rows
-
-
-def _vector(key: str, value: Any, n: int, lo: float, hi: float, *, integer: bool = False) -> tuple:
-    """A list of ``n`` numbers in [lo, hi] as a tuple, else a ``ValueError`` naming ``key``."""
-    value = to_plain(value)
-    if not isinstance(value, list | tuple) or len(value) != n:
-        raise ValueError(f"{key}={value!r} must be a list of {n} values (one per level)")
-    return tuple(
-        check_number(f"{key}[{i}]", x, lo, hi, integer=integer) for i, x in enumerate(value)
-    )
-
-
-FACTOR_SPEC_KEYS = ("levels", "transition", "event", "packets", "comm_reward")
-
-
-@dataclass(frozen=True)
-class FactorSpec:
-    """One Markov factor with L ≥ 2 ordered levels, 0 the most favourable (MODEL.md § B.1), in one
-    place: its level names, its L × L transition matrix, and what each level does.
-
-    Attributes:
-        name: the factor (``channel``, ``road``, ``weather``, ``speed`` or ``object``).
-        transition: T[ℓ][ℓ′] = P(next level ℓ′ | level ℓ); rows sum to 1.
-        levels: a name per level (default ``0`` … ``L − 1``).
-        event: p^i[ℓ], the event probability per level (road, weather, speed, object: required).
-        packets: ν[ℓ], packets per comm step per level (channel: required).
-        comm_reward: r_comm[ℓ], reward of a comm step without an event per level (channel:
-            required; v1's r1, r2).
-    """
-
-    name: str
-    transition: tuple[tuple[float, ...], ...]
-    levels: tuple[str, ...] = ()
-    event: tuple[float, ...] = ()
-    packets: tuple[int, ...] = ()
-    comm_reward: tuple[float, ...] = ()
-
-    def __post_init__(self) -> None:
-        set_ = object.__setattr__
-        key = f"env.factors.{self.name}"
-        check_choice("env.factors", self.name, MARKOV_FACTORS)
-        set_(self, "transition", _matrix(f"{key}.transition", self.transition))
-        n = len(self.transition)
-        levels = to_plain(self.levels) or [str(i) for i in range(n)]
-        if not isinstance(levels, list | tuple) or len(levels) != n:
-            raise ValueError(
-                f"{key}.levels={levels!r} must name the {n} levels of {key}.transition"
-            )
-        set_(self, "levels", tuple(str(x) for x in levels))
-        if self.name == "channel":
-            for extra in ("event",):
-                if to_plain(getattr(self, extra)):
-                    raise ValueError(f"{key}.{extra} is not used: the channel drives no event")
-            set_(
-                self, "packets", _vector(f"{key}.packets", self.packets, n, 0, 10_000, integer=True)
-            )
-            set_(self, "comm_reward", _vector(f"{key}.comm_reward", self.comm_reward, n, 0.0, 1e9))
-        else:
-            for extra in ("packets", "comm_reward"):
-                if to_plain(getattr(self, extra)):
-                    raise ValueError(f"{key}.{extra} is not used: only the channel has it")
-            set_(self, "event", _vector(f"{key}.event", self.event, n, 0.0, 1.0))
-
-    @property
-    def num_levels(self) -> int:
-        """L."""
-        return len(self.transition)
-
-    def as_config(self) -> dict[str, Any]:
-        """The config mapping (without ``name``), as written in an ``envs/`` file."""
-        out: dict[str, Any] = {
-            "levels": list(self.levels),
-            "transition": [list(r) for r in self.transition],
-        }
-        if self.name == "channel":
-            out["packets"] = list(self.packets)
-            out["comm_reward"] = list(self.comm_reward)
-        else:
-            out["event"] = list(self.event)
-        return out
-
-
-@dataclass(frozen=True)
-class BurstySpec:
-    """Markov-modulated Poisson arrivals (MODEL.md § B.2): a traffic phase with its own chain,
-    Poisson(rates[phase]) packets per step. The phase is one more state factor (after m)."""
-
-    rates: tuple[float, ...]
-    transition: tuple[tuple[float, ...], ...]
-
-    def __post_init__(self) -> None:
-        rates = to_plain(self.rates)
-        if not isinstance(rates, list | tuple) or len(rates) < 2:
-            raise ValueError(
-                f"env.bursty.rates={rates!r} must list a Poisson rate per traffic phase (>= 2)"
-            )
-        object.__setattr__(
-            self,
-            "rates",
-            tuple(
-                check_number(f"env.bursty.rates[{i}]", r, 0.0, 1000.0) for i, r in enumerate(rates)
-            ),
-        )
-        object.__setattr__(
-            self, "transition", _matrix("env.bursty.transition", self.transition, len(rates))
-        )
-
-    def as_config(self) -> dict[str, Any]:
-        """The config mapping."""
-        return {"rates": list(self.rates), "transition": [list(r) for r in self.transition]}
+_ENV_NUMBERS = (
+    ("queue_capacity", 1, 1_000_000, True),
+    ("packets_good", 0, 10_000, True),
+    ("packets_bad", 0, 10_000, True),
+    ("reaction_clear", 0.0, 1.0, False),
+    ("horizon", 1, 10**9, True),
+    ("detection_prob", 0.0, 1.0, False),
+    ("false_alarm_prob", 0.0, 1.0, False),
+)
+"""The environment's numeric keys: (key, low, high, integer)."""
 
 
 @dataclass(frozen=True)
@@ -390,38 +163,20 @@ class EnvParams:
     false_alarm_prob: float = field(default=0.0, metadata={"optional": True})
 
     def __post_init__(self) -> None:
-        set_ = object.__setattr__
-        set_(
-            self,
-            "queue_capacity",
-            check_number("env.queue_capacity", self.queue_capacity, 1, 1_000_000, integer=True),
-        )
-        # The exact model sums arrivals up to a tail bucket; rates above 1000 packets/step are not a
-        # regime this model is meant for and would make that table huge.
+        for key, lo, hi, integer in _ENV_NUMBERS:
+            value = check_number(f"env.{key}", getattr(self, key), lo, hi, integer=integer)
+            object.__setattr__(self, key, value)
         if self.arrival_rate is not None:  # None: bursty arrivals (checked in _check_general)
-            set_(
-                self,
-                "arrival_rate",
-                check_number("env.arrival_rate", self.arrival_rate, 0.0, 1000.0),
-            )
-        set_(
-            self,
-            "packets_good",
-            check_number("env.packets_good", self.packets_good, 0, 10_000, integer=True),
-        )
-        set_(
-            self,
-            "packets_bad",
-            check_number("env.packets_bad", self.packets_bad, 0, 10_000, integer=True),
-        )
-        for name, cls in (
-            ("p0", EventProbs),
-            ("p1", EventProbs),
-            ("stay_good", StayProbs),
-            ("stay_bad", StayProbs),
-        ):
+            # The exact model sums arrivals up to a tail bucket; rates above 1000 packets/step are
+            # not a regime this model is meant for and would make that table huge.
+            rate = check_number("env.arrival_rate", self.arrival_rate, 0.0, 1000.0)
+            object.__setattr__(self, "arrival_rate", rate)
+        for name, cls in (("p0", EventProbs), ("p1", EventProbs)):
             if not isinstance(getattr(self, name), cls):
                 raise ValueError(f"env.{name} must be a mapping of {cls.__name__} values")
+        for name in ("stay_good", "stay_bad"):
+            if not isinstance(getattr(self, name), StayProbs):
+                raise ValueError(f"env.{name} must be a mapping of StayProbs values")
         for name, g, h in zip(
             MARKOV_FACTORS, self.stay_good.as_tuple(), self.stay_bad.as_tuple(), strict=True
         ):
@@ -431,26 +186,16 @@ class EnvParams:
                     "the long-run behaviour depends on where it starts and the exact long-run "
                     "metrics are not defined; make at least one of them < 1"
                 )
-        if self.event_model not in EVENT_MODELS:
-            raise ValueError(
-                f"env.event_model={self.event_model!r} must be one of {', '.join(EVENT_MODELS)}"
-            )
-        if not isinstance(self.radar_reaction, bool):
-            raise ValueError(f"env.radar_reaction={self.radar_reaction!r} must be true or false")
-        set_(
-            self,
-            "reaction_clear",
-            check_number("env.reaction_clear", self.reaction_clear, 0.0, 1.0),
-        )
-        set_(self, "horizon", check_number("env.horizon", self.horizon, 1, 10**9, integer=True))
-        set_(self, "factors", _factor_specs(self.factors))
+        check_choice("env.event_model", self.event_model, EVENT_MODELS)
+        check_bool("env.radar_reaction", self.radar_reaction)
+        object.__setattr__(self, "factors", _factor_specs(self.factors))
         self._check_general()
 
     def _check_general(self) -> None:
         """The general model's keys (MODEL.md § B): bursty arrivals, imperfect radar, and that no
         v1 key of a factor given in ``factors`` was set (it would be silently unused)."""
         set_ = object.__setattr__
-        bursty = to_plain(self.bursty)
+        bursty = self.bursty
         if bursty is not None and not isinstance(bursty, BurstySpec):
             if not isinstance(bursty, Mapping):
                 raise ValueError(f"env.bursty={bursty!r} must be a mapping with rates, transition")
@@ -466,12 +211,6 @@ class EnvParams:
             )
         if bursty is None and self.arrival_rate is None:
             raise ValueError("env.arrival_rate=null needs env.bursty (rates and transition)")
-        set_(self, "detection_prob", check_number("env.detection_prob", self.detection_prob, 0, 1))
-        set_(
-            self,
-            "false_alarm_prob",
-            check_number("env.false_alarm_prob", self.false_alarm_prob, 0, 1),
-        )
         defaults = EnvParams.__dataclass_fields__
         for spec in self.factors:
             name = spec.name
@@ -616,7 +355,6 @@ class Params:
             cfg: a dict or OmegaConf node, e.g. a recipe's Hydra config.
             strict: if True both sections must be complete; if False missing keys take defaults.
         """
-        cfg = to_plain(cfg)
         if not isinstance(cfg, Mapping):
             raise ValueError(f"config must be a mapping, got {cfg!r}")
         for key in ("env", "reward"):
@@ -625,8 +363,8 @@ class Params:
         env = cfg.get("env", {})
         if isinstance(env, Mapping) and "vehicles" in env:
             raise ValueError(
-                "env=fleet (env.vehicles=…) is a fleet of vehicles; this takes one vehicle — run "
-                "the fleet with recipes/fleet.py (learners) or recipes/solve.py (its optimum)"
+                "env.vehicles is a fleet's key: Params is one vehicle (a fleet is "
+                "irdrc.fleet.spec.FleetSpec)"
             )
         return cls(
             env=EnvParams.from_dict(cfg.get("env", {}), strict=strict),
@@ -643,7 +381,7 @@ class Params:
             ValueError: a key without its section (``"r4"``, ``"horizon"``), naming the full key.
         """
         merged: dict[str, Any] = {"env": {}, "reward": {}}
-        _apply_overrides(merged, overrides or {})
+        apply_overrides(merged, overrides or {})
         return cls.from_config(merged, strict=False)
 
     def with_overrides(self, overrides: Mapping[str, Any]) -> Params:
@@ -653,52 +391,12 @@ class Params:
         validated as in ``from_config``.
         """
         merged = self.to_dict()
-        _apply_overrides(merged, overrides)
+        apply_overrides(merged, overrides)
         return Params.from_config(merged)
 
     def to_dict(self) -> dict[str, Any]:
         """Plain nested dict with the config names (round-trips through ``from_config``)."""
         return {"env": as_dict(self.env), "reward": as_dict(self.reward)}
-
-
-REWARD_KEYS = ("r1", "r2", "r3", "r4", "r5")
-"""The reward weights (``reward.r1`` … ``reward.r5``)."""
-
-
-def full_key(key: str) -> str:
-    """``key`` with its section: ``r4`` → ``reward.r4``, ``p1.speed`` → ``env.p1.speed`` (as it is
-    when it has one)."""
-    head = key.split(".", 1)[0]
-    if head in ("env", "reward"):
-        return key
-    return f"reward.{key}" if head in REWARD_KEYS else f"env.{key}"
-
-
-def _apply_overrides(merged: dict[str, Any], overrides: Mapping[str, Any]) -> None:
-    """Set dotted or nested overrides into ``merged`` ({"env": …, "reward": …}); every key starts
-    with its section (``env.`` or ``reward.``), as on the command line."""
-    for key, value in overrides.items():
-        parts = str(key).split(".")
-        if parts[0] not in ("env", "reward"):
-            raise ValueError(
-                f"override {key!r} needs its section: write {full_key(str(key))!r} (keys are "
-                "named as on the command line: 'env.p1.speed', 'reward.r4', or nested "
-                "{'env': {...}, 'reward': {...}})"
-            )
-        target = merged
-        for p in parts[:-1]:
-            target = target.setdefault(p, {})
-            if not isinstance(target, dict):
-                raise ValueError(f"override {key!r} conflicts with another key")
-        _deep_set(target, parts[-1], to_plain(value))
-
-
-def _deep_set(target: dict, key: str, value: Any) -> None:
-    if isinstance(value, Mapping) and isinstance(target.get(key), dict):
-        for k, v in value.items():
-            _deep_set(target[key], k, v)
-    else:
-        target[key] = value
 
 
 def as_dict(obj: Any) -> dict[str, Any]:
@@ -723,9 +421,8 @@ def as_dict(obj: Any) -> dict[str, Any]:
 def _fill(defaults: Any, data: Any) -> dict[str, Any]:
     """Defaults (as a dict) updated recursively by ``data``; unknown keys are kept for the checks."""
     base = as_dict(defaults)
-    data = to_plain(data)
     if not isinstance(data, Mapping):
         return data
     for k, v in data.items():
-        _deep_set(base, k, v)
+        deep_set(base, k, v)
     return base

@@ -10,7 +10,7 @@ import torch
 from tensordict.nn import TensorDictModule
 from torch import nn
 
-from irdrc.core.env import fresh_seed
+from irdrc.core.dynamics import fresh_seed
 
 
 class _Constant(nn.Module):
@@ -94,7 +94,7 @@ def uniform_random(p_radar: float = 0.5, seed: int | None = None) -> TensorDictM
 
 
 def table_policy(actions: torch.Tensor, seed: int | None = None) -> TensorDictModule:
-    """Policy from a table per state index (see ``irdrc.core.env``): [S] actions (deterministic)
+    """Policy from a table per state index (see ``irdrc.core.dynamics``): [S] actions (deterministic)
     or [S, 2] probabilities of (comm, radar) (randomised, drawn from its own generator seeded by
     ``seed``)."""
     actions = torch.as_tensor(actions)

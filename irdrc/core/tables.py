@@ -1,6 +1,6 @@
 """The model's per-configuration tables (MODEL.md v1 and § B), computed once from ``Params`` and
-shared by the simulator (``irdrc.core.env``), the dense exact model (``irdrc.core.model``) and the
-factored one (``irdrc.core.factored``).
+shared by the simulator (``irdrc.core.env``) and the exact models (``irdrc.core.exact``: dense and
+factored).
 
 A *configuration* f is the joint level of the Markov factors and the traffic phase, mixed radix
 with the channel most significant::

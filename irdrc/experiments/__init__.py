@@ -1,13 +1,17 @@
-"""From a config to a run directory: run functions per method, grids, sweeps, files, tracking, cli.
+"""From a config to a run directory: one module per recipe on one house.
 
-- ``config``: scenarios (``envs/``) and Hydra composition;
-- ``app``: what every recipe does before its run (deprecated keys, clear config errors);
-- ``grid``: the ``{key: [values]}`` grid grammar shared by sweeps and batched scenarios;
-- ``runs``: one run function per method and the one way every run finishes;
-- ``sweep``: grids of runs on Ray Tune or locally;
-- ``results``: ``summary.json``, ``policy.csv``, ``metrics.csv``, atomically written;
-- ``tracking``: W&B / CSV / no logger;
-- ``cli``: the ``irdrc`` command.
+- one module per recipe (``dqn``, ``qlearning``, ``solve``, ``evaluate``, ``constrained``,
+  ``fleet``, ``sweep``, ``study``, ``demo``, ``bench_*``), each with ``NAME``, its frozen ``Config``,
+  ``load`` (the composed config to that ``Config``, checked) and ``run``;
+- ``compose``: scenarios (``envs/``) and the one Hydra composition of a run;
+- ``app``: what every recipe does around its run (composed once, checked before any work, one-line
+  errors);
+- ``scaffold``: the run directory (lock, log, config files), threads, logger, progress, signals,
+  checkpoints and the finishing of a run;
+- ``sections``: the config sections recipes share (eval, logger, checkpoint, executor, …);
+- ``trials``: grids of runs on Ray Tune or locally; ``grid``: the ``{key: [values]}`` grammar;
+- ``report``, ``tables``, ``curves``, ``results``: what a run prints and writes, atomically;
+- ``tracking``: W&B / CSV / TensorBoard / no logger; ``progress``; ``cli``: the ``irdrc`` command.
 
 May import: ``irdrc.core``, ``irdrc.agents``, Hydra/OmegaConf, Ray (lazily). Nothing from
 ``irdrc.paper``.

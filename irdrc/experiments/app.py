@@ -1,193 +1,160 @@
-"""What every recipe does around its run: scenarios registered, renamed keys mapped, the command line
-and the composed config checked before any work, and errors reported in a line, not a traceback.
+"""What every recipe does around its run: the command line composed once into the recipe's typed
+config and checked before any work, the run scaffold opened, the recipe's run function called, and
+every error reported in one line.
 
-A recipe is ``main = recipe("dqn", run_dqn)`` plus ``if __name__ == "__main__": main()``: the run
-function gets the composed config and the run directory, and its return value (an exit code or a
-summary) decides the exit status.
+A recipe module (``irdrc.experiments.dqn`` …) provides ``NAME`` (its config file), ``load(composed,
+resume) -> Config`` (its typed config, checked), ``run(config, run)`` and, for training recipes,
+``RESUMABLE = True`` (``resume=PATH`` goes on from a checkpoint); optionally ``RENAMED`` and
+``REMOVED`` (keys of earlier versions) and ``ELSEWHERE`` (group choices that belong to another
+recipe, and the command to use instead). ``recipes/<name>.py`` is
+``app.main(module)``. Set ``IRDRC_TRACEBACK=1`` to see the traceback of an error instead of its
+one line.
 """
 
 from __future__ import annotations
 
 import os
 import sys
-from collections.abc import Callable
+from dataclasses import dataclass, replace
 from pathlib import Path
+from types import ModuleType
 from typing import Any
 
-from irdrc.experiments.config import CONF_DIR, compose, register_scenarios, rename_overrides
+from irdrc.experiments.compose import (
+    Composed,
+    _flat_keys,
+    compose,
+    rename_overrides,
+    stored_overrides,
+    unknown_key,
+)
 from irdrc.experiments.grid import override_key
-from irdrc.experiments.guard import RunInterrupted
 
 EXIT_USAGE = 2
 """Exit status of a run refused before any work (a bad key or value)."""
 
 
-def fail(message: str, code: int = EXIT_USAGE) -> None:
-    """Print ``error: message`` (no traceback) and exit with ``code``."""
-    print(f"error: {message}", file=sys.stderr, flush=True)
-    sys.exit(code)
+@dataclass(frozen=True)
+class Prepared:
+    """A recipe's run before it starts: its typed ``config``, the ``composed`` config, its run
+    directory, the checkpoint it resumes from, and notes for the user."""
+
+    config: Any
+    composed: Composed
+    run_dir: Path
+    resume: dict[str, Any] | None
+    notes: list[str]
 
 
-class _Tee:
-    """``sys.stdout`` for the length of a run: what is printed also goes to the run's log."""
+def prepare(module: ModuleType, args: list[str]) -> Prepared:
+    """The command line ``args`` of ``module``'s recipe composed once (Hydra), a resumed run's
+    checkpoint merged in, turned into the recipe's typed config and checked.
 
-    def __init__(self, stream: Any, log: Any) -> None:
-        self.stream, self.log = stream, log
-
-    def write(self, text: str) -> int:
-        self.log.write(text)
-        return self.stream.write(text)
-
-    def flush(self) -> None:
-        self.log.flush()
-        self.stream.flush()
-
-    def __getattr__(self, name: str) -> Any:  # isatty, fileno, encoding: the terminal's
-        return getattr(self.stream, name)
-
-
-def _quoted_path(path: Path) -> str:
-    """A path as a Hydra override value (quoted when it holds more than plain characters)."""
-    text = str(path)
-    plain = all(c.isalnum() or c in "_-./" for c in text)
-    return text if plain else "'" + text.replace("\\", "\\\\").replace("'", "\\'") + "'"
-
-
-def stored_overrides(args: list[str]) -> tuple[list[str], list[str]]:
-    """With ``resume=true hydra.run.dir=DIR``, the command line completed by the overrides the run
-    in DIR was started with (its ``.hydra/overrides.yaml``; what the command line sets wins), so a
-    sweep, a figure or a benchmark goes on with its own grid; and the overrides taken from there."""
-    from omegaconf import OmegaConf
-
-    values = {override_key(a): a.split("=", 1)[1] for a in args if "=" in a}
-    run_dir = values.get("hydra.run.dir")
-    if str(values.get("resume", "")).lower() != "true" or not run_dir:
-        return args, []
-    record = Path(run_dir.strip("'\"")).expanduser() / ".hydra" / "overrides.yaml"
-    if not record.is_file():
-        return args, []
-    taken = [
-        str(o)
-        for o in OmegaConf.load(record)
-        if override_key(str(o)) not in values and not override_key(str(o)).startswith("hydra")
-    ]
-    return [*taken, *args], taken
-
-
-def _remove_if_empty(out: Path, log_name: str) -> None:
-    """Remove a run directory a refused run made: one holding only Hydra's record and the log
-    (and its date folder under ``outputs/`` when that is left empty)."""
-    if not out.is_dir() or {p.name for p in out.iterdir()} - {".hydra", log_name}:
-        return
-    import shutil
-
-    shutil.rmtree(out / ".hydra", ignore_errors=True)
-    (out / log_name).unlink(missing_ok=True)
-    for d in (out, out.parent):
-        if d == out or d.parent.name == "outputs":
-            try:
-                d.rmdir()
-            except OSError:
-                return
-
-
-def recipe(
-    config_name: str,
-    run: Callable[..., Any],
-    *,
-    scenario_overrides: bool = False,
-    check: Callable[[Any], None] | None = None,
-):
-    """A Hydra entry point for ``recipes/conf/<config_name>.yaml`` calling ``run(cfg, out)``.
-
-    Args:
-        config_name: the recipe's config.
-        run: ``run(cfg, out)`` (or ``run(cfg, out, overrides)`` with ``scenario_overrides``); an
-            int return value is the exit status.
-        scenario_overrides: pass the command line's scenario (``env=…``, ``env.*``, ``reward.*``) as
-            a third argument, for recipes that plan runs of their own.
-        check: validates the composed config before ``run`` (default: the recipe's own checks in
-            ``irdrc.experiments.validate``).
-
-    Set ``IRDRC_TRACEBACK=1`` to see the traceback of an error instead of its one line.
+    Raises:
+        ValueError: the first bad key or value, naming it (nothing has been written).
     """
-    import hydra
-    from hydra.core.hydra_config import HydraConfig
+    args, notes = rename_overrides(
+        list(args), getattr(module, "RENAMED", {}), getattr(module, "REMOVED", {})
+    )
+    args, stored = stored_overrides(args)
+    if stored:
+        notes.append(f"resume: with the run's stored overrides {' '.join(stored)}")
+    for a in args:
+        if "=" not in a and not a.startswith("~"):
+            raise ValueError(f"{a!r} is not an override: write key=value")
+        if a in getattr(module, "ELSEWHERE", {}):
+            raise ValueError(f"{a} is not a {module.NAME} profile: use {module.ELSEWHERE[a]}")
+    composed = compose(module.NAME, args)
+    resume = None
+    if getattr(module, "RESUMABLE", False) and isinstance(composed.cfg.get("resume"), str):
+        from irdrc.agents.base import load_checkpoint
+        from irdrc.experiments.scaffold import resumed_config
 
-    from irdrc.experiments.validate import check_overrides, validate
+        path = Path(composed.cfg["resume"]).expanduser()
+        resume = load_checkpoint(path)
+        merged = resumed_config(path, resume["config"], composed.cfg, composed.explicit)
+        composed = replace(composed, cfg=merged)
+    try:
+        config = module.load(composed, resume)
+    except ValueError as err:
+        raise ValueError(_added_key(module.NAME, composed, args, err)) from None
+    run_dir = Path(composed.run_dir)
+    if resume is not None and not any(a.startswith("hydra.run.dir=") for a in args):
+        run_dir = Path(composed.cfg["resume"]).expanduser().resolve().parent  # one run, one dir
+    return Prepared(config, composed, run_dir.expanduser(), resume, notes)
 
-    register_scenarios()
+
+def _added_key(name: str, composed: Composed, args: list[str], err: ValueError) -> str:
+    """A key the command line added with ``+`` that the recipe does not read, named in full with
+    the closest valid key; any other error as it is."""
+    if not str(err).startswith("unknown key"):
+        return str(err)
+    for a in args:
+        if a.startswith("+") and not a.startswith("++"):
+            key = override_key(a)
+            known = {k for k in _flat_keys(composed.cfg) if not k.startswith(key)}
+            return unknown_key(name, key, known)
+    return str(err)
+
+
+def _help(module: ModuleType) -> None:
+    print((module.__doc__ or module.NAME).strip())
+    print(
+        f"\nkeys and their defaults: recipes/conf/{module.NAME}.yaml (every key: docs/CONFIG.md); "
+        "override any as key=value, the run directory as hydra.run.dir=DIR"
+    )
+
+
+def execute(module: ModuleType, args: list[str]) -> int:
+    """Run ``module``'s recipe with the command line ``args``; returns the exit status."""
+    from irdrc.experiments.scaffold import Run, RunInterrupted
+
+    if args and args[0] in ("-h", "--help"):
+        _help(module)
+        return 0
     full = bool(os.environ.get("IRDRC_TRACEBACK"))
+    try:
+        prepared = prepare(module, args)
+    except (ValueError, OSError) as err:
+        if full:
+            raise
+        return fail(str(err))
+    except KeyboardInterrupt:
+        return fail("interrupted (Ctrl-C) before the run started; nothing was written", 130)
+    for note in prepared.notes:
+        print(note, file=sys.stderr)
+    run = Run(module.NAME, prepared.composed, prepared.run_dir, prepared.resume)
+    try:
+        run.open()
+    except ValueError as err:
+        return fail(str(err))
+    refused = False
+    try:
+        result = module.run(prepared.config, run)
+    except RunInterrupted as err:
+        run.log_line(f"error: {err}")
+        return fail(str(err), err.code)
+    except (ValueError, OSError) as err:
+        if full:
+            raise
+        run.log_line(f"error: {err}")
+        refused = True
+        return fail(str(err))
+    except KeyboardInterrupt:
+        run.log_line("error: interrupted (Ctrl-C)")
+        return fail(f"interrupted (Ctrl-C); what the run wrote is in {run.dir}", 130)
+    finally:
+        run.close(refused=refused)
+    return result if isinstance(result, int) else 0
 
-    @hydra.main(config_path=str(CONF_DIR), config_name=config_name, version_base=None)
-    def _main(cfg) -> None:
-        out = Path(HydraConfig.get().runtime.output_dir)
-        log_name = f"{HydraConfig.get().job.name}.log"
-        stdout = sys.stdout
-        with open(out / log_name, "a", encoding="utf-8") as log:
-            sys.stdout = _Tee(stdout, log)  # the run's printed lines are kept in its log
-            try:
-                if scenario_overrides:
-                    from irdrc.experiments.config import scenario_overrides as current
 
-                    code = run(cfg, out, current())
-                else:
-                    code = run(cfg, out)
-            except RunInterrupted as err:
-                print(f"error: {err}", file=log)
-                fail(str(err), err.code)
-            except (ValueError, OSError) as err:
-                if full:
-                    raise
-                print(f"error: {err}", file=log)
-                refused: str | None = str(err)
-            else:
-                refused = None
-            finally:
-                sys.stdout = stdout
-        if refused is not None:
-            _remove_if_empty(out, log_name)  # a refused run leaves no trace
-            fail(refused)
-        if isinstance(code, int) and code:
-            sys.exit(code)  # Hydra's wrapper drops return values, so exit from inside the task
+def fail(message: str, code: int = EXIT_USAGE) -> int:
+    """Print ``error: message`` (no traceback); returns ``code``."""
+    print(f"error: {message}", file=sys.stderr, flush=True)
+    return code
 
-    def main() -> None:
-        args = sys.argv[1:]
-        try:
-            args, notes = rename_overrides(config_name, args)
-            args, stored = stored_overrides(args)
-            overrides = [a for a in args if not a.startswith("-")]
-            check_overrides(config_name, overrides)
-            # Checked before Hydra starts, which creates (or, when it exists, rewrites) the run
-            # directory: a refused run leaves no trace.
-            cfg = compose(
-                config_name, [o for o in overrides if not override_key(o).startswith("hydra")]
-            )
-            (check or (lambda c: validate(config_name, c, overrides)))(cfg)
-        except (ValueError, OSError) as err:
-            if full:
-                raise
-            fail(str(err))
-        except Exception as err:  # Hydra's own parse errors: one line, not a traceback
-            if full:
-                raise
-            fail(f"{type(err).__name__}: {str(err).strip().splitlines()[0]}")
-        for note in notes:
-            print(note, file=sys.stderr)
-        if stored:
-            print(f"resume: with the run's stored overrides {' '.join(stored)}", file=sys.stderr)
-        resume = cfg.get("resume")
-        if (
-            isinstance(resume, str)
-            and resume
-            and not any(a.startswith("hydra.run.dir=") for a in args)
-        ):
-            # a resumed run goes on in its own directory: one run, one directory
-            run_dir = Path(resume).expanduser().resolve().parent
-            args.append(f"hydra.run.dir={_quoted_path(run_dir)}")
-        if not any(a.startswith("hydra.job.name=") for a in args):
-            args.append(f"hydra.job.name={config_name}")  # the log file is <recipe>.log
-        sys.argv[1:] = args
-        _main()
 
-    return main
+def main(module: ModuleType) -> None:
+    """The entry point of ``recipes/<name>.py``: run the recipe on the command line, exit with
+    its status."""
+    sys.exit(execute(module, sys.argv[1:]))

@@ -1,21 +1,31 @@
-"""The simulator's throughput benchmark behind ``recipes/bench_env.py``: batched env steps per
-second for several batch sizes, and single-env steps per second against a plain numpy baseline
-measured in the same run (medians of repeated timed runs)."""
+"""``recipes/bench_env.py``: the simulator's throughput — batched env steps per second for several
+batch sizes, and single-env steps per second against a plain numpy baseline measured in the same
+run (medians of repeated timed runs).
+
+    python recipes/bench_env.py                      # BENCHMARKS.md's table
+    python recipes/bench_env.py 'sizes=[1024]' 'threads=[1]'
+"""
 
 from __future__ import annotations
 
 import statistics
 import time
-from pathlib import Path
+from dataclasses import dataclass, field
+from typing import Any
 
 import gymnasium
 import numpy as np
 import torch
-from omegaconf import DictConfig
 
-from irdrc.core.env import DFRCEnv, Dynamics
+from irdrc.core.checks import INT, build, check_choice, check_list, check_numbers, numbers
+from irdrc.core.dynamics import Dynamics
+from irdrc.core.env import DFRCEnv
 from irdrc.core.params import Params
+from irdrc.experiments.compose import Composed
 from irdrc.experiments.results import md_table, write_rows_csv, write_table_md
+from irdrc.experiments.sections import ONE_VEHICLE, check_common
+
+NAME = "bench_env"
 
 MODES = ("dynamics", "step", "rollout", "gym_vec")
 """Batched modes, measured at every N: bare ``Dynamics.step``; ``env.step_and_maybe_reset`` (what a
@@ -155,14 +165,60 @@ def _row(n: int, threads: int, mode: str, iters: int, repeats: int, times: list[
     }
 
 
-def run_bench_env(cfg: DictConfig, out: Path) -> int:
+@dataclass(frozen=True)
+class Config:
+    """The benchmark's keys (``recipes/conf/bench_env.yaml``)."""
+
+    params: Params = field(default=None, metadata=ONE_VEHICLE)
+    sizes: tuple[int, ...] = (1, 64, 1024, 16384, 65536)
+    threads: tuple[int, ...] = (1, 2)
+    modes: tuple[str, ...] = (*SINGLE_MODES, *MODES)
+    single_steps: int = 100_000
+    repeats: int = 5
+    target_env_steps: int = 2_000_000
+    min_iters: int = 20
+    max_iters: int = 400
+    device: str = "cpu"
+    seed: int = 0
+    csv: str = "bench_env.csv"
+
+    def __post_init__(self) -> None:
+        check_common(self)
+        for key in ("sizes", "threads"):
+            value = check_list(key, getattr(self, key), numbers(1, 10**8, integer=True))
+            object.__setattr__(self, key, value)
+        mode = lambda key, m: check_choice(key, m, MODES + SINGLE_MODES)  # noqa: E731
+        object.__setattr__(self, "modes", check_list("modes", self.modes, mode))
+        check_numbers(
+            self,
+            "",
+            (
+                ("single_steps", 1, 10**8, INT),
+                ("repeats", 1, 1000, INT),
+                ("target_env_steps", 1, 10**12, INT),
+                ("min_iters", 1, 10**9, INT),
+                ("max_iters", 1, 10**9, INT),
+            ),
+        )
+
+
+def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
+    """The typed config, checked."""
+    return build(Config, composed.cfg)
+
+
+def run(cfg: Config, run) -> int:
     """Print the throughput table (batched modes at every N and thread count; single-env modes
     with their ratio to the numpy baseline measured in the same run) and write it as CSV."""
+    run_bench_env(cfg, run.dir)
+    run.finish(None)
+    return 0
+
+
+def run_bench_env(cfg: Config, out: Any) -> None:
+    """The benchmark (see ``run``) into ``out``."""
     start = time.perf_counter()
-    params = Params.from_config(cfg)
-    bad = [m for m in cfg.modes if m not in MODES + SINGLE_MODES]
-    if bad:
-        raise ValueError(f"modes: unknown {bad}; choose from {list(MODES + SINGLE_MODES)}")
+    params = cfg.params
     rows = []
     print(f"{'N':>7} {'threads':>7} {'mode':>12} {'median M steps/s':>17} {'min':>7} {'max':>7}")
 
@@ -211,10 +267,8 @@ def run_bench_env(cfg: DictConfig, out: Path) -> int:
             f"\nbest batched env throughput: {best['median_steps_per_s'] / 1e6:.2f} M steps/s "
             f"(N={best['num_envs']}, threads={best['threads']}, mode={best['mode']})"
         )
-    write_rows_csv(Path(out) / cfg.csv, rows)
-    write_table_md(Path(out) / "bench_env.md", bench_env_table(rows), time.perf_counter() - start)
-    print(f"wrote {Path(out) / cfg.csv} and {Path(out) / 'bench_env.md'}")
-    return 0
+    write_rows_csv(out / cfg.csv, rows)
+    write_table_md(out / "bench_env.md", bench_env_table(rows), time.perf_counter() - start)
 
 
 def bench_env_table(rows: list[dict]) -> str:

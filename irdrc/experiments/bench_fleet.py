@@ -1,4 +1,4 @@
-"""The fleet's benchmark (``recipes/bench_fleet.py``): multi-agent learners against the exact
+"""``recipes/bench_fleet.py``: the fleet's benchmark — multi-agent learners against the exact
 centralised optimum at N = 2, and against the baselines (Monte-Carlo) as the fleet grows.
 
 Part A — N = 2, every (share, channels) cell × learner × seed, one ``recipes/fleet.py`` run each
@@ -9,6 +9,9 @@ can go. Part B — N = 2 (part A's runs) and ``vehicles`` (one channel, share 0.
 learners against the baselines: fleet reward, miss detection, throughput, denial rate. A figure: the fleet's
 frontier (throughput against miss detection) at N = 2 for the optimum, the learners and the
 baselines, one panel per cell.
+
+    python recipes/bench_fleet.py                                 # FLEET.md's tables and figure
+    python recipes/bench_fleet.py 'learners=[vdn]' 'seeds=[0]' search=false
 """
 
 from __future__ import annotations
@@ -17,6 +20,7 @@ import json
 import math
 import statistics
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -25,9 +29,10 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import torch
-from omegaconf import DictConfig
 
-from irdrc.core.params import to_plain
+from irdrc.agents.configs import FLEET_LEARNERS
+from irdrc.core import checks
+from irdrc.experiments.compose import Composed
 from irdrc.experiments.results import (
     atomic_savefig,
     md_table,
@@ -35,7 +40,9 @@ from irdrc.experiments.results import (
     write_rows_csv,
     write_table_md,
 )
+from irdrc.experiments.sections import EXECUTOR, Executor, Plot
 
+NAME = "bench_fleet"
 OWN_LEARNERS = ("idqn", "vdn", "qmix")
 """Learners whose vehicles see only their own state (``env.observe=own``)."""
 
@@ -59,39 +66,94 @@ def observe_of(learner: str) -> str:
     return "full" if learner == "joint" else "own"
 
 
-def run_bench_fleet(cfg: DictConfig, out: Path) -> int:
-    """Plan and run both parts, then write ``bench_fleet.csv`` (a row per run),
-    ``bench_fleet.md`` (the tables) and ``fleet_frontier.<format>``."""
-    from irdrc.experiments.sweep import execute, plan
+@dataclass(frozen=True)
+class Config:
+    """The benchmark's keys (``recipes/conf/bench_fleet.yaml``); ``planned``: every run, checked
+    (``irdrc.experiments.trials.plan``), and ``part``: each run's part and learner."""
 
-    start = time.perf_counter()
-    out = Path(out)
-    seeds = [int(s) for s in to_plain(cfg.seeds)]
-    base = [str(o) for o in cfg.overrides] + [f"eval.every_frames={int(cfg.eval.every_frames)}"]
+    learners: tuple[str, ...] = FLEET_LEARNERS
+    seeds: tuple[int, ...] = (0, 1, 2, 3, 4)
+    share: tuple[float, ...] = (0.0, 0.5, 1.0)
+    channels: tuple[int, ...] = (1, 2)
+    scale_learners: tuple[str, ...] = OWN_LEARNERS
+    vehicles: tuple[int, ...] = (3, 4, 6, 8)
+    scale_seeds: tuple[int, ...] = (0, 1)
+    overrides: tuple[str, ...] = ()
+    eval: dict = field(default_factory=lambda: {"every_frames": 50_000})
+    search: bool = True
+    search_cell: tuple = (0.5, 1)
+    search_sweeps: int = 10
+    plot: Plot = field(default_factory=Plot)
+    csv: str = "bench_fleet.csv"
+    executor: Executor = field(default_factory=Executor, metadata=EXECUTOR)
+    planned: tuple = field(default=(), metadata={"keys": ()})
+    part: dict = field(default_factory=dict, metadata={"keys": ()})
+
+    def __post_init__(self) -> None:
+        def pick(choices):
+            return lambda key, x: checks.check_choice(key, x, choices)
+
+        lists = (
+            ("learners", pick(FLEET_LEARNERS), True),
+            ("scale_learners", pick(OWN_LEARNERS), True),
+            ("seeds", checks.numbers(0, 2**32 - 1, integer=True), True),
+            ("scale_seeds", checks.numbers(0, 2**32 - 1, integer=True), True),
+            ("share", checks.numbers(0, 1), True),
+            ("channels", checks.numbers(1, 16, integer=True), True),
+            ("vehicles", checks.numbers(1, 16, integer=True), True),
+            ("overrides", None, True),
+        )
+        for key, item, empty in lists:
+            object.__setattr__(
+                self, key, checks.check_list(key, getattr(self, key), item, empty=empty)
+            )
+        checks.check_bool("search", self.search)
+        cell = checks.check_list("search_cell", self.search_cell, length=2)
+        object.__setattr__(self, "search_cell", cell)
+        checks.check_numbers(self, "", (("search_sweeps", 1, 1000, checks.INT),))
+        from irdrc.core.checks import check_number
+
+        check_number("eval.every_frames", self.eval.get("every_frames"), 1, 10**12, integer=True)
+
+
+def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
+    """The typed config; every run of both parts composed and checked before any trial."""
+    from dataclasses import replace
+
+    from irdrc.experiments.trials import plan
+
+    cfg = checks.build(Config, composed.cfg)
+    base = [*cfg.overrides, f"eval.every_frames={cfg.eval['every_frames']}"]
     planned, part = [], {}
-    for learner in to_plain(cfg.learners):
+    for learner in cfg.learners:
         extra = [f"learner={learner}", f"env.observe={observe_of(learner)}", "env.vehicles=2"]
         grid = [
-            {"env.share": float(s), "env.channels": int(k), "seed": seed}
-            for s in to_plain(cfg.share)
-            for k in to_plain(cfg.channels)
-            for seed in seeds
+            {"env.share": s, "env.channels": k, "seed": seed}
+            for s in cfg.share
+            for k in cfg.channels
+            for seed in cfg.seeds
         ]
         for p in plan("fleet", grid, [*base, *extra]):
             planned.append(p)
             part[p["point_id"]] = ("A", learner)
-    for learner in to_plain(cfg.scale_learners):
+    for learner in cfg.scale_learners:
         extra = [f"learner={learner}", "env.observe=own", "env.channels=1", "env.share=0.5"]
-        grid = [
-            {"env.vehicles": int(n), "seed": int(seed)}
-            for n in to_plain(cfg.vehicles)
-            for seed in to_plain(cfg.scale_seeds)
-        ]
+        grid = [{"env.vehicles": n, "seed": seed} for n in cfg.vehicles for seed in cfg.scale_seeds]
         for p in plan("fleet", grid, [*base, *extra]):
             planned.append(p)
             part[p["point_id"]] = ("B", learner)
-    code = execute(cfg, planned, out)
-    rows, tables, configs = [], {}, {}
+    return replace(cfg, planned=tuple(planned), part=part)
+
+
+def run(cfg: Config, run) -> int:
+    """Run both parts, then write ``bench_fleet.csv`` (a row per run), ``bench_fleet.md`` (the
+    tables) and ``fleet_frontier.<format>``."""
+    from irdrc.experiments.trials import execute
+
+    start = time.perf_counter()
+    out, planned, part = run.dir, list(cfg.planned), cfg.part
+    code = execute(cfg.executor, planned, out, run.recipe)
+    rows, tables, specs = [], {}, {}
     for p in planned:
         tdir = out / "trials" / p["point_id"]
         if not (tdir / "summary.json").is_file():
@@ -119,7 +181,7 @@ def run_bench_fleet(cfg: DictConfig, out: Path) -> int:
         }
         rows.append(row)
         tables[p["point_id"]] = s["table"]
-        configs[p["point_id"]] = p["cfg"]
+        specs[p["point_id"]] = p["config"].fleet[0]
     write_rows_csv(out / cfg.csv, rows)
     a = [r for r in rows if r["part"] == "A"]
     # part B starts with part A's own-observation runs of its cell at N = 2
@@ -127,13 +189,13 @@ def run_bench_fleet(cfg: DictConfig, out: Path) -> int:
         r
         for r in a
         if r["observe"] == "own"
-        and r["learner"] in to_plain(cfg.scale_learners)
+        and r["learner"] in cfg.scale_learners
         and (r["share"], r["channels"]) == (0.5, 1)
     ] + [r for r in rows if r["part"] == "B"]
     text = []
     if a:
-        text.append(exact_table(a, tables, len(seeds)))
-        search = decentralised_search(cfg, a, configs, out) if cfg.search else None
+        text.append(exact_table(a, tables, len(cfg.seeds)))
+        search = decentralised_search(cfg, a, specs, out) if cfg.search else None
         if search:
             text.append(search)
     if b:
@@ -143,7 +205,7 @@ def run_bench_fleet(cfg: DictConfig, out: Path) -> int:
     if a:
         frontier_figure(a, tables, out / f"fleet_frontier.{cfg.plot.format}")
     write_table_md(out / "bench_fleet.md", table, time.perf_counter() - start)
-    print(f"\nwrote {out / cfg.csv}, {out / 'bench_fleet.md'} and the frontier figure")
+    run.finish(None)
     return code
 
 
@@ -233,13 +295,12 @@ def exact_table(rows: list[dict[str, Any]], tables: dict[str, Any], seeds: int) 
 
 
 def decentralised_search(
-    cfg: DictConfig, rows: list[dict[str, Any]], configs: dict[str, Any], out: Path
+    cfg: Config, rows: list[dict[str, Any]], specs: dict[str, Any], out: Path
 ) -> str | None:
     """Local search (``irdrc.fleet.search``) from the best own-observation run of the cell
     ``search_cell``: the best decentralised policy it finds, against that run and the optimum
-    (the run's own fleet: ``configs`` holds every run's composed config by point id)."""
-    from irdrc.fleet.config import fleet_from_config
-    from irdrc.fleet.exact import FleetModel
+    (the run's own fleet: ``specs`` holds every run's fleet by point id)."""
+    from irdrc.fleet.model import FleetModel
     from irdrc.fleet.search import improve_tables
 
     share, k = float(cfg.search_cell[0]), int(cfg.search_cell[1])
@@ -247,7 +308,7 @@ def decentralised_search(
     if not own:
         return None
     best = max(own, key=lambda r: r["final_ratio"])
-    model = FleetModel(fleet_from_config(configs[best["point_id"]])[0])
+    model = FleetModel(specs[best["point_id"]])
     lines = (out / "trials" / best["point_id"] / "policy.csv").read_text().splitlines()
     header = lines[0].split(",")
     cols = [header.index(f"action{i + 1}") for i in range(2)]

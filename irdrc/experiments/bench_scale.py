@@ -1,10 +1,13 @@
-"""The exact solver at scale (``recipes/bench_scale.py``): wall time and peak memory of an exact
-solve — value iteration to ``tol`` on the factored operator and the exact long-run metrics of the
-resulting policy — against S, for every scenario asked, with the dense solver (S × S matrices)
-measured in the same run where it fits.
+"""``recipes/bench_scale.py``: the exact solver at scale — wall time and peak memory of an exact
+solve (value iteration to ``tol`` and the exact long-run metrics of the resulting policy) against
+S, for every scenario asked, on the factored operator, and on the dense model (S × S matrices)
+where it fits, measured in the same run.
 
 Each measurement runs in a fresh Python process, so its peak resident memory (``ru_maxrss``) is its
 own; the memory after the imports alone is reported beside it.
+
+    python recipes/bench_scale.py                    # SCALE.md's table
+    python recipes/bench_scale.py 'scenarios=[large]' 'states=[1000,10000]'
 """
 
 from __future__ import annotations
@@ -15,13 +18,15 @@ import statistics
 import subprocess
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from omegaconf import DictConfig
+from irdrc.core import checks
+from irdrc.experiments.compose import Composed, compose, list_scenarios
+from irdrc.experiments.results import md_table, write_rows_csv, write_table_md
 
-from irdrc.core.params import to_plain
-from irdrc.experiments.results import write_rows_csv, write_table_md
+NAME = "bench_scale"
 
 COLUMNS = (
     "scenario",
@@ -48,12 +53,17 @@ def _queue_for(states: int, configs: int = 32) -> int:
     return max(1, math.ceil(states / configs) - 1)
 
 
+def scenario_params(scenario: str, queue: int | None = None):
+    """The model of a named scenario (its queue capacity set, when given)."""
+    from irdrc.experiments import solve
+
+    extra = [f"env.queue_capacity={queue}"] if queue is not None else []
+    return solve.load(compose("solve", [f"env={scenario}", *extra])).model
+
+
 def _configs(scenario: str) -> int:
     """F = Π L of a scenario (v1: 32)."""
-    from irdrc.core.params import Params
-    from irdrc.experiments.config import compose
-
-    return math.prod(Params.from_config(compose("solve", [f"env={scenario}"])).env.levels)
+    return math.prod(scenario_params(scenario).env.levels)
 
 
 def measure_once(scenario: str, queue: int, solver: str, device: str, tol: float) -> dict:
@@ -62,35 +72,31 @@ def measure_once(scenario: str, queue: int, solver: str, device: str, tol: float
 
     import torch
 
-    from irdrc.core.params import Params
-    from irdrc.experiments.config import compose
+    from irdrc.core.exact import (
+        as_probs,
+        build_factored,
+        build_model,
+        metrics_from_occupancy,
+        stationary_distribution_factored,
+        stationary_metrics,
+        value_iteration,
+    )
 
     torch.set_num_threads(1)
     rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-    params = Params.from_config(
-        compose("solve", [f"env={scenario}", f"env.queue_capacity={queue}"])
-    )
+    params = scenario_params(scenario, queue)
     t0 = time.perf_counter()
     if solver == "dense":
-        from irdrc.core.model import build_model
-        from irdrc.core.solve import stationary_metrics, value_iteration
-
         model = build_model(params)
         sol = value_iteration(model, tol=tol)
         m = stationary_metrics(model, sol.policy)
         sweeps, steps = sol.iterations, 0
     else:
-        from irdrc.core.factored import (
-            build_factored,
-            stationary_distribution_factored,
-            stationary_metrics_factored,
-            value_iteration_factored,
-        )
-
         model = build_factored(params, device=device)
-        sol = value_iteration_factored(model, tol=tol)
+        sol = value_iteration(model, tol=tol)
         mu, steps = stationary_distribution_factored(model, sol.policy)
-        m = stationary_metrics_factored(model, sol.policy, mu=mu)
+        probs = as_probs(sol.policy, model.num_states, model.num_actions).to(mu.device)
+        m = metrics_from_occupancy(model, (mu[:, None] * probs).T.contiguous())
         sweeps = sol.iterations
         if device != "cpu":
             torch.cuda.synchronize()
@@ -152,17 +158,61 @@ def growth_exponents(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
     return out
 
 
-def run_bench_scale(cfg: DictConfig, out: Path) -> int:
-    """Every (scenario, S, solver[, device]) of ``cfg``: ``repeats`` fresh-process solves, median
-    wall time, peak memory; the table printed and written as CSV and Markdown."""
+@dataclass(frozen=True)
+class Config:
+    """The benchmark's keys (``recipes/conf/bench_scale.yaml``)."""
+
+    scenarios: tuple[str, ...] = ("paper", "large")
+    states: tuple[int, ...] = (1000, 10_000, 100_000, 1_000_000)
+    tol: float = 1e-6
+    repeats: int = 3
+    timeout: float = 1800.0
+    skip_after_seconds: float = 60.0
+    gpu: bool = True
+    csv: str = "bench_scale.csv"
+
+    def __post_init__(self) -> None:
+        known = tuple(list_scenarios())
+        item = lambda key, x: checks.check_choice(key, x, known)  # noqa: E731
+        object.__setattr__(self, "scenarios", checks.check_list("scenarios", self.scenarios, item))
+        sizes = checks.check_list(
+            "states", self.states, checks.numbers(64, 32 * 10**6, integer=True)
+        )
+        object.__setattr__(self, "states", sizes)
+        checks.check_numbers(
+            self,
+            "",
+            (
+                ("tol", 0, 1, {"open_lo": True}),
+                ("repeats", 1, 1000, checks.INT),
+                ("timeout", 1, 10**6, {}),
+                ("skip_after_seconds", 0, 10**9, {}),
+            ),
+        )
+        checks.check_bool("gpu", self.gpu)
+
+
+def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
+    """The typed config, checked."""
+    return checks.build(Config, composed.cfg)
+
+
+def run(cfg: Config, run) -> int:
+    """Every (scenario, S, solver[, device]): ``repeats`` fresh-process solves, median wall time,
+    peak memory; the table printed and written as CSV and Markdown."""
+    run_bench_scale(cfg, run.dir)
+    run.finish(None)
+    return 0
+
+
+def run_bench_scale(cfg: Config, out: Path) -> None:
+    """The benchmark (see ``run``) into ``out``."""
     start = time.perf_counter()
     import torch
 
-    from irdrc.core.model import DENSE_MODEL_LIMIT_BYTES
+    from irdrc.experiments.sections import DENSE_LIMIT_BYTES
 
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    devices = ["cpu"] + (["cuda"] if bool(cfg.gpu) and torch.cuda.is_available() else [])
+    devices = ["cpu"] + (["cuda"] if cfg.gpu and torch.cuda.is_available() else [])
     rows: list[dict[str, Any]] = []
     header = (
         f"{'scenario':>12} {'solver':>8} {'device':>6} {'S':>9} {'median s':>9} {'sweeps':>7} "
@@ -170,27 +220,27 @@ def run_bench_scale(cfg: DictConfig, out: Path) -> int:
     )
     print(header, flush=True)
     skipped: list[str] = []
-    for scenario in to_plain(cfg.scenarios):
+    for scenario in cfg.scenarios:
         slow = False
         configs = _configs(scenario)
-        for states in to_plain(cfg.states):
+        for states in cfg.states:
             queue = _queue_for(int(states), configs)
             S = (queue + 1) * configs
             if slow:
                 skipped.append(f"{scenario} at S = {S:,}")
                 print(
                     f"{scenario:>12}  skipped at S = {S}: the previous size took more than "
-                    f"{float(cfg.skip_after_seconds):g} s",
+                    f"{cfg.skip_after_seconds:g} s",
                     flush=True,
                 )
                 continue
             runs = [("factored", d) for d in devices]
-            if 16 * S * S <= DENSE_MODEL_LIMIT_BYTES:
+            if 16 * S * S <= DENSE_LIMIT_BYTES:
                 runs.insert(0, ("dense", "cpu"))
             for solver, device in runs:
                 got = [
-                    _child(scenario, queue, solver, device, float(cfg.tol), float(cfg.timeout))
-                    for _ in range(int(cfg.repeats))
+                    _child(scenario, queue, solver, device, cfg.tol, cfg.timeout)
+                    for _ in range(cfg.repeats)
                 ]
                 secs = [g["seconds"] for g in got]
                 row = {
@@ -212,7 +262,7 @@ def run_bench_scale(cfg: DictConfig, out: Path) -> int:
                 }
                 rows.append(row)
                 slow = slow or (
-                    solver == "factored" and row["median_seconds"] > float(cfg.skip_after_seconds)
+                    solver == "factored" and row["median_seconds"] > cfg.skip_after_seconds
                 )
                 print(
                     f"{scenario:>12} {solver:>8} {device:>6} {S:>9} {row['median_seconds']:>9.2f} "
@@ -220,40 +270,61 @@ def run_bench_scale(cfg: DictConfig, out: Path) -> int:
                     flush=True,
                 )
     write_rows_csv(out / cfg.csv, rows, COLUMNS)
-    lines = [
-        "| scenario | solver | device | S | median s (of "
-        f"{int(cfg.repeats)}) | value-iteration sweeps | stationary steps | peak memory (MB; "
-        "after imports) |",
-        "|---|---|---|---|---|---|---|---|",
-    ]
-    for r in rows:
-        lines.append(
-            f"| {r['scenario']} | {r['solver']} | {r['device']} | {r['num_states']:,} | "
-            f"{r['median_seconds']:.2f} | {r['sweeps']} | {r['stationary_steps']} | "
-            f"{r['peak_rss_mb']:.0f} ({r['import_rss_mb']:.0f}) |"
-        )
+    table = md_table(
+        [
+            "scenario",
+            "solver",
+            "device",
+            "S",
+            f"median s (of {cfg.repeats})",
+            "value-iteration sweeps",
+            "stationary steps",
+            "peak memory (MB; after imports)",
+        ],
+        [
+            [
+                r["scenario"],
+                r["solver"],
+                r["device"],
+                f"{r['num_states']:,}",
+                f"{r['median_seconds']:.2f}",
+                r["sweeps"],
+                r["stationary_steps"],
+                f"{r['peak_rss_mb']:.0f} ({r['import_rss_mb']:.0f})",
+            ]
+            for r in rows
+        ],
+    )
     growth = growth_exponents(rows)
     if growth:
-        lines += [
-            "",
-            "| scenario | solver | device | S measured | time ∝ S^k: k fitted over them | k between "
-            "the two largest |",
-            "|---|---|---|---|---|---|",
-        ]
-        for g in growth:
-            lines.append(
-                f"| {g['scenario']} | {g['solver']} | {g['device']} | "
-                f"{', '.join(f'{S:,}' for S in g['sizes'])} | {g['k_fit']:.2f} | {g['k_last']:.2f} |"
-            )
+        table += "\n\n" + md_table(
+            [
+                "scenario",
+                "solver",
+                "device",
+                "S measured",
+                "time ∝ S^k: k fitted over them",
+                "k between the two largest",
+            ],
+            [
+                [
+                    g["scenario"],
+                    g["solver"],
+                    g["device"],
+                    ", ".join(f"{S:,}" for S in g["sizes"]),
+                    f"{g['k_fit']:.2f}",
+                    f"{g['k_last']:.2f}",
+                ]
+                for g in growth
+            ],
+        )
     if skipped:
-        lines.append(
-            f"\nNot run (the size before took more than {float(cfg.skip_after_seconds):g} s): "
+        table += (
+            f"\n\nNot run (the size before took more than {cfg.skip_after_seconds:g} s): "
             + "; ".join(skipped)
             + "."
         )
-    write_table_md(out / "bench_scale.md", "\n".join(lines), time.perf_counter() - start)
-    print(f"\nwrote {out / cfg.csv} and {out / 'bench_scale.md'}")
-    return 0
+    write_table_md(out / "bench_scale.md", table, time.perf_counter() - start)
 
 
 if __name__ == "__main__":

@@ -12,8 +12,6 @@ import shlex
 from collections.abc import Mapping
 from typing import Any
 
-from irdrc.core.params import to_plain
-
 SCENARIO_PREFIXES = ("env.", "reward.")
 """Config keys that describe the scenario (the model), as opposed to the method or the run."""
 
@@ -43,14 +41,13 @@ def parse_grid(grid: Any, name: str = "sweep.grid") -> list[dict[str, Any]]:
     """All points of a grid ``{key: [values…]}`` (the cartesian product, in key order).
 
     Args:
-        grid: the mapping (plain or OmegaConf).
+        grid: the mapping.
         name: the config key holding it, for error messages.
 
     Raises:
         ValueError: empty or malformed grid (not a mapping, a key without values, a value that is
             not a non-empty list, a duplicate value).
     """
-    grid = to_plain(grid)
     if grid is None or (isinstance(grid, Mapping) and not grid):
         example = "{env.p1.speed: [0.1,1.0]}" if name == "batch_grid" else "{seed: [0,1,2]}"
         raise ValueError(f"{name} is empty: give it as {name}='{example}'")
@@ -93,15 +90,15 @@ def scenario_of(overrides: list[str]) -> str:
     return f"{env}[{','.join(extra)}]" if extra else env
 
 
-def candidate_overrides(cfg: Any) -> dict[str, list[str]]:
-    """The candidates compared: name → overrides (``candidates``; one, the default, when unset)."""
-    raw = to_plain(cfg.get("candidates")) or {"dqn": []}
+def candidate_overrides(candidates: Any, key: str = "candidates") -> dict[str, list[str]]:
+    """The candidates compared: name → overrides (one, the default, when unset)."""
+    raw = candidates or {"dqn": []}
     if not isinstance(raw, dict) or not raw:
-        raise ValueError("candidates must map names to lists of overrides, e.g. {dqn: []}")
+        raise ValueError(f"{key} must map names to lists of overrides, e.g. {{dqn: []}}")
     out = {}
     for name, extra in raw.items():
         if not isinstance(extra, list) or not all(isinstance(o, str) and "=" in o for o in extra):
-            raise ValueError(f"candidates.{name} must be a list of overrides (key=value)")
+            raise ValueError(f"{key}.{name} must be a list of overrides (key=value)")
         out[str(name)] = list(extra)
     return out
 

@@ -38,14 +38,33 @@ class Ticker:
             )
 
 
+class Heartbeat:
+    """Prints ``[label] text, elapsed N s`` at most every ``every_seconds`` while long work runs
+    whose length is not known in advance (a solver's sweeps)."""
+
+    def __init__(self, label: str, every_seconds: float = 5.0) -> None:
+        self.label, self.every = label, every_seconds
+        self.start = self.last = time.perf_counter()
+
+    def beat(self, text: str) -> None:
+        """Print ``text`` if the last line is old enough."""
+        now = time.perf_counter()
+        if now - self.last >= self.every:
+            self.last = now
+            print(f"[{self.label}] {text}, {now - self.start:.0f} s", flush=True)
+
+
 class RunProgress:
     """Progress of a learner's run, and its logging hooks (learner 0 is the one logged as ``eval/…``).
 
     On a terminal: a bar. Otherwise (a log file): one plain line per tenth of the run, with the ETA.
     """
 
-    def __init__(self, total: int, enabled: bool, logger, label: str) -> None:
+    def __init__(
+        self, total: int, enabled: bool, logger, label: str, unit: str = "env steps"
+    ) -> None:
         self.total, self.enabled, self.logger, self.label = total, enabled, logger, label
+        self.unit = unit
         self.tty = sys.stdout.isatty()
         self.bar: tqdm | None = None
         self.ratio = math.nan
@@ -65,7 +84,8 @@ class RunProgress:
             self._line(self.pending)
         if self.enabled and self.tty:
             if self.bar is None:
-                self.bar = tqdm(total=self.total, unit="step", dynamic_ncols=True)
+                unit = self.unit.split()[0] + " step"
+                self.bar = tqdm(total=self.total, unit=unit, dynamic_ncols=True)
             self.bar.update(steps - self.bar.n)
             self._postfix()
         elif self.enabled and steps >= self.next_line * self.total:
@@ -82,7 +102,7 @@ class RunProgress:
         eta = max(0.0, elapsed / steps * (self.total - steps)) if steps else math.nan
         at = f" at {self.ratio_steps}" if self.ratio_steps not in (None, steps) else ""
         print(
-            f"[{self.label}] {steps}/{self.total} env steps ({steps / self.total:.0%}), "
+            f"[{self.label}] {steps}/{self.total} {self.unit} ({steps / self.total:.0%}), "
             f"ratio {self.ratio:.4f}{at}, {elapsed:.0f} s, ETA {eta:.0f} s",
             flush=True,
         )

@@ -1,4 +1,4 @@
-"""Run outputs shared by every recipe: ``summary.json``, ``policy.csv``, ``metrics.csv``, policy tables."""
+"""Files every recipe writes, atomically: ``summary.json``, CSV rows, Markdown tables, figures."""
 
 from __future__ import annotations
 
@@ -13,11 +13,7 @@ from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 from typing import Any, BinaryIO
 
-import torch
-
-from irdrc.core.env import decode_state
 from irdrc.core.metrics import Metrics
-from irdrc.core.model import ExactModel
 
 
 def clean_number(x: float | None) -> float | None:
@@ -95,6 +91,8 @@ def machine_description() -> str:
     used), for the one line under each generated table that says where it was measured."""
     import platform
 
+    import torch
+
     cpu = platform.processor() or platform.machine()
     try:
         with open("/proc/cpuinfo") as f:
@@ -159,81 +157,19 @@ def write_summary(path: Path, summary: dict[str, Any]) -> None:
     atomic_write_text(Path(path), json.dumps(summary, indent=2, allow_nan=False) + "\n")
 
 
-POLICY_COLUMNS = ("d", "c", "r", "w", "v", "m", "action", "p_radar")
-"""``policy.csv``: one row per state in index order: the state's factors, ``action`` (the mode
-chosen: 0 = communication, 1 = radar; the likelier one for a randomised policy) and ``p_radar``
-(the probability of radar: 0 or 1 for a deterministic policy)."""
-
-
-def state_label(s: int, levels: Sequence[int] | None = None) -> str:
-    """``d=3 c=0 r=1 w=0 v=2 m=0`` (and ``phase=1`` with bursty arrivals) for state index ``s``;
-    ``levels`` as in ``Params.env.levels`` (None: v1)."""
-    cols = decode_state(torch.tensor(int(s)), levels).tolist()
-    names = ("d", "c", "r", "w", "v", "m", "phase")
-    return " ".join(f"{n}={int(x)}" for n, x in zip(names, cols, strict=False))
-
-
-def write_policy_csv(path: Path, policy: torch.Tensor, levels: Sequence[int] | None = None) -> None:
-    """``policy.csv`` (see ``POLICY_COLUMNS``; a ``phase`` column after ``m`` with bursty arrivals)
-    from an [S] action table or [S, 2] probabilities; ``levels`` as in ``Params.env.levels``
-    (None: v1)."""
-    policy = torch.as_tensor(policy).cpu()
-    if policy.ndim == 2:
-        p_radar = policy[:, 1].double()
-        actions = (p_radar > 0.5).long()
-    else:
-        actions = policy.long()
-        p_radar = actions.double()
-    cols = decode_state(torch.arange(actions.numel()), levels)
-    header = list(POLICY_COLUMNS)
-    if cols.shape[-1] == 7:
-        header.insert(6, "phase")
-    lines = [",".join(header)]
-    lines += [
-        ",".join(map(str, [*c.tolist(), int(a), _prob(float(p))]))
-        for c, a, p in zip(cols, actions, p_radar, strict=True)
-    ]
-    atomic_write_text(Path(path), "\n".join(lines) + "\n")
-
-
-def _prob(p: float) -> str:
-    return "0" if p == 0 else "1" if p == 1 else repr(p)
-
-
-def read_policy_csv(
-    path: Path, num_states: int | None = None, probabilities: bool = False
-) -> torch.Tensor:
-    """Inverse of ``write_policy_csv``: the [S] action table, or with ``probabilities`` the [S, 2]
-    probabilities of (comm, radar) from ``p_radar`` (files without that column: 0 or 1 from
-    ``action``).
-
-    Raises:
-        ValueError: naming the file, if it is not a policy table (of ``num_states`` rows).
-    """
-    try:
-        with Path(path).open() as f:
-            rows = list(csv.DictReader(f))
-        actions = torch.tensor([int(r["action"]) for r in rows], dtype=torch.int64)
-        p_radar = torch.tensor(
-            [float(r.get("p_radar") or r["action"]) for r in rows], dtype=torch.float64
-        )
-    except (OSError, KeyError, ValueError, TypeError) as err:
-        raise ValueError(f"{path}: not a readable policy table ({type(err).__name__})") from err
-    if actions.numel() == 0 or bool(((actions != 0) & (actions != 1)).any()):
-        raise ValueError(f"{path}: a policy table holds one action 0 or 1 per state")
-    if bool(((p_radar < 0) | (p_radar > 1) | p_radar.isnan()).any()):
-        raise ValueError(f"{path}: p_radar must be a probability in every row")
-    if num_states is not None and actions.numel() != num_states:
-        raise ValueError(f"{path}: {actions.numel()} states, expected {num_states}")
-    if probabilities:
-        return torch.stack([1 - p_radar, p_radar], -1)
-    return actions
-
-
 def read_csv_rows(path: Path) -> list[dict[str, str]]:
     """Rows of a CSV file as dicts of strings (what ``write_rows_csv`` wrote)."""
     with Path(path).open(newline="") as f:
         return list(csv.DictReader(f))
+
+
+def write_metrics_csv(path: Path, history: Sequence[dict[str, Any]]) -> None:
+    """``metrics.csv``: every exact evaluation of a run, in ``PROGRESS_FIELDS``, with
+    ``false_alarm_rate`` after them where a row has it (a scenario with radar false alarms)."""
+    from irdrc.agents.base import PROGRESS_FIELDS
+
+    extra = ("false_alarm_rate",) if any("false_alarm_rate" in r for r in history) else ()
+    write_rows_csv(path, history, (*PROGRESS_FIELDS, *extra))
 
 
 def write_rows_csv(
@@ -250,70 +186,3 @@ def write_rows_csv(
     w.writeheader()
     w.writerows(rows)
     atomic_write_text(Path(path), buf.getvalue())
-
-
-def policy_table(model: ExactModel, actions: torch.Tensor) -> str:
-    """Readable policy: one line per factor combination, its event probability and mode by queue.
-
-    The mode column is ``comm``/``radar`` when the action is the same at every queue length,
-    otherwise a string with one letter per d = 0 … D (C = comm, R = radar), or for D ≥ 64 its runs
-    (``C×5 R×3120``). ``model`` is an ``ExactModel`` or a ``FactoredModel``.
-    """
-    D = model.params.env.queue_capacity
-    labels = _config_labels(model.params)
-    acts = torch.as_tensor(actions).long().view(D + 1, len(labels))
-    phase = " phase" if model.params.env.levels[-1] > 1 else ""
-    lines = [f"c r w v m{phase}  b  P(event)  mode (by d = 0 … D when it varies)"]
-    for f, (bits, b) in enumerate(labels):
-        col = acts[:, f]
-        if bool((col == col[0]).all()):
-            mode = "radar" if int(col[0]) else "comm"
-        elif D + 1 <= 64:
-            mode = "".join("R" if int(a) else "C" for a in col)
-        else:  # runs: "C×5 R×3120" = comm for d = 0 … 4, radar above
-            change = (col[1:] != col[:-1]).nonzero().flatten().tolist()
-            ends = [*(i + 1 for i in change), D + 1]
-            starts = [0, *ends[:-1]]
-            mode = " ".join(
-                f"{'R' if int(col[a]) else 'C'}×{b - a}" for a, b in zip(starts, ends, strict=True)
-            )
-        pe = float(model.event[f])
-        lines.append(f"{bits}  {b}  {pe:8.4f}  {mode}")
-    return "\n".join(lines)
-
-
-def _config_labels(params) -> list[tuple[str, int]]:
-    """Per factor configuration f: its levels as ``c r w v m[ phase]`` and b (MODEL.md § B.1)."""
-    levels = params.env.levels
-    cols = decode_state(torch.arange(math.prod(levels)), levels)[:, 1:].tolist()
-    return [(" ".join(map(str, c)), sum(c[1:5])) for c in cols]
-
-
-def policy_differences(model: ExactModel, actions: torch.Tensor, optimal: torch.Tensor) -> str:
-    """In words, where a policy differs from the optimum: one line per factor combination (c, r, w,
-    v, m) with a difference, each policy's mode by queue length (C = comm, R = radar, d = 0 … D)."""
-    D = model.params.env.queue_capacity
-    labels = _config_labels(model.params)
-    acts = torch.as_tensor(actions).long().view(D + 1, len(labels))
-    opt = torch.as_tensor(optimal).long().view(D + 1, len(labels))
-    n_diff = int((acts != opt).sum())
-    if n_diff == 0:
-        return f"the learned policy equals the optimum in all {model.num_states} states"
-    lines = [
-        f"the learned policy differs from the optimum in {n_diff} of {model.num_states} states "
-        "(mode by queue length d = 0 … D; C = comm, R = radar):",
-        f"  c r w v m{' phase' if model.params.env.levels[-1] > 1 else ''}  P(event)  learned       optimum",
-    ]
-    for f, (bits, _) in enumerate(labels):
-        if bool((acts[:, f] == opt[:, f]).all()):
-            continue
-
-        def mode(col: torch.Tensor) -> str:
-            if bool((col == col[0]).all()):
-                return "radar" if int(col[0]) else "comm"
-            return "".join("R" if int(a) else "C" for a in col)
-
-        lines.append(
-            f"  {bits}  {float(model.event[f]):8.4f}  {mode(acts[:, f]):<12}  {mode(opt[:, f])}"
-        )
-    return "\n".join(lines)

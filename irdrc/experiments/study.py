@@ -2,7 +2,7 @@
 problem", so DQN. Each learner in ``learners`` (its own default profile, as ``recipes/<learner>.py``
 runs it) trains on each scenario in ``scenarios`` with each seed; its greedy policy is scored
 exactly against the scenario's optimum ``evals`` times over its budget (the dense model where it
-fits, the factored one beyond: ``irdrc.core.factored.exact_scorer``).
+fits, the factored one beyond: ``irdrc.core.exact.exact_scorer``).
 
 Reported per run: the env steps and training seconds to 95 % and 99 % of the optimal average
 reward (the first evaluation at or above), the final and best ratios. Training seconds leave out
@@ -12,55 +12,83 @@ scoring seconds are reported beside them.
 
 from __future__ import annotations
 
-import json
-import logging
 import statistics
 import time
-import warnings
-from pathlib import Path
+from dataclasses import dataclass, field
 from typing import Any
 
-import torch
-from omegaconf import DictConfig
-
-from irdrc.agents.base import Hooks
-from irdrc.core.factored import exact_scorer
+from irdrc.core.checks import (
+    build,
+    check_choice,
+    check_list,
+    check_number,
+    numbers,
+    reject_unknown_keys,
+)
 from irdrc.core.metrics import Metrics, first_reaching
-from irdrc.core.params import Params
-from irdrc.core.solve import ExactScorer
-from irdrc.experiments.config import compose, list_scenarios
-from irdrc.experiments.results import atomic_write_text, write_rows_csv, write_table_md
-from irdrc.experiments.runs import LEARNERS
+from irdrc.experiments import solve
+from irdrc.experiments.compose import Composed, compose, list_scenarios
+from irdrc.experiments.sections import check_common
 
+NAME = "study"
+LEARNERS = ("dqn", "qlearning")
+"""The learners the study compares, each with its own recipe's default profile."""
 THRESHOLDS = (0.95, 0.99)
 """Fractions of the optimal average reward whose first crossing is reported."""
 
 
-class TimedScorer:
-    """An ``ExactScorer`` that keeps the cumulative seconds spent scoring after each call, so
-    that a learner's wall time (evaluations included) can be told apart from its training."""
+@dataclass(frozen=True)
+class Config:
+    """The study's keys (``recipes/conf/study.yaml``)."""
 
-    def __init__(self, inner: ExactScorer) -> None:
+    scenarios: tuple[str, ...] = ("paper", "multilevel", "large")
+    learners: tuple[str, ...] = LEARNERS
+    seeds: tuple[int, ...] = (100, 101, 102)
+    evals: dict = field(default_factory=lambda: {"default": 40, "large": 10})
+    overrides: dict = field(default_factory=dict)
+    optimum_gamma: float = 0.99
+    num_threads: int = 1
+    device: str = "cpu"
+    csv: str = "study.csv"
+
+    def __post_init__(self) -> None:
+        check_common(self)
+        known = list_scenarios()
+        pick = lambda choices: lambda key, x: check_choice(key, x, choices)  # noqa: E731
+        object.__setattr__(self, "scenarios", check_list("scenarios", self.scenarios, pick(known)))
+        object.__setattr__(self, "learners", check_list("learners", self.learners, pick(LEARNERS)))
+        seeds = check_list("seeds", self.seeds, numbers(0, 2**32 - 1, integer=True))
+        object.__setattr__(self, "seeds", seeds)
+        reject_unknown_keys("evals.", self.evals, ("default", *known))
+        for key, n in self.evals.items():
+            check_number(f"evals.{key}", n, 1, 10**6, integer=True)
+        reject_unknown_keys("overrides.", self.overrides or {}, LEARNERS)
+        for learner, extra in (self.overrides or {}).items():
+            check_list(f"overrides.{learner}", extra or [], empty=True)
+
+    def evals_of(self, scenario: str) -> int:
+        """Exact evaluations per run on ``scenario``."""
+        return int(self.evals.get(scenario, self.evals.get("default", 20)))
+
+
+def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
+    """The typed config, checked."""
+    return build(Config, composed.cfg)
+
+
+class TimedScorer:
+    """A scorer that keeps the cumulative seconds spent scoring after each call, so that a
+    learner's wall time (evaluations included) can be told apart from its training."""
+
+    def __init__(self, inner: Any) -> None:
         self.inner = inner
         self.seconds = 0.0
         self.after: list[float] = []
+        self.optimal_metrics = inner.optimal_metrics
+        self.optimal = inner.optimal
+        self.model = inner.model
 
-    @property
-    def optimal_metrics(self) -> Metrics:
-        """The optimum's exact metrics."""
-        return self.inner.optimal_metrics
-
-    @property
-    def optimal(self):
-        """The optimum (its ``policy``)."""
-        return self.inner.optimal
-
-    @property
-    def model(self):
-        """The exact model scored on."""
-        return self.inner.model
-
-    def metrics(self, table: torch.Tensor) -> Metrics:
+    def metrics(self, table: Any) -> Metrics:
         """The inner scorer's metrics, timed."""
         t0 = time.perf_counter()
         m = self.inner.metrics(table)
@@ -69,33 +97,27 @@ class TimedScorer:
         return m
 
 
-def check_study(cfg: DictConfig) -> None:
-    """Refuse a bad study before any work."""
-    unknown = [str(x) for x in cfg.learners if str(x) not in LEARNERS]
-    if unknown or not cfg.learners:
-        raise ValueError(
-            f"learners={list(cfg.learners)} must be a non-empty list of {', '.join(LEARNERS)}"
+def train(learner: str, cfg: Any, n: int, seed: int, device: str, scorer: Any, evals: int):
+    """One run of ``learner`` (its recipe's typed config ``cfg``), ``evals`` exact evaluations
+    evenly over its budget."""
+    from irdrc.agents import dqn, qlearning
+
+    if learner == "qlearning":
+        budget = cfg.algo.episodes * cfg.params.env.horizon
+        every = max(1, budget // evals)
+        return qlearning.train(
+            cfg.params,
+            cfg.algo,
+            num_learners=n,
+            seed=seed,
+            device=device,
+            scorers=[scorer],
+            eval_every_frames=every,
         )
-    if not cfg.scenarios or not cfg.seeds:
-        raise ValueError("scenarios and seeds must be non-empty lists")
-    known = list_scenarios()
-    bad = [str(s) for s in cfg.scenarios if str(s) not in known]
-    if bad:
-        raise ValueError(f"scenarios {bad} are not named scenarios ({', '.join(known)})")
-    stray = [str(k) for k in cfg.evals if str(k) != "default" and str(k) not in known]
-    if stray:
-        raise ValueError(f"evals.{stray[0]}: not a named scenario ({', '.join(known)}) or default")
-    for s in cfg.scenarios:
-        if int(_evals(cfg, str(s))) < 1:
-            raise ValueError(f"evals for {s} must be >= 1")
-    for learner in cfg.get("overrides", {}) or {}:
-        if learner not in LEARNERS:
-            raise ValueError(f"overrides.{learner}: not a learner ({', '.join(LEARNERS)})")
-
-
-def _evals(cfg: DictConfig, scenario: str) -> int:
-    evals = cfg.evals
-    return int(evals.get(scenario, evals.get("default", 20)))
+    every = max(1, cfg.algo.total_frames // evals)
+    return dqn.train(
+        cfg.params, cfg.algo, seed=seed, device=device, scorer=scorer, eval_every_frames=every
+    )
 
 
 BATCHED = ("qlearning",)
@@ -107,32 +129,23 @@ def run_seeds(
     learner: str,
     scenario: str,
     seeds: list[int],
-    scorer: ExactScorer,
+    scorer: Any,
     evals: int,
     overrides: list[str],
     device: str = "cpu",
 ) -> list[dict[str, Any]]:
     """Train ``learner`` on ``scenario`` for each seed (one batched run for ``BATCHED`` learners);
     one row of ``study.csv`` per seed."""
-    agent = LEARNERS[learner]
-    node = compose(learner, [f"env={scenario}", *overrides])
-    params = Params.from_config(node)
-    config = agent.Config.from_node(node)
-    budget = config.env_steps(params.env.horizon)
+    from irdrc.experiments import dqn, qlearning
+
+    module = {"dqn": dqn, "qlearning": qlearning}[learner]
+    cfg = module.load(compose(learner, [f"env={scenario}", *overrides]))
+    params = cfg.params
     runs = [(seeds[0], len(seeds))] if learner in BATCHED else [(s, 1) for s in seeds]
     rows = []
     for seed, n in runs:
         timed = TimedScorer(scorer)
-        rec = agent.train(
-            params,
-            config,
-            num_learners=n,
-            seed=seed,
-            device=device,
-            scorers=[timed],
-            eval_every_frames=max(1, budget // evals),
-            hooks=Hooks(),
-        )
+        rec = train(learner, cfg, n, seed, device, timed, evals)
         # every evaluation scores the n learners, then reads the clock
         done = timed.after[n - 1 :: n]
         for i in range(n):
@@ -210,46 +223,45 @@ def study_table(rows: list[dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
-def run_study(cfg: DictConfig, out: Path) -> int:
-    """Every (scenario, learner, seed); ``study.csv``, ``study.md`` and ``summary.json`` in ``out``."""
-    check_study(cfg)
-    torch.set_num_threads(int(cfg.num_threads))
-    logging.getLogger("torchrl").setLevel(logging.WARNING)
-    warnings.filterwarnings("ignore", message="total_frames .* is not exactly divisible")
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    overrides = cfg.get("overrides", {}) or {}
-    gamma = float(cfg.optimum_gamma)
+def run(cfg: Config, run) -> int:
+    """Every (scenario, learner, seed); ``study.csv``, ``study.md`` and ``summary.json``."""
+
+    from irdrc.core.exact import exact_scorer
+    from irdrc.experiments.results import write_rows_csv, write_table_md
+
+    run.threads(cfg.num_threads)
     t_start = time.perf_counter()
     rows: list[dict[str, Any]] = []
     optima: dict[str, dict[str, Any]] = {}
-    for scenario in map(str, cfg.scenarios):
-        params = Params.from_config(compose("solve", [f"env={scenario}"]))
+    for scenario in cfg.scenarios:
+        params = solve.load(compose("solve", [f"env={scenario}"])).model
         t0 = time.perf_counter()
-        scorer = exact_scorer(params, gamma)
+        scorer = exact_scorer(params, cfg.optimum_gamma)
         solve_s = time.perf_counter() - t0
         opt = scorer.optimal_metrics
+        solver = type(scorer.model).__name__
         optima[scenario] = {
             "states": params.env.num_states,
-            "solver": type(scorer).__name__,
+            "solver": solver,
             "solve_seconds": round(solve_s, 2),
             "avg_reward": opt.avg_reward,
             "radar_fraction": opt.radar_fraction,
         }
         print(
             f"{scenario}: S = {params.env.num_states}, optimum {opt.avg_reward:.4f} reward/step "
-            f"({type(scorer).__name__}, {solve_s:.1f} s)",
+            f"({solver}, {solve_s:.1f} s)",
             flush=True,
         )
-        for learner in map(str, cfg.learners):
+        for learner in cfg.learners:
+            extra = [str(o) for o in (cfg.overrides or {}).get(learner, [])]
             got = run_seeds(
                 learner,
                 scenario,
-                [int(x) for x in cfg.seeds],
+                list(cfg.seeds),
                 scorer,
-                _evals(cfg, scenario),
-                [str(o) for o in overrides.get(learner, [])],
-                str(cfg.device),
+                cfg.evals_of(scenario),
+                extra,
+                cfg.device,
             )
             rows += got
             for row in got:
@@ -261,15 +273,14 @@ def run_study(cfg: DictConfig, out: Path) -> int:
                     flush=True,
                 )
     table = study_table(rows)
-    write_rows_csv(out / str(cfg.csv), rows)
-    write_table_md(out / "study.md", table, time.perf_counter() - t_start)
+    write_rows_csv(run.dir / cfg.csv, rows)
+    write_table_md(run.dir / "study.md", table, time.perf_counter() - t_start)
     summary = {
         "scenarios": optima,
-        "learners": [str(x) for x in cfg.learners],
-        "seeds": [int(s) for s in cfg.seeds],
+        "learners": list(cfg.learners),
+        "seeds": list(cfg.seeds),
         "wall_seconds": round(time.perf_counter() - t_start, 1),
     }
-    atomic_write_text(out / "summary.json", json.dumps(summary, indent=2) + "\n")
     print("\n" + table)
-    print(f"\nwrote {out / str(cfg.csv)}, study.md, summary.json ({summary['wall_seconds']:.0f} s)")
+    run.finish(summary)
     return 0

@@ -1,12 +1,19 @@
 """Several vehicles on one stretch of road sharing one base station (MODEL.md § C).
 
-- ``exact``: the fleet model on factored kernels built from the single-vehicle exact model, its
-  centralised optimum (value iteration over the joint state and the 2^N joint actions) and exact
-  metrics per vehicle and for the fleet;
+- ``spec``: the fleet's parameters and the uplink's access rule (pure Python);
+- ``config``: a fleet scenario (``env=fleet``) from a config mapping, per-vehicle lists included;
+- ``model``: the exact fleet model on factored kernels built from the single-vehicle exact model —
+  an ``irdrc.core.exact.ExactMDP`` with 2^N joint actions, so its centralised optimum and exact
+  metrics come from the exact core;
+- ``policies``: decentralised tables as joint policies, each vehicle's single optimum, the baselines;
+- ``scorer``: exact metrics per vehicle and for the fleet, and ``FleetScorer`` (decentralised
+  policies against the centralised optimum);
 - ``sim``: the fleet's batched simulator, each vehicle stepped by the single-vehicle ``Dynamics``;
 - ``env``: ``FleetEnv``, the fleet as a batched TorchRL multi-agent env (group ``"agents"``);
-- ``__main__``: ``python -m irdrc.fleet``, the optimum beside N copies of the single optimum.
+- ``views``: its single-agent views (a row per vehicle; a row per fleet over the joint actions);
+- ``evaluate``: Monte-Carlo metrics and baselines at any N;
+- ``search``: local search for the best decentralised policy.
 
-May import: torch, tensordict, torchrl (env specs) and ``irdrc.core``. Nothing from ``irdrc.agents``, ``irdrc.experiments`` or
-``irdrc.paper``; nothing of Hydra, files or Ray.
+May import: torch, tensordict, torchrl (env specs) and ``irdrc.core``. Nothing from
+``irdrc.agents``, ``irdrc.experiments`` or ``irdrc.paper``; nothing of Hydra, files or Ray.
 """

@@ -8,17 +8,17 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any
 
-from irdrc.core.params import Params, check_choice, to_plain
-from irdrc.fleet.env import OBSERVE
-from irdrc.fleet.exact import FleetSpec
+from irdrc.core.checks import check_choice
+from irdrc.core.params import Params
+from irdrc.fleet.spec import OBSERVE, FleetSpec
 
 FLEET_KEYS = ("vehicles", "channels", "access", "share", "observe")
 """The ``env.*`` keys of a fleet (MODEL.md § C) beside the single vehicle's."""
 
 
-def is_fleet(cfg: Any) -> bool:
+def is_fleet(cfg: Mapping | None) -> bool:
     """Whether a config's ``env`` is a fleet (it has ``env.vehicles``)."""
-    env = to_plain(cfg).get("env", {}) if cfg is not None else {}
+    env = cfg.get("env", {}) if cfg is not None else {}
     return isinstance(env, Mapping) and "vehicles" in env
 
 
@@ -36,7 +36,7 @@ def _pick(node: Any, i: int) -> Any:
     return node[i] if isinstance(node, list | tuple) else node
 
 
-def fleet_from_config(cfg: Any) -> tuple[FleetSpec, str]:
+def fleet_from_config(cfg: Mapping) -> tuple[FleetSpec, str]:
     """The fleet (``FleetSpec``) and what each vehicle observes (``env.observe``) from a config
     holding ``env`` (a fleet scenario) and ``reward``. Any single-vehicle key may be a list of one
     value per vehicle (``env.p1.speed=[0.1,1.0]``, ``reward.r4=[5,50]``) where they differ.
@@ -45,7 +45,7 @@ def fleet_from_config(cfg: Any) -> tuple[FleetSpec, str]:
         ValueError: not a fleet, a bad fleet value, a bad vehicle value (as the single-vehicle
             recipes say it, naming the vehicle), or a list of the wrong length.
     """
-    plain = to_plain(cfg)
+    plain = cfg
     env = dict(plain.get("env", {}))
     if "vehicles" not in env:
         raise ValueError("not a fleet: choose env=fleet (or set +env.vehicles=N)")
@@ -79,12 +79,3 @@ def list_at(env: Mapping, reward: Mapping, key: str) -> list:
     for part in key.split("."):
         node = node[part]
     return list(node)
-
-
-def single_vehicle_only(cfg: Any, recipe: str) -> None:
-    """Refuse a fleet scenario in a recipe that takes one vehicle, naming the fleet's recipes."""
-    if is_fleet(cfg):
-        raise ValueError(
-            f"env=fleet (env.vehicles=…) is a fleet of vehicles; {recipe} takes one vehicle — "
-            "run the fleet with recipes/fleet.py (learners) or recipes/solve.py (its optimum)"
-        )

@@ -16,8 +16,8 @@ from dataclasses import dataclass
 
 import torch
 
-from irdrc.core.metrics import Metrics
-from irdrc.fleet.exact import FleetModel, long_run_rates
+from irdrc.core.metrics import Metrics, long_run_rates
+from irdrc.fleet.model import FleetModel
 from irdrc.fleet.sim import FleetDynamics
 
 ActionRule = Callable[[torch.Tensor, int], torch.Tensor]
@@ -27,7 +27,7 @@ ActionRule = Callable[[torch.Tensor, int], torch.Tensor]
 @dataclass(frozen=True)
 class SimulatedMetrics:
     """``fleet`` metrics (``Metrics``), ``per_vehicle`` dicts (each vehicle's, then the fleet's,
-    as ``irdrc.fleet.exact.fleet_metrics``), ``ci95`` of the fleet's average reward, and the
+    as ``irdrc.fleet.scorer.fleet_metrics``), ``ci95`` of the fleet's average reward, and the
     fleet steps simulated (burn-in included)."""
 
     fleet: Metrics
@@ -50,7 +50,7 @@ def table_rule(tables: torch.Tensor, num_single_states: int) -> ActionRule:
 
 
 def baseline_rules(model: FleetModel, single_optimum: torch.Tensor) -> dict[str, ActionRule]:
-    """MODEL.md § C's baselines (as ``irdrc.fleet.exact.baselines``; ``single_optimum`` [S] or
+    """MODEL.md § C's baselines (as ``irdrc.fleet.policies.baselines``; ``single_optimum`` [S] or
     each vehicle's own [N, S]) and radar always, as rules at any N."""
     N = model.N
     copies = table_rule(single_optimum, model.single.num_states)

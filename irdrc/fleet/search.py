@@ -17,7 +17,9 @@ from dataclasses import dataclass
 
 import torch
 
-from irdrc.fleet.exact import FleetModel, fleet_metrics, joint_policy
+from irdrc.fleet.model import FleetModel
+from irdrc.fleet.policies import joint_policy
+from irdrc.fleet.scorer import fleet_metrics
 
 
 @dataclass(frozen=True)

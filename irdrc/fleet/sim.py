@@ -7,7 +7,7 @@ whatever the vehicles do). A vehicle denied the uplink takes its queue from a ra
 (nothing sent) and its other components from a comm-mode step (no radar reaction); the two steps
 draw independent numbers, as the components' draws within a step are. Events are each vehicle's
 own draw; an event its radar misses is detected by each other vehicle in radar mode with
-probability ``share``. Rewards follow the table of ``irdrc.fleet.exact``.
+probability ``share``. Rewards follow the table of ``irdrc.fleet.model``.
 """
 
 from __future__ import annotations
@@ -16,8 +16,8 @@ from dataclasses import dataclass
 
 import torch
 
-from irdrc.core.env import Dynamics, decode_state
-from irdrc.fleet.exact import FleetModel
+from irdrc.core.dynamics import Dynamics, decode_state
+from irdrc.fleet.model import FleetModel
 
 
 @dataclass(frozen=True)

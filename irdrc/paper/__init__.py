@@ -1,6 +1,7 @@
 """The paper's experiments: Figure 2, the r4 trade-off, their claims, figures and the report.
 
-- ``figure2``: Fig. 2 regenerated (training runs through ``irdrc.experiments.sweep``);
+- ``figure2``: Fig. 2 regenerated (training runs through ``irdrc.experiments.trials``), its
+  panels drawn by ``panels``;
 - ``tradeoff``: the exact optimum as r4 varies, and the smallest r4 meeting a miss target;
 - ``report``: fills ``docs/REPRODUCTION.md`` from run directories;
 - ``claims``: the paper's claims as functions of numbers; ``figures``: bands and curves; ``plots``:

@@ -13,7 +13,7 @@ from typing import Any
 
 import torch
 
-from irdrc.core.env import Dynamics
+from irdrc.core.dynamics import Dynamics
 from irdrc.core.params import Params
 from irdrc.experiments.results import read_csv_rows as read_csv  # noqa: F401 - re-exported
 

@@ -235,39 +235,3 @@ def _learned_point(ax, r: Mapping, xkey: str) -> None:
         color="tab:blue",
         bbox={"boxstyle": "round,pad=0.15", "fc": "white", "ec": "none", "alpha": 0.8},
     )
-
-
-def plot_frontier(
-    lp: Sequence[Mapping], r4: Sequence[Mapping], path: Path, *, targets: Sequence[float] = ()
-) -> None:
-    """Throughput against miss detection: the LP frontier (a line per p^v_1) and the reward-optimal
-    deterministic policies over r4 (markers, same colour), with the targets as vertical lines."""
-    fig, ax = plt.subplots(figsize=(8, 5.6))
-    for p in sorted({float(r["p1_speed"]) for r in lp}):
-        pts = sorted(
-            (r for r in lp if float(r["p1_speed"]) == p), key=lambda r: r["miss_detection"]
-        )
-        (line,) = ax.plot(
-            [r["miss_detection"] for r in pts],
-            [r["throughput"] for r in pts],
-            label=f"most data at each target (exact LP), p1.speed={p:g}",
-        )
-        own = [r for r in r4 if float(r["p1_speed"]) == p]
-        ax.plot(
-            [r["miss_detection"] for r in own],
-            [r["throughput"] for r in own],
-            "o",
-            mfc="none",
-            color=line.get_color(),
-            label=f"reward-optimal policy at each r4 (r4 route), p1.speed={p:g}",
-        )
-    for i, t in enumerate(targets):
-        label = "the recipe's targets (target_miss)" if i == 0 else None
-        ax.axvline(t, color="tab:red", linestyle=":", alpha=0.6, label=label)
-    ax.set_xlabel("miss detection probability")
-    ax.set_ylabel("throughput (packets sent per step)")
-    ax.set_title("The design question: most data subject to a miss-detection target")
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8, loc="lower right")
-    fig.tight_layout()
-    atomic_savefig(fig, path, dpi=DPI)

@@ -1,7 +1,11 @@
-"""The radar/communication trade-off the paper only mentions (its claim 3), exactly.
+"""``recipes/tradeoff.py``: the radar/communication trade-off the paper only mentions (its claim 3),
+exactly.
 
-``run_tradeoff`` maps the exact optimum over r4 and finds, by bisection, the smallest r4 whose
-optimal policy meets a miss-detection target; DQN runs at a few r4 go through the sweep engine.
+``run`` maps the exact optimum over r4 and finds, by bisection, the smallest r4 whose optimal
+policy meets a miss-detection target; DQN runs at a few r4 go through the sweep engine.
+
+    python recipes/tradeoff.py target_miss=0.1 'p1_speed=[0.1,0.5,1.0]'
+    python recipes/tradeoff.py executor=local 'dqn.r4=[]'        # exact curves only
 """
 
 from __future__ import annotations
@@ -10,37 +14,118 @@ import json
 import math
 import time
 from collections.abc import Callable
-from pathlib import Path
+from dataclasses import dataclass, field, replace
 from typing import Any
 
-import torch
-from omegaconf import DictConfig
-
+from irdrc.core.checks import build, check_bool, check_list, check_number, numbers
 from irdrc.core.metrics import Metrics
-from irdrc.core.model import build_model
-from irdrc.core.params import Params, check_bool, check_number, to_plain
-from irdrc.core.solve import stationary_metrics, value_iteration
+from irdrc.core.params import Params
+from irdrc.experiments.compose import Composed
+from irdrc.experiments.frontier import optimal_at, ref_params
 from irdrc.experiments.grid import parse_grid
 from irdrc.experiments.progress import Ticker
-from irdrc.experiments.results import atomic_write_text, write_rows_csv
-from irdrc.experiments.sweep import execute, plan
-from irdrc.experiments.validate import SOLVES_LIMIT, check_common, check_executor
+from irdrc.experiments.results import write_rows_csv
+from irdrc.experiments.sections import EXECUTOR, ONE_VEHICLE, Executor, check_common, seeds
+from irdrc.experiments.trials import execute, plan
 from irdrc.paper import plots
 from irdrc.paper.figures import mean_ci, same_value, to_float
 
+NAME = "tradeoff"
+SOLVES_LIMIT = 5_000
+"""The bisection's check solves every grid point below its answer: at most this many."""
 
-def ref_params(base: Params, p1_speed: float) -> Params:
-    """The scenario at ``p1_speed``."""
-    return base.with_overrides({"env.p1.speed": p1_speed})
+
+@dataclass(frozen=True)
+class Search:
+    """``search.*``: the bisection's grid ``lo``, ``lo + resolution``, …, ≤ ``hi``, and whether to
+    ``verify`` every grid point below the answer (bisection assumes miss detection never rises
+    with r4)."""
+
+    lo: float = 0.5
+    hi: float = 200.0
+    resolution: float = 0.5
+    verify: bool = True
+
+    def __post_init__(self) -> None:
+        for key in ("lo", "hi", "resolution"):
+            value = check_number(f"search.{key}", getattr(self, key), 0, 1e9, open_lo=True)
+            object.__setattr__(self, key, value)
+        check_bool("search.verify", self.verify)
+        if self.hi < self.lo:
+            raise ValueError(f"search.lo={self.lo} must be <= search.hi={self.hi}")
+
+    @property
+    def points(self) -> int:
+        """Grid points of the search."""
+        return math.floor((self.hi - self.lo) / self.resolution + 1e-9) + 1
 
 
-def optimal_at(params: Params, r4: float, gamma: float) -> tuple[torch.Tensor, Metrics]:
-    """The optimal policy (discount ``gamma``) and its exact long-run metrics at detection reward
-    ``r4``."""
-    p = params.with_overrides({"reward.r4": r4})
-    model = build_model(p)
-    policy = value_iteration(model, gamma=gamma).policy
-    return policy, stationary_metrics(model, policy)
+@dataclass(frozen=True)
+class Learned:
+    """``dqn.*``: DQN at a few ``r4`` (``seeds`` each, with ``overrides``)."""
+
+    r4: tuple[float, ...] = (5.0, 50.0)
+    seeds: tuple[int, ...] = (0, 1, 2)
+    overrides: tuple[str, ...] = ()
+
+    def __post_init__(self) -> None:
+        r4 = check_list("dqn.r4", self.r4 or [], numbers(0, 1e9, open_lo=True), empty=True)
+        object.__setattr__(self, "r4", r4)
+        if r4:
+            object.__setattr__(self, "seeds", seeds("dqn.seeds", self.seeds))
+        object.__setattr__(
+            self, "overrides", check_list("dqn.overrides", self.overrides, empty=True)
+        )
+
+
+@dataclass(frozen=True)
+class Config:
+    """The trade-off's keys (``recipes/conf/tradeoff.yaml``); ``planned``: DQN's runs, checked."""
+
+    params: Params = field(default=None, metadata=ONE_VEHICLE)
+    r4: tuple[float, ...] = (5.0, 10.0, 25.0, 50.0, 100.0, 200.0)
+    p1_speed: tuple[float, ...] = (0.1, 1.0)
+    optimum_gamma: float = 0.99
+    target_miss: float | None = 0.05
+    search: Search = field(default_factory=Search)
+    dqn: Learned = field(default_factory=Learned)
+    executor: Executor = field(default_factory=Executor, metadata=EXECUTOR)
+    planned: tuple = field(default=(), metadata={"keys": ()})
+
+    def __post_init__(self) -> None:
+        check_common(self)
+        r4 = check_list("r4", self.r4, numbers(0, 1e9, open_lo=True))
+        object.__setattr__(self, "r4", tuple(sorted(set(r4))))
+        object.__setattr__(self, "p1_speed", check_list("p1_speed", self.p1_speed, numbers(0, 1)))
+        if self.target_miss is not None:
+            object.__setattr__(
+                self, "target_miss", check_number("target_miss", self.target_miss, 0, 1)
+            )
+            solves = self.search.points * len(self.p1_speed)
+            if self.search.verify and solves > SOLVES_LIMIT:
+                raise ValueError(
+                    f"search.resolution={self.search.resolution}: the grid from search.lo="
+                    f"{self.search.lo} to search.hi={self.search.hi} has {self.search.points} "
+                    f"points per p^v_1, and search.verify may solve each of them ({solves} exact "
+                    f"solves, ~{solves * 0.3 / 60:.0f} min here; limit {SOLVES_LIMIT}); use a "
+                    "coarser resolution or search.verify=false"
+                )
+
+
+def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
+    """The typed config; DQN's runs composed and checked before any work."""
+    cfg = build(Config, composed.cfg)
+    if not cfg.dqn.r4:
+        return cfg
+    base = [
+        *composed.scenario_overrides,
+        *cfg.dqn.overrides,
+        "eval.mc_episodes=0",
+        f"optimum_gamma={cfg.optimum_gamma}",
+        f"env.p1.speed={cfg.p1_speed[0]}",
+    ]
+    grid = parse_grid({"reward.r4": list(cfg.dqn.r4), "seed": list(cfg.dqn.seeds)})
+    return replace(cfg, planned=tuple(plan("dqn", grid, base)))
 
 
 def smallest_r4(
@@ -82,33 +167,18 @@ def smallest_r4(
     return round(lo + b * resolution, 10), calls
 
 
-def run_tradeoff(cfg: DictConfig, out: Path, scenario: list[str] | None = None) -> int:
+def run(cfg: Config, run) -> int:
     """Exact trade-off curves over r4, the bisection for ``target_miss``, DQN at a few points."""
     t0 = time.perf_counter()
-    out = Path(out).resolve()
-    out.mkdir(parents=True, exist_ok=True)
-    r4s = sorted({float(r) for r in to_plain(cfg.r4)})
-    ps = [float(p) for p in to_plain(cfg.p1_speed)]
-    if not r4s or any(r <= 0 for r in r4s) or not ps:
-        raise ValueError("r4 must be a non-empty list of positive values; p1_speed non-empty")
-    target = cfg.target_miss
-    if target is not None and not 0.0 <= float(target) <= 1.0:
-        raise ValueError(f"target_miss={target!r} must be in [0, 1] (or null)")
-    base = Params.from_config(cfg)
-    gamma = float(cfg.optimum_gamma)
-    rows = _exact_curves(base, ps, r4s, gamma)
+    out = run.dir.resolve()
+    r4s, ps, target = list(cfg.r4), list(cfg.p1_speed), cfg.target_miss
+    rows = _exact_curves(cfg.params, ps, r4s, cfg.optimum_gamma)
     write_rows_csv(out / "tradeoff.csv", rows)
-    found, scan_rows = ({}, []) if target is None else _smallest_r4_each(cfg, base, ps, gamma)
+    found, scan_rows = ({}, []) if target is None else _smallest_r4_each(cfg, ps)
     if scan_rows:
         write_rows_csv(out / "r4_scan.csv", scan_rows)
-    code, learned_rows = _dqn_points(cfg, out, ps[0], scenario, gamma)
-    plots.plot_tradeoff(
-        rows,
-        learned_rows,
-        out / "tradeoff.png",
-        target=None if target is None else float(target),
-        scan=scan_rows,
-    )
+    code, learned_rows = _dqn_points(cfg, run, ps[0])
+    plots.plot_tradeoff(rows, learned_rows, out / "tradeoff.png", target=target, scan=scan_rows)
     summary = {
         "r4": r4s,
         "p1_speed": ps,
@@ -116,10 +186,7 @@ def run_tradeoff(cfg: DictConfig, out: Path, scenario: list[str] | None = None) 
         "smallest_r4": found,
         "wall_seconds": time.perf_counter() - t0,
     }
-    atomic_write_text(out / "summary.json", json.dumps(summary, indent=2) + "\n")
-    print(
-        f"\nwrote tradeoff.csv, tradeoff.png, summary.json to {out} ({summary['wall_seconds']:.0f} s)"
-    )
+    run.finish(summary)
     return code
 
 
@@ -151,15 +218,13 @@ def _exact_curves(base: Params, ps: list[float], r4s: list[float], gamma: float)
     return rows
 
 
-def _smallest_r4_each(
-    cfg: DictConfig, base: Params, ps: list[float], gamma: float
-) -> tuple[dict[str, Any], list[dict]]:
+def _smallest_r4_each(cfg: Config, ps: list[float]) -> tuple[dict[str, Any], list[dict]]:
     """For each p^v_1, the smallest r4 on the search grid meeting ``target_miss`` (bisection, then
     optionally every grid point below it); returns (answers by p^v_1, the points solved)."""
-    target = float(cfg.target_miss)
+    base, gamma, target = cfg.params, cfg.optimum_gamma, cfg.target_miss
     found: dict[str, Any] = {}
     scan_rows: list[dict] = []
-    lo, hi, res = float(cfg.search.lo), float(cfg.search.hi), float(cfg.search.resolution)
+    lo, hi, res = cfg.search.lo, cfg.search.hi, cfg.search.resolution
     for p in ps:
         params = ref_params(base, p)
         metrics_at: dict[float, Metrics] = {}
@@ -230,27 +295,16 @@ def _print_found(
     )
 
 
-def _dqn_points(
-    cfg: DictConfig, out: Path, p: float, scenario: list[str] | None, gamma: float
-) -> tuple[int, list[dict]]:
+def _dqn_points(cfg: Config, run, p: float) -> tuple[int, list[dict]]:
     """DQN at ``dqn.r4`` (``dqn.seeds`` each) through the sweep engine: (exit code, mean rows)."""
     learned_rows: list[dict] = []
-    dqn_r4 = [float(r) for r in (to_plain(cfg.dqn.r4) or [])]
-    if not dqn_r4:
+    if not cfg.planned:
         return 0, learned_rows
-    seeds = [int(s) for s in to_plain(cfg.dqn.seeds)]
-    base_ov = [
-        *(scenario or []),
-        *[str(o) for o in cfg.dqn.overrides],
-        "eval.mc_episodes=0",
-        f"optimum_gamma={gamma}",
-        f"env.p1.speed={p}",
-    ]
-    planned = plan("dqn", parse_grid({"reward.r4": dqn_r4, "seed": seeds}), base_ov)
-    code = execute(cfg, planned, out)
+    out, planned = run.dir, list(cfg.planned)
+    code = execute(cfg.executor, planned, out, run.recipe)
     if code != 0:
         return code, learned_rows
-    for r4 in dqn_r4:
+    for r4 in cfg.dqn.r4:
         fin = [
             json.loads((out / "trials" / pl["point_id"] / "summary.json").read_text())["metrics"]
             for pl in planned
@@ -277,41 +331,3 @@ def _dqn_points(
             f"throughput {r['throughput']:.4f}, link capacity {r['link_capacity']:.4f}"
         )
     return code, learned_rows
-
-
-def validate_tradeoff(cfg: DictConfig) -> None:
-    """Every key of ``recipes/conf/tradeoff.yaml``, and the cost of the search, before any work."""
-    check_common(cfg)
-    check_executor(cfg)
-    r4 = to_plain(cfg.r4)
-    if not isinstance(r4, list) or not r4:
-        raise ValueError(f"r4={r4!r} must be a non-empty list of detection rewards")
-    for i, v in enumerate(r4):
-        check_number(f"r4[{i}]", v, 0, 1e9, open_lo=True)
-    ps = to_plain(cfg.p1_speed)
-    if not isinstance(ps, list) or not ps:
-        raise ValueError(f"p1_speed={ps!r} must be a non-empty list of probabilities")
-    for i, v in enumerate(ps):
-        check_number(f"p1_speed[{i}]", v, 0, 1)
-    if cfg.target_miss is not None:
-        check_number("target_miss", cfg.target_miss, 0, 1)
-        lo = check_number("search.lo", cfg.search.lo, 0, 1e9, open_lo=True)
-        hi = check_number("search.hi", cfg.search.hi, 0, 1e9, open_lo=True)
-        res = check_number("search.resolution", cfg.search.resolution, 0, 1e9, open_lo=True)
-        check_bool("search.verify", cfg.search.verify)
-        if hi < lo:
-            raise ValueError(f"search.lo={lo} must be <= search.hi={hi}")
-        points = math.floor((hi - lo) / res + 1e-9) + 1
-        if cfg.search.verify and points * len(ps) > SOLVES_LIMIT:
-            raise ValueError(
-                f"search.resolution={res}: the grid from search.lo={lo} to search.hi={hi} has "
-                f"{points} points per p^v_1, and search.verify may solve each of them "
-                f"({points * len(ps)} exact solves, ~{points * len(ps) * 0.3 / 60:.0f} min here; "
-                f"limit {SOLVES_LIMIT}); use a coarser resolution or search.verify=false"
-            )
-    if to_plain(cfg.dqn.r4):
-        for i, v in enumerate(to_plain(cfg.dqn.r4)):
-            check_number(f"dqn.r4[{i}]", v, 0, 1e9, open_lo=True)
-        seeds = to_plain(cfg.dqn.seeds)
-        if not isinstance(seeds, list) or not seeds:
-            raise ValueError(f"dqn.seeds={seeds!r} must be a non-empty list of seeds")

@@ -5,21 +5,19 @@ miss-detection target, exactly (the LP), against the paper's route of tuning the
 from __future__ import annotations
 
 import time
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
-from omegaconf import DictConfig
 
 from irdrc.core.cmdp import solve_cmdp
-from irdrc.core.model import build_model
-from irdrc.core.params import Params, to_plain
-from irdrc.core.solve import stationary_metrics, value_iteration
-from irdrc.experiments.constrained import constraint_kwargs, run_constrained
+from irdrc.core.exact import build_model, stationary_metrics, value_iteration
+from irdrc.core.metrics import Metrics
+from irdrc.core.params import Params
 from irdrc.experiments.progress import Ticker
-from irdrc.experiments.results import write_rows_csv, write_summary
-from irdrc.paper.tradeoff import optimal_at, ref_params
+from irdrc.experiments.results import atomic_savefig, write_rows_csv
 
 FRONTIER_COLUMNS = (
     "p1_speed",
@@ -33,12 +31,6 @@ FRONTIER_COLUMNS = (
     "avg_reward",
     "randomised_states",
 )
-
-
-def r4_grid(cfg: DictConfig) -> list[float]:
-    """The r4 values of the reward route: ``lo``, ``lo + step``, …, ≤ ``hi``."""
-    lo, hi, step = (float(cfg.frontier_grid.r4[k]) for k in ("lo", "hi", "step"))
-    return [float(x) for x in np.round(np.arange(lo, hi + step / 2, step), 10)]
 
 
 def _lp_targets(params: Params, n: int, gamma: float, extra: list[float]) -> list[float]:
@@ -115,41 +107,33 @@ def give_up_table(lp: list[dict], r4: list[dict], targets: list[float]) -> list[
     return out
 
 
-def run_frontier(cfg: DictConfig, out: Path) -> dict[str, Any]:
+def run_frontier(cfg: Any, run) -> dict[str, Any]:
     """The LP frontier and the r4 route at each ``frontier_grid.p1_speed``: ``frontier.csv``,
-    ``frontier_gap.csv``, ``frontier.png``, ``summary.json``, and the printed tables."""
-    from irdrc.paper.plots import plot_frontier
-
-    torch.set_num_threads(1)
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    base = Params.from_config(cfg)
-    gamma = float(cfg.optimum_gamma)
-    kwargs = constraint_kwargs(cfg)
-    ps = [float(p) for p in to_plain(cfg.frontier_grid.p1_speed)]
-    n = int(cfg.frontier_grid.points)
-    r4s = r4_grid(cfg)
-    targets = [float(t) for t in to_plain(cfg.frontier_grid.targets)]
+    ``frontier_gap.csv``, ``frontier.png``, and the printed tables; returns the summary."""
+    grid = cfg.frontier_grid
+    ps, n, targets = list(grid.p1_speed), grid.points, list(grid.targets)
+    r4s = grid.r4.values()
+    kwargs = cfg.constraints
     t0 = time.perf_counter()
     lp_rows: list[dict] = []
     r4_rows: list[dict] = []
-    scenarios = {p: ref_params(base, p) for p in ps}
-    lp_targets = {p: _lp_targets(scenarios[p], n, gamma, targets) for p in ps}
+    scenarios = {p: ref_params(cfg.params, p) for p in ps}
+    lp_targets = {p: _lp_targets(scenarios[p], n, cfg.optimum_gamma, targets) for p in ps}
     # one count for the whole run, LP solves and r4 solves alike, so the first ETA is a fair one
     total = sum(len(t) for t in lp_targets.values()) + len(ps) * len(r4s)
     ticker = Ticker(total, "frontier: exact LP solves per target, then value iteration per r4")
     for p in ps:
         lp_rows += _lp_points(scenarios[p], p, kwargs, lp_targets[p], ticker)
     for p in ps:
-        r4_rows += _r4_points(scenarios[p], p, r4s, gamma, ticker)
+        r4_rows += _r4_points(scenarios[p], p, r4s, cfg.optimum_gamma, ticker)
     gap = give_up_table(lp_rows, r4_rows, targets)
     wall = time.perf_counter() - t0
-    write_rows_csv(out / "frontier.csv", [*lp_rows, *r4_rows], FRONTIER_COLUMNS)
-    write_rows_csv(out / "frontier_gap.csv", gap)
-    plot_frontier(lp_rows, r4_rows, out / "frontier.png", targets=targets)
+    write_rows_csv(run.dir / "frontier.csv", [*lp_rows, *r4_rows], FRONTIER_COLUMNS)
+    write_rows_csv(run.dir / "frontier_gap.csv", gap)
+    plot_frontier(lp_rows, r4_rows, run.dir / "frontier.png", targets=targets)
     print(
         f"\nthe most data per miss-detection target (LP, {n} targets per p^v_1) against the best "
-        f"reward-optimal policy over r4 ∈ [{r4s[0]:g}, {r4s[-1]:g}] (step {r4s[1] - r4s[0]:g}), "
+        f"reward-optimal policy over r4 ∈ [{r4s[0]:g}, {r4s[-1]:g}] (step {grid.r4.step:g}), "
         f"{wall:.1f} s:\n"
     )
     print("p1.speed  target  LP throughput  r4 route throughput (r4)  given up")
@@ -164,7 +148,7 @@ def run_frontier(cfg: DictConfig, out: Path) -> dict[str, Any]:
             f"{g['p1_speed']:>8g}  {g['target_miss']:>6g}  {g['lp_throughput']:>13.4f}  "
             f"{r4txt:>24}  {lost:>8}"
         )
-    summary = {
+    return {
         "method": "constrained_frontier",
         "p1_speed": ps,
         "targets": targets,
@@ -172,13 +156,57 @@ def run_frontier(cfg: DictConfig, out: Path) -> dict[str, Any]:
         "wall_seconds": wall,
         "given_up": gap,
     }
-    write_summary(out / "summary.json", summary)
-    print(f"\nwrote {out / 'frontier.csv'}, {out / 'frontier_gap.csv'}, {out / 'frontier.png'}")
-    return summary
 
 
-def run_constrained_recipe(cfg: DictConfig, out: Path) -> Any:
-    """``recipes/constrained.py``: one exact solve, or the frontier with ``frontier=true``."""
-    if bool(cfg.frontier):
-        return run_frontier(cfg, out)
-    return run_constrained(cfg, out)
+def ref_params(base: Params, p1_speed: float) -> Params:
+    """The scenario at ``p1_speed``."""
+    return base.with_overrides({"env.p1.speed": p1_speed})
+
+
+def optimal_at(params: Params, r4: float, gamma: float) -> tuple[torch.Tensor, Metrics]:
+    """The optimal policy (discount ``gamma``) and its exact long-run metrics at detection reward
+    ``r4``."""
+    model = build_model(params.with_overrides({"reward.r4": r4}))
+    policy = value_iteration(model, gamma=gamma).policy
+    return policy, stationary_metrics(model, policy)
+
+
+def plot_frontier(
+    lp: Sequence[Mapping], r4: Sequence[Mapping], path: Path, *, targets: Sequence[float] = ()
+) -> None:
+    """Throughput against miss detection: the LP frontier (a line per p^v_1) and the reward-optimal
+    deterministic policies over r4 (markers, same colour), with the targets as vertical lines."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(8, 5.6))
+    for p in sorted({float(r["p1_speed"]) for r in lp}):
+        pts = sorted(
+            (r for r in lp if float(r["p1_speed"]) == p), key=lambda r: r["miss_detection"]
+        )
+        (line,) = ax.plot(
+            [r["miss_detection"] for r in pts],
+            [r["throughput"] for r in pts],
+            label=f"most data at each target (exact LP), p1.speed={p:g}",
+        )
+        own = [r for r in r4 if float(r["p1_speed"]) == p]
+        ax.plot(
+            [r["miss_detection"] for r in own],
+            [r["throughput"] for r in own],
+            "o",
+            mfc="none",
+            color=line.get_color(),
+            label=f"reward-optimal policy at each r4 (r4 route), p1.speed={p:g}",
+        )
+    for i, t in enumerate(targets):
+        label = "the recipe's targets (target_miss)" if i == 0 else None
+        ax.axvline(t, color="tab:red", linestyle=":", alpha=0.6, label=label)
+    ax.set_xlabel("miss detection probability")
+    ax.set_ylabel("throughput (packets sent per step)")
+    ax.set_title("The design question: most data subject to a miss-detection target")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8, loc="lower right")
+    fig.tight_layout()
+    atomic_savefig(fig, path, dpi=80)

@@ -1,0 +1,84 @@
+"""The fleet's learners and their hyperparameters (MODEL.md § C)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+from irdrc.agents.configs.value import OffPolicyConfig
+from irdrc.core.checks import INT, check_bool, check_choice, check_numbers
+
+FLEET_LEARNERS = ("idqn", "vdn", "qmix", "joint")
+"""The fleet's learners (``learner=…``): independent DQN with parameter sharing, value
+decomposition (VDN, QMIX), and DQN over the joint actions."""
+
+FLEET_OBSERVES = {
+    "idqn": ("own",),
+    "vdn": ("own", "full"),
+    "qmix": ("own", "full"),
+    "joint": ("full",),
+}
+"""What each fleet learner's vehicles may observe (``env.observe``)."""
+
+MIXERS = ("vdn", "qmix")
+
+
+@dataclass(frozen=True)
+class FleetLearnerConfig:
+    """A fleet learner's hyperparameters (``recipes/fleet.py``): the off-policy machinery's, counted
+    in fleets and fleet steps (``num_envs`` fleets stepped together; ``idqn`` steps a row per
+    vehicle), and the mixers' own.
+
+    Attributes:
+        learner: ``FLEET_LEARNERS``.
+        dqn: the machinery's keys; ``algo.prioritized`` and ``algo.double_dqn`` left null take the
+            learner's default — idqn, joint: true; vdn, qmix: false (TorchRL's ``QMixerLoss`` takes
+            each vehicle's maximum under the target network and weighs no sample by importance).
+        mixing_embed_dim: QMIX's mixing width.
+        agent_index: vdn, qmix: each vehicle's network input carries its one-hot index (idqn:
+            always; joint: every vehicle's state is its input).
+    """
+
+    learner: str = "vdn"
+    dqn: OffPolicyConfig = field(
+        default_factory=lambda: OffPolicyConfig(prioritized=False, double_dqn=False, name="vdn")
+    )
+    mixing_embed_dim: int = 32
+    agent_index: bool = True
+
+    def __post_init__(self) -> None:
+        check_choice("learner", self.learner, FLEET_LEARNERS)
+        check_numbers(self, "algo.", (("mixing_embed_dim", 1, 4096, INT),))
+        check_bool("algo.agent_index", self.agent_index)
+        if self.learner in MIXERS:
+            for key, why in (
+                ("double_dqn", "takes each vehicle's maximum under the target network"),
+                ("prioritized", "weighs no sample by its importance (docs/FLEET.md)"),
+            ):
+                if getattr(self.dqn, key):
+                    raise ValueError(
+                        f"algo.{key}=true: TorchRL's QMixerLoss {why}; set algo.{key}=false"
+                    )
+
+    @classmethod
+    def from_sections(cls, learner: str, algo: Any, network: Any = None) -> FleetLearnerConfig:
+        """From ``learner``, the ``algo`` mapping (DQN's keys and the mixers') and ``network``:
+        null values take the learner's defaults, and a mixer's key set for a learner that does
+        not read it is refused."""
+        check_choice("learner", learner, FLEET_LEARNERS)
+        data = dict(algo)
+        read_by = {"mixing_embed_dim": ("qmix",), "agent_index": ("vdn", "qmix")}
+        own = {k: data.pop(k) for k in read_by if k in data}
+        for key, readers in read_by.items():
+            default = cls.__dataclass_fields__[key].default
+            if learner not in readers and key in own and own[key] != default:
+                raise ValueError(
+                    f"algo.{key}={own[key]!r} is read by learner={' or '.join(readers)} only, not "
+                    f"{learner}"
+                )
+        mixer = learner in MIXERS
+        for key in ("prioritized", "double_dqn"):
+            if data.get(key) is None:
+                data[key] = not mixer
+        data["name"] = learner
+        return cls(learner=learner, dqn=OffPolicyConfig.from_sections(data, network), **own)

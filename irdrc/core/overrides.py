@@ -1,0 +1,48 @@
+"""Overrides named as on the command line — ``{"env.p1.speed": 0.5, "reward.r4": 50}`` or nested
+``{"env": {"p1": {"speed": 0.5}}}`` — applied to a plain config mapping (the Python API's and the
+gym constructors' way to name a scenario; recipes compose theirs with Hydra)."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+REWARD_KEYS = ("r1", "r2", "r3", "r4", "r5")
+"""The reward weights (``reward.r1`` … ``reward.r5``)."""
+
+
+def full_key(key: str) -> str:
+    """``key`` with its section: ``r4`` → ``reward.r4``, ``p1.speed`` → ``env.p1.speed`` (as it is
+    when it has one)."""
+    head = key.split(".", 1)[0]
+    if head in ("env", "reward"):
+        return key
+    return f"reward.{key}" if head in REWARD_KEYS else f"env.{key}"
+
+
+def apply_overrides(merged: dict[str, Any], overrides: Mapping[str, Any]) -> None:
+    """Set dotted or nested overrides into ``merged`` ({"env": …, "reward": …}); every key starts
+    with its section (``env.`` or ``reward.``), as on the command line."""
+    for key, value in overrides.items():
+        parts = str(key).split(".")
+        if parts[0] not in ("env", "reward"):
+            raise ValueError(
+                f"override {key!r} needs its section: write {full_key(str(key))!r} (keys are "
+                "named as on the command line: 'env.p1.speed', 'reward.r4', or nested "
+                "{'env': {...}, 'reward': {...}})"
+            )
+        target = merged
+        for p in parts[:-1]:
+            target = target.setdefault(p, {})
+            if not isinstance(target, dict):
+                raise ValueError(f"override {key!r} conflicts with another key")
+        deep_set(target, parts[-1], value)
+
+
+def deep_set(target: dict, key: str, value: Any) -> None:
+    """``target[key] = value``, merging mappings into mappings key by key."""
+    if isinstance(value, Mapping) and isinstance(target.get(key), dict):
+        for k, v in value.items():
+            deep_set(target[key], k, v)
+    else:
+        target[key] = value

@@ -1,0 +1,117 @@
+"""``recipes/dqn.py`` — the main job: DQN from TorchRL parts, evaluated exactly during training,
+by Monte-Carlo at the end, beside the optimum and the baselines.
+
+    python recipes/dqn.py                                   # our profile, paper scenario
+    python recipes/dqn.py reward.r4=50 network=large env=ref_impl
+    python recipes/dqn.py algo=dqn_paper                    # the reference profile (1 M steps)
+    python recipes/dqn.py resume=outputs/…/checkpoint.pt algo.total_frames=1000000
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+from irdrc.agents.configs import DQNConfig
+from irdrc.core.checks import build
+from irdrc.core.params import Params
+from irdrc.experiments.compose import Composed
+from irdrc.experiments.sections import (
+    ONE_VEHICLE,
+    Learning,
+    Plot,
+    check_dense,
+    check_eval_period,
+)
+
+NAME = "dqn"
+RESUMABLE = True
+REMOVED = {
+    "compare.qlearning_paper": "Q-learning's paper profile runs as "
+    "python recipes/qlearning.py algo=qlearning_paper (same scenario and seed keys)",
+    "cache_dir": "nothing is cached any more (it held compare.qlearning_paper's tables)",
+}
+ELSEWHERE = {
+    "algo=qlearning": "python recipes/qlearning.py",
+    "algo=qlearning_paper": "python recipes/qlearning.py algo=qlearning_paper",
+    "algo=dqn_lagrangian": "python recipes/constrained.py learner=dqn_lagrangian",
+}
+
+
+ALGO = {
+    "keys": ("algo", "network"),
+    "build": lambda d, p: DQNConfig.from_sections(d["algo"], d["network"]),
+}
+"""The learner's hyperparameters come from the ``algo`` and ``network`` groups."""
+
+
+@dataclass(frozen=True)
+class Config(Learning):
+    """The main job's keys (``recipes/conf/dqn.yaml``)."""
+
+    params: Params = field(default=None, metadata=ONE_VEHICLE)
+    algo: DQNConfig = field(default_factory=DQNConfig, metadata=ALGO)
+    plot: Plot = field(default_factory=Plot)
+    device: str = "cpu"
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+
+
+def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
+    """The typed config, checked: values, what the exact model and the final evaluation cost, and
+    what a resumed run has left to train."""
+    cfg = build(Config, composed.cfg)
+    check_dense(cfg.params)
+    cfg.eval.check_cost(cfg.params)
+    explicit = "eval.every_frames" in composed.explicit
+    check_eval_period(cfg.eval.every_frames, cfg.algo.total_frames, explicit)
+    if resume is not None and int(resume["frames"]) >= cfg.algo.total_frames:
+        raise ValueError(
+            f"resume={cfg.resume} is at {resume['frames']} env steps, algo.total_frames="
+            f"{cfg.algo.total_frames}: nothing left to train; raise algo.total_frames to train it "
+            "longer"
+        )
+    return cfg
+
+
+def run(cfg: Config, run) -> dict[str, Any]:
+    """Train, evaluate, finish the run directory (``irdrc.experiments.report``)."""
+    from irdrc.agents import dqn
+    from irdrc.core.exact import Scorer, build_model
+    from irdrc.experiments.report import LearnerRun, finish_learner
+    from irdrc.experiments.tracking import log_scalars
+
+    run.threads(cfg.num_threads)
+    logger = run.make_logger(cfg.logger, cfg.algo.name)
+    scorer = Scorer(build_model(cfg.params), cfg.optimum_gamma)
+    every = cfg.checkpoint.every_frames
+    with run.training(cfg.algo.total_frames, cfg.algo.name, checkpoint_every=every) as hooks:
+        record = dqn.train(
+            cfg.params,
+            cfg.algo,
+            seed=cfg.seed,
+            device=cfg.device,
+            scorer=scorer,
+            eval_every_frames=cfg.eval.every_frames,
+            hooks=hooks,
+            resume=run.resume_state,
+        )
+    final = record.history[-1]["optimality_ratio"]  # the final policy's, exact
+    log_scalars(logger, {"final/optimality_ratio": final}, record.env_steps)
+    summary = finish_learner(
+        run,
+        LearnerRun(
+            name=cfg.algo.name,
+            record=record,
+            scenarios=[cfg.params],
+            scorers=[scorer],
+            points=[{}],
+            num_learners=1,
+            eval=cfg.eval,
+            seed=cfg.seed,
+            plot_format=cfg.plot.format,
+        ),
+    )
+    run.finish(summary, interrupted_at=record.env_steps if record.interrupted else None)
+    return summary

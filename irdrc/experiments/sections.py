@@ -1,0 +1,277 @@
+"""The config sections recipes share, as typed pieces of their configs: the scenario (``env`` +
+``reward``), the evaluation, the logger, checkpoints, plots, the executor of runs, and the run's
+common keys. Each checks its values on construction, naming the key; pure Python (torch only to
+check a CUDA device, when one is asked for).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass, field
+from typing import Any
+
+from irdrc.core import checks
+from irdrc.core.params import Params
+from irdrc.fleet.config import fleet_from_config, is_fleet
+from irdrc.fleet.spec import FleetSpec
+
+BACKENDS = ("none", "csv", "tensorboard", "wandb")
+WANDB_MODES = ("auto", "online", "offline", "disabled")
+PLOT_FORMATS = ("png", "pdf", "svg")
+"""Formats of a run's figures (``plot.format``)."""
+
+DENSE_LIMIT_BYTES = 2**29
+"""The dense exact model's transition tensor (2·S² float64) is built up to this size (as
+``irdrc.core.exact.dense.DENSE_MODEL_LIMIT_BYTES``)."""
+
+MC_LIMIT_STEPS = 1e6
+"""A Monte-Carlo evaluation steps its batch ``env.horizon`` times per round (~0.1 ms a step here):
+above this many batched steps it is refused."""
+
+FLEET_RECIPES = "recipes/fleet.py (learners) or recipes/solve.py (its optimum)"
+
+
+def one_vehicle(data: Any, prefix: str = "") -> Params:
+    """The scenario of a recipe that takes one vehicle (a fleet refused, naming the fleet's
+    recipes)."""
+    if is_fleet(data):
+        raise ValueError(
+            f"env=fleet (env.vehicles=…) is a fleet of vehicles; this recipe takes one vehicle — "
+            f"run the fleet with {FLEET_RECIPES}"
+        )
+    params = Params.from_config({"env": data.get("env", {}), "reward": data.get("reward", {})})
+    rw = params.reward
+    if rw.r1 == rw.r2 == rw.r3 == rw.r4 == 0:
+        import warnings
+
+        warnings.warn("reward.r1 … r4 are all 0: every policy is optimal", stacklevel=2)
+    return params
+
+
+def one_or_fleet(data: Any, prefix: str = "") -> Params | tuple[FleetSpec, str]:
+    """One vehicle's ``Params``, or a fleet and what its vehicles observe."""
+    if is_fleet(data):
+        return fleet_from_config(data)
+    return one_vehicle(data, prefix)
+
+
+def a_fleet(data: Any, prefix: str = "") -> tuple[FleetSpec, str]:
+    """A fleet scenario (``env=fleet``) and what its vehicles observe."""
+    return fleet_from_config(data)
+
+
+ONE_VEHICLE = {"keys": ("env", "reward"), "build": one_vehicle}
+ONE_OR_FLEET = {"keys": ("env", "reward"), "build": one_or_fleet}
+A_FLEET = {"keys": ("env", "reward"), "build": a_fleet}
+"""Metadata of a config field built from the ``env`` and ``reward`` sections:
+``params: Params = field(default=None, metadata=ONE_VEHICLE)``."""
+
+
+def fits_dense(params: Params) -> bool:
+    """Whether the dense transition tensor of ``params`` fits ``DENSE_LIMIT_BYTES`` (above it the
+    exact model is the factored one)."""
+    return 16 * params.env.num_states**2 <= DENSE_LIMIT_BYTES
+
+
+def check_dense(params: Params) -> None:
+    """Refuse a model whose dense transition tensor would exhaust memory, with its estimate and
+    the largest queue that fits."""
+    S = params.env.num_states
+    dense = 16 * S * S
+    if dense > DENSE_LIMIT_BYTES:
+        top = int(math.sqrt(DENSE_LIMIT_BYTES / 16) // math.prod(params.env.levels)) - 1
+        raise ValueError(
+            f"env.queue_capacity={params.env.queue_capacity}: the exact model has S = {S} states "
+            f"and its dense transition tensor would take {dense / 2**30:.1f} GiB (limit "
+            f"{DENSE_LIMIT_BYTES / 2**30:.1f} GiB); use env.queue_capacity ≤ {top}"
+        )
+
+
+def check_device(device: Any) -> str:
+    """``device`` if torch can use it here (``cpu``, or ``cuda[:n]`` with a CUDA device)."""
+    if device == "cpu":
+        return device
+    if not isinstance(device, str) or not device.startswith("cuda"):
+        raise ValueError(f"device={device!r} must be cpu or cuda")
+    import torch
+
+    try:
+        dev = torch.device(device)
+    except RuntimeError as err:
+        raise ValueError(f"device={device!r} is not a torch device (cpu, cuda, cuda:0 …)") from err
+    if not torch.cuda.is_available():
+        raise ValueError(f"device={device}: no CUDA device here (use device=cpu)")
+    if dev.index is not None and dev.index >= torch.cuda.device_count():
+        raise ValueError(f"device={device}: only {torch.cuda.device_count()} CUDA device(s)")
+    return device
+
+
+def seeds(key: str, value: Any) -> tuple[int, ...]:
+    """A non-empty list of seeds."""
+    return checks.check_list(key, value, checks.numbers(0, 2**32 - 1, integer=True))
+
+
+@dataclass(frozen=True)
+class Eval:
+    """``eval.*``: the exact evaluation period (env steps) and the Monte-Carlo evaluation at the
+    end (``mc_episodes`` episodes in batches of ``mc_num_envs``; 0 skips it). A recipe without a
+    key leaves it None."""
+
+    every_frames: int | None = None
+    mc_episodes: int | None = None
+    mc_num_envs: int | None = None
+
+    def __post_init__(self) -> None:
+        for key, lo, hi in (
+            ("every_frames", 1, 10**12),
+            ("mc_episodes", 0, 10**7),
+            ("mc_num_envs", 1, 10**6),
+        ):
+            if getattr(self, key) is not None:
+                checks.check_numbers(self, "eval.", ((key, lo, hi, checks.INT),))
+
+    def check_cost(self, params: Params) -> None:
+        """Refuse a Monte-Carlo evaluation that would run for long (``MC_LIMIT_STEPS``)."""
+        if not self.mc_episodes:
+            return
+        steps = math.ceil(self.mc_episodes / (self.mc_num_envs or 1)) * params.env.horizon
+        if steps > MC_LIMIT_STEPS:
+            raise ValueError(
+                f"eval.mc_episodes={self.mc_episodes} of env.horizon={params.env.horizon} steps: "
+                f"{steps:.2e} batched env steps (~{steps * 1e-4 / 60:.0f} min here, limit "
+                f"{MC_LIMIT_STEPS:.0e}); use eval.mc_episodes=0 or a shorter horizon"
+            )
+
+
+@dataclass(frozen=True)
+class Logger:
+    """``logger=csv|tensorboard|wandb|none`` (``logger.backend``), its W&B ``project`` and
+    ``mode`` (auto: online with an API key, offline without one)."""
+
+    backend: str = "csv"
+    project: str = "irdrc"
+    mode: str = "auto"
+
+    def __post_init__(self) -> None:
+        checks.check_choice("logger.backend", self.backend, BACKENDS)
+        checks.check_choice("logger.mode", self.mode, WANDB_MODES)
+
+
+@dataclass(frozen=True)
+class Plot:
+    """``plot.format``: the format of a run's figures."""
+
+    format: str = "png"
+
+    def __post_init__(self) -> None:
+        checks.check_choice("plot.format", self.format, PLOT_FORMATS)
+
+
+@dataclass(frozen=True)
+class Checkpoint:
+    """``checkpoint.every_frames``: write ``checkpoint.pt`` every this many env steps (0: only at the
+    end and on SIGINT/SIGTERM)."""
+
+    every_frames: int = 0
+
+    def __post_init__(self) -> None:
+        checks.check_numbers(self, "checkpoint.", (("every_frames", 0, 10**12, checks.INT),))
+
+
+@dataclass(frozen=True)
+class Ray:
+    """``ray.address`` (local: a private Ray here | auto | HOST:PORT) and ``ray.num_cpus``."""
+
+    address: str = "local"
+    num_cpus: int | None = None
+
+    def __post_init__(self) -> None:
+        if self.num_cpus is not None:
+            checks.check_numbers(self, "ray.", (("num_cpus", 1, 10**5, checks.INT),))
+
+
+EXECUTOR_KEYS = ("executor", "resume", "cpus_per_trial", "max_failures", "storage_path", "ray")
+
+
+@dataclass(frozen=True)
+class Executor:
+    """How a recipe's many runs execute (the ``executor`` group): on Ray Tune or one after another
+    here, rerunning only what did not finish with ``resume``."""
+
+    executor: str = "ray"
+    resume: bool = False
+    cpus_per_trial: int = 1
+    max_failures: int = 0
+    storage_path: str | None = None
+    ray: Ray = field(default_factory=Ray)
+
+    def __post_init__(self) -> None:
+        checks.check_choice("executor", self.executor, ("ray", "local"))
+        checks.check_bool("resume", self.resume)
+        checks.check_numbers(
+            self,
+            "",
+            (("cpus_per_trial", 1, 10**4, checks.INT), ("max_failures", 0, 10**4, checks.INT)),
+        )
+
+
+def _executor(data: Any, prefix: str) -> Executor:
+    return checks.build(Executor, {k: data[k] for k in EXECUTOR_KEYS if k in data}, prefix)
+
+
+EXECUTOR = {"keys": EXECUTOR_KEYS, "build": _executor}
+"""Metadata of a config field holding the executor group's top-level keys:
+``executor: Executor = field(default_factory=Executor, metadata=EXECUTOR)``."""
+
+
+def check_common(obj: Any) -> None:
+    """Check whichever of the keys most recipes share ``obj`` (a recipe's config) has: seed,
+    threads, the discount defining the optimum, device, progress."""
+    if hasattr(obj, "seed"):
+        checks.check_numbers(obj, "", (("seed", 0, 2**32 - 1, checks.INT),))
+    if hasattr(obj, "num_threads"):
+        checks.check_numbers(obj, "", (("num_threads", 1, os.cpu_count() or 1, checks.INT),))
+    if hasattr(obj, "optimum_gamma"):
+        checks.check_numbers(obj, "", (("optimum_gamma", 0, 1, checks.OPEN_HI),))
+    if hasattr(obj, "device"):
+        check_device(obj.device)
+    if hasattr(obj, "progress"):
+        checks.check_bool("progress", obj.progress)
+
+
+def check_eval_period(every: int, total: int, explicit: bool, unit: str = "env steps") -> None:
+    """An evaluation period set on purpose longer than the run is a mistake (a profile's default
+    period on a run shortened by hand just evaluates at the start and the end)."""
+    if every > total and explicit:
+        raise ValueError(
+            f"eval.every_frames={every} is more than the run's {total} {unit}: only the start "
+            "and the end would be evaluated; use a smaller value"
+        )
+
+
+def check_resume(value: Any) -> str | None:
+    """``resume`` of a training recipe: a checkpoint's path, or null."""
+    if value is not None and not isinstance(value, str):
+        raise ValueError(f"resume={value!r} must be a path to a checkpoint.pt (or null)")
+    return value or None
+
+
+@dataclass(frozen=True)
+class Learning:
+    """The keys every learning recipe shares (``dqn``, ``qlearning``, ``constrained``, ``fleet``):
+    its logger, evaluation, checkpoints, seed, threads, the discount defining the optimum, the
+    progress bar and the checkpoint it resumes from. A recipe's ``Config`` extends it."""
+
+    logger: Logger = field(default_factory=Logger)
+    eval: Eval = field(default_factory=Eval)
+    checkpoint: Checkpoint = field(default_factory=Checkpoint)
+    seed: int = 0
+    optimum_gamma: float = 0.99
+    num_threads: int = 1
+    progress: bool = True
+    resume: str | None = None
+
+    def __post_init__(self) -> None:
+        check_common(self)
+        object.__setattr__(self, "resume", check_resume(self.resume))

@@ -1,0 +1,417 @@
+"""The exact fleet MDP of MODEL.md § C on factored kernels: one more ``ExactMDP``, with 2^N joint
+actions, so its centralised optimum and exact metrics come from ``irdrc.core.exact`` like any model's.
+
+N vehicles (each with a single-vehicle model: alike, or differing in probabilities, rates and
+rewards) share road r and weather w; each has its own queue, channel, speed, object (and traffic
+phase). The joint state is
+(r, w, x_1, …, x_N) with x_i the vehicle's own components, index mixed radix with (r, w) most
+significant, then vehicle 1 … N in the single-vehicle order of their components. The joint action
+a = Σ_i a_i·2^(i−1) (bit i − 1 is vehicle i's: 0 comm, 1 radar).
+
+The kernels come from the single-vehicle exact model (``irdrc.core.exact.build_model``), which is
+held to the simulator by its own tests: its transition factorises as P_rw(r′w′ | rw)·K_a(x′ | x)
+(road and weather follow their chains whatever the vehicle does), and K_a as the queue's
+Q_a(d′ | d, f) times the other components' F_a(f′ | f) — both checked when the model is built. A
+vehicle denied the uplink moves its queue as in radar mode (nothing sent) and its components as in
+comm mode (no radar reaction). Nothing here is an S × S matrix: the Bellman operator contracts the
+value tensor [RW, X, …, X] one axis at a time.
+
+Rewards, events and detection (per vehicle, given the joint action and who is granted):
+e = P(event | r, w, v_i, m_i); k_i = other vehicles in radar; q_i = 1 − (1 − share)^k_i the chance
+that another vehicle detects vehicle i's event (cooperative perception); P_d, P_fa the radar's.
+
+| a_i | outcome | reward | missed |
+|---|---|---|---|
+| radar | event, detected by itself (P_d) | r4·(b_i + 1) | 0 |
+| radar | event, not by itself, by another (q_i) | 0 | 0 |
+| radar | event, by nobody | −r3 | 1 |
+| radar | no event, false alarm (P_fa) | −r5 | 0 |
+| comm, granted | no event, or an event another vehicle detects | r_comm[c_i] | 0 |
+| comm, denied | no event, or an event another vehicle detects | 0 | 0 |
+| comm | event, by nobody | −r3 | 1 |
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from collections.abc import Iterator, Mapping
+
+import torch
+
+from irdrc.core.dynamics import decode_state
+from irdrc.core.exact import ExactMDP, build_model
+from irdrc.core.params import Params
+from irdrc.fleet.spec import FLEET_STATE_LIMIT, FleetSpec, grants
+
+TERMS = (
+    "reward",
+    "missed",
+    "false_alarms",
+    "event",
+    "sent",
+    "dropped",
+    "capacity",
+    "radar",
+    "comm",
+    "denied",
+    "queue",
+)
+"""A vehicle's per-step expectations (``VehicleTables.terms``)."""
+
+
+class VehicleTables:
+    """One vehicle's kernels and expectations on the fleet's [RW, X] grid, from its single-vehicle
+    exact model (see the module docstring: the factorisations are checked here).
+
+    Attributes:
+        single: the vehicle's single-vehicle exact model.
+        P_rw: [RW, RW] the road and weather chain it implies.
+        K: {"comm", "radar", "denied"} → [X, X] the vehicle's kernel.
+    """
+
+    def __init__(self, params: Params, model: FleetModel) -> None:
+        single = build_model(params)
+        self.single = single
+        RW, X, F = model.RW, model.X, model.F
+        D1 = params.env.queue_capacity + 1
+        grid = model.index
+        P = single.P[:, grid.reshape(-1)][:, :, grid.reshape(-1)]
+        P = P.reshape(2, RW, X, RW, X)
+        self.P_rw = P[0, :, 0].sum(-1)  # [RW, RW′] from any x
+        kern = []
+        for a in (0, 1):
+            K = P[a, 0, :, :, :].sum(1)  # [X, X′] from rw = 0
+            want = self.P_rw[:, None, :, None] * K[None, :, None, :]
+            if not torch.allclose(P[a], want, atol=1e-12, rtol=0):
+                raise ValueError("the single-vehicle model does not factorise over (r, w)")
+            kern.append(K)
+        # queue × other components: K_a[(d, f), (d′, f′)] = Q_a[(d, f), d′]·F_a[f, f′]
+        split = [k.reshape(D1, F, D1, F) for k in kern]
+        Q = [k.sum(3) for k in split]  # [D1, F, D1′]
+        Fk = [k.sum(2)[0] for k in split]  # [F, F′] from d = 0
+        for k, q, f in zip(split, Q, Fk, strict=True):
+            if not torch.allclose(k, q[:, :, :, None] * f[None, :, None, :], atol=1e-12, rtol=0):
+                raise ValueError("the single-vehicle kernel does not factorise into queue × rest")
+        denied = (Q[1][:, :, :, None] * Fk[0][None, :, None, :]).reshape(X, X)
+        self.K = {"comm": kern[0], "radar": kern[1], "denied": denied}
+        cols = model.cols
+        self.event = single.event[grid]  # [RW, X]
+        env, rew = params.env, params.reward
+        b = (cols[:, 2] + cols[:, 3] + cols[:, 4] + cols[:, 5]).to(torch.float64)[grid]
+        channel = params.factor("channel")
+        self.r_comm = torch.tensor(channel.comm_reward, dtype=torch.float64)[cols[:, 1][grid]]
+        self.detect_reward = rew.r4 * (b + 1.0)
+        self.r3, self.r5 = float(rew.r3), float(rew.r5)
+        self.p_detect, self.p_alarm = float(env.detection_prob), float(env.false_alarm_prob)
+        self.sent = {"comm": single.sent[0][grid], "radar": single.sent[1][grid]}
+        self.dropped = {"comm": single.dropped[0][grid], "radar": single.dropped[1][grid]}
+        self.capacity = single.capacity[0][grid]
+        self.queue = single.queue.to(torch.float64)[grid]
+
+    def terms(
+        self, act: int, others_radar: int, granted: bool, share: float
+    ) -> dict[str, torch.Tensor]:
+        """The vehicle's expected reward, missed events, false alarms, events, sent, dropped,
+        capacity, radar, comm and denied steps per step ([RW, X]) given its action, how many others watch the road, whether
+        its uplink request is granted, and the fleet's ``share``."""
+        e = self.event
+        q = 1.0 - (1.0 - share) ** others_radar  # another vehicle detects the event
+        zero = torch.zeros_like(e)
+        if act == 1:
+            nobody = (1.0 - self.p_detect) * (1.0 - q)
+            reward = e * (self.p_detect * self.detect_reward - nobody * self.r3)
+            reward = reward - (1.0 - e) * self.p_alarm * self.r5
+            return {
+                "reward": reward,
+                "missed": e * nobody,
+                "false_alarms": (1.0 - e) * self.p_alarm,
+                "event": e,
+                "sent": self.sent["radar"],
+                "dropped": self.dropped["radar"],
+                "capacity": zero,
+                "radar": torch.ones_like(e),
+                "comm": zero,
+                "denied": zero,
+                "queue": self.queue,
+            }
+        r_ok = self.r_comm if granted else zero
+        reward = (1.0 - e) * r_ok + e * (q * r_ok - (1.0 - q) * self.r3)
+        key = "comm" if granted else "radar"  # a denied vehicle's queue moves as in radar mode
+        return {
+            "reward": reward,
+            "missed": e * (1.0 - q),
+            "false_alarms": zero,
+            "event": e,
+            "sent": self.sent[key],
+            "dropped": self.dropped[key],
+            "capacity": self.capacity if granted else zero,
+            "radar": zero,
+            "comm": torch.ones_like(e),
+            "denied": zero if granted else torch.ones_like(e),
+            "queue": self.queue,
+        }
+
+
+class FleetModel(ExactMDP):
+    """The exact fleet model of ``spec`` (see the module docstring).
+
+    Attributes:
+        spec: the fleet.
+        single: vehicle 1's single-vehicle exact model.
+        RW, X: sizes of the shared (r, w) axis and of one vehicle's own components.
+        P_rw: [RW, RW] the road and weather chain.
+        kernels: each vehicle's ``VehicleTables`` (kernels and expectations; shared where the
+            vehicles are alike).
+        num_states: RW · X^N.
+    """
+
+    def __init__(self, spec: FleetSpec) -> None:
+        self.spec = spec
+        params = spec.vehicle
+        levels = params.env.levels  # (c, r, w, v, m, phases)
+        S = params.env.num_states
+        cols = decode_state(torch.arange(S), levels)  # d, c, r, w, v, m[, phase]
+        Lr, Lw = levels[1], levels[2]
+        self.RW = Lr * Lw
+        rw = cols[:, 2] * Lw + cols[:, 3]
+        own = [0, 1, 4, 5] + ([6] if cols.shape[1] == 7 else [])  # d, c, v, m[, phase]
+        radix = [params.env.queue_capacity + 1, levels[0], levels[3], levels[4]]
+        radix += [levels[5]] if cols.shape[1] == 7 else []
+        x = torch.zeros(S, dtype=torch.int64)
+        for j, n in zip(own, radix, strict=True):
+            x = x * n + cols[:, j]
+        self.X = math.prod(radix)
+        self.F = self.X // radix[0]  # the components besides the queue
+        self.N = spec.vehicles
+        self._num_states = self.RW * self.X**self.N
+        # single index → (rw, x)
+        self.index = torch.empty(self.RW, self.X, dtype=torch.int64)
+        self.index[rw, x] = torch.arange(S)
+        self.rw_of, self.x_of = rw, x  # single state → (rw, x)
+        self.cols = cols
+        for i, p in enumerate(spec.vehicle_params):
+            for what, a, b in (
+                ("state space (env.queue_capacity, the factors' levels)", p.env.levels, levels),
+                ("env.queue_capacity", p.env.queue_capacity, params.env.queue_capacity),
+                ("env.horizon", p.env.horizon, params.env.horizon),
+            ):
+                if a != b:
+                    raise ValueError(
+                        f"vehicle {i + 1}'s {what} differs from vehicle 1's: the vehicles may "
+                        "differ in probabilities, rates and rewards, not in their states"
+                    )
+        built: dict[Params, VehicleTables] = {}
+        for p in spec.vehicle_params:
+            if p not in built:
+                built[p] = VehicleTables(p, self)
+        self.kernels = [built[p] for p in spec.vehicle_params]
+        self.P_rw = self.kernels[0].P_rw
+        for i, t in enumerate(self.kernels):
+            if not torch.allclose(t.P_rw, self.P_rw, atol=1e-12, rtol=0):
+                raise ValueError(
+                    f"vehicle {i + 1}'s road and weather chains (env.stay_good / env.stay_bad of "
+                    "road and weather) differ from vehicle 1's: the vehicles share one road"
+                )
+        self.single = self.kernels[0].single
+        """Vehicle 1's single-vehicle exact model (every vehicle's state space)."""
+
+    @property
+    def exact(self) -> bool:
+        """Whether the joint state space is within ``FLEET_STATE_LIMIT`` (the exact solver and
+        metrics; the simulator works at any N)."""
+        return self.num_states <= FLEET_STATE_LIMIT
+
+    def check_exact(self) -> None:
+        """Raise a ``ValueError`` when the joint state space is beyond the exact model's reach."""
+        if not self.exact:
+            raise ValueError(
+                f"env.vehicles={self.N}: {self.num_states:,} joint states, above the exact fleet "
+                f"model's {FLEET_STATE_LIMIT:,} (N = 2 on the paper's sizes has 30 976); the "
+                "simulator and Monte-Carlo evaluation work at any N"
+            )
+
+    @functools.cached_property
+    def joint(self) -> list[list[tuple[float, list[str], list[dict[str, torch.Tensor]]]]]:
+        """Per joint action, its uplink outcomes (``_joint``), built on first use."""
+        self.check_exact()
+        return [self._joint(a) for a in range(2**self.N)]
+
+    def vehicle_states(self) -> torch.Tensor:
+        """[S, N] every joint state's vehicles as single-vehicle state indices."""
+        self.check_exact()
+        idx = torch.arange(self.num_states)
+        xs = []
+        for _ in range(self.N):
+            xs.append(idx % self.X)
+            idx = idx // self.X
+        rw = idx
+        return torch.stack([self.index[rw, x] for x in reversed(xs)], 1)
+
+    # -- per joint action -----------------------------------------------------------------------
+
+    def actions_of(self, a: int) -> tuple[int, ...]:
+        """Each vehicle's action (0 comm, 1 radar) in joint action ``a``."""
+        return tuple((a >> i) & 1 for i in range(self.N))
+
+    def vehicle_terms(
+        self, i: int, act: int, others_radar: int, granted: bool
+    ) -> dict[str, torch.Tensor]:
+        """Vehicle ``i``'s expected reward, missed events, events, sent, dropped, capacity, comm
+        and denied steps per step ([RW, X]) given its action, how many others watch the road and
+        whether its uplink request is granted (``VehicleTables.terms``)."""
+        return self.kernels[i].terms(act, others_radar, granted, self.spec.share)
+
+    def _joint(self, a: int) -> list[tuple[float, list[str], list[dict[str, torch.Tensor]]]]:
+        """For joint action ``a``: per uplink outcome, (probability, each vehicle's kernel name,
+        each vehicle's expected terms)."""
+        acts = self.actions_of(a)
+        comm = tuple(i for i, x in enumerate(acts) if x == 0)
+        radar = sum(acts)
+        out = []
+        for p, granted in grants(comm, self.spec.channels, self.spec.access):
+            names, terms = [], []
+            for i, x in enumerate(acts):
+                others = radar - x
+                if x == 1:
+                    names.append("radar")
+                else:
+                    names.append("comm" if i in granted else "denied")
+                terms.append(self.vehicle_terms(i, x, others, x == 0 and i in granted))
+            out.append((p, names, terms))
+        return out
+
+    # -- operators ------------------------------------------------------------------------------
+
+    def shape(self) -> tuple[int, ...]:
+        """The joint state tensor's shape: [RW, X, …, X]."""
+        return (self.RW, *([self.X] * self.N))
+
+    def _expand(self, t: torch.Tensor, i: int) -> torch.Tensor:
+        """A vehicle-``i`` quantity [RW, X] broadcast over the joint state."""
+        view = [self.RW] + [1] * self.N
+        view[1 + i] = self.X
+        return t.reshape(view)
+
+    def expected_next(self, V: torch.Tensor, names: list[str]) -> torch.Tensor:
+        """E[V(s′) | s] for every joint state when vehicle i moves by kernel ``names[i]``."""
+        W = torch.tensordot(self.P_rw, V, dims=([1], [0]))  # [RW, X, …]
+        for i, name in enumerate(names):
+            W = torch.tensordot(self.kernels[i].K[name], W, dims=([1], [1 + i]))  # new axis first
+            W = W.movedim(0, 1 + i)
+        return W
+
+    def push(self, mu: torch.Tensor, names: list[str]) -> torch.Tensor:
+        """The next-step distribution of a (sub-)distribution ``mu`` over joint states moving
+        with kernels ``names``."""
+        W = torch.tensordot(self.P_rw, mu, dims=([0], [0]))
+        for i, name in enumerate(names):
+            W = torch.tensordot(self.kernels[i].K[name], W, dims=([0], [1 + i])).movedim(0, 1 + i)
+        return W
+
+    # -- the ExactMDP interface -------------------------------------------------------------------
+
+    @property
+    def params(self) -> Params:  # type: ignore[override]
+        """Vehicle 1's model (horizon and false-alarm settings every vehicle shares)."""
+        return self.spec.vehicle
+
+    @property
+    def num_actions(self) -> int:  # type: ignore[override]
+        """2^N joint actions."""
+        return 2**self.N
+
+    @property
+    def num_states(self) -> int:
+        """RW · X^N."""
+        return self._num_states
+
+    @property
+    def device(self) -> torch.device:
+        """CPU (the fleet's kernels are small)."""
+        return torch.device("cpu")
+
+    def reward(self, a: int) -> torch.Tensor:
+        """The fleet's expected reward per joint state under joint action ``a``."""
+        R = torch.zeros(self.shape(), dtype=torch.float64)
+        for p, _, terms in self.joint[a]:
+            for i, t in enumerate(terms):
+                R = R + p * self._expand(t["reward"], i)
+        return R
+
+    @functools.cached_property
+    def R(self) -> torch.Tensor:
+        """[A, S] the fleet's expected reward."""
+        return torch.stack([self.reward(a).reshape(-1) for a in range(self.num_actions)])
+
+    def expect(self, V: torch.Tensor) -> torch.Tensor:
+        """[A, S]: E[V(s′) | s, a] for every joint action."""
+        V = V.reshape(self.shape())
+        out = []
+        for a in range(self.num_actions):
+            W = torch.zeros_like(V)
+            for p, names, _ in self.joint[a]:
+                W = W + p * self.expected_next(V, names)
+            out.append(W.reshape(-1))
+        return torch.stack(out)
+
+    def step(self, x: torch.Tensor, probs: torch.Tensor) -> torch.Tensor:
+        """x·P_π for ``probs`` [S, 2^N]."""
+        mu = x.reshape(self.shape())
+        nxt = torch.zeros_like(mu)
+        for a in range(self.num_actions):
+            part = mu * probs[:, a].reshape(self.shape())
+            if float(part.sum()) == 0.0:
+                continue
+            for p, names, _ in self.joint[a]:
+                nxt = nxt + p * self.push(part, names)
+        return nxt.reshape(-1)
+
+    def vehicle_tables(self, i: int) -> Mapping[str, torch.Tensor]:
+        """Vehicle ``i``'s per-step expectations ([A, S]; ``event`` and ``queue`` [S], ``radar``
+        [A]), built when read."""
+        return _Tables(self, [i], mean=False)
+
+    def fleet_tables(self) -> Mapping[str, torch.Tensor]:
+        """The fleet's: sums over the vehicles, and their mean for ``radar`` and ``queue`` (the
+        share of the fleet's time in radar mode, the mean queue of a vehicle)."""
+        return _Tables(self, list(range(self.N)), mean=True)
+
+    def tables(self) -> Mapping[str, torch.Tensor]:
+        """The fleet's expectation tables (``fleet_tables``)."""
+        return self.fleet_tables()
+
+
+class _Tables(Mapping):
+    """Expectation tables of some vehicles of a fleet (summed), each built when read."""
+
+    def __init__(self, model: FleetModel, vehicles: list[int], mean: bool) -> None:
+        self.model, self.vehicles, self.mean = model, vehicles, mean
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(("R", *TERMS[1:]))
+
+    def __len__(self) -> int:
+        return len(TERMS)
+
+    def __getitem__(self, key: str) -> torch.Tensor:
+        m = self.model
+        n = len(self.vehicles) if self.mean else 1
+        if key == "radar":
+            bits = torch.tensor([[x for x in m.actions_of(a)] for a in range(m.num_actions)])
+            return bits[:, self.vehicles].sum(1).to(torch.float64) / n
+        name = "reward" if key == "R" else key
+        if name in ("event", "queue"):  # the same under every action
+            terms = m.joint[0][0][2]
+            t = torch.zeros(m.shape(), dtype=torch.float64)
+            for i in self.vehicles:
+                t = t + m._expand(terms[i][name], i)
+            return (t / (n if name == "queue" else 1)).reshape(-1)
+        out = []
+        for a in range(m.num_actions):
+            t = torch.zeros(m.shape(), dtype=torch.float64)
+            for p, _, terms in m.joint[a]:
+                for i in self.vehicles:
+                    t = t + p * m._expand(terms[i][name], i)
+            out.append(t.reshape(-1))
+        return torch.stack(out)

@@ -1,0 +1,73 @@
+"""The fleet's exact metrics, per vehicle and for the fleet, and its scorer: decentralised policies
+against the centralised optimum (value iteration over the joint actions, ``irdrc.core.exact``)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+
+from irdrc.core.exact import DEFAULT_OPTIMUM_GAMMA, Scorer, as_schedule, stationary_occupancy
+from irdrc.core.exact.solve import expected_sums, metrics_from_occupancy
+from irdrc.core.metrics import Metrics, long_run_rates
+from irdrc.fleet.model import FleetModel
+from irdrc.fleet.policies import joint_policy
+
+FLEET_METRICS = (
+    "avg_reward",
+    "throughput",
+    "miss_detection",
+    "radar_fraction",
+    "drop_rate",
+    "denial_rate",
+    "link_capacity",
+    "mean_queue",
+)
+"""Metrics per vehicle and for the fleet (ratios of sums across vehicles)."""
+
+PRINTED = (
+    "avg_reward",
+    "throughput",
+    "miss_detection",
+    "radar_fraction",
+    "denial_rate",
+    "drop_rate",
+)
+"""The columns of a printed fleet table."""
+
+
+def fleet_metrics(model: FleetModel, policy: Any) -> tuple[Metrics, list[dict]]:
+    """Exact long-run metrics of a joint policy (stationary, or periodic as a list of per-phase
+    policies, averaged over its phases): the fleet's ``Metrics`` (reward, throughput, drops and
+    capacity summed over the vehicles; miss detection a ratio of sums; radar fraction and mean
+    queue averaged over them) and each vehicle's, then the fleet's, as dicts of ``FLEET_METRICS``."""
+    model.check_exact()
+    occ = stationary_occupancy(model, as_schedule(policy, model.num_states, model.num_actions))
+    per = []
+    for i in range(model.N):
+        rates = long_run_rates(expected_sums(occ, model.vehicle_tables(i)))
+        rates.pop("false_alarm_rate", None)
+        per.append({**rates, "vehicle": i + 1})
+    fleet = long_run_rates(expected_sums(occ, model.fleet_tables()))
+    fleet.pop("false_alarm_rate", None)
+    per.append({"vehicle": "fleet", **fleet})
+    return metrics_from_occupancy(model, occ), per
+
+
+class FleetScorer(Scorer):
+    """The scorer of the fleet's decentralised policies against the centralised optimum: a table
+    [S] over the single-vehicle states every vehicle applies to its own state, one such table per
+    vehicle [N·S] (vehicle-major), or a joint action per joint state [S_fleet]."""
+
+    def __init__(self, model: FleetModel, gamma: float = DEFAULT_OPTIMUM_GAMMA) -> None:
+        model.check_exact()
+        super().__init__(model, gamma)
+
+    @property
+    def fleet_optimum(self):
+        """The centralised optimum (value iteration's ``Solution``)."""
+        return self.optimal
+
+    def policy(self, table: torch.Tensor) -> torch.Tensor:
+        """The joint policy of a decentralised ``table`` (``joint_policy``)."""
+        return joint_policy(self.model, table)

@@ -96,3 +96,21 @@ def test_a_network_on_another_scenario_and_a_table_elsewhere(trained, tmp_path):
     assert not (tmp_path / "bad").exists()
     neither = run("evaluate.py", f"hydra.run.dir={tmp_path / 'n'}")
     assert neither.returncode == 2 and "exactly one of checkpoint" in neither.stderr
+
+
+def test_a_wrong_file_is_refused_naming_the_key_and_what_it_needs(tmp_path):
+    """The key the user typed, the columns a table needs, and a fleet's table said to be out of
+    scope — each one line, exit 2, nothing written."""
+    missing = run("evaluate.py", "checkpoint=/no/such.pt", f"hydra.run.dir={tmp_path / 'm'}")
+    assert missing.returncode == 2 and missing.stderr.startswith("error: checkpoint=/no/such.pt")
+    columns = tmp_path / "columns.csv"
+    columns.write_text("a,b\n1,2\n")
+    wrong = run("evaluate.py", f"policy={columns}", f"hydra.run.dir={tmp_path / 'w'}")
+    assert wrong.returncode == 2 and "d,c,r,w,v,m,action,p_radar" in wrong.stderr, wrong.stderr
+    fleet = tmp_path / "fleet.csv"
+    fleet.write_text("r,w,d1,c1,v1,m1,d2,c2,v2,m2,action1,action2,optimal1,optimal2\n")
+    joint = run("evaluate.py", f"policy={fleet}", f"hydra.run.dir={tmp_path / 'f'}")
+    assert joint.returncode == 2 and "a fleet run's policy.csv" in joint.stderr, joint.stderr
+    for r in (missing, wrong, joint):
+        assert len(r.stderr.splitlines()) == 1 and "Traceback" not in r.stderr
+    assert not any((tmp_path / d).exists() for d in "mwf")

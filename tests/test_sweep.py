@@ -252,6 +252,9 @@ def test_constrained_method_sweeps_targets(tmp_path):
         assert s["optimal"]["miss_detection"] <= s["target_miss"]
         got[s["target_miss"]] = s["optimal"]["throughput"]
     assert got[0.05] < got[0.15]
+    # the LP is the optimum: its progress line says its value, not a ratio to itself
+    assert "optimality ratio" not in r.stdout, r.stdout
+    assert r.stdout.count("DONE, LP optimum throughput") == 2, r.stdout
 
 
 def test_point_ids_separate_methods_and_bases():

@@ -26,7 +26,7 @@ from torchrl.objectives.multiagent import QMixerLoss
 
 from irdrc.agents import dqn
 from irdrc.agents.base import Hooks, RunContext, RunRecord
-from irdrc.agents.configs import FLEET_OBSERVES, MIXERS, FleetLearnerConfig, OffPolicyConfig
+from irdrc.agents.configs import MIXERS, FleetLearnerConfig, OffPolicyConfig, check_fleet_learner
 from irdrc.agents.loop import Learner, OffPolicyLoop, start_frames
 from irdrc.agents.offpolicy import (
     LadderExploration,
@@ -56,17 +56,6 @@ MIXER_KEYS = (
 the team reward and the fleet's done flags."""
 
 
-def check(learner: str, model: FleetModel, observe: str) -> None:
-    """Refuse a learner the fleet or the observation cannot serve, before any work."""
-    if observe not in FLEET_OBSERVES[learner]:
-        raise ValueError(
-            f"learner={learner} with env.observe={observe}: {learner} takes env.observe="
-            f"{' or '.join(FLEET_OBSERVES[learner])}"
-        )
-    if not model.exact and (learner == "joint" or observe == "full"):
-        model.check_exact()  # joint actions and fleet observations are scored on joint states
-
-
 def train(
     model: FleetModel,
     cfg: FleetLearnerConfig,
@@ -81,7 +70,7 @@ def train(
     """Train ``cfg.learner`` on the fleet ``model``; its history and env steps count fleet steps.
     ``scorer``: ``irdrc.fleet.scorer.FleetScorer`` (exact, against the centralised optimum) or
     ``irdrc.fleet.evaluate.FleetMCScorer``; ``resume``: a checkpoint of the same learner."""
-    check(cfg.learner, model, observe)
+    check_fleet_learner(cfg.learner, model, observe)
     run = RunContext(scorer, eval_every_frames, hooks, resume)
     if cfg.learner in MIXERS:
         return train_mixer(model, cfg, run, observe=observe, seed=seed)

@@ -337,6 +337,7 @@ def run_learned(cfg: Config, run) -> dict[str, Any]:
         value=value,
         optimal_value=sol.value,
         objective_ratio=ratio,
+        interrupted=record.interrupted,
         learner=info,
         reward_optimal=rows["reward-optimal (value iteration)"].as_dict(),
         table=table_dict(rows, {}),

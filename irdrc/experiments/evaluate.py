@@ -111,21 +111,25 @@ def load_source(cfg: Config) -> tuple[Any, str, str]:
         ValueError: an unreadable file, or one that does not fit the scenario (another number of
             states, another observation shape, a fleet's joint policy).
     """
-    from irdrc.experiments.tables import read_policy_csv
-
     params = cfg.params
     if cfg.checkpoint:
         path = Path(str(cfg.checkpoint)).expanduser()
+        if not path.is_file():  # before torch loads
+            raise ValueError(f"checkpoint={path}: no such checkpoint file")
         table, source = network_table(path, params)
         return table, source, "network"
     path = Path(str(cfg.policy)).expanduser()
-    header = path.open().readline() if path.is_file() else ""
+    if not path.is_file():
+        raise ValueError(f"policy={path}: no such file")
+    header = path.open().readline()
     if "action1" in header:
         raise ValueError(
             f"policy={path}: a fleet run's policy.csv (one joint action per joint state); evaluate "
             "scores single-vehicle policies — a fleet's are scored by recipes/fleet.py and "
             "recipes/solve.py env=fleet"
         )
+    from irdrc.experiments.tables import read_policy_csv
+
     policy = read_policy_csv(path, num_states=params.env.num_states, probabilities=True)
     if bool(((policy[:, 1] == 0) | (policy[:, 1] == 1)).all()):
         return policy[:, 1].long(), f"policy table {path}", "policy"

@@ -14,7 +14,7 @@ import time
 from dataclasses import dataclass, field
 from typing import Any
 
-from irdrc.agents.configs import FLEET_LEARNERS, FleetLearnerConfig
+from irdrc.agents.configs import FLEET_LEARNERS, FleetLearnerConfig, check_fleet_learner
 from irdrc.core.checks import INT, build, check_choice, check_numbers
 from irdrc.experiments.compose import Composed
 from irdrc.experiments.sections import (
@@ -78,13 +78,16 @@ class Config(Learning):
 
 def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
     """The typed config, checked: values, the fleet, that the learner can serve it."""
-    from irdrc.agents.marl import check
-    from irdrc.fleet.model import FleetModel
-
     check_choice("learner", composed.cfg.get("learner"), FLEET_LEARNERS)
     cfg = build(Config, composed.cfg)
     spec, observe = cfg.fleet
-    check(cfg.learner.learner, FleetModel(spec), observe)
+
+    def model():  # torch and the kernels: only for a learner on joint states
+        from irdrc.fleet.model import FleetModel
+
+        return FleetModel(spec)
+
+    check_fleet_learner(cfg.learner.learner, model, observe)
     if cfg.eval.every_frames > cfg.total:
         raise ValueError(
             f"eval.every_frames={cfg.eval.every_frames} is more than the run's {cfg.total} "

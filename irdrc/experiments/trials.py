@@ -90,6 +90,7 @@ def run_point(point: dict[str, Any], out: Path) -> dict[str, Any]:
         run.close()
     return {
         "optimality_ratio": summary.get("optimality_ratio"),
+        "progress": _done_tail(summary),
         "summary_json": json.dumps(summary),
         "files": {n: (out / n).read_text() for n in RESULT_FILES if (out / n).is_file()},
     }
@@ -288,13 +289,27 @@ def _run_local(todo: list[dict], already: int, total: int, trials_dir: Path) -> 
                 result, error = None, f"{type(exc).__name__}: {exc}"
                 print(traceback.format_exc())
         _record(tdir, p, result, error)
-        ratio = (result or {}).get("optimality_ratio")
-        tail = (
-            f"ERROR: {_last_line(error)}"
-            if error
-            else "DONE" + (f", optimality ratio {ratio:.4f}" if ratio else "")
-        )
+        tail = f"ERROR: {_last_line(error)}" if error else "DONE" + result.get("progress", "")
         _progress_line(already + i + 1, total, already, t0, p, tail)
+
+
+def _done_tail(result: dict[str, Any]) -> str:
+    """What a finished point's progress line says: a learner's ratio to the optimum; an exact
+    solve's own value (it is the optimum, so a ratio would read 1 by construction)."""
+    metrics = result.get("metrics") or {}
+
+    def num(x: Any) -> float:  # a summary's undefined metric is None
+        return float("nan") if x is None else float(x)
+
+    if result.get("method") == "constrained" and result.get("env_steps") == 0:
+        return (
+            f", LP optimum {result.get('objective')} {num(result.get('value')):.4f}, "
+            f"miss detection {num(metrics.get('miss_detection')):.4f}"
+        )
+    if result.get("method") == "optimal":
+        return f", exact optimum avg reward {num(metrics.get('avg_reward')):.4f}"
+    ratio = result.get("optimality_ratio")
+    return f", optimality ratio {ratio:.4f}" if ratio is not None else ""
 
 
 def _run_tune(
@@ -327,10 +342,7 @@ def _run_tune(
             # The trial's files are stored now, not when the sweep ends: a killed driver keeps them.
             p = trial.config["point"]
             _record(trials_dir / p["point_id"], p, trial.last_result, None)
-            ratio = (trial.last_result or {}).get("optimality_ratio")
-            self._line(
-                trial, "DONE", f", optimality ratio {ratio:.4f}" if ratio is not None else ""
-            )
+            self._line(trial, "DONE", (trial.last_result or {}).get("progress", ""))
 
         def on_trial_error(self, iteration, trials, trial, **info) -> None:
             p = trial.config["point"]

@@ -7,7 +7,13 @@ on the command line (``algo.lr``, ``network.hidden``); docs/DQN.md says why each
 it is, and ``recipes/conf/algo/*.yaml`` holds the same values (a test holds the two together).
 """
 
-from irdrc.agents.configs.fleet import FLEET_LEARNERS, FLEET_OBSERVES, MIXERS, FleetLearnerConfig
+from irdrc.agents.configs.fleet import (
+    FLEET_LEARNERS,
+    FLEET_OBSERVES,
+    MIXERS,
+    FleetLearnerConfig,
+    check_fleet_learner,
+)
 from irdrc.agents.configs.lagrangian import (
     LAGRANGIAN_KEYS,
     OBJECTIVES,
@@ -36,4 +42,5 @@ __all__ = [
     "OffPolicyConfig",
     "QLearningConfig",
     "SearchConfig",
+    "check_fleet_learner",
 ]

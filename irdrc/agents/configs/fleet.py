@@ -23,6 +23,21 @@ FLEET_OBSERVES = {
 MIXERS = ("vdn", "qmix")
 
 
+def check_fleet_learner(learner: str, model: Any, observe: str) -> None:
+    """Refuse a learner the fleet (``irdrc.fleet.model.FleetModel``, or a callable that builds
+    it, called only when needed) or the observation cannot serve, before any work."""
+    check_choice("learner", learner, FLEET_LEARNERS)
+    if observe not in FLEET_OBSERVES[learner]:
+        raise ValueError(
+            f"learner={learner} with env.observe={observe}: {learner} takes env.observe="
+            f"{' or '.join(FLEET_OBSERVES[learner])}"
+        )
+    if learner == "joint" or observe == "full":  # scored and acted on joint states
+        model = model() if callable(model) else model
+        if not model.exact:
+            model.check_exact()
+
+
 @dataclass(frozen=True)
 class FleetLearnerConfig:
     """A fleet learner's hyperparameters (``recipes/fleet.py``): the off-policy machinery's, counted

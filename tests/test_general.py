@@ -76,7 +76,7 @@ def test_v1_spelled_as_factors_is_v1():
             }
         }
     )
-    assert not spelled.env.is_v1 and spelled.env.levels == v1.env.levels
+    assert not spelled.env.is_v1 and spelled.env.factor_levels == v1.env.factor_levels
     a, b = build_model(v1), build_model(spelled)
     for key in ("P", "R", "event", "sent", "dropped", "capacity", "missed", "false_alarms"):
         assert torch.allclose(getattr(a, key), getattr(b, key), rtol=0, atol=1e-15), key
@@ -84,7 +84,7 @@ def test_v1_spelled_as_factors_is_v1():
 
 def test_state_index_is_mixed_radix():
     p = params_of("everything")
-    levels = p.env.levels
+    levels = p.env.factor_levels
     assert levels == (3, 2, 2, 3, 3, 2)
     s = torch.arange(p.env.num_states)
     cols = decode_state(s, levels)
@@ -137,7 +137,7 @@ def test_simulated_transitions_match_the_exact_model(feature):
 def test_bursty_arrivals_follow_the_phase():
     """Arrivals are Poisson with the rate of the step's phase (mean and variance per phase)."""
     p = params_of("bursty", queue=60)
-    levels = p.env.levels
+    levels = p.env.factor_levels
     n = 40_000
     for phase, rate in enumerate(BURSTY["rates"]):
         s = state_index(0, 0, 0, 0, 0, 0, phase, levels=levels)
@@ -180,7 +180,7 @@ def test_imperfect_radar_rewards_by_hand():
 def test_multilevel_detection_reward_and_comm_reward_by_hand():
     p = params_of("levels")
     m = build_model(p)
-    levels = p.env.levels
+    levels = p.env.factor_levels
     s = state_index(2, 2, 1, 0, 2, 0, levels=levels)  # bad channel, slippery road, high speed
     e = 1 - (1 - 0.05) * (1 - 0.005) * (1 - 0.3) * (1 - 0.005)
     assert math.isclose(float(m.event[s]), e, rel_tol=1e-12)
@@ -302,7 +302,7 @@ def test_factor_levels_follow_their_own_matrices():
     the model's tables), and the radar reaction on levels: v′ = 0, m′ = 0 w.p. reaction_clear,
     else m′ = m."""
     p = params_of("everything")
-    levels = p.env.levels
+    levels = p.env.factor_levels
     n = 30_000
     start = (1, 2, 1, 0, 2, 2, 1)  # d, c, r, w, v, m, phase
     T = p.env.factor

@@ -41,7 +41,7 @@ def fresh_seed() -> int:
 def state_index(d, c, r, w, v, m, phase=0, levels: Sequence[int] | None = None):
     """State index of (d, c, r, w, v, m[, phase]); works on ints and integer tensors alike.
 
-    ``levels``: L of (c, r, w, v, m, phase) (``Params.env.levels``); None is v1 (two levels each,
+    ``levels``: L of (c, r, w, v, m, phase) (``Params.env.factor_levels``); None is v1 (two levels each,
     no phase): s = d·32 + c·16 + r·8 + w·4 + v·2 + m.
     """
     if levels is None:
@@ -292,6 +292,64 @@ class Dynamics:
         )
 
 
+def step_shares(
+    dyn: Dynamics, state: torch.Tensor, rho: torch.Tensor, generator: torch.Generator
+) -> StepResult:
+    """One step of MODEL.md § D from flat int64 ``state`` and radar shares ``rho`` (float, in
+    [0, 1]) on one scenario's ``Dynamics``. Uniforms per step, in order: event, arrivals, one per
+    factor, then detection (an event is seen w.p. q(ρ); without one a false alarm w.p. ρ·P_fa),
+    the capacity's rounding (k + 1 w.p. frac ν(1 − ρ)) and the reaction (w.p. u(ρ): the factors
+    move as after a radar step)."""
+    from irdrc.core.share import reaction
+
+    env = dyn.params.env
+    n, nf, nfac = state.shape[0], dyn.num_configs, dyn._nfac
+    u = torch.rand(n, 5 + nfac, generator=generator, device=dyn.device, dtype=torch.float64)
+    rho = rho.to(torch.float64)
+    seen = reaction(rho, env.sensing, env.dwell_gain)  # u(ρ) = q(ρ) / P_d
+    d, f = dyn.split(state)
+    event = u[:, 0] < dyn.event_prob[f]
+    react = (u[:, -1] < seen).long()
+    thr = dyn.thresholds[react * nf + f]
+    if dyn._lmax == 1:
+        nxt = u[:, 2 : 2 + nfac] < thr[..., 0]
+    else:
+        nxt = (u[:, 2 : 2 + nfac, None] < thr).sum(-1)
+    f_next = (nxt * dyn.radix).sum(-1)
+    phase = f % dyn.num_phases if dyn.num_phases > 1 else None
+    cdf = dyn.arrival_cdf if dyn._shared_arrivals else dyn.arrival_cdf[phase]
+    if dyn._shared_arrivals:
+        arrivals = torch.searchsorted(cdf, u[:, 1].contiguous(), right=True)
+    else:
+        arrivals = torch.searchsorted(cdf, u[:, 1:2].contiguous(), right=True).squeeze(-1)
+    x = dyn.capacity[f].to(torch.float64) * (1.0 - rho)  # ν(c)(1 − ρ): comm's row of the table
+    k = torch.floor(x + 1e-9)
+    capacity = (k + (u[:, -2] < (x - k)).to(torch.float64)).to(torch.int64)
+    sent, d_next, dropped = queue_update(d, arrivals, capacity, dyn.queue_capacity)
+    ud = u[:, -3]
+    detected = event & (ud < env.detection_prob * seen)
+    false_alarm = ~event & (ud < rho * env.false_alarm_prob)
+    comm = dyn.reward[f]  # [a = 0, event = 0, f]: r_comm of the channel
+    reward = torch.where(
+        event,
+        torch.where(detected, dyn.reward[3 * nf + f], dyn.miss_reward[0]),
+        ((1.0 - rho) * comm).to(torch.float32),
+    )
+    reward = torch.where(false_alarm, reward + dyn.alarm_reward[0], reward)
+    return StepResult(
+        state=d_next * nf + f_next,
+        reward=reward,
+        event=event,
+        missed=event & ~detected,
+        sent=sent,
+        dropped=dropped,
+        capacity=capacity,
+        arrivals=arrivals,
+        false_alarm=false_alarm,
+        phase=phase,
+    )
+
+
 def _scenario_tables(params: Params, t, nfac: int, lmax: int) -> dict:
     """The flat look-up tables of one scenario (see ``Dynamics.step`` for their indexing)."""
     rw = params.reward
@@ -321,7 +379,7 @@ def observation_high(params: Params) -> torch.Tensor:
     """[6] (or [7] with a traffic phase) float32: the largest value of each observation entry,
     (D, L_c − 1, L_r − 1, L_w − 1, L_v − 1, L_m − 1[, L_phase − 1]) — what the agents' ``scale``
     encoding divides by, so each factor is normalised by its own levels."""
-    levels = params.env.levels
+    levels = params.env.factor_levels
     top = [params.env.queue_capacity, *(n - 1 for n in levels[:5])]
     if levels[5] > 1:
         top.append(levels[5] - 1)

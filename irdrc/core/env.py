@@ -8,7 +8,14 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
-from irdrc.core.dynamics import Dynamics, StepResult, checked_actions, fresh_seed, observation_high
+from irdrc.core.dynamics import (
+    Dynamics,
+    StepResult,
+    checked_actions,
+    fresh_seed,
+    observation_high,
+    step_shares,
+)
 from irdrc.core.params import Params
 
 
@@ -27,7 +34,9 @@ class DFRCEnv(EnvBase):
     - ``state`` int64 [B]: the state index (see module docstring), for tabular methods.
     - ``step_count`` int64 [B, 1]: steps taken this episode; the episode is truncated at
       ``env.horizon``.
-    - ``action`` int64 [B]: 0 = communication, 1 = radar.
+    - ``action`` int64 [B]: 0 = communication, 1 = radar (``env.actions=binary``); with
+      ``levels`` a level g in 0 … G − 1 (radar share g / (G − 1)); with ``continuous`` float32
+      [B, 1], the radar share ρ in [0, 1] (MODEL.md § D).
     - ``reward`` float32 [B, 1]; ``done`` = ``truncated`` (time limit), ``terminated`` always False.
     - per-step info, describing the transition that led to this observation (zero after reset):
       ``event`` bool [B] (an unexpected event occurred), ``missed`` bool [B] (it occurred in comm
@@ -102,7 +111,11 @@ class DFRCEnv(EnvBase):
             shape=b,
             device=dev,
         )
-        self.action_spec = Categorical(2, shape=b, dtype=torch.int64, device=dev)
+        if env.actions == "continuous":  # the radar share ρ of the step (MODEL.md § D)
+            self.action_spec = Bounded(0.0, 1.0, shape=(*b, 1), dtype=torch.float32, device=dev)
+        else:  # binary: 0 comm, 1 radar; levels: ρ = a / (G − 1)
+            n = 2 if env.actions == "binary" else env.levels
+            self.action_spec = Categorical(n, shape=b, dtype=torch.int64, device=dev)
         self.reward_spec = Unbounded(shape=(*b, 1), dtype=torch.float32, device=dev)
         self.done_spec = Composite(
             done=Categorical(2, shape=(*b, 1), dtype=torch.bool, device=dev),
@@ -172,7 +185,9 @@ class DFRCEnv(EnvBase):
             )
         if action is None:
             raise ValueError("DFRCEnv.step needs an 'action': 0 (communication) or 1 (radar)")
-        state, action = state.reshape(-1), checked_actions(action.reshape(-1))
+        state = state.reshape(-1)
+        rho = None if self.params.env.actions == "binary" else self._shares(action.reshape(-1))
+        action = checked_actions(action.reshape(-1)) if rho is None else None
         if state.dtype.is_floating_point or bool(
             ((state < 0) | (state >= self.dynamics.num_states)).any()
         ):
@@ -182,9 +197,32 @@ class DFRCEnv(EnvBase):
                 f"got {bad or state.dtype}"
             )
         steps = tensordict.get("step_count").reshape(-1) + 1
-        res = self.dynamics.step(state, action, self.rng)
+        if rho is None:
+            res = self.dynamics.step(state, action, self.rng)
+        else:
+            res = step_shares(self.dynamics, state, rho, self.rng)
         truncated = steps >= self.params.env.horizon
         return self._out(res.state, steps, res, truncated, res.reward)
+
+    def _shares(self, action: torch.Tensor) -> torch.Tensor:
+        """The radar shares of ``levels`` / ``continuous`` actions; a value out of range is an
+        error, never clipped."""
+        env = self.params.env
+        if env.actions == "levels":
+            top = env.levels - 1
+            bad = (action != action.round()) | (action < 0) | (action > top)
+            if bool(bad.any()):
+                raise ValueError(
+                    f"action must be a level in 0 … {top} (radar share level / {top}); got "
+                    f"{action[bad][:3].tolist()}"
+                )
+            return action.to(torch.float64) / top
+        bad = ~((action >= 0) & (action <= 1))  # NaN too
+        if bool(bad.any()):
+            raise ValueError(
+                f"action must be a radar share in [0, 1]; got {action[bad][:3].tolist()}"
+            )
+        return action.to(torch.float64)
 
     @property
     def num_states(self) -> int:

@@ -113,6 +113,12 @@ def _stay_bad() -> StayProbs:
     return StayProbs(*(0.1,) * 5, _prefix="env.stay_bad.")  # ref impl: P(1→1) = 0.1
 
 
+ACTION_SPACES = ("binary", "levels", "continuous")
+"""``env.actions`` (MODEL.md § D): comm or radar each step (v1); G radar shares; any share."""
+
+SENSING_CURVES = ("dwell", "linear")
+"""``env.sensing``: the detection probability q(ρ) of a radar share ρ (MODEL.md § D)."""
+
 _ENV_NUMBERS = (
     ("queue_capacity", 1, 1_000_000, True),
     ("packets_good", 0, 10_000, True),
@@ -143,6 +149,11 @@ class EnvParams:
             object with probability ``reaction_clear`` (ref impl: on).
         reaction_clear: P(m′ = 0) after a radar reaction (ref impl: 0.9).
         horizon: T, steps per episode; episodes end by truncation (ref impl: 400).
+        actions: ``binary`` (v1), ``levels`` or ``continuous``: the radar share ρ of each step
+            (MODEL.md § D).
+        levels: G, the radar shares of ``levels`` (0, 1/(G − 1), …, 1).
+        sensing: ``dwell`` (q(ρ) = P_d (1 − e^{−κρ}) / (1 − e^{−κ})) or ``linear`` (P_d ρ).
+        dwell_gain: κ of ``dwell`` sensing.
     """
 
     queue_capacity: int = 10
@@ -161,6 +172,10 @@ class EnvParams:
     bursty: Any = field(default=None, metadata={"optional": True})
     detection_prob: float = field(default=1.0, metadata={"optional": True})
     false_alarm_prob: float = field(default=0.0, metadata={"optional": True})
+    actions: str = field(default="binary", metadata={"optional": True})
+    levels: int = field(default=5, metadata={"optional": True})
+    sensing: str = field(default="dwell", metadata={"optional": True})
+    dwell_gain: float = field(default=3.0, metadata={"optional": True})
 
     def __post_init__(self) -> None:
         for key, lo, hi, integer in _ENV_NUMBERS:
@@ -187,6 +202,13 @@ class EnvParams:
                     "metrics are not defined; make at least one of them < 1"
                 )
         check_choice("env.event_model", self.event_model, EVENT_MODELS)
+        check_choice("env.actions", self.actions, ACTION_SPACES)
+        check_choice("env.sensing", self.sensing, SENSING_CURVES)
+        object.__setattr__(
+            self, "levels", check_number("env.levels", self.levels, 2, 1001, integer=True)
+        )
+        gain = check_number("env.dwell_gain", self.dwell_gain, 0.0, 100.0, open_lo=True)
+        object.__setattr__(self, "dwell_gain", gain)
         check_bool("env.radar_reaction", self.radar_reaction)
         object.__setattr__(self, "factors", _factor_specs(self.factors))
         self._check_general()
@@ -236,12 +258,23 @@ class EnvParams:
                     )
 
     @property
-    def levels(self) -> tuple[int, ...]:
+    def factor_levels(self) -> tuple[int, ...]:
         """Levels L_i of the Markov factors (c, r, w, v, m) and, last, the traffic phases (1 for
         Poisson arrivals)."""
         by_name = {f.name: f.num_levels for f in self.factors}
         phases = len(self.bursty.rates) if self.bursty is not None else 1
         return (*(by_name.get(n, 2) for n in MARKOV_FACTORS), phases)
+
+    @property
+    def shares(self) -> tuple[float, ...] | None:
+        """The radar shares ρ of the discrete actions (MODEL.md § D): ``binary`` (0, 1) — action
+        0 is communication, 1 radar —, ``levels`` G equally spaced values; None for
+        ``continuous`` (any ρ in [0, 1])."""
+        if self.actions == "binary":
+            return (0.0, 1.0)
+        if self.actions == "levels":
+            return tuple(g / (self.levels - 1) for g in range(self.levels))
+        return None
 
     @property
     def is_v1(self) -> bool:
@@ -252,6 +285,7 @@ class EnvParams:
             and self.bursty is None
             and self.detection_prob == 1.0
             and self.false_alarm_prob == 0.0
+            and self.actions == "binary"
         )
 
     def factor(self, name: str, comm_reward: tuple[float, float] = (2.0, 1.0)) -> FactorSpec:
@@ -283,7 +317,7 @@ class EnvParams:
     @property
     def num_states(self) -> int:
         """(D + 1) · Π L_i states (v1: (D + 1) · 2⁵)."""
-        return (self.queue_capacity + 1) * math.prod(self.levels)
+        return (self.queue_capacity + 1) * math.prod(self.factor_levels)
 
     @classmethod
     def from_dict(cls, data: Any, *, strict: bool = True) -> EnvParams:

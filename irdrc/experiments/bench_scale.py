@@ -63,7 +63,7 @@ def scenario_params(scenario: str, queue: int | None = None):
 
 def _configs(scenario: str) -> int:
     """F = Π L of a scenario (v1: 32)."""
-    return math.prod(scenario_params(scenario).env.levels)
+    return math.prod(scenario_params(scenario).env.factor_levels)
 
 
 def measure_once(scenario: str, queue: int, solver: str, device: str, tol: float) -> dict:

@@ -23,9 +23,13 @@ OPTIONAL_KEYS = (
     "env.bursty",
     "env.detection_prob",
     "env.false_alarm_prob",
+    "env.actions",
+    "env.levels",
+    "env.sensing",
+    "env.dwell_gain",
     "reward.r5",
 )
-"""Optional keys of the general model (MODEL.md § B): absent from v1 scenarios, so an override of
+"""Optional keys of the general model (MODEL.md § B, § D): absent from v1 scenarios, so an override of
 one adds it (Hydra's ``++``); ``Params`` validates them."""
 
 
@@ -101,7 +105,7 @@ class Composed:
         """The scenario as runs name it: the ``env`` choice, plus any ``env.*`` / ``reward.*``
         overrides in brackets (``paper[env.p1.speed=0.5,reward.r4=50]``)."""
         name = self.choices.get("env") or "custom"
-        extra = [o for o in self.task if is_scenario_key(o)]
+        extra = [o.removeprefix("++") for o in self.task if is_scenario_key(o)]
         return f"{name}[{','.join(extra)}]" if extra else name
 
     @property

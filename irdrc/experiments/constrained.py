@@ -220,12 +220,12 @@ def solve_lp(cfg: Config, run) -> dict[str, Any]:
         f"optimum: {sol.objective} {sol.value:.6g} per step; randomises in "
         f"{len(sol.randomised)} state(s); {len(sol.unvisited)} state(s) never visited (radar there)"
     )
-    for line in describe_randomised(sol, cfg.params.env.levels):
+    for line in describe_randomised(sol, cfg.params.env.factor_levels):
         print(line)
     rows = {"constrained optimum (LP)": sol.metrics, "reward-optimal (value iteration)": reward_opt}
     print("\nexact long-run metrics:\n")
     print(format_table(rows))
-    write_policy_csv(run.dir / "policy.csv", sol.policy, cfg.params.env.levels)
+    write_policy_csv(run.dir / "policy.csv", sol.policy, cfg.params.env.factor_levels)
     return summary_dict(
         method="constrained",
         scenario=run.scenario,
@@ -315,7 +315,7 @@ def run_learned(cfg: Config, run) -> dict[str, Any]:
         f"{record.training_env_steps} training + {record.measurement_env_steps} measurement = "
         f"{record.env_steps} env steps, {record.wall_seconds:.0f} s"
     )
-    write_policy_csv(run.dir / "policy.csv", record.policy[0], cfg.params.env.levels)
+    write_policy_csv(run.dir / "policy.csv", record.policy[0], cfg.params.env.factor_levels)
     log_scalars(
         logger,
         {"final/objective_ratio": ratio, "final/miss_detection": learned.miss_detection},

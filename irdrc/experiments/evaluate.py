@@ -184,7 +184,7 @@ def run(cfg: Config, run) -> dict[str, Any]:
     print(f"\n{name}: {ratio:.4f} of this scenario's optimum (average reward, exact)")
     if policy.ndim == 1 and dense:
         print(policy_differences(model, policy, scorer.optimal.policy))
-    write_policy_csv(run.dir / "policy.csv", policy, params.env.levels)
+    write_policy_csv(run.dir / "policy.csv", policy, params.env.factor_levels)
     summary = summary_dict(
         method="evaluate",
         scenario=run.scenario,

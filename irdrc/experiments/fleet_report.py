@@ -173,7 +173,7 @@ def write_joint_policy_csv(
     """``policy.csv`` of a fleet: one row per joint state — r, w, each vehicle's d, c, v, m, each
     vehicle's action (0 comm, 1 radar) and, with ``optimal``, the centralised optimum's."""
     states = model.vehicle_states()  # [S, N]
-    cols = decode_state(states.reshape(-1), model.spec.vehicle.env.levels)
+    cols = decode_state(states.reshape(-1), model.spec.vehicle.env.factor_levels)
     cols = cols.reshape(states.shape[0], model.N, -1)
     own = [0, 1, *range(4, cols.shape[-1])]
     names = ["d", "c", "v", "m", "phase"][: len(own)]
@@ -194,7 +194,7 @@ def single_tables(model: FleetModel, greedy: torch.Tensor) -> list[dict[str, int
     """Each vehicle's action in every single-vehicle state (policy.csv beyond the exact model)."""
     S = model.single.num_states
     per = greedy.long().reshape(-1, S)
-    cols = decode_state(torch.arange(S), model.spec.vehicle.env.levels).tolist()
+    cols = decode_state(torch.arange(S), model.spec.vehicle.env.factor_levels).tolist()
     names = ("d", "c", "r", "w", "v", "m", "phase")
     rows = []
     for s in range(S):

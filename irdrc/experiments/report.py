@@ -96,7 +96,7 @@ def finish_learner(run: Run, lr: LearnerRun) -> dict[str, Any]:
         **record.info,
     )
     print_learner(run, lr, learners, rows, errs)
-    write_policy_csv(run.dir / "policy.csv", greedy, lr.scenarios[0].env.levels)
+    write_policy_csv(run.dir / "policy.csv", greedy, lr.scenarios[0].env.factor_levels)
     return summary
 
 

@@ -80,7 +80,7 @@ def check_dense(params: Params) -> None:
     S = params.env.num_states
     dense = 16 * S * S
     if dense > DENSE_LIMIT_BYTES:
-        top = int(math.sqrt(DENSE_LIMIT_BYTES / 16) // math.prod(params.env.levels)) - 1
+        top = int(math.sqrt(DENSE_LIMIT_BYTES / 16) // math.prod(params.env.factor_levels)) - 1
         raise ValueError(
             f"env.queue_capacity={params.env.queue_capacity}: the exact model has S = {S} states "
             f"and its dense transition tensor would take {dense / 2**30:.1f} GiB (limit "

@@ -19,7 +19,13 @@ from typing import Any
 from irdrc.core.checks import INT, build, check_number, check_numbers
 from irdrc.core.params import Params
 from irdrc.experiments.compose import Composed
-from irdrc.experiments.sections import ONE_OR_FLEET, Eval, check_common, fits_dense
+from irdrc.experiments.sections import (
+    DENSE_LIMIT_BYTES,
+    ONE_OR_FLEET,
+    Eval,
+    check_common,
+    fits_dense,
+)
 
 NAME = "solve"
 RENAMED = {
@@ -62,6 +68,8 @@ class Config:
 def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
     """The typed config, checked: values, and what the exact solve costs."""
     cfg = build(Config, composed.cfg)
+    if isinstance(cfg.model, Params) and cfg.model.env.actions != "binary":
+        check_shares_fit(cfg.model)
     if isinstance(cfg.model, Params) and fits_dense(cfg.model):
         check_episodic_cost(cfg.model)
         cfg.eval.check_cost(cfg.model)
@@ -70,6 +78,22 @@ def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
 
         FleetModel(cfg.model[0]).check_exact()
     return cfg
+
+
+def check_shares_fit(params: Params) -> None:
+    """Refuse time-sharing (MODEL.md § D) on a model too large for its exact solve: it is built on
+    the dense model, one S × S matrix per radar share (``continuous``: four per segment)."""
+    env = params.env
+    from irdrc.core.share import breakpoints
+
+    actions = env.levels if env.actions == "levels" else 3 * (len(breakpoints(params)) - 1) + 1
+    need = 8 * actions * env.num_states**2
+    if not fits_dense(params) or need > 2 * DENSE_LIMIT_BYTES:
+        raise ValueError(
+            f"env.actions={env.actions}: the exact solve over radar shares is built on the dense "
+            f"model, {actions} S × S matrices: ~{need / 2**30:.1f} GB for S = {env.num_states:,} "
+            "states; use a smaller scenario (env.queue_capacity) or env.actions=binary"
+        )
 
 
 def check_episodic_cost(params: Params, key: str = "env.horizon") -> None:
@@ -94,6 +118,8 @@ def run(cfg: Config, run) -> dict[str, Any]:
         from irdrc.experiments.fleet_report import solve_fleet
 
         summary = solve_fleet(cfg.model, cfg.optimum_gamma, cfg.tol, cfg.max_iter, cfg.seed, run)
+    elif cfg.model.env.actions == "continuous":
+        summary = solve_continuous(cfg, run)
     elif fits_dense(cfg.model):
         summary = solve_dense(cfg, run)
     else:
@@ -111,7 +137,7 @@ def solve_dense(cfg: Config, run) -> dict[str, Any]:
     from irdrc.core.metrics import format_table
     from irdrc.core.policies import table_policy
     from irdrc.experiments.report import degenerate_note
-    from irdrc.experiments.tables import policy_table
+    from irdrc.experiments.tables import policy_table, share_table
 
     params, gamma = cfg.model, cfg.optimum_gamma
     t0 = time.perf_counter()
@@ -121,12 +147,18 @@ def solve_dense(cfg: Config, run) -> dict[str, Any]:
     print(
         f"scenario={run.scenario}: value iteration, γ={gamma}, {sol.iterations} sweeps, {wall:.2f} s"
     )
-    print(f"optimal policy ({int(sol.policy.sum())} of {model.num_states} states in radar mode):\n")
-    print(policy_table(model, sol.policy))
+    if params.env.actions == "binary":
+        print(
+            f"optimal policy ({int(sol.policy.sum())} of {model.num_states} states in radar mode):\n"
+        )
+        print(policy_table(model, sol.policy))
+    else:
+        print(f"optimal policy over {model.num_actions} radar shares (env.actions=levels):\n")
+        print(share_table(model, model.radar[sol.policy]))
     rows, errs = {}, {}
     opt = rows["optimal (stationary)"] = stationary_metrics(model, sol.policy)
     rows["optimal (episodic)"] = episodic_metrics(model, sol.policy)
-    if cfg.eval.mc_episodes:
+    if cfg.eval.mc_episodes and params.env.actions == "binary":
         env = DFRCEnv(params, batch_size=[int(cfg.eval.mc_num_envs)], seed=cfg.seed)
         ev = evaluate(table_policy(sol.policy), env, episodes=int(cfg.eval.mc_episodes))
         rows["optimal (Monte-Carlo)"], errs["optimal (Monte-Carlo)"] = ev.metrics, ev.ci95
@@ -144,6 +176,60 @@ def solve_dense(cfg: Config, run) -> dict[str, Any]:
     return optimum_files(cfg, run, sol.policy, rows, errs, wall, episodic=episodic)
 
 
+def solve_continuous(cfg: Config, run) -> dict[str, Any]:
+    """The optimum over ρ ∈ [0, 1] (MODEL.md § D) with its error bound, beside the binary optimum
+    and the baselines, all exact and long-run; ``policy.csv`` holds each state's ``rho``."""
+    import torch
+
+    from irdrc.core.exact import build_model, episodic_metrics, stationary_metrics, value_iteration
+    from irdrc.core.exact.continuum import solve_continuum
+    from irdrc.core.metrics import format_table
+    from irdrc.experiments.tables import share_table
+
+    params, gamma = cfg.model, cfg.optimum_gamma
+    t0 = time.perf_counter()
+    sol = solve_continuum(params, gamma=gamma)
+    wall = time.perf_counter() - t0
+    env = params.env
+    print(
+        f"scenario={run.scenario}: optimum over the radar share ρ ∈ [0, 1] (MODEL.md § D, "
+        f"{env.sensing} sensing{f', κ = {env.dwell_gain:g}' if env.sensing == 'dwell' else ''}), "
+        f"γ={gamma}, {sol.iterations} policy-iteration steps, {wall:.2f} s; each maximisation over "
+        f"ρ within {sol.step_bound:.1e} of exact, values within {sol.value_bound:.1e} of the optimum's"
+    )
+    print("optimal radar shares:\n")
+    print(share_table(sol.model, sol.rho))
+    binary = build_model(params, shares=(0.0, 1.0))
+    best = value_iteration(binary, gamma=gamma, tol=cfg.tol, max_iter=cfg.max_iter).policy
+    still = torch.zeros(env.num_states, dtype=torch.int64)
+    rows: dict[str, Any] = {}
+    opt = rows["optimal (stationary)"] = stationary_metrics(sol.model, still)
+    rows["optimal (episodic)"] = episodic_metrics(sol.model, still)
+    rows["binary optimum (stationary)"] = stationary_metrics(binary, best)
+    for name in ("round_robin", "always_comm", "always_radar", "random"):
+        rows[f"{name} (stationary)"] = stationary_metrics(binary, name)
+    print("\nexact metrics (stationary = long run; binary: comm or radar each step):\n")
+    print(format_table(rows))
+    bin_ = rows["binary optimum (stationary)"]
+    print(
+        f"\ntime-sharing earns {opt.avg_reward:.4f} per step against the binary optimum's "
+        f"{bin_.avg_reward:.4f} (×{opt.avg_reward / bin_.avg_reward:.3f}) and misses "
+        f"{100 * opt.miss_detection:.1f} % of events against {100 * bin_.miss_detection:.1f} %"
+    )
+    return optimum_files(
+        cfg,
+        run,
+        sol.rho,
+        rows,
+        {},
+        wall,
+        episodic=rows["optimal (episodic)"].as_dict(),
+        binary_optimum=bin_.as_dict(),
+        step_bound=sol.step_bound,
+        value_bound=sol.value_bound,
+    )
+
+
 def optimum_files(
     cfg: Config,
     run,
@@ -159,7 +245,9 @@ def optimum_files(
     from irdrc.experiments.results import summary_dict
     from irdrc.experiments.tables import write_policy_csv
 
-    write_policy_csv(run.dir / "policy.csv", policy, cfg.model.env.levels)
+    env = cfg.model.env
+    shares = None if env.actions == "binary" else () if env.actions == "continuous" else env.shares
+    write_policy_csv(run.dir / "policy.csv", policy, env.factor_levels, shares)
     opt = rows["optimal (stationary)"]
     return summary_dict(
         method="optimal",

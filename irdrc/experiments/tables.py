@@ -22,17 +22,40 @@ chosen: 0 = communication, 1 = radar; the likelier one for a randomised policy) 
 
 def state_label(s: int, levels: Sequence[int] | None = None) -> str:
     """``d=3 c=0 r=1 w=0 v=2 m=0`` (and ``phase=1`` with bursty arrivals) for state index ``s``;
-    ``levels`` as in ``Params.env.levels`` (None: v1)."""
+    ``levels`` as in ``Params.env.factor_levels`` (None: v1)."""
     cols = decode_state(torch.tensor(int(s)), levels).tolist()
     names = ("d", "c", "r", "w", "v", "m", "phase")
     return " ".join(f"{n}={int(x)}" for n, x in zip(names, cols, strict=False))
 
 
-def write_policy_csv(path: Path, policy: torch.Tensor, levels: Sequence[int] | None = None) -> None:
+def write_policy_csv(
+    path: Path,
+    policy: torch.Tensor,
+    levels: Sequence[int] | None = None,
+    shares: Sequence[float] | None = None,
+) -> None:
     """``policy.csv`` (see ``POLICY_COLUMNS``; a ``phase`` column after ``m`` with bursty arrivals)
-    from an [S] action table or [S, 2] probabilities; ``levels`` as in ``Params.env.levels``
-    (None: v1)."""
+    from an [S] action table or [S, 2] probabilities; ``levels`` as in ``Params.env.factor_levels``
+    (None: v1). With ``shares`` (MODEL.md § D) the columns after the state are ``action`` and its
+    radar share ``rho`` (``env.actions=levels``), or ``rho`` alone when ``policy`` is [S] float
+    shares and ``shares`` is ``()`` (``continuous``)."""
     policy = torch.as_tensor(policy).cpu()
+    if shares is not None:
+        cols = decode_state(torch.arange(policy.shape[0]), levels)
+        header = list(POLICY_COLUMNS[:6]) + (["phase"] if cols.shape[-1] == 7 else [])
+        if len(shares):
+            rho = torch.as_tensor(shares, dtype=torch.float64)[policy.long()]
+            header += ["action", "rho"]
+            rows = [
+                [*c.tolist(), int(a), repr(float(r))]
+                for c, a, r in zip(cols, policy, rho, strict=True)
+            ]
+        else:
+            header += ["rho"]
+            rows = [[*c.tolist(), repr(float(r))] for c, r in zip(cols, policy, strict=True)]
+        text = "\n".join([",".join(header), *(",".join(map(str, r)) for r in rows)])
+        atomic_write_text(Path(path), text + "\n")
+        return
     if policy.ndim == 2:
         p_radar = policy[:, 1].double()
         actions = (p_radar > 0.5).long()
@@ -71,6 +94,11 @@ def read_policy_csv(
             rows, header = list(reader), reader.fieldnames or []
     except (OSError, UnicodeDecodeError) as err:
         raise ValueError(f"{path}: not a readable file ({err.strerror or err})") from err
+    if "rho" in header:
+        raise ValueError(
+            f"{path}: a time-sharing policy (a radar share rho per state, MODEL.md § D); this "
+            "reads comm/radar tables (env.actions=binary)"
+        )
     if "action" not in header:
         raise ValueError(
             f"{path}: not a policy table: it needs a row per state with the columns "
@@ -105,7 +133,7 @@ def policy_table(model: Any, actions: torch.Tensor) -> str:
     D = model.params.env.queue_capacity
     labels = _config_labels(model.params)
     acts = torch.as_tensor(actions).long().view(D + 1, len(labels))
-    phase = " phase" if model.params.env.levels[-1] > 1 else ""
+    phase = " phase" if model.params.env.factor_levels[-1] > 1 else ""
     lines = [f"c r w v m{phase}  b  P(event)  mode (by d = 0 … D when it varies)"]
     for f, (bits, b) in enumerate(labels):
         col = acts[:, f]
@@ -127,7 +155,7 @@ def policy_table(model: Any, actions: torch.Tensor) -> str:
 
 def _config_labels(params) -> list[tuple[str, int]]:
     """Per factor configuration f: its levels as ``c r w v m[ phase]`` and b (MODEL.md § B.1)."""
-    levels = params.env.levels
+    levels = params.env.factor_levels
     cols = decode_state(torch.arange(math.prod(levels)), levels)[:, 1:].tolist()
     return [(" ".join(map(str, c)), sum(c[1:5])) for c in cols]
 
@@ -145,7 +173,7 @@ def policy_differences(model: Any, actions: torch.Tensor, optimal: torch.Tensor)
     lines = [
         f"the learned policy differs from the optimum in {n_diff} of {model.num_states} states "
         "(mode by queue length d = 0 … D; C = comm, R = radar):",
-        f"  c r w v m{' phase' if model.params.env.levels[-1] > 1 else ''}  P(event)  learned       optimum",
+        f"  c r w v m{' phase' if model.params.env.factor_levels[-1] > 1 else ''}  P(event)  learned       optimum",
     ]
     for f, (bits, _) in enumerate(labels):
         if bool((acts[:, f] == opt[:, f]).all()):
@@ -159,4 +187,20 @@ def policy_differences(model: Any, actions: torch.Tensor, optimal: torch.Tensor)
         lines.append(
             f"  {bits}  {float(model.event[f]):8.4f}  {mode(acts[:, f]):<12}  {mode(opt[:, f])}"
         )
+    return "\n".join(lines)
+
+
+def share_table(model: Any, rho: torch.Tensor) -> str:
+    """Readable ρ policy (MODEL.md § D): one line per factor combination, its event probability and
+    its radar share — one value when the same at every queue length, else the range over d."""
+    D = model.params.env.queue_capacity
+    labels = _config_labels(model.params)
+    shares = torch.as_tensor(rho, dtype=torch.float64).view(D + 1, len(labels))
+    phase = " phase" if model.params.env.factor_levels[-1] > 1 else ""
+    lines = [f"c r w v m{phase}  b  P(event)  radar share ρ (over d = 0 … D when it varies)"]
+    for f, (bits, b) in enumerate(labels):
+        col = shares[:, f]
+        lo, hi = float(col.min()), float(col.max())
+        text = f"{lo:.3f}" if hi - lo < 5e-4 else f"{lo:.3f} … {hi:.3f}"
+        lines.append(f"{bits}  {b}  {float(model.event[f]):8.4f}  {text}")
     return "\n".join(lines)

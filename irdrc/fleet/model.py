@@ -169,7 +169,7 @@ class FleetModel(ExactMDP):
     def __init__(self, spec: FleetSpec) -> None:
         self.spec = spec
         params = spec.vehicle
-        levels = params.env.levels  # (c, r, w, v, m, phases)
+        levels = params.env.factor_levels  # (c, r, w, v, m, phases)
         S = params.env.num_states
         cols = decode_state(torch.arange(S), levels)  # d, c, r, w, v, m[, phase]
         Lr, Lw = levels[1], levels[2]
@@ -192,7 +192,11 @@ class FleetModel(ExactMDP):
         self.cols = cols
         for i, p in enumerate(spec.vehicle_params):
             for what, a, b in (
-                ("state space (env.queue_capacity, the factors' levels)", p.env.levels, levels),
+                (
+                    "state space (env.queue_capacity, the factors' levels)",
+                    p.env.factor_levels,
+                    levels,
+                ),
                 ("env.queue_capacity", p.env.queue_capacity, params.env.queue_capacity),
                 ("env.horizon", p.env.horizon, params.env.horizon),
             ):

@@ -53,7 +53,7 @@ class FleetDynamics:
             for p in distinct
         ]
         S = model.single.num_states
-        cols = decode_state(torch.arange(S), spec.vehicle.env.levels)
+        cols = decode_state(torch.arange(S), spec.vehicle.env.factor_levels)
         b = (cols[:, 2] + cols[:, 3] + cols[:, 4] + cols[:, 5]).to(torch.float64)
         # [N, S] per vehicle: its comm reward and detection reward in every state; [N] r3, r5
         self.r_comm = torch.stack(

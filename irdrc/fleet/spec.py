@@ -50,6 +50,11 @@ class FleetSpec:
         check_number("env.channels", self.channels, 1, 16, integer=True)
         check_choice("env.access", self.access, ACCESS)
         check_number("env.share", self.share, 0.0, 1.0)
+        if self.vehicle.env.actions != "binary":
+            raise ValueError(
+                f"env.actions={self.vehicle.env.actions}: a fleet's vehicles choose comm or radar "
+                "each step (MODEL.md § C); time-sharing (§ D) is for one vehicle: env.actions=binary"
+            )
         if self.per_vehicle is not None:
             per = tuple(self.per_vehicle)
             if len(per) != self.vehicles:

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 
@@ -149,16 +150,20 @@ def _queue_tables(D: int, pairs: dict[tuple[int, float], int]):
     return q_next, q_sent, q_drop
 
 
-def build_model(params: Params) -> DenseModel:
-    """The exact MDP of ``params`` (see ``DenseModel``), for the general model of MODEL.md § B too.
+def build_model(params: Params, shares: Any = None) -> DenseModel:
+    """The exact MDP of ``params`` (see ``DenseModel``), for the general model of MODEL.md § B too,
+    with one action per radar share of ``shares`` (default ``params.env.shares``: v1's comm and
+    radar, or § D's levels; ``continuous`` needs ``shares``, e.g. ``irdrc.core.exact.continuum``'s
+    nodes).
 
     Raises:
         ValueError: when S exceeds ``DENSE_MAX_STATES`` (use ``build_factored``).
     """
-    from irdrc.core.tables import model_tables
+    from irdrc.core.share import share_tables
 
     D = params.env.queue_capacity
-    t = model_tables(params)
+    st = share_tables(params, shares)
+    t = st.base
     nf = t.num_configs
     S = (D + 1) * nf
     if S > DENSE_MAX_STATES:
@@ -167,31 +172,42 @@ def build_model(params: Params) -> DenseModel:
             f"(at most {DENSE_MAX_STATES}); use the factored operator (irdrc.core.exact."
             "build_factored), as recipes/solve.py does"
         )
-    A = t.nu.shape[0]
+    A = st.k.shape[0]
     s = torch.arange(S)
     d, f = s // nf, s % nf
     pairs: dict[tuple[int, float], int] = {}
-    group = torch.zeros(A, nf, dtype=torch.int64)  # [a, f] → index of its (ν, λ)
+    split = bool((st.p > 0).any())  # a share whose capacity is rounded at random (§ D)
+    group = torch.zeros(2, A, nf, dtype=torch.int64)  # [k or k + 1, a, f] → index of its (ν, λ)
     for a in range(A):
         for g in range(nf):
-            key = (int(t.nu[a, g]), float(t.rate[g]))
-            group[a, g] = pairs.setdefault(key, len(pairs))
+            for j in range(2 if split else 1):
+                key = (int(st.k[a, g]) + j, float(t.rate[g]))
+                group[j, a, g] = pairs.setdefault(key, len(pairs))
     q_next, q_sent, q_drop = _queue_tables(D, pairs)
+
+    def queue(table: torch.Tensor, a: int) -> torch.Tensor:
+        """The queue table of action a on every state: capacity k, or k + 1 w.p. p."""
+        lo = table[group[0, a][f], d]
+        if not split:
+            return lo
+        p = st.p[a][f].reshape(-1, *([1] * (lo.ndim - 1)))
+        return (1.0 - p) * lo + p * table[group[1, a][f], d]
+
     P = torch.zeros(A, S, S, dtype=torch.float64)
     for a in range(A):
         # P[a, (d, f), (d′, f′)] = Q[(ν, λ)(a, f), d, d′] · F[a, f, f′]
-        qa = q_next[group[a][f], d]  # [S, D + 1]
-        P[a] = (qa[:, :, None] * t.F[a][f][:, None, :]).reshape(S, S)
+        qa = queue(q_next, a)  # [S, D + 1]
+        P[a] = (qa[:, :, None] * st.F[a][f][:, None, :]).reshape(S, S)
     return DenseModel(
         params=params,
         P=P,
-        R=t.R[:, f],
+        R=st.R[:, f],
         event=t.event[f],
-        missed=t.missed[:, f],
-        false_alarms=t.false_alarm[:, f],
-        sent=torch.stack([q_sent[group[a][f], d] for a in range(A)]),
-        dropped=torch.stack([q_drop[group[a][f], d] for a in range(A)]),
-        capacity=t.nu[:, f],
+        missed=st.missed[:, f],
+        false_alarms=st.false_alarm[:, f],
+        sent=torch.stack([queue(q_sent, a) for a in range(A)]),
+        dropped=torch.stack([queue(q_drop, a) for a in range(A)]),
+        capacity=st.nu[:, f],
         queue=d.to(torch.float64),
-        radar=torch.tensor([0.0, 1.0], dtype=torch.float64),
+        radar=st.shares.clone(),
     )

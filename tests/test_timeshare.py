@@ -1,0 +1,245 @@
+"""Time-sharing within a step (MODEL.md § D): the config, the exact model over radar shares, the
+optimum over the continuum and the facts § D states at the paper's defaults."""
+
+from __future__ import annotations
+
+import csv
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from irdrc.core.dynamics import decode_state
+from irdrc.core.exact import build_model, stationary_metrics, value_iteration
+from irdrc.core.exact.continuum import policy_model, solve_continuum
+from irdrc.core.params import Params
+from irdrc.core.share import breakpoints, capacity_split, reaction
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def params(**over) -> Params:
+    return Params.from_overrides(over)
+
+
+def optimum(p: Params, shares=None) -> float:
+    m = build_model(p, shares=shares)
+    return stationary_metrics(m, value_iteration(m, gamma=0.99, tol=1e-9).policy).avg_reward
+
+
+@pytest.fixture(scope="module")
+def paper():
+    """The continuum's optimum and the binary optimum at the paper's defaults."""
+    p = params(**{"env.actions": "continuous"})
+    sol = solve_continuum(p)
+    still = torch.zeros(p.env.num_states, dtype=torch.int64)
+    binary = build_model(p, shares=(0.0, 1.0))
+    best = value_iteration(binary, gamma=0.99, tol=1e-9).policy
+    return p, sol, stationary_metrics(sol.model, still), stationary_metrics(binary, best)
+
+
+def test_the_sensing_curve_ends_where_v1_is():
+    rho = torch.tensor([0.0, 0.5, 1.0])
+    assert reaction(rho, "dwell", 3.0).tolist() == pytest.approx([0.0, 0.8175744761936437, 1.0])
+    assert reaction(rho, "linear", 3.0).tolist() == [0.0, 0.5, 1.0]
+    k, p = capacity_split(torch.tensor(4.0), torch.tensor([0.0, 0.25, 0.3, 1.0]))
+    assert k.tolist() == [4.0, 3.0, 2.0, 0.0] and p.tolist() == pytest.approx([0, 0, 0.8, 0])
+    assert breakpoints(Params()) == (0.0, 0.25, 0.5, 0.75, 1.0)
+
+
+@pytest.mark.parametrize(
+    "scenario", [{}, {"env.detection_prob": 0.8, "env.false_alarm_prob": 0.05, "reward.r5": 3.0}]
+)
+def test_shares_zero_and_one_are_v1_bit_for_bit(scenario):
+    """ρ ∈ {0, 1} through the time-sharing tables gives v1's (and § B's imperfect radar's) model
+    exactly, not approximately."""
+    p = params(**scenario)
+    v1 = build_model(p)
+    two = build_model(params(**scenario, **{"env.actions": "levels", "env.levels": 2}))
+    for name in ("P", "R", "missed", "false_alarms", "sent", "dropped", "capacity"):
+        assert torch.equal(getattr(v1, name), getattr(two, name)), name
+
+
+def test_a_binary_policy_as_shares_scores_as_it_does_in_v1():
+    p = Params()
+    m = build_model(p)
+    policy = value_iteration(m, gamma=0.99, tol=1e-9).policy
+    as_rho = stationary_metrics(policy_model(p, policy.double()), torch.zeros_like(policy))
+    assert as_rho.as_dict() == pytest.approx(stationary_metrics(m, policy).as_dict(), abs=1e-10)
+
+
+def test_section_d_facts_at_the_paper_defaults(paper):
+    """MODEL.md § D: 1.0586 against 0.8985 per step; misses 20.9 % against 28.9 %; throughput 1.000,
+    radar time 0.383; ρ* ≈ 0.19 in all-favourable states on a good channel, 0.42 on a bad one."""
+    p, sol, cont, binary = paper
+    assert cont.avg_reward == pytest.approx(1.0586, abs=5e-5)
+    assert binary.avg_reward == pytest.approx(0.8985, abs=5e-5)
+    assert (round(cont.miss_detection, 3), round(binary.miss_detection, 3)) == (0.209, 0.289)
+    assert round(cont.throughput, 3) == 1.0 and round(cont.radar_fraction, 3) == 0.383
+    cols = decode_state(torch.arange(p.env.num_states))
+    calm = cols[:, 2:].sum(1) == 0
+    good, bad = sol.rho[calm & (cols[:, 1] == 0)], sol.rho[calm & (cols[:, 1] == 1)]
+    assert (
+        float(good.min()) == pytest.approx(0.19, abs=0.005)
+        and float(good.max() - good.min()) < 1e-9
+    )
+    assert (
+        float(bad.min()) == pytest.approx(0.42, abs=0.005) and float(bad.max() - bad.min()) < 1e-9
+    )
+    assert sol.value_bound < 1e-4  # the grid's bound on how far the values are below the optimum
+
+
+def test_section_d_facts_elsewhere():
+    """p^v_1 = 1.0: 1.9657 against 1.7993; linear sensing: the binary optimum (no gain); G levels
+    reach 0.914, 0.985, 0.993, 0.9995 of the continuum's optimum (G = 3, 5, 9, 21)."""
+    fast = params(**{"env.actions": "continuous", "env.p1.speed": 1.0})
+    sol = solve_continuum(fast)
+    still = torch.zeros(fast.env.num_states, dtype=torch.int64)
+    assert stationary_metrics(sol.model, still).avg_reward == pytest.approx(1.9657, abs=5e-5)
+    assert optimum(fast, (0.0, 1.0)) == pytest.approx(1.7993, abs=5e-5)
+    linear = params(**{"env.actions": "continuous", "env.sensing": "linear"})
+    sol = solve_continuum(linear)
+    got = stationary_metrics(sol.model, still).avg_reward
+    assert got == pytest.approx(0.8985, abs=5e-5)
+    best = 1.058606  # the paper scenario's continuum optimum (above)
+    for G, share in ((3, 0.914), (5, 0.985), (9, 0.993), (21, 0.9995)):
+        got = optimum(params(**{"env.actions": "levels", "env.levels": G})) / best
+        assert round(got, 4 if G == 21 else 3) == share, G
+
+
+@pytest.mark.parametrize(
+    "override, message",
+    [
+        ("env.actions=both", "env.actions='both' must be one of binary, levels, continuous"),
+        ("env.levels=1", "env.levels=1 is outside the allowed range [2, 1001]"),
+        ("env.sensing=cubic", "env.sensing='cubic' must be one of dwell, linear"),
+        ("env.dwell_gain=-1", "env.dwell_gain=-1 is outside the allowed range (0.0, 100.0]"),
+    ],
+)
+def test_bad_time_sharing_keys_are_one_line(override, message, tmp_path):
+    r = subprocess.run(
+        [sys.executable, "recipes/solve.py", override, f"hydra.run.dir={tmp_path / 'r'}"],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+    )
+    assert r.returncode == 2 and r.stderr == f"error: {message}\n", r.stderr
+    assert not (tmp_path / "r").exists()
+
+
+def test_a_fleet_does_not_time_share():
+    from irdrc.fleet.spec import FleetSpec
+
+    with pytest.raises(ValueError, match=r"time-sharing .* is for one vehicle"):
+        FleetSpec(vehicle=params(**{"env.actions": "levels"}))
+
+
+def test_solve_prints_the_continuum_beside_binary_and_writes_rho(tmp_path):
+    out = tmp_path / "run"
+    r = subprocess.run(
+        [sys.executable, "recipes/solve.py", "env.actions=continuous", f"hydra.run.dir={out}"],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+    )
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.startswith(
+        "scenario=paper[env.actions=continuous]: optimum over the radar share"
+    )
+    assert "time-sharing earns 1.0586 per step against the binary optimum's 0.8985" in r.stdout
+    rows = list(csv.DictReader((out / "policy.csv").open()))
+    assert list(rows[0]) == ["d", "c", "r", "w", "v", "m", "rho"] and len(rows) == 352
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["metrics"]["avg_reward"] == pytest.approx(1.0586, abs=5e-5)
+    assert summary["binary_optimum"]["avg_reward"] == pytest.approx(0.8985, abs=5e-5)
+
+
+TIMESHARE_SCENARIOS = {
+    "paper": {},
+    "imperfect": {"env.detection_prob": 0.8, "env.false_alarm_prob": 0.05, "reward.r5": 3.0},
+    "busy_linear": {"env.arrival_rate": 2.5, "env.queue_capacity": 4, "env.sensing": "linear"},
+}
+
+
+@pytest.mark.parametrize("actions", ["continuous", "levels"])
+@pytest.mark.parametrize("name", list(TIMESHARE_SCENARIOS))
+def test_simulator_matches_the_exact_model_under_a_random_share_policy(name, actions):
+    """One step from every state under a random ρ policy (continuous: ρ uniform per state; levels:
+    a random level), K times each: χ² on the next states against the policy's exact rows (5 sd
+    above the χ² mean, ``assert_chi2``), and the mean reward, missed events, capacity and sent
+    packets per state within 5 standard errors of their exact expectations."""
+    from conftest import assert_chi2
+    from tensordict import TensorDict
+
+    from irdrc.core.env import DFRCEnv
+
+    p = params(**TIMESHARE_SCENARIOS[name], **{"env.actions": actions})
+    S, K = p.env.num_states, 2000
+    g = torch.Generator().manual_seed(3)
+    if actions == "continuous":
+        rho = torch.rand(S, generator=g, dtype=torch.float64).to(torch.float32).double()
+        action = rho.to(torch.float32)[:, None]
+    else:
+        level = torch.randint(0, p.env.levels, (S,), generator=g)
+        rho, action = level.double() / (p.env.levels - 1), level
+    exact = policy_model(p, rho)
+    states = torch.arange(S).repeat_interleave(K)
+    n = states.numel()
+    env = DFRCEnv(p, batch_size=[n], seed=11)
+    td = TensorDict(
+        {
+            "state": states,
+            "action": action[states],
+            "step_count": torch.zeros(n, 1, dtype=torch.long),
+        },
+        batch_size=[n],
+    )
+    nxt = env.step(td)["next"]
+    counts = torch.zeros(S, S, dtype=torch.float64)
+    counts.index_put_((states, nxt["state"]), torch.ones(n, dtype=torch.float64), accumulate=True)
+    assert_chi2(counts, exact.P[0] * K)
+    for key, mu in (
+        ("reward", exact.R[0]),
+        ("missed", exact.missed[0]),
+        ("capacity", exact.capacity[0]),
+        ("sent", exact.sent[0]),
+    ):
+        x = nxt[key].double().reshape(-1)
+        mean = torch.zeros(S, dtype=torch.float64).index_add_(0, states, x) / K
+        sq = torch.zeros(S, dtype=torch.float64).index_add_(0, states, x * x) / K
+        se = torch.sqrt((sq - mean**2).clamp(min=0) / (K - 1))
+        if (
+            key != "reward"
+        ):  # a 0/1 or count with every sample equal: Var X ≥ μ − μ² (X ≥ 0 integer)
+            se = torch.maximum(se, torch.sqrt((mu - mu**2).clamp(min=0) / K))
+        bad = (mean - mu).abs() > 5 * se + 1e-6  # 1e-6: float32 rewards where every sample agreed
+        assert not bool(bad.any()), (key, mean[bad][:5].tolist(), mu[bad][:5].tolist())
+
+
+@pytest.mark.parametrize("actions", ["levels", "continuous"])
+def test_the_env_specs_hold_and_an_action_out_of_range_is_refused(actions):
+    from torchrl.data import Bounded, Categorical
+    from torchrl.envs.utils import check_env_specs
+
+    from irdrc.core.env import DFRCEnv
+
+    env = DFRCEnv(params(**{"env.actions": actions}), batch_size=[4], seed=0)
+    check_env_specs(env)
+    spec = env.action_spec
+    if actions == "continuous":
+        assert isinstance(spec, Bounded) and spec.shape == (4, 1)
+        assert spec.space.low.min() == 0 and spec.space.high.max() == 1
+    else:
+        assert isinstance(spec, Categorical) and spec.space.n == 5
+    bad = (
+        torch.tensor([[0.5], [1.5], [0.0], [1.0]])
+        if actions == "continuous"
+        else torch.tensor([0, 5, 1, 2])
+    )
+    td = env.reset()
+    td["action"] = bad
+    with pytest.raises(ValueError, match=r"radar share in \[0, 1\]; got \[1.5\]|level in 0 … 4"):
+        env.step(td)

@@ -224,6 +224,13 @@ class Dynamics:
             return state >> self._shift, state & (self.num_configs - 1)
         return state // self.num_configs, state % self.num_configs
 
+    def next_configs(self, af: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        """The next factor configurations from rows ``af`` (action·F + f, offset by the group) of
+        the thresholds and one uniform per drawn factor ``u`` [n, factors]."""
+        thr = self.thresholds[af]
+        nxt = u < thr[..., 0] if self._lmax == 1 else (u[..., None] < thr).sum(-1)
+        return (nxt * self.radix).sum(-1)
+
     def step(
         self,
         state: torch.Tensor,
@@ -249,12 +256,7 @@ class Dynamics:
             af = af + group * (2 * nf)
             rw_idx = rw_idx + group * (4 * nf)
         event = u[:, 0] < self.event_prob[ev_idx]
-        thr = self.thresholds[af]
-        if self._lmax == 1:
-            nxt = u[:, 2 : 2 + nfac] < thr[..., 0]
-        else:
-            nxt = (u[:, 2 : 2 + nfac, None] < thr).sum(-1)
-        f_next = (nxt * self.radix).sum(-1)
+        f_next = self.next_configs(af, u[:, 2 : 2 + nfac])
         phase = f % self.num_phases if self.num_phases > 1 else None
         if self._shared_arrivals:
             arrivals = torch.searchsorted(self.arrival_cdf, u[:, 1].contiguous(), right=True)
@@ -310,12 +312,7 @@ def step_shares(
     d, f = dyn.split(state)
     event = u[:, 0] < dyn.event_prob[f]
     react = (u[:, -1] < seen).long()
-    thr = dyn.thresholds[react * nf + f]
-    if dyn._lmax == 1:
-        nxt = u[:, 2 : 2 + nfac] < thr[..., 0]
-    else:
-        nxt = (u[:, 2 : 2 + nfac, None] < thr).sum(-1)
-    f_next = (nxt * dyn.radix).sum(-1)
+    f_next = dyn.next_configs(react * nf + f, u[:, 2 : 2 + nfac])
     phase = f % dyn.num_phases if dyn.num_phases > 1 else None
     cdf = dyn.arrival_cdf if dyn._shared_arrivals else dyn.arrival_cdf[phase]
     if dyn._shared_arrivals:

@@ -122,3 +122,31 @@ def test_fleet_learners_resume_in_fleet_steps(learner):
     resumed = marl.train(model, cfg, seed=0, scorer=scorer, eval_every_frames=160, resume=mid)
     assert steps(resumed) == [0, 160, 320] and resumed.env_steps == 320
     assert scored(resumed.history[:2]) == scored(first.history[:2])
+
+
+def test_sac_resumes_to_a_longer_run():
+    from irdrc.agents.configs.continuous import SACConfig
+    from irdrc.agents.sac import train as train_sac
+
+    tiny = dict(
+        num_envs=8,
+        frames_per_batch=32,
+        total_frames=320,
+        init_random_frames=64,
+        buffer_size=320,
+        batch_size=16,
+        updates_per_batch=2,
+        network=NetworkConfig(hidden=(16,)),
+    )
+    p = Params.from_overrides({"env.actions": "continuous"})
+    run = train_sac(p, SACConfig(**tiny), seed=0, eval_every_frames=160)
+    assert steps(run) == [0, 160, 320] and run.greedy.shape == (1, 352)
+    resumed = train_sac(
+        p,
+        SACConfig(**{**tiny, "total_frames": 480}),
+        seed=0,
+        eval_every_frames=160,
+        resume=run.state,
+    )
+    assert resumed.env_steps == 480 and steps(resumed) == [0, 160, 320, 480]
+    assert scored(resumed.history[:3]) == scored(run.history)

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import itertools
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 
@@ -217,3 +218,37 @@ def _step_bound(params: Params, seg: Segments, Q: torch.Tensor) -> float:
         h = width / (seg.grid.shape[1] - 1)
         out = max(out, float(curv.max()) * h * h / 8)
     return out
+
+
+class ContinuumScorer:
+    """The ``Scorer`` of ρ policies (MODEL.md § D): the optimum over the continuum, and the exact
+    long-run metrics of any table of radar shares [S] against it (cached).
+
+    Attributes:
+        params: the scenario.
+        optimal: ``solve_continuum``'s solution (``optimal.rho`` its policy).
+        optimal_metrics: its exact long-run metrics.
+    """
+
+    def __init__(self, params: Params, gamma: float = 0.99) -> None:
+        from irdrc.core.exact.solve import stationary_metrics
+
+        self.params = params
+        self.optimal = solve_continuum(params, gamma=gamma)
+        self._still = torch.zeros(params.env.num_states, dtype=torch.int64)
+        self.optimal_metrics = stationary_metrics(self.optimal.model, self._still)
+        self._cache: dict[bytes, Any] = {}
+
+    def metrics(self, rho: torch.Tensor) -> Any:
+        """Exact stationary ``Metrics`` of the deterministic ρ policy ``rho`` [S]."""
+        from irdrc.core.exact.solve import stationary_metrics
+
+        t = torch.as_tensor(rho, dtype=torch.float64).cpu().clamp(0.0, 1.0)
+        key = t.numpy().tobytes()
+        if key not in self._cache:
+            self._cache[key] = stationary_metrics(policy_model(self.params, t), self._still)
+        return self._cache[key]
+
+    def ratio(self, rho: torch.Tensor) -> float:
+        """Average reward of ``rho`` over the continuum optimum's (both long-run)."""
+        return self.metrics(rho).avg_reward / self.optimal_metrics.avg_reward

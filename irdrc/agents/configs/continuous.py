@@ -1,0 +1,102 @@
+"""The continuous-action learners' hyperparameters (MODEL.md § D: the radar share ρ ∈ [0, 1])."""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Any, ClassVar
+
+from irdrc.agents.configs.value import NetworkConfig
+from irdrc.core import checks
+
+
+@dataclass(frozen=True)
+class SACConfig:
+    """SAC's hyperparameters (``recipes/sac.py``, section ``algo``), on the off-policy loop every
+    learner shares (``irdrc.agents.loop``): many env rows at once, uniform replay.
+
+    Attributes:
+        num_envs: env rows stepped together.
+        frames_per_batch: env steps per collection (a multiple of ``num_envs``).
+        total_frames: env steps of the whole run.
+        init_random_frames: env steps with uniformly random shares before the actor acts.
+        eps_max, eps_min: beside the actor's own sampling, row i of ``num_envs`` takes a uniformly
+            random share with probability ε_i, log-uniform from eps_max to eps_min across rows
+            (DQN's ladder): the critics see every share in every state the rows reach.
+        buffer_size: replay capacity, transitions.
+        prioritized: proportional prioritised replay (priority: the critics' TD error) with
+            exponent ``alpha``, importance exponent from ``beta_start`` to 1.
+        gamma: discount γ.
+        reward_centering: rate per env step of the average reward subtracted from sampled rewards
+            (0: off); see ``OffPolicyConfig``.
+        batch_size: transitions per gradient update.
+        updates_per_batch: gradient updates per collection.
+        lr, lr_end: Adam's learning rate, annealed linearly.
+        max_grad_norm: gradient clipping (0: off).
+        tau: the target actor's and critics' Polyak rate per update.
+        temperature_init: the entropy temperature at the start (then tuned to the target entropy).
+        target_entropy: the entropy the temperature is tuned towards, nats (TorchRL's "auto" is
+            −1 for one action dimension, a spread of a third of [0, 1]; −5 keeps the actor's
+            sampling within about 0.01 of its share).
+        network: the actor's and each critic's shape.
+    """
+
+    num_envs: int = 1000
+    frames_per_batch: int = 2000
+    total_frames: int = 800_000
+    init_random_frames: int = 6_000
+    eps_max: float = 1.0
+    eps_min: float = 0.01
+    buffer_size: int = 1_048_576
+    prioritized: bool = True
+    alpha: float = 0.6
+    beta_start: float = 1.0
+    gamma: float = 0.99
+    reward_centering: float = 1e-5
+    batch_size: int = 1000
+    updates_per_batch: int = 8
+    lr: float = 1e-3
+    lr_end: float = 1e-5
+    max_grad_norm: float = 10.0
+    tau: float = 0.01
+    temperature_init: float = 0.1
+    target_entropy: float = -5.0
+    network: NetworkConfig = field(default_factory=NetworkConfig, metadata={"keys": ()})
+    name: str = field(default="sac", compare=False)
+
+    NUMBERS: ClassVar[tuple] = (
+        ("num_envs", 1, 10**7, checks.INT),
+        ("frames_per_batch", 1, 10**7, checks.INT),
+        ("total_frames", 1, 10**12, checks.INT),
+        ("init_random_frames", 0, 10**12, checks.INT),
+        ("eps_max", 0, 1, {}),
+        ("eps_min", 0, 1, {}),
+        ("buffer_size", 1, 10**9, checks.INT),
+        ("alpha", 0, 10, {}),
+        ("beta_start", 0, 1, {}),
+        ("gamma", 0, 1, checks.OPEN_HI),
+        ("reward_centering", 0, 1, checks.OPEN_HI),
+        ("batch_size", 1, 10**7, checks.INT),
+        ("updates_per_batch", 1, 10**6, checks.INT),
+        ("lr", 0, 1, {"open_lo": True, "open_hi": True}),
+        ("lr_end", 0, 1, checks.OPEN_HI),
+        ("max_grad_norm", 0, 1e9, {}),
+        ("tau", 0, 1, {}),
+        ("temperature_init", 0, 1e3, {"open_lo": True}),
+        ("target_entropy", -100, 100, {}),
+    )
+
+    def __post_init__(self) -> None:
+        checks.check_numbers(self, "algo.", self.NUMBERS)
+        checks.check_bool("algo.prioritized", self.prioritized)
+        if self.frames_per_batch % self.num_envs:
+            raise ValueError(
+                f"algo.frames_per_batch={self.frames_per_batch} must be a multiple of "
+                f"algo.num_envs={self.num_envs}"
+            )
+
+    @classmethod
+    def from_sections(cls, algo: Any, network: Any) -> SACConfig:
+        """From the ``algo`` and ``network`` sections; unknown keys are refused."""
+        built = checks.build(cls, {k: v for k, v in dict(algo).items() if k != "network"}, "algo.")
+        return dataclasses.replace(built, network=NetworkConfig.from_dict(network))

@@ -1,0 +1,166 @@
+"""SAC from TorchRL parts on the radar share ρ ∈ [0, 1] (MODEL.md § D), learning from many env rows
+at once on the off-policy loop every learner shares — top to bottom in TorchRL's component order:
+model (actor, critics) → exploration (the actor's own sampling) → collector → buffer → loss → target
+→ optimiser → logger (the caller's hooks) → loop.
+
+The actor is a ``TanhNormal`` bounded to [0, 1] through ``ProbabilisticActor``; the rows explore
+beside it on DQN's ε ladder, replay is prioritised by the critics' TD error, and the policy is the
+Polyak-averaged actor. Every evaluation scores its deterministic share in every state *exactly*
+against the continuum's optimum
+(``irdrc.core.exact.continuum.ContinuumScorer``), which only scores, never steers.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from tensordict.nn import NormalParamExtractor, TensorDictModule, TensorDictSequential
+from torch import nn
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+from torchrl.modules import ProbabilisticActor, TanhNormal, ValueOperator
+from torchrl.objectives import SACLoss
+
+from irdrc.agents.base import Hooks, RunContext, RunRecord
+from irdrc.agents.configs.continuous import SACConfig
+from irdrc.agents.loop import Learner, OffPolicyLoop, start_frames
+from irdrc.agents.offpolicy import (
+    PolyakUpdate,
+    clip_and_step,
+    eps_ladder,
+    make_body,
+    make_buffer,
+    make_collector,
+    make_optimizer,
+    observation_top,
+)
+from irdrc.core.env import DFRCEnv
+from irdrc.core.params import Params
+
+
+class Critic(nn.Module):
+    """Q(observation, ρ): the scaled observation and the share into one MLP."""
+
+    def __init__(self, high: torch.Tensor, cfg: SACConfig) -> None:
+        super().__init__()
+        self.body = make_body(torch.cat([high, torch.ones(1)]), cfg.network, 1)
+
+    def forward(self, observation: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        return self.body(torch.cat([observation, action], -1))
+
+
+class ShareLadder(nn.Module):
+    """Exploration beside the actor's own sampling: row i of the batch takes a uniformly random
+    share with probability ε_i (``eps_ladder``: log-uniform across rows, DQN's ladder)."""
+
+    def __init__(self, rows: int, eps_max: float, eps_min: float) -> None:
+        super().__init__()
+        self.register_buffer("eps", eps_ladder(rows, eps_max, eps_min)[:, None])
+
+    def forward(self, action: torch.Tensor) -> torch.Tensor:
+        if action.shape[0] != self.eps.shape[0]:  # not the collector's batch: as the actor says
+            return action
+        explore = torch.rand_like(action) < self.eps
+        return torch.where(explore, torch.rand_like(action), action)
+
+
+def make_actor(env: DFRCEnv, cfg: SACConfig) -> ProbabilisticActor:
+    """Scaled observation → MLP → (loc, scale) → TanhNormal on [0, 1]."""
+    net = nn.Sequential(make_body(observation_top(env), cfg.network, 2), NormalParamExtractor())
+    module = TensorDictModule(net, in_keys=["observation"], out_keys=["loc", "scale"])
+    return ProbabilisticActor(
+        module,
+        in_keys=["loc", "scale"],
+        spec=env.action_spec_unbatched,
+        distribution_class=TanhNormal,
+        distribution_kwargs={"low": 0.0, "high": 1.0},
+        default_interaction_type=ExplorationType.RANDOM,
+    )
+
+
+def share_table(actor: nn.Module, env: DFRCEnv) -> torch.Tensor:
+    """The actor's deterministic share in every state ([S] float64)."""
+    obs = env.dynamics.obs
+    with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
+        out = actor(TensorDict({"observation": obs}, batch_size=[obs.shape[0]]))
+    return out["action"].reshape(-1).double().clamp(0.0, 1.0).cpu()
+
+
+def train(
+    params: Params,
+    cfg: SACConfig | None = None,
+    *,
+    seed: int = 0,
+    device: str = "cpu",
+    scorer: Any = None,
+    eval_every_frames: int = 25_000,
+    hooks: Hooks | None = None,
+    resume: dict[str, Any] | None = None,
+) -> RunRecord:
+    """Train SAC on ``params`` (``env.actions=continuous``) and evaluate the actor's deterministic
+    shares exactly every ``eval_every_frames`` env steps.
+
+    Returns:
+        The run's record: ``greedy`` [1, S] the final shares (float64), ``state`` the checkpoint.
+    """
+    if params.env.actions != "continuous":
+        raise ValueError(
+            f"SAC acts on radar shares: env.actions=continuous (got {params.env.actions})"
+        )
+    cfg = cfg or SACConfig()
+    torch.manual_seed(seed)
+    env = DFRCEnv(params, batch_size=[cfg.num_envs], device=device, seed=seed)
+    if scorer is None:
+        from irdrc.core.exact.continuum import ContinuumScorer
+
+        scorer = ContinuumScorer(params)
+    start = start_frames(resume)
+    if start >= cfg.total_frames:
+        raise ValueError(f"nothing to resume: the checkpoint is at {start} ≥ algo.total_frames")
+
+    # 1. model: the actor (TanhNormal on [0, 1]) and a critic Q(observation, ρ)
+    actor = make_actor(env, cfg)
+    critic = ValueOperator(Critic(observation_top(env), cfg), in_keys=["observation", "action"])
+    # 2. exploration: the actor samples its own shares, and an ε ladder over the rows
+    ladder = ShareLadder(cfg.num_envs, cfg.eps_max, cfg.eps_min)
+    explore = TensorDictModule(ladder, in_keys=["action"], out_keys=["action"])
+    # 3. collector: every row steps with the actor and its own exploration
+    collector = make_collector(env, TensorDictSequential(actor, explore), cfg, seed, start)
+    # 4. buffer: prioritised replay of the whole run
+    buffer, sampler = make_buffer(cfg)
+    # 5. loss: SAC with two critics and a tuned temperature
+    loss = SACLoss(
+        actor,
+        critic,
+        num_qvalue_nets=2,
+        loss_function="l2",
+        delay_qvalue=True,
+        delay_actor=True,
+        alpha_init=cfg.temperature_init,
+        target_entropy=cfg.target_entropy,
+    )
+    loss.make_value_estimator(gamma=cfg.gamma)
+    # 6. target: Polyak averaging of the critics and the actor after every update
+    target = PolyakUpdate(loss, tau=cfg.tau)
+    # 7. optimiser: one Adam over actor, critics and temperature, annealed by the loop
+    optimizer = make_optimizer(loss, cfg)
+
+    # 8. logger: the caller's hooks; 9. the loop, with what this learner supplies
+    def update(sample: TensorDictBase) -> float:
+        out = loss(sample)
+        total = out["loss_actor"] + out["loss_qvalue"] + out["loss_alpha"]
+        value = clip_and_step(loss, optimizer, cfg.max_grad_norm, total)
+        target.step()
+        if cfg.prioritized:  # SACLoss writes the critics' largest |TD error|
+            buffer.update_priority(sample["index"], sample["td_error"].detach().reshape(-1))
+        return value
+
+    run = RunContext(scorer, eval_every_frames, hooks, resume)
+    loop = OffPolicyLoop(cfg, collector, buffer, sampler, optimizer, run)
+
+    def policy() -> torch.Tensor:  # the Polyak-averaged actor: one noisy update moves it little
+        with loss.target_actor_network_params.to_module(actor):
+            return share_table(actor, env)
+
+    return loop.run(Learner(loss=loss, update=update, policy=policy))

@@ -1,0 +1,146 @@
+"""``recipes/sac.py`` — SAC from TorchRL parts on the radar share of each step (MODEL.md § D),
+scored exactly against the optimum over the continuum during and after training.
+
+    python recipes/sac.py                                   # the paper scenario, κ = 3
+    python recipes/sac.py env.p1.speed=1.0 seed=3
+    python recipes/sac.py env=multilevel algo.total_frames=1600000
+    python recipes/sac.py resume=outputs/…/checkpoint.pt
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+from irdrc.agents.configs.continuous import SACConfig
+from irdrc.core.checks import build
+from irdrc.core.params import Params
+from irdrc.experiments.compose import Composed
+from irdrc.experiments.sections import ONE_VEHICLE, Learning, Plot, check_eval_period
+
+NAME = "sac"
+RESUMABLE = True
+
+ALGO = {
+    "keys": ("algo", "network"),
+    "build": lambda d, p: SACConfig.from_sections(d["algo"], d["network"]),
+}
+
+
+@dataclass(frozen=True)
+class Config(Learning):
+    """The SAC recipe's keys (``recipes/conf/sac.yaml``)."""
+
+    params: Params = field(default=None, metadata=ONE_VEHICLE)
+    algo: SACConfig = field(default_factory=SACConfig, metadata=ALGO)
+    plot: Plot = field(default_factory=Plot)
+    device: str = "cpu"
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+
+
+def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
+    """The typed config, checked: a continuous action space the exact solve reaches, the
+    evaluation period, what a resumed run has left."""
+    from irdrc.experiments.solve import check_shares_fit
+
+    cfg = build(Config, composed.cfg)
+    if cfg.params.env.actions != "continuous":
+        raise ValueError(
+            f"env.actions={cfg.params.env.actions}: SAC acts on the radar share ρ ∈ [0, 1] "
+            "(env.actions=continuous); a discrete action space is DQN's (recipes/dqn.py)"
+        )
+    check_shares_fit(cfg.params)
+    explicit = "eval.every_frames" in composed.explicit
+    check_eval_period(cfg.eval.every_frames, cfg.algo.total_frames, explicit)
+    if resume is not None and int(resume["frames"]) >= cfg.algo.total_frames:
+        raise ValueError(
+            f"resume={cfg.resume} is at {resume['frames']} env steps, algo.total_frames="
+            f"{cfg.algo.total_frames}: nothing left to train; raise algo.total_frames"
+        )
+    return cfg
+
+
+def run(cfg: Config, run) -> dict[str, Any]:
+    """Train, score the final shares exactly beside the optimum over ρ and binary's, and write
+    ``checkpoint.pt``, ``metrics.csv``, ``episode_rewards.csv``, ``policy.csv`` (``rho``),
+    ``learning_curve.<format>`` and ``summary.json``."""
+    from irdrc.agents import sac
+    from irdrc.agents.base import EPISODE_FIELDS
+    from irdrc.core.exact import build_model, stationary_metrics, value_iteration
+    from irdrc.core.exact.continuum import ContinuumScorer
+    from irdrc.core.metrics import format_table
+    from irdrc.experiments.curves import plot_learning_curve
+    from irdrc.experiments.report import table_dict
+    from irdrc.experiments.results import summary_dict, write_metrics_csv, write_rows_csv
+    from irdrc.experiments.tables import write_policy_csv
+    from irdrc.experiments.tracking import log_scalars
+
+    run.threads(cfg.num_threads)
+    logger = run.make_logger(cfg.logger, cfg.algo.name)
+    scorer = ContinuumScorer(cfg.params, cfg.optimum_gamma)
+    print(
+        f"scenario={run.scenario}: optimum over ρ ∈ [0, 1] {scorer.optimal_metrics.avg_reward:.4f} "
+        f"per step (exact, within {scorer.optimal.value_bound:.0e} in value)",
+        flush=True,
+    )
+    every = cfg.checkpoint.every_frames
+    with run.training(cfg.algo.total_frames, cfg.algo.name, checkpoint_every=every) as hooks:
+        record = sac.train(
+            cfg.params,
+            cfg.algo,
+            seed=cfg.seed,
+            device=cfg.device,
+            scorer=scorer,
+            eval_every_frames=cfg.eval.every_frames,
+            hooks=hooks,
+            resume=run.resume_state,
+        )
+    run.checkpoint(record.state)
+    rho = record.greedy[0]
+    write_metrics_csv(run.dir / "metrics.csv", record.history)
+    write_rows_csv(run.dir / "episode_rewards.csv", record.episode_rewards, EPISODE_FIELDS)
+    write_policy_csv(run.dir / "policy.csv", rho, cfg.params.env.factor_levels, shares=())
+    plot_learning_curve(
+        record, run.dir / f"learning_curve.{cfg.plot.format}", title=f"sac on {run.scenario}"
+    )
+    binary = build_model(cfg.params, shares=(0.0, 1.0))
+    best = value_iteration(binary, gamma=cfg.optimum_gamma, tol=1e-9).policy
+    rows = {
+        "sac (exact, long run)": scorer.metrics(rho),
+        "optimal over ρ (exact)": scorer.optimal_metrics,
+        "binary optimum (exact)": stationary_metrics(binary, best),
+    }
+    print("\nexact long-run metrics:\n")
+    print(format_table(rows))
+    ratio = scorer.ratio(rho)
+    to99 = record.first_reaching(0.99)
+    print(
+        f"\nsac: {ratio:.4f} of the optimum over ρ after {record.env_steps:,} env steps "
+        f"({record.wall_seconds:.0f} s); first ≥ 0.99 at "
+        f"{'—' if to99 is None else f'{to99:,} env steps'}"
+    )
+    if ratio < 0.99:
+        print(
+            "warning: below 0.99 of the optimum; a longer run (algo.total_frames) usually closes it"
+        )
+    log_scalars(logger, {"final/optimality_ratio": ratio}, record.env_steps)
+    summary = summary_dict(
+        method=cfg.algo.name,
+        scenario=run.scenario,
+        seed=cfg.seed,
+        env_steps=record.env_steps,
+        wall_seconds=record.wall_seconds,
+        metrics=rows["sac (exact, long run)"],
+        optimal=scorer.optimal_metrics,
+        updates=record.updates,
+        env_steps_to_95=record.first_reaching(0.95),
+        env_steps_to_99=to99,
+        interrupted=record.interrupted,
+        binary_optimum=rows["binary optimum (exact)"].as_dict(),
+        table=table_dict(rows, {}),
+        **record.info,
+    )
+    run.finish(summary, interrupted_at=record.env_steps if record.interrupted else None)
+    return summary

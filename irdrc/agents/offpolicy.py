@@ -366,5 +366,6 @@ def greedy_table(qnet: nn.Module, env: Any) -> torch.Tensor:
 
 
 def action_values(qnet: nn.Module, env: Any) -> torch.Tensor:
-    """The Q-network's action values in every state ([S, 2], comm then radar)."""
-    return all_states(qnet, env)["action_value"].reshape(-1, 2).float().cpu()
+    """The Q-network's action values in every state ([S, A]: comm then radar; G levels)."""
+    values = all_states(qnet, env)["action_value"]
+    return values.reshape(-1, values.shape[-1]).float().cpu()

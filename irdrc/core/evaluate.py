@@ -103,20 +103,25 @@ def evaluate(policy, env: DFRCEnv, episodes: int | None = None) -> Evaluation:
     horizon = env.params.env.horizon
     keys = _KEYS
     per_episode = {k: [] for k in keys}
+    shares = env.params.env.shares  # the radar share of each action (binary: 0, 1)
+    if shares is None:
+        raise ValueError("evaluate plays discrete actions; a continuous policy is scored exactly")
+    share = torch.tensor(shares, dtype=torch.float64, device=env.device)
     for _ in range(rounds):
         sums = {k: torch.zeros(n, dtype=torch.float64, device=env.device) for k in keys}
         td: TensorDictBase = env.reset()
         for _ in range(horizon):
             td = policy(td)
             sums["queue"] += td["observation"][..., 0].reshape(-1)
-            sums["radar"] += td["action"].reshape(-1)
+            radar = share[td["action"].reshape(-1).long()]
+            sums["radar"] += radar
             td = env.step(td)
             nxt = td["next"]
             sums["reward"] += nxt["reward"].reshape(-1)
             for k in ("event", "missed", "sent", "capacity", "dropped"):
                 sums[k] += nxt[k].reshape(-1)
             sums["alarm"] += nxt["false_alarm"].reshape(-1)
-            sums["quiet"] += (td["action"].reshape(-1) == 1) & ~nxt["event"].reshape(-1)
+            sums["quiet"] += radar * ~nxt["event"].reshape(-1)
             td = step_mdp(td)
         for k in keys:
             per_episode[k].append(sums[k].cpu())

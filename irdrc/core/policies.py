@@ -93,10 +93,12 @@ def uniform_random(p_radar: float = 0.5, seed: int | None = None) -> TensorDictM
     return TensorDictModule(_Random(p_radar, seed), in_keys=["state"], out_keys=["action"])
 
 
-def table_policy(actions: torch.Tensor, seed: int | None = None) -> TensorDictModule:
-    """Policy from a table per state index (see ``irdrc.core.dynamics``): [S] actions (deterministic)
-    or [S, 2] probabilities of (comm, radar) (randomised, drawn from its own generator seeded by
-    ``seed``)."""
+def table_policy(
+    actions: torch.Tensor, seed: int | None = None, num_actions: int = 2
+) -> TensorDictModule:
+    """Policy from a table per state index (see ``irdrc.core.dynamics``): [S] actions in
+    0 … ``num_actions`` − 1 (deterministic; G levels with ``env.actions=levels``) or [S, 2]
+    probabilities of (comm, radar) (randomised, drawn from its own generator seeded by ``seed``)."""
     actions = torch.as_tensor(actions)
     if actions.ndim == 2:
         if (
@@ -111,6 +113,8 @@ def table_policy(actions: torch.Tensor, seed: int | None = None) -> TensorDictMo
         return TensorDictModule(
             _RandomTable(actions[:, 1], seed), in_keys=["state"], out_keys=["action"]
         )
-    if actions.ndim != 1 or not bool(((actions == 0) | (actions == 1)).all()):
-        raise ValueError("actions must be a 1-D table of 0/1, one entry per state")
+    whole = not actions.is_floating_point() or bool((actions == actions.round()).all())
+    if actions.ndim != 1 or not whole or bool(((actions < 0) | (actions >= num_actions)).any()):
+        top = "0/1" if num_actions == 2 else f"0 … {num_actions - 1}"
+        raise ValueError(f"actions must be a 1-D table of {top}, one entry per state")
     return TensorDictModule(_Table(actions), in_keys=["state"], out_keys=["action"])

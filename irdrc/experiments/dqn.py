@@ -63,6 +63,15 @@ def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
     what a resumed run has left to train."""
     cfg = build(Config, composed.cfg)
     check_dense(cfg.params)
+    if cfg.params.env.actions != "binary":
+        from irdrc.experiments.solve import check_shares_fit
+
+        if cfg.params.env.actions == "continuous":
+            raise ValueError(
+                "env.actions=continuous: DQN picks one of finitely many actions; use "
+                "env.actions=levels (G radar shares) or recipes/sac.py for ρ ∈ [0, 1]"
+            )
+        check_shares_fit(cfg.params)
     cfg.eval.check_cost(cfg.params)
     explicit = "eval.every_frames" in composed.explicit
     check_eval_period(cfg.eval.every_frames, cfg.algo.total_frames, explicit)
@@ -113,5 +122,27 @@ def run(cfg: Config, run) -> dict[str, Any]:
             plot_format=cfg.plot.format,
         ),
     )
+    if cfg.params.env.actions == "levels":
+        summary["continuum"] = against_the_continuum(cfg, summary)
     run.finish(summary, interrupted_at=record.env_steps if record.interrupted else None)
     return summary
+
+
+def against_the_continuum(cfg: Config, summary: dict[str, Any]) -> dict[str, float]:
+    """A run over G levels read against the optimum over ρ ∈ [0, 1] (MODEL.md § D), printed."""
+    from dataclasses import replace
+
+    from irdrc.core.exact.continuum import ContinuumScorer
+
+    env = replace(cfg.params.env, actions="continuous")
+    best = ContinuumScorer(replace(cfg.params, env=env), cfg.optimum_gamma).optimal_metrics
+    learned, levels = summary["metrics"]["avg_reward"], summary["optimal"]["avg_reward"]
+    print(
+        f"over ρ ∈ [0, 1] the optimum earns {best.avg_reward:.4f} per step: the {cfg.params.env.levels}"
+        f"-level optimum is {levels / best.avg_reward:.4f} of it, dqn {learned / best.avg_reward:.4f}"
+    )
+    return {
+        "optimal_avg_reward": best.avg_reward,
+        "levels_ratio": levels / best.avg_reward,
+        "optimality_ratio": learned / best.avg_reward,
+    }

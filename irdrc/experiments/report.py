@@ -96,7 +96,9 @@ def finish_learner(run: Run, lr: LearnerRun) -> dict[str, Any]:
         **record.info,
     )
     print_learner(run, lr, learners, rows, errs)
-    write_policy_csv(run.dir / "policy.csv", greedy, lr.scenarios[0].env.factor_levels)
+    env = lr.scenarios[0].env
+    shares = env.shares if env.actions == "levels" else None
+    write_policy_csv(run.dir / "policy.csv", greedy, env.factor_levels, shares)
     return summary
 
 
@@ -111,7 +113,7 @@ def final_rows(lr: LearnerRun, greedy) -> tuple[dict[str, Metrics], dict[str, di
     episodic = mc > 0 and isinstance(model, DenseModel)
     if mc:
         env = DFRCEnv(lr.scenarios[0], batch_size=[int(lr.eval.mc_num_envs)], seed=lr.seed + 1)
-        ev = evaluate(table_policy(greedy), env, episodes=mc)
+        ev = evaluate(table_policy(greedy, num_actions=model.num_actions), env, episodes=mc)
         if episodic:  # what the Monte-Carlo row estimates, exactly
             rows[f"{name} (exact, episodic)"] = episodic_metrics(model, greedy)
         label = f"{name} (Monte-Carlo, episodic)"

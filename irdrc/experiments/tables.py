@@ -167,12 +167,17 @@ def policy_differences(model: Any, actions: torch.Tensor, optimal: torch.Tensor)
     labels = _config_labels(model.params)
     acts = torch.as_tensor(actions).long().view(D + 1, len(labels))
     opt = torch.as_tensor(optimal).long().view(D + 1, len(labels))
+    levels = model.params.env.levels if model.params.env.actions == "levels" else 0
     n_diff = int((acts != opt).sum())
     if n_diff == 0:
         return f"the learned policy equals the optimum in all {model.num_states} states"
     lines = [
         f"the learned policy differs from the optimum in {n_diff} of {model.num_states} states "
-        "(mode by queue length d = 0 … D; C = comm, R = radar):",
+        + (
+            f"(radar share level by queue length d = 0 … D; level g is ρ = g/{levels - 1}):"
+            if levels
+            else "(mode by queue length d = 0 … D; C = comm, R = radar):"
+        ),
         f"  c r w v m{' phase' if model.params.env.factor_levels[-1] > 1 else ''}  P(event)  learned       optimum",
     ]
     for f, (bits, _) in enumerate(labels):
@@ -180,6 +185,8 @@ def policy_differences(model: Any, actions: torch.Tensor, optimal: torch.Tensor)
             continue
 
         def mode(col: torch.Tensor) -> str:
+            if levels:  # § D's levels: the level, a digit per queue length (G ≤ 10), else "·"
+                return "".join(str(int(a)) if levels <= 10 else "·" for a in col)
             if bool((col == col[0]).all()):
                 return "radar" if int(col[0]) else "comm"
             return "".join("R" if int(a) else "C" for a in col)

@@ -4,7 +4,7 @@ transition matrix and what each level does, and Markov-modulated (bursty) arriva
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import MISSING, dataclass
 from typing import Any
 
 from irdrc.core.checks import check_choice, check_number, reject_unknown_keys
@@ -173,3 +173,47 @@ class BurstySpec:
     def as_config(self) -> dict[str, Any]:
         """The config mapping."""
         return {"rates": list(self.rates), "transition": [list(r) for r in self.transition]}
+
+
+def check_general(env: Any) -> None:
+    """The general model's keys of ``env`` (an ``irdrc.core.params.EnvParams``, MODEL.md § B):
+    bursty arrivals, and that no v1 key of a factor given in ``factors`` was set (it would be
+    silently unused)."""
+    set_ = object.__setattr__
+    bursty = env.bursty
+    if bursty is not None and not isinstance(bursty, BurstySpec):
+        if not isinstance(bursty, Mapping):
+            raise ValueError(f"env.bursty={bursty!r} must be a mapping with rates, transition")
+        reject_unknown_keys("env.bursty.", bursty, ("rates", "transition"))
+        if set(bursty) != {"rates", "transition"}:
+            raise ValueError("env.bursty needs both rates and transition")
+        bursty = BurstySpec(**bursty)
+    set_(env, "bursty", bursty)
+    if bursty is not None and env.arrival_rate is not None:
+        raise ValueError(
+            f"env.arrival_rate={env.arrival_rate} is not used with bursty arrivals (the "
+            "rates are env.bursty.rates); set env.arrival_rate=null"
+        )
+    if bursty is None and env.arrival_rate is None:
+        raise ValueError("env.arrival_rate=null needs env.bursty (rates and transition)")
+    defaults = type(env).__dataclass_fields__
+    for spec in env.factors:
+        name = spec.name
+        used = [("stay_good", name), ("stay_bad", name)]
+        if name == "channel":
+            used += [("packets_good", None), ("packets_bad", None)]
+        else:
+            used += [("p0", name), ("p1", name)]
+        for key, sub in used:
+            dflt = defaults[key]
+            base = dflt.default_factory() if dflt.default_factory is not MISSING else dflt.default
+            mine = getattr(env, key)
+            if sub is not None:
+                base, mine = getattr(base, sub), getattr(mine, sub)
+            if mine != base:
+                full = f"env.{key}" + (f".{sub}" if sub else "")
+                raise ValueError(
+                    f"{full}={mine} is not used: env.factors.{name} describes the {name} "
+                    f"(levels, transition{', packets, comm_reward' if name == 'channel' else ', event'}); "
+                    f"set it there or leave {full} at its default {base}"
+                )

@@ -11,11 +11,11 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections.abc import Mapping
-from dataclasses import MISSING, dataclass, field, fields
+from dataclasses import dataclass, field, fields
 from typing import Any
 
 from irdrc.core.checks import check_bool, check_choice, check_number, reject_unknown_keys
-from irdrc.core.factors import MARKOV_FACTORS, BurstySpec, FactorSpec, _factor_specs
+from irdrc.core.factors import MARKOV_FACTORS, BurstySpec, FactorSpec, _factor_specs, check_general
 from irdrc.core.overrides import apply_overrides, deep_set
 
 EVENT_FACTORS = ("road", "weather", "speed", "object")
@@ -181,7 +181,7 @@ class EnvParams:
         for key, lo, hi, integer in _ENV_NUMBERS:
             value = check_number(f"env.{key}", getattr(self, key), lo, hi, integer=integer)
             object.__setattr__(self, key, value)
-        if self.arrival_rate is not None:  # None: bursty arrivals (checked in _check_general)
+        if self.arrival_rate is not None:  # None: bursty arrivals (checked in check_general)
             # The exact model sums arrivals up to a tail bucket; rates above 1000 packets/step are
             # not a regime this model is meant for and would make that table huge.
             rate = check_number("env.arrival_rate", self.arrival_rate, 0.0, 1000.0)
@@ -211,51 +211,7 @@ class EnvParams:
         object.__setattr__(self, "dwell_gain", gain)
         check_bool("env.radar_reaction", self.radar_reaction)
         object.__setattr__(self, "factors", _factor_specs(self.factors))
-        self._check_general()
-
-    def _check_general(self) -> None:
-        """The general model's keys (MODEL.md § B): bursty arrivals, imperfect radar, and that no
-        v1 key of a factor given in ``factors`` was set (it would be silently unused)."""
-        set_ = object.__setattr__
-        bursty = self.bursty
-        if bursty is not None and not isinstance(bursty, BurstySpec):
-            if not isinstance(bursty, Mapping):
-                raise ValueError(f"env.bursty={bursty!r} must be a mapping with rates, transition")
-            reject_unknown_keys("env.bursty.", bursty, ("rates", "transition"))
-            if set(bursty) != {"rates", "transition"}:
-                raise ValueError("env.bursty needs both rates and transition")
-            bursty = BurstySpec(**bursty)
-        set_(self, "bursty", bursty)
-        if bursty is not None and self.arrival_rate is not None:
-            raise ValueError(
-                f"env.arrival_rate={self.arrival_rate} is not used with bursty arrivals (the "
-                "rates are env.bursty.rates); set env.arrival_rate=null"
-            )
-        if bursty is None and self.arrival_rate is None:
-            raise ValueError("env.arrival_rate=null needs env.bursty (rates and transition)")
-        defaults = EnvParams.__dataclass_fields__
-        for spec in self.factors:
-            name = spec.name
-            used = [("stay_good", name), ("stay_bad", name)]
-            if name == "channel":
-                used += [("packets_good", None), ("packets_bad", None)]
-            else:
-                used += [("p0", name), ("p1", name)]
-            for key, sub in used:
-                dflt = defaults[key]
-                base = (
-                    dflt.default_factory() if dflt.default_factory is not MISSING else dflt.default
-                )
-                mine = getattr(self, key)
-                if sub is not None:
-                    base, mine = getattr(base, sub), getattr(mine, sub)
-                if mine != base:
-                    full = f"env.{key}" + (f".{sub}" if sub else "")
-                    raise ValueError(
-                        f"{full}={mine} is not used: env.factors.{name} describes the {name} "
-                        f"(levels, transition{', packets, comm_reward' if name == 'channel' else ', event'}); "
-                        f"set it there or leave {full} at its default {base}"
-                    )
+        check_general(self)
 
     @property
     def factor_levels(self) -> tuple[int, ...]:

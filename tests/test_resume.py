@@ -124,9 +124,14 @@ def test_fleet_learners_resume_in_fleet_steps(learner):
     assert scored(resumed.history[:2]) == scored(first.history[:2])
 
 
-def test_sac_resumes_to_a_longer_run():
-    from irdrc.agents.configs.continuous import SACConfig
-    from irdrc.agents.sac import train as train_sac
+@pytest.mark.parametrize("learner", ["sac", "td3"])
+def test_a_share_learner_resumes_to_a_longer_run(learner):
+    import importlib
+
+    from irdrc.agents.configs.continuous import SACConfig, TD3Config
+
+    config = {"sac": SACConfig, "td3": TD3Config}[learner]
+    train_sac = importlib.import_module(f"irdrc.agents.{learner}").train
 
     tiny = dict(
         num_envs=8,
@@ -139,11 +144,11 @@ def test_sac_resumes_to_a_longer_run():
         network=NetworkConfig(hidden=(16,)),
     )
     p = Params.from_overrides({"env.actions": "continuous"})
-    run = train_sac(p, SACConfig(**tiny), seed=0, eval_every_frames=160)
+    run = train_sac(p, config(**tiny), seed=0, eval_every_frames=160)
     assert steps(run) == [0, 160, 320] and run.greedy.shape == (1, 352)
     resumed = train_sac(
         p,
-        SACConfig(**{**tiny, "total_frames": 480}),
+        config(**{**tiny, "total_frames": 480}),
         seed=0,
         eval_every_frames=160,
         resume=run.state,

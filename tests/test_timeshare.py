@@ -266,9 +266,10 @@ def run_recipe(*args: str) -> subprocess.CompletedProcess:
     )
 
 
-def test_sac_runs_scored_exactly_and_writes_its_shares(tmp_path):
+@pytest.mark.parametrize("learner", ["sac", "td3"])
+def test_a_share_learner_runs_scored_exactly_and_writes_its_shares(learner, tmp_path):
     out = tmp_path / "run"
-    r = run_recipe("recipes/sac.py", *TINY_SAC, f"hydra.run.dir={out}")
+    r = run_recipe(f"recipes/{learner}.py", *TINY_SAC, f"hydra.run.dir={out}")
     assert r.returncode == 0, r.stderr[-2000:]
     assert r.stdout.startswith("scenario=paper: optimum over ρ ∈ [0, 1] 1.0586 per step")
     rows = list(csv.DictReader((out / "policy.csv").open()))
@@ -285,19 +286,27 @@ def test_sac_runs_scored_exactly_and_writes_its_shares(tmp_path):
     assert (out / "checkpoint.pt").is_file() and summary["interrupted"] is False
 
 
-def test_sac_refuses_a_discrete_action_space(tmp_path):
-    r = run_recipe("recipes/sac.py", "env.actions=binary", f"hydra.run.dir={tmp_path / 'r'}")
-    assert r.returncode == 2 and r.stderr.startswith("error: env.actions=binary: SAC acts on")
+@pytest.mark.parametrize("learner", ["sac", "td3"])
+def test_a_share_learner_refuses_a_discrete_action_space(learner, tmp_path):
+    r = run_recipe(f"recipes/{learner}.py", "env.actions=binary", f"hydra.run.dir={tmp_path / 'r'}")
+    assert r.returncode == 2
+    assert r.stderr.startswith(f"error: env.actions=binary: {learner.upper()} acts on")
     assert len(r.stderr.splitlines()) == 1 and not (tmp_path / "r").exists()
 
 
 @pytest.mark.slow
-def test_sac_reaches_the_continuum_optimum_and_fails_without_the_sensing_curve(tmp_path):
-    """The default SAC ends ≥ 0.99 of the optimum over ρ (seed 0, the paper scenario). The same
-    learner trained where sensing is linear (the curve q(ρ) ignored: time-sharing then pays
+@pytest.mark.parametrize("learner", ["sac", "td3"])
+def test_a_share_learner_reaches_the_continuum_optimum_and_fails_without_the_sensing_curve(
+    learner,
+):
+    """The default learner ends ≥ 0.99 of the optimum over ρ (seed 0, the paper scenario). The
+    same learner trained where sensing is linear (the curve q(ρ) ignored: time-sharing then pays
     nothing) and scored on the real, dwell-sensing model stays well below: the test can fail."""
-    from irdrc.agents.sac import train
+    import importlib
+
     from irdrc.core.exact.continuum import ContinuumScorer
+
+    train = importlib.import_module(f"irdrc.agents.{learner}").train
 
     p = params(**{"env.actions": "continuous"})
     scorer = ContinuumScorer(p)
@@ -355,3 +364,15 @@ def test_dqn_over_five_levels_reaches_their_optimum_and_fails_without_the_sensin
     assert scorer.ratio(good.greedy[0]) >= 0.99, [e["optimality_ratio"] for e in good.history]
     blind = train(params(**{"env.actions": "levels", "env.sensing": "linear"}), seed=0)
     assert scorer.ratio(blind.greedy[0]) < 0.95
+
+
+@pytest.mark.parametrize("make", ["make", "make_vec"])
+def test_the_gymnasium_envs_refuse_time_sharing(make):
+    """They step comm or radar only: a share action space is refused, not silently made binary."""
+    import gymnasium
+
+    import irdrc  # noqa: F401  (registers the id)
+
+    kwargs = {"num_envs": 2} if make == "make_vec" else {}
+    with pytest.raises(ValueError, match=r"time-sharing .* runs on irdrc.core.env.DFRCEnv"):
+        getattr(gymnasium, make)("irdrc/DFRC-v0", **{"env.actions": "continuous"}, **kwargs)

@@ -15,10 +15,10 @@ from __future__ import annotations
 from typing import Any
 
 import torch
-from tensordict import TensorDict, TensorDictBase
+from tensordict import TensorDictBase
 from tensordict.nn import NormalParamExtractor, TensorDictModule, TensorDictSequential
 from torch import nn
-from torchrl.envs.utils import ExplorationType, set_exploration_type
+from torchrl.envs.utils import ExplorationType
 from torchrl.modules import ProbabilisticActor, TanhNormal, ValueOperator
 from torchrl.objectives import SACLoss
 
@@ -28,41 +28,15 @@ from irdrc.agents.loop import Learner, OffPolicyLoop, start_frames
 from irdrc.agents.offpolicy import (
     PolyakUpdate,
     clip_and_step,
-    eps_ladder,
     make_body,
     make_buffer,
     make_collector,
     make_optimizer,
     observation_top,
 )
+from irdrc.agents.shares import Critic, ShareLadder, share_table
 from irdrc.core.env import DFRCEnv
 from irdrc.core.params import Params
-
-
-class Critic(nn.Module):
-    """Q(observation, ρ): the scaled observation and the share into one MLP."""
-
-    def __init__(self, high: torch.Tensor, cfg: SACConfig) -> None:
-        super().__init__()
-        self.body = make_body(torch.cat([high, torch.ones(1)]), cfg.network, 1)
-
-    def forward(self, observation: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
-        return self.body(torch.cat([observation, action], -1))
-
-
-class ShareLadder(nn.Module):
-    """Exploration beside the actor's own sampling: row i of the batch takes a uniformly random
-    share with probability ε_i (``eps_ladder``: log-uniform across rows, DQN's ladder)."""
-
-    def __init__(self, rows: int, eps_max: float, eps_min: float) -> None:
-        super().__init__()
-        self.register_buffer("eps", eps_ladder(rows, eps_max, eps_min)[:, None])
-
-    def forward(self, action: torch.Tensor) -> torch.Tensor:
-        if action.shape[0] != self.eps.shape[0]:  # not the collector's batch: as the actor says
-            return action
-        explore = torch.rand_like(action) < self.eps
-        return torch.where(explore, torch.rand_like(action), action)
 
 
 def make_actor(env: DFRCEnv, cfg: SACConfig) -> ProbabilisticActor:
@@ -77,14 +51,6 @@ def make_actor(env: DFRCEnv, cfg: SACConfig) -> ProbabilisticActor:
         distribution_kwargs={"low": 0.0, "high": 1.0},
         default_interaction_type=ExplorationType.RANDOM,
     )
-
-
-def share_table(actor: nn.Module, env: DFRCEnv) -> torch.Tensor:
-    """The actor's deterministic share in every state ([S] float64)."""
-    obs = env.dynamics.obs
-    with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
-        out = actor(TensorDict({"observation": obs}, batch_size=[obs.shape[0]]))
-    return out["action"].reshape(-1).double().clamp(0.0, 1.0).cpu()
 
 
 def train(
@@ -121,7 +87,9 @@ def train(
 
     # 1. model: the actor (TanhNormal on [0, 1]) and a critic Q(observation, ρ)
     actor = make_actor(env, cfg)
-    critic = ValueOperator(Critic(observation_top(env), cfg), in_keys=["observation", "action"])
+    critic = ValueOperator(
+        Critic(observation_top(env), cfg.network), in_keys=["observation", "action"]
+    )
     # 2. exploration: the actor samples its own shares, and an ε ladder over the rows
     ladder = ShareLadder(cfg.num_envs, cfg.eps_max, cfg.eps_min)
     explore = TensorDictModule(ladder, in_keys=["action"], out_keys=["action"])

@@ -51,6 +51,16 @@ def _params(params: Params | None, overrides: dict[str, Any]) -> Params:
     return Params.from_overrides(overrides)
 
 
+def _binary(params: Params) -> Params:
+    """``params`` if its action space is v1's; the gymnasium envs step comm or radar only."""
+    if params.env.actions != "binary":
+        raise ValueError(
+            f"env.actions={params.env.actions}: the gymnasium envs step comm or radar (binary); "
+            "time-sharing (MODEL.md § D) runs on irdrc.core.env.DFRCEnv"
+        )
+    return params
+
+
 def _observation_space(params: Params) -> spaces.Box:
     high = observation_high(params).numpy()
     return spaces.Box(np.zeros_like(high), high, dtype=np.float32)
@@ -81,7 +91,7 @@ class DFRCGymEnv(gymnasium.Env):
     metadata = {"render_modes": []}  # noqa: RUF012 - gymnasium's convention
 
     def __init__(self, params: Params | None = None, **overrides: Any) -> None:
-        self.params = _params(params, overrides)
+        self.params = _binary(_params(params, overrides))
         self.dynamics = dyn = Dynamics(self.params)
         self.observation_space = _observation_space(self.params)
         self.action_space = spaces.Discrete(2)
@@ -184,7 +194,7 @@ class DFRCVectorEnv(VectorEnv):
     def __init__(self, num_envs: int = 1, params: Params | None = None, **overrides: Any) -> None:
         if isinstance(num_envs, bool) or not isinstance(num_envs, int) or num_envs < 1:
             raise ValueError(f"num_envs={num_envs!r} must be an integer >= 1")
-        self.params = _params(params, overrides)
+        self.params = _binary(_params(params, overrides))
         self.dynamics = Dynamics(self.params)
         self.num_envs = num_envs
         self.single_observation_space = _observation_space(self.params)

@@ -43,12 +43,24 @@ class Config(Learning):
 def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
     """The typed config, checked: a continuous action space the exact solve reaches, the
     evaluation period, what a resumed run has left."""
+    return load_as(Config, composed, resume)
+
+
+def run(cfg: Config, run) -> dict[str, Any]:
+    """Train SAC and finish the run (``run_learner``)."""
+    from irdrc.agents import sac
+
+    return run_learner(cfg, run, sac.train)
+
+
+def load_as(config: type, composed: Composed, resume: dict[str, Any] | None) -> Any:
+    """``load`` of a learner of shares whose recipe's keys are ``config``."""
     from irdrc.experiments.solve import check_shares_fit
 
-    cfg = build(Config, composed.cfg)
+    cfg = build(config, composed.cfg)
     if cfg.params.env.actions != "continuous":
         raise ValueError(
-            f"env.actions={cfg.params.env.actions}: SAC acts on the radar share ρ ∈ [0, 1] "
+            f"env.actions={cfg.params.env.actions}: {cfg.algo.name.upper()} acts on the radar share ρ ∈ [0, 1] "
             "(env.actions=continuous); a discrete action space is DQN's (recipes/dqn.py)"
         )
     check_shares_fit(cfg.params)
@@ -62,11 +74,11 @@ def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
     return cfg
 
 
-def run(cfg: Config, run) -> dict[str, Any]:
-    """Train, score the final shares exactly beside the optimum over ρ and binary's, and write
-    ``checkpoint.pt``, ``metrics.csv``, ``episode_rewards.csv``, ``policy.csv`` (``rho``),
-    ``learning_curve.<format>`` and ``summary.json``."""
-    from irdrc.agents import sac
+def run_learner(cfg: Any, run, train: Any) -> dict[str, Any]:
+    """Train with ``train`` (``irdrc.agents.sac.train``, ``td3.train``), score the final shares
+    exactly beside the optimum over ρ and binary's, and write ``checkpoint.pt``, ``metrics.csv``,
+    ``episode_rewards.csv``, ``policy.csv`` (``rho``), ``learning_curve.<format>`` and
+    ``summary.json``."""
     from irdrc.agents.base import EPISODE_FIELDS
     from irdrc.core.exact import build_model, stationary_metrics, value_iteration
     from irdrc.core.exact.continuum import ContinuumScorer
@@ -87,7 +99,7 @@ def run(cfg: Config, run) -> dict[str, Any]:
     )
     every = cfg.checkpoint.every_frames
     with run.training(cfg.algo.total_frames, cfg.algo.name, checkpoint_every=every) as hooks:
-        record = sac.train(
+        record = train(
             cfg.params,
             cfg.algo,
             seed=cfg.seed,
@@ -103,12 +115,15 @@ def run(cfg: Config, run) -> dict[str, Any]:
     write_rows_csv(run.dir / "episode_rewards.csv", record.episode_rewards, EPISODE_FIELDS)
     write_policy_csv(run.dir / "policy.csv", rho, cfg.params.env.factor_levels, shares=())
     plot_learning_curve(
-        record, run.dir / f"learning_curve.{cfg.plot.format}", title=f"sac on {run.scenario}"
+        record,
+        run.dir / f"learning_curve.{cfg.plot.format}",
+        title=f"{cfg.algo.name} on {run.scenario}",
     )
     binary = build_model(cfg.params, shares=(0.0, 1.0))
     best = value_iteration(binary, gamma=cfg.optimum_gamma, tol=1e-9).policy
+    name = cfg.algo.name
     rows = {
-        "sac (exact, long run)": scorer.metrics(rho),
+        f"{name} (exact, long run)": scorer.metrics(rho),
         "optimal over ρ (exact)": scorer.optimal_metrics,
         "binary optimum (exact)": stationary_metrics(binary, best),
     }
@@ -117,7 +132,7 @@ def run(cfg: Config, run) -> dict[str, Any]:
     ratio = scorer.ratio(rho)
     to99 = record.first_reaching(0.99)
     print(
-        f"\nsac: {ratio:.4f} of the optimum over ρ after {record.env_steps:,} env steps "
+        f"\n{name}: {ratio:.4f} of the optimum over ρ after {record.env_steps:,} env steps "
         f"({record.wall_seconds:.0f} s); first ≥ 0.99 at "
         f"{'—' if to99 is None else f'{to99:,} env steps'}"
     )
@@ -132,7 +147,7 @@ def run(cfg: Config, run) -> dict[str, Any]:
         seed=cfg.seed,
         env_steps=record.env_steps,
         wall_seconds=record.wall_seconds,
-        metrics=rows["sac (exact, long run)"],
+        metrics=rows[f"{name} (exact, long run)"],
         optimal=scorer.optimal_metrics,
         updates=record.updates,
         env_steps_to_95=record.first_reaching(0.95),

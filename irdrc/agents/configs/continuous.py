@@ -11,9 +11,9 @@ from irdrc.core import checks
 
 
 @dataclass(frozen=True)
-class SACConfig:
-    """SAC's hyperparameters (``recipes/sac.py``, section ``algo``), on the off-policy loop every
-    learner shares (``irdrc.agents.loop``): many env rows at once, uniform replay.
+class ShareConfig:
+    """What every learner of the radar share has (section ``algo``), on the off-policy loop every
+    learner shares (``irdrc.agents.loop``): many env rows at once, the ε ladder, prioritised replay.
 
     Attributes:
         num_envs: env rows stepped together.
@@ -34,10 +34,6 @@ class SACConfig:
         lr, lr_end: Adam's learning rate, annealed linearly.
         max_grad_norm: gradient clipping (0: off).
         tau: the target actor's and critics' Polyak rate per update.
-        temperature_init: the entropy temperature at the start (then tuned to the target entropy).
-        target_entropy: the entropy the temperature is tuned towards, nats (TorchRL's "auto" is
-            −1 for one action dimension, a spread of a third of [0, 1]; −5 keeps the actor's
-            sampling within about 0.01 of its share).
         network: the actor's and each critic's shape.
     """
 
@@ -59,10 +55,8 @@ class SACConfig:
     lr_end: float = 1e-5
     max_grad_norm: float = 10.0
     tau: float = 0.01
-    temperature_init: float = 0.1
-    target_entropy: float = -5.0
     network: NetworkConfig = field(default_factory=NetworkConfig, metadata={"keys": ()})
-    name: str = field(default="sac", compare=False)
+    name: str = field(default="share", compare=False)
 
     NUMBERS: ClassVar[tuple] = (
         ("num_envs", 1, 10**7, checks.INT),
@@ -82,8 +76,6 @@ class SACConfig:
         ("lr_end", 0, 1, checks.OPEN_HI),
         ("max_grad_norm", 0, 1e9, {}),
         ("tau", 0, 1, {}),
-        ("temperature_init", 0, 1e3, {"open_lo": True}),
-        ("target_entropy", -100, 100, {}),
     )
 
     def __post_init__(self) -> None:
@@ -96,7 +88,63 @@ class SACConfig:
             )
 
     @classmethod
-    def from_sections(cls, algo: Any, network: Any) -> SACConfig:
+    def from_sections(cls, algo: Any, network: Any) -> Any:
         """From the ``algo`` and ``network`` sections; unknown keys are refused."""
         built = checks.build(cls, {k: v for k, v in dict(algo).items() if k != "network"}, "algo.")
         return dataclasses.replace(built, network=NetworkConfig.from_dict(network))
+
+
+@dataclass(frozen=True)
+class SACConfig(ShareConfig):
+    """SAC's hyperparameters (``recipes/sac.py``): the machinery's and SAC's temperature.
+
+    Attributes:
+        temperature_init: the entropy temperature at the start (then tuned to the target entropy).
+        target_entropy: the entropy the temperature is tuned towards, nats (TorchRL's "auto" is
+            −1 for one action dimension, a spread of a third of [0, 1]; −5 keeps the actor's
+            sampling within about 0.01 of its share).
+    """
+
+    temperature_init: float = 0.1
+    target_entropy: float = -5.0
+    name: str = field(default="sac", compare=False)
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        checks.check_numbers(
+            self,
+            "algo.",
+            (("temperature_init", 0, 1e3, {"open_lo": True}), ("target_entropy", -100, 100, {})),
+        )
+
+
+@dataclass(frozen=True)
+class TD3Config(ShareConfig):
+    """TD3's hyperparameters (``recipes/td3.py``): the machinery's, a deterministic actor's noise
+    and TD3's target smoothing and delay.
+
+    Attributes:
+        sigma: the acting rows' Gaussian noise on the actor's share (kept in [0, 1]).
+        policy_noise, noise_clip: target policy smoothing: N(0, policy_noise) clipped to
+            ± noise_clip on the target actor's next share.
+        policy_delay: the actor and the targets are updated every this many critic updates.
+    """
+
+    sigma: float = 0.0
+    policy_noise: float = 0.01
+    noise_clip: float = 0.02
+    policy_delay: int = 1
+    name: str = field(default="td3", compare=False)
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        checks.check_numbers(
+            self,
+            "algo.",
+            (
+                ("sigma", 0, 1, {}),
+                ("policy_noise", 0, 1, {}),
+                ("noise_clip", 0, 1, {}),
+                ("policy_delay", 1, 1000, checks.INT),
+            ),
+        )

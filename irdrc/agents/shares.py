@@ -1,0 +1,51 @@
+"""The parts every learner of the radar share ρ ∈ [0, 1] (MODEL.md § D) shares: a critic
+Q(observation, ρ), exploration of shares over the env rows, and the policy's table of shares."""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDict
+from torch import nn
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+from irdrc.agents.configs.value import NetworkConfig
+from irdrc.agents.offpolicy import eps_ladder, make_body
+from irdrc.core.env import DFRCEnv
+
+
+class Critic(nn.Module):
+    """Q(observation, ρ): the scaled observation and the share into one MLP."""
+
+    def __init__(self, high: torch.Tensor, network: NetworkConfig) -> None:
+        super().__init__()
+        self.body = make_body(torch.cat([high, torch.ones(1)]), network, 1)
+
+    def forward(self, observation: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        return self.body(torch.cat([observation, action], -1))
+
+
+class ShareLadder(nn.Module):
+    """Exploration of a share: row i of the batch takes a uniformly random share with probability
+    ε_i (``eps_ladder``: log-uniform across rows, DQN's ladder); with ``sigma`` the others add
+    Gaussian noise to the actor's share (a deterministic actor's exploration)."""
+
+    def __init__(self, rows: int, eps_max: float, eps_min: float, sigma: float = 0.0) -> None:
+        super().__init__()
+        self.register_buffer("eps", eps_ladder(rows, eps_max, eps_min)[:, None])
+        self.sigma = float(sigma)
+
+    def forward(self, action: torch.Tensor) -> torch.Tensor:
+        if action.shape[0] != self.eps.shape[0]:  # not the collector's batch: as the actor says
+            return action
+        if self.sigma > 0:  # a deterministic actor's own noise, kept in [0, 1]
+            action = (action + self.sigma * torch.randn_like(action)).clamp(0.0, 1.0)
+        explore = torch.rand_like(action) < self.eps
+        return torch.where(explore, torch.rand_like(action), action)
+
+
+def share_table(actor: nn.Module, env: DFRCEnv) -> torch.Tensor:
+    """The actor's deterministic share in every state ([S] float64)."""
+    obs = env.dynamics.obs
+    with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
+        out = actor(TensorDict({"observation": obs}, batch_size=[obs.shape[0]]))
+    return out["action"].reshape(-1).double().clamp(0.0, 1.0).cpu()

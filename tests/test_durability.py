@@ -288,21 +288,6 @@ LEARNERS = {
         ],
         6400,
     ),
-    "td3": (
-        "recipes/td3.py",
-        [
-            "algo.num_envs=8",
-            "algo.frames_per_batch=32",
-            "algo.total_frames=6400",
-            "algo.init_random_frames=64",
-            "algo.batch_size=32",
-            "algo.updates_per_batch=2",
-            "eval.every_frames=320",
-            "checkpoint.every_frames=640",
-            "logger=none",
-        ],
-        6400,
-    ),
     "qlearning": (
         "recipes/qlearning.py",
         ["algo.episodes=40", "eval.every_frames=800", "checkpoint.every_frames=800"],

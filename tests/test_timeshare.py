@@ -266,7 +266,7 @@ def run_recipe(*args: str) -> subprocess.CompletedProcess:
     )
 
 
-@pytest.mark.parametrize("learner", ["sac", "td3"])
+@pytest.mark.parametrize("learner", ["sac"])
 def test_a_share_learner_runs_scored_exactly_and_writes_its_shares(learner, tmp_path):
     out = tmp_path / "run"
     r = run_recipe(f"recipes/{learner}.py", *TINY_SAC, f"hydra.run.dir={out}")
@@ -286,7 +286,7 @@ def test_a_share_learner_runs_scored_exactly_and_writes_its_shares(learner, tmp_
     assert (out / "checkpoint.pt").is_file() and summary["interrupted"] is False
 
 
-@pytest.mark.parametrize("learner", ["sac", "td3"])
+@pytest.mark.parametrize("learner", ["sac"])
 def test_a_share_learner_refuses_a_discrete_action_space(learner, tmp_path):
     r = run_recipe(f"recipes/{learner}.py", "env.actions=binary", f"hydra.run.dir={tmp_path / 'r'}")
     assert r.returncode == 2
@@ -295,7 +295,7 @@ def test_a_share_learner_refuses_a_discrete_action_space(learner, tmp_path):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("learner", ["sac", "td3"])
+@pytest.mark.parametrize("learner", ["sac"])
 def test_a_share_learner_reaches_the_continuum_optimum_and_fails_without_the_sensing_curve(
     learner,
 ):

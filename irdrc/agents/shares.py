@@ -1,4 +1,4 @@
-"""The parts every learner of the radar share ρ ∈ [0, 1] (MODEL.md § D) shares: a critic
+"""The parts of a learner of the radar share ρ ∈ [0, 1] (MODEL.md § D), apart from its loss: a critic
 Q(observation, ρ), exploration of shares over the env rows, and the policy's table of shares."""
 
 from __future__ import annotations
@@ -25,20 +25,16 @@ class Critic(nn.Module):
 
 
 class ShareLadder(nn.Module):
-    """Exploration of a share: row i of the batch takes a uniformly random share with probability
-    ε_i (``eps_ladder``: log-uniform across rows, DQN's ladder); with ``sigma`` the others add
-    Gaussian noise to the actor's share (a deterministic actor's exploration)."""
+    """Exploration of a share beside the actor's own: row i of the batch takes a uniformly random
+    share with probability ε_i (``eps_ladder``: log-uniform across rows, DQN's ladder)."""
 
-    def __init__(self, rows: int, eps_max: float, eps_min: float, sigma: float = 0.0) -> None:
+    def __init__(self, rows: int, eps_max: float, eps_min: float) -> None:
         super().__init__()
         self.register_buffer("eps", eps_ladder(rows, eps_max, eps_min)[:, None])
-        self.sigma = float(sigma)
 
     def forward(self, action: torch.Tensor) -> torch.Tensor:
         if action.shape[0] != self.eps.shape[0]:  # not the collector's batch: as the actor says
             return action
-        if self.sigma > 0:  # a deterministic actor's own noise, kept in [0, 1]
-            action = (action + self.sigma * torch.randn_like(action)).clamp(0.0, 1.0)
         explore = torch.rand_like(action) < self.eps
         return torch.where(explore, torch.rand_like(action), action)
 

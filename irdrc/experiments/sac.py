@@ -75,7 +75,7 @@ def load_as(config: type, composed: Composed, resume: dict[str, Any] | None) -> 
 
 
 def run_learner(cfg: Any, run, train: Any) -> dict[str, Any]:
-    """Train with ``train`` (``irdrc.agents.sac.train``, ``td3.train``), score the final shares
+    """Train with ``train`` (``irdrc.agents.sac.train``), score the final shares
     exactly beside the optimum over ρ and binary's, and write ``checkpoint.pt``, ``metrics.csv``,
     ``episode_rewards.csv``, ``policy.csv`` (``rho``), ``learning_curve.<format>`` and
     ``summary.json``."""

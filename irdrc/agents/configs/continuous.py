@@ -116,35 +116,3 @@ class SACConfig(ShareConfig):
             "algo.",
             (("temperature_init", 0, 1e3, {"open_lo": True}), ("target_entropy", -100, 100, {})),
         )
-
-
-@dataclass(frozen=True)
-class TD3Config(ShareConfig):
-    """TD3's hyperparameters (``recipes/td3.py``): the machinery's, a deterministic actor's noise
-    and TD3's target smoothing and delay.
-
-    Attributes:
-        sigma: the acting rows' Gaussian noise on the actor's share (kept in [0, 1]).
-        policy_noise, noise_clip: target policy smoothing: N(0, policy_noise) clipped to
-            ± noise_clip on the target actor's next share.
-        policy_delay: the actor and the targets are updated every this many critic updates.
-    """
-
-    sigma: float = 0.0
-    policy_noise: float = 0.01
-    noise_clip: float = 0.02
-    policy_delay: int = 1
-    name: str = field(default="td3", compare=False)
-
-    def __post_init__(self) -> None:
-        super().__post_init__()
-        checks.check_numbers(
-            self,
-            "algo.",
-            (
-                ("sigma", 0, 1, {}),
-                ("policy_noise", 0, 1, {}),
-                ("noise_clip", 0, 1, {}),
-                ("policy_delay", 1, 1000, checks.INT),
-            ),
-        )

@@ -60,7 +60,7 @@ def train(
     seed: int = 0,
     device: str = "cpu",
     scorer: Any = None,
-    eval_every_frames: int = 25_000,
+    eval_every_frames: int = 40_000,
     hooks: Hooks | None = None,
     resume: dict[str, Any] | None = None,
 ) -> RunRecord:

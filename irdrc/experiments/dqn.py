@@ -9,17 +9,15 @@ by Monte-Carlo at the end, beside the optimum and the baselines.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 from irdrc.agents.configs import DQNConfig
 from irdrc.core.checks import build
-from irdrc.core.params import Params
 from irdrc.experiments.compose import Composed
 from irdrc.experiments.sections import (
-    ONE_VEHICLE,
-    Learning,
-    Plot,
+    OneVehicleLearning,
+    algo_field,
     check_dense,
     check_eval_period,
 )
@@ -38,24 +36,11 @@ ELSEWHERE = {
 }
 
 
-ALGO = {
-    "keys": ("algo", "network"),
-    "build": lambda d, p: DQNConfig.from_sections(d["algo"], d["network"]),
-}
-"""The learner's hyperparameters come from the ``algo`` and ``network`` groups."""
-
-
 @dataclass(frozen=True)
-class Config(Learning):
+class Config(OneVehicleLearning):
     """The main job's keys (``recipes/conf/dqn.yaml``)."""
 
-    params: Params = field(default=None, metadata=ONE_VEHICLE)
-    algo: DQNConfig = field(default_factory=DQNConfig, metadata=ALGO)
-    plot: Plot = field(default_factory=Plot)
-    device: str = "cpu"
-
-    def __post_init__(self) -> None:
-        super().__post_init__()
+    algo: DQNConfig = algo_field(DQNConfig)
 
 
 def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
@@ -88,24 +73,15 @@ def run(cfg: Config, run) -> dict[str, Any]:
     """Train, evaluate, finish the run directory (``irdrc.experiments.report``)."""
     from irdrc.agents import dqn
     from irdrc.core.exact import Scorer, build_model
+    from irdrc.core.exact.continuum import continuum_optimum
     from irdrc.experiments.report import LearnerRun, finish_learner
     from irdrc.experiments.tracking import log_scalars
 
     run.threads(cfg.num_threads)
     logger = run.make_logger(cfg.logger, cfg.algo.name)
     scorer = Scorer(build_model(cfg.params), cfg.optimum_gamma)
-    every = cfg.checkpoint.every_frames
-    with run.training(cfg.algo.total_frames, cfg.algo.name, checkpoint_every=every) as hooks:
-        record = dqn.train(
-            cfg.params,
-            cfg.algo,
-            seed=cfg.seed,
-            device=cfg.device,
-            scorer=scorer,
-            eval_every_frames=cfg.eval.every_frames,
-            hooks=hooks,
-            resume=run.resume_state,
-        )
+    record = run.train(cfg, dqn.train, scorer)
+    best = continuum_optimum(cfg.params, cfg.optimum_gamma)  # with G levels, else None
     final = record.history[-1]["optimality_ratio"]  # the final policy's, exact
     log_scalars(logger, {"final/optimality_ratio": final}, record.env_steps)
     summary = finish_learner(
@@ -122,27 +98,16 @@ def run(cfg: Config, run) -> dict[str, Any]:
             plot_format=cfg.plot.format,
         ),
     )
-    if cfg.params.env.actions == "levels":
-        summary["continuum"] = against_the_continuum(cfg, summary)
+    if best is not None:  # G levels read against the optimum over ρ ∈ [0, 1] (MODEL.md § D)
+        learned, levels = summary["metrics"]["avg_reward"], summary["optimal"]["avg_reward"]
+        summary["continuum"] = {
+            "optimal_avg_reward": best,
+            "levels_ratio": levels / best,
+            "optimality_ratio": learned / best,
+        }
+        print(
+            f"over ρ ∈ [0, 1] the optimum earns {best:.4f} per step: the {cfg.params.env.levels}-"
+            f"level optimum is {levels / best:.4f} of it, dqn {learned / best:.4f}"
+        )
     run.finish(summary, interrupted_at=record.env_steps if record.interrupted else None)
     return summary
-
-
-def against_the_continuum(cfg: Config, summary: dict[str, Any]) -> dict[str, float]:
-    """A run over G levels read against the optimum over ρ ∈ [0, 1] (MODEL.md § D), printed."""
-    from dataclasses import replace
-
-    from irdrc.core.exact.continuum import ContinuumScorer
-
-    env = replace(cfg.params.env, actions="continuous")
-    best = ContinuumScorer(replace(cfg.params, env=env), cfg.optimum_gamma).optimal_metrics
-    learned, levels = summary["metrics"]["avg_reward"], summary["optimal"]["avg_reward"]
-    print(
-        f"over ρ ∈ [0, 1] the optimum earns {best.avg_reward:.4f} per step: the {cfg.params.env.levels}"
-        f"-level optimum is {levels / best.avg_reward:.4f} of it, dqn {learned / best.avg_reward:.4f}"
-    )
-    return {
-        "optimal_avg_reward": best.avg_reward,
-        "levels_ratio": levels / best.avg_reward,
-        "optimality_ratio": learned / best.avg_reward,
-    }

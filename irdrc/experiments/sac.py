@@ -9,35 +9,23 @@ scored exactly against the optimum over the continuum during and after training.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 from irdrc.agents.configs.continuous import SACConfig
 from irdrc.core.checks import build
-from irdrc.core.params import Params
 from irdrc.experiments.compose import Composed
-from irdrc.experiments.sections import ONE_VEHICLE, Learning, Plot, check_eval_period
+from irdrc.experiments.sections import OneVehicleLearning, algo_field, check_eval_period
 
 NAME = "sac"
 RESUMABLE = True
 
-ALGO = {
-    "keys": ("algo", "network"),
-    "build": lambda d, p: SACConfig.from_sections(d["algo"], d["network"]),
-}
-
 
 @dataclass(frozen=True)
-class Config(Learning):
+class Config(OneVehicleLearning):
     """The SAC recipe's keys (``recipes/conf/sac.yaml``)."""
 
-    params: Params = field(default=None, metadata=ONE_VEHICLE)
-    algo: SACConfig = field(default_factory=SACConfig, metadata=ALGO)
-    plot: Plot = field(default_factory=Plot)
-    device: str = "cpu"
-
-    def __post_init__(self) -> None:
-        super().__post_init__()
+    algo: SACConfig = algo_field(SACConfig)
 
 
 def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
@@ -97,18 +85,7 @@ def run_learner(cfg: Any, run, train: Any) -> dict[str, Any]:
         f"per step (exact, within {scorer.optimal.value_bound:.0e} in value)",
         flush=True,
     )
-    every = cfg.checkpoint.every_frames
-    with run.training(cfg.algo.total_frames, cfg.algo.name, checkpoint_every=every) as hooks:
-        record = train(
-            cfg.params,
-            cfg.algo,
-            seed=cfg.seed,
-            device=cfg.device,
-            scorer=scorer,
-            eval_every_frames=cfg.eval.every_frames,
-            hooks=hooks,
-            resume=run.resume_state,
-        )
+    record = run.train(cfg, train, scorer)
     run.checkpoint(record.state)
     rho = record.greedy[0]
     write_metrics_csv(run.dir / "metrics.csv", record.history)

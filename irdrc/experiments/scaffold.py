@@ -317,6 +317,23 @@ class Run:
         )
         return self.logger
 
+    def train(self, cfg: Any, train: Any, scorer: Any) -> Any:
+        """A single-vehicle learner's ``train`` (``irdrc.agents.dqn.train``, ``sac.train``) on its
+        recipe's ``cfg`` (``sections.OneVehicleLearning``), inside ``training``: progress,
+        checkpoints and the stop, resumed from this run's checkpoint; returns its record."""
+        every = cfg.checkpoint.every_frames
+        with self.training(cfg.algo.total_frames, cfg.algo.name, checkpoint_every=every) as hooks:
+            return train(
+                cfg.params,
+                cfg.algo,
+                seed=cfg.seed,
+                device=cfg.device,
+                scorer=scorer,
+                eval_every_frames=cfg.eval.every_frames,
+                hooks=hooks,
+                resume=self.resume_state,
+            )
+
     @contextlib.contextmanager
     def training(
         self, total: int, label: str, *, checkpoint_every: int = 0, unit: str = "env steps"

@@ -275,3 +275,25 @@ class Learning:
     def __post_init__(self) -> None:
         check_common(self)
         object.__setattr__(self, "resume", check_resume(self.resume))
+
+
+@dataclass(frozen=True)
+class OneVehicleLearning(Learning):
+    """A single-vehicle learner's recipe keys (``dqn``, ``sac``): the scenario, its figures'
+    format and the torch device, beside ``Learning``'s; a recipe's ``Config`` adds its ``algo``."""
+
+    params: Params = field(default=None, metadata=ONE_VEHICLE)
+    plot: Plot = field(default_factory=Plot)
+    device: str = "cpu"
+
+
+def algo_field(config: type) -> Any:
+    """The ``algo`` field of a learner's recipe ``Config``: ``config`` (a learner's hyperparameter
+    dataclass with ``from_sections``) built from the ``algo`` and ``network`` sections."""
+    return field(
+        default_factory=config,
+        metadata={
+            "keys": ("algo", "network"),
+            "build": lambda d, p: config.from_sections(d["algo"], d["network"]),
+        },
+    )

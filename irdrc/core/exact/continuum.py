@@ -13,6 +13,7 @@ policies ends, in a few iterations, at a policy within ``value_bound`` of the op
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 from dataclasses import dataclass
 from typing import Any
@@ -252,3 +253,12 @@ class ContinuumScorer:
     def ratio(self, rho: torch.Tensor) -> float:
         """Average reward of ``rho`` over the continuum optimum's (both long-run)."""
         return self.metrics(rho).avg_reward / self.optimal_metrics.avg_reward
+
+
+def continuum_optimum(params: Params, gamma: float = 0.99) -> float | None:
+    """With ``env.actions=levels``: the long-run average reward of the optimum over ρ ∈ [0, 1] of
+    the same scenario, which G levels approach (MODEL.md § D); else None."""
+    if params.env.actions != "levels":
+        return None
+    shares = dataclasses.replace(params, env=dataclasses.replace(params.env, actions="continuous"))
+    return ContinuumScorer(shares, gamma).optimal_metrics.avg_reward

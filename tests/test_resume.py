@@ -124,34 +124,14 @@ def test_fleet_learners_resume_in_fleet_steps(learner):
     assert scored(resumed.history[:2]) == scored(first.history[:2])
 
 
-@pytest.mark.parametrize("learner", ["sac"])
-def test_a_share_learner_resumes_to_a_longer_run(learner):
-    import importlib
-
+def test_sac_resumes_to_a_longer_run():
     from irdrc.agents.configs.continuous import SACConfig
+    from irdrc.agents.sac import train as train_sac
 
-    config = {"sac": SACConfig}[learner]
-    train_sac = importlib.import_module(f"irdrc.agents.{learner}").train
-
-    tiny = dict(
-        num_envs=8,
-        frames_per_batch=32,
-        total_frames=320,
-        init_random_frames=64,
-        buffer_size=320,
-        batch_size=16,
-        updates_per_batch=2,
-        network=NetworkConfig(hidden=(16,)),
-    )
     p = Params.from_overrides({"env.actions": "continuous"})
-    run = train_sac(p, config(**tiny), seed=0, eval_every_frames=160)
+    run = train_sac(p, SACConfig(**TINY), seed=0, eval_every_frames=160)
     assert steps(run) == [0, 160, 320] and run.greedy.shape == (1, 352)
-    resumed = train_sac(
-        p,
-        config(**{**tiny, "total_frames": 480}),
-        seed=0,
-        eval_every_frames=160,
-        resume=run.state,
-    )
+    longer = SACConfig(**{**TINY, "total_frames": 480})
+    resumed = train_sac(p, longer, seed=0, eval_every_frames=160, resume=run.state)
     assert resumed.env_steps == 480 and steps(resumed) == [0, 160, 320, 480]
     assert scored(resumed.history[:3]) == scored(run.history)

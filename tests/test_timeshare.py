@@ -266,10 +266,9 @@ def run_recipe(*args: str) -> subprocess.CompletedProcess:
     )
 
 
-@pytest.mark.parametrize("learner", ["sac"])
-def test_a_share_learner_runs_scored_exactly_and_writes_its_shares(learner, tmp_path):
+def test_sac_runs_scored_exactly_and_writes_its_shares(tmp_path):
     out = tmp_path / "run"
-    r = run_recipe(f"recipes/{learner}.py", *TINY_SAC, f"hydra.run.dir={out}")
+    r = run_recipe("recipes/sac.py", *TINY_SAC, f"hydra.run.dir={out}")
     assert r.returncode == 0, r.stderr[-2000:]
     assert r.stdout.startswith("scenario=paper: optimum over ρ ∈ [0, 1] 1.0586 per step")
     rows = list(csv.DictReader((out / "policy.csv").open()))
@@ -286,27 +285,20 @@ def test_a_share_learner_runs_scored_exactly_and_writes_its_shares(learner, tmp_
     assert (out / "checkpoint.pt").is_file() and summary["interrupted"] is False
 
 
-@pytest.mark.parametrize("learner", ["sac"])
-def test_a_share_learner_refuses_a_discrete_action_space(learner, tmp_path):
-    r = run_recipe(f"recipes/{learner}.py", "env.actions=binary", f"hydra.run.dir={tmp_path / 'r'}")
+def test_sac_refuses_a_discrete_action_space(tmp_path):
+    r = run_recipe("recipes/sac.py", "env.actions=binary", f"hydra.run.dir={tmp_path / 'r'}")
     assert r.returncode == 2
-    assert r.stderr.startswith(f"error: env.actions=binary: {learner.upper()} acts on")
+    assert r.stderr.startswith("error: env.actions=binary: SAC acts on")
     assert len(r.stderr.splitlines()) == 1 and not (tmp_path / "r").exists()
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("learner", ["sac"])
-def test_a_share_learner_reaches_the_continuum_optimum_and_fails_without_the_sensing_curve(
-    learner,
-):
-    """The default learner ends ≥ 0.99 of the optimum over ρ (seed 0, the paper scenario). The
+def test_sac_reaches_the_continuum_optimum_and_fails_without_the_sensing_curve():
+    """The default SAC ends ≥ 0.99 of the optimum over ρ (seed 0, the paper scenario). The
     same learner trained where sensing is linear (the curve q(ρ) ignored: time-sharing then pays
     nothing) and scored on the real, dwell-sensing model stays well below: the test can fail."""
-    import importlib
-
+    from irdrc.agents.sac import train
     from irdrc.core.exact.continuum import ContinuumScorer
-
-    train = importlib.import_module(f"irdrc.agents.{learner}").train
 
     p = params(**{"env.actions": "continuous"})
     scorer = ContinuumScorer(p)

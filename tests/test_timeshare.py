@@ -358,13 +358,52 @@ def test_dqn_over_five_levels_reaches_their_optimum_and_fails_without_the_sensin
     assert scorer.ratio(blind.greedy[0]) < 0.95
 
 
-@pytest.mark.parametrize("make", ["make", "make_vec"])
-def test_the_gymnasium_envs_refuse_time_sharing(make):
-    """They step comm or radar only: a share action space is refused, not silently made binary."""
+@pytest.mark.parametrize("actions", ["continuous", "levels"])
+def test_the_gymnasium_env_steps_shares_as_the_exact_model_says(actions):
+    """``gymnasium.make`` with a share action space: a ``Box(0, 1, (1,))`` or ``Discrete(G)`` action,
+    gymnasium's env checker passes, and K one-step transitions from each of a few states at a fixed
+    share hold to the exact rows (χ², 5 sd above its mean: ``assert_chi2``); a share out of range
+    is refused, never clipped."""
     import gymnasium
+    import numpy as np
+    from conftest import assert_chi2
+    from gymnasium.utils.env_checker import check_env
 
     import irdrc  # noqa: F401  (registers the id)
 
-    kwargs = {"num_envs": 2} if make == "make_vec" else {}
-    with pytest.raises(ValueError, match=r"time-sharing .* runs on irdrc.core.env.DFRCEnv"):
-        getattr(gymnasium, make)("irdrc/DFRC-v0", **{"env.actions": "continuous"}, **kwargs)
+    env = gymnasium.make("irdrc/DFRC-v0", **{"env.actions": actions})
+    p = env.unwrapped.params
+    if actions == "continuous":
+        assert env.action_space == gymnasium.spaces.Box(0.0, 1.0, (1,), np.float32)
+        act, rho, bad = np.array([0.3], np.float32), float(np.float32(0.3)), np.array([1.2])
+    else:
+        assert env.action_space == gymnasium.spaces.Discrete(5)
+        act, rho, bad = 1, 0.25, 5
+    check_env(env.unwrapped, skip_render_check=True)
+    states, K = [0, 7, 40, 200], 1500
+    exact = policy_model(p, torch.full((p.env.num_states,), rho, dtype=torch.float64))
+    counts = torch.zeros(len(states), p.env.num_states, dtype=torch.float64)
+    env.reset(seed=5)
+    for i, s in enumerate(states):
+        for _ in range(K):
+            env.reset(options={"state": s})
+            counts[i, env.step(act)[4]["state"]] += 1
+    assert_chi2(counts, exact.P[0][states] * K)
+    with pytest.raises(ValueError, match=r"radar share in \[0, 1\]|level in 0 … 4"):
+        env.step(bad)
+
+
+def test_the_gymnasium_vector_env_takes_a_batch_of_shares():
+    import gymnasium
+    import numpy as np
+
+    import irdrc  # noqa: F401  (registers the id)
+
+    env = gymnasium.make_vec("irdrc/DFRC-v0", num_envs=3, **{"env.actions": "continuous"})
+    assert env.single_action_space == gymnasium.spaces.Box(0.0, 1.0, (1,), np.float32)
+    env.reset(seed=0)
+    obs, reward, _, _, info = env.step(np.array([[0.0], [0.5], [1.0]], np.float32))
+    assert obs.shape == (3, 6) and reward.shape == (3,)
+    assert info["capacity"][2] == 0  # ρ = 1: the whole step is radar, nothing sent
+    with pytest.raises(ValueError, match=r"radar share in \[0, 1\]; got \[-0.5\]"):
+        env.step(np.array([[0.0], [-0.5], [1.0]]))

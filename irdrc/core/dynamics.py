@@ -22,6 +22,7 @@ import math
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 
@@ -394,6 +395,24 @@ def checked_actions(action: torch.Tensor) -> torch.Tensor:
             f"action must be 0 (communication) or 1 (radar); got {action[bad][:3].tolist()}"
         )
     return action.to(torch.int64)
+
+
+def checked_shares(env: Any, action: torch.Tensor) -> torch.Tensor:
+    """The radar shares (float64) of ``levels`` / ``continuous`` actions of ``env`` (an
+    ``EnvParams``); a value out of range is a ``ValueError``, never clipped."""
+    if env.actions == "levels":
+        top = env.levels - 1
+        bad = (action != action.round()) | (action < 0) | (action > top)
+        if bool(bad.any()):
+            raise ValueError(
+                f"action must be a level in 0 … {top} (radar share level / {top}); got "
+                f"{action[bad][:3].tolist()}"
+            )
+        return action.to(torch.float64) / top
+    bad = ~((action >= 0) & (action <= 1))  # NaN too
+    if bool(bad.any()):
+        raise ValueError(f"action must be a radar share in [0, 1]; got {action[bad][:3].tolist()}")
+    return action.to(torch.float64)
 
 
 def queue_update(

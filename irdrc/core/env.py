@@ -12,6 +12,7 @@ from irdrc.core.dynamics import (
     Dynamics,
     StepResult,
     checked_actions,
+    checked_shares,
     fresh_seed,
     observation_high,
     step_shares,
@@ -205,24 +206,8 @@ class DFRCEnv(EnvBase):
         return self._out(res.state, steps, res, truncated, res.reward)
 
     def _shares(self, action: torch.Tensor) -> torch.Tensor:
-        """The radar shares of ``levels`` / ``continuous`` actions; a value out of range is an
-        error, never clipped."""
-        env = self.params.env
-        if env.actions == "levels":
-            top = env.levels - 1
-            bad = (action != action.round()) | (action < 0) | (action > top)
-            if bool(bad.any()):
-                raise ValueError(
-                    f"action must be a level in 0 … {top} (radar share level / {top}); got "
-                    f"{action[bad][:3].tolist()}"
-                )
-            return action.to(torch.float64) / top
-        bad = ~((action >= 0) & (action <= 1))  # NaN too
-        if bool(bad.any()):
-            raise ValueError(
-                f"action must be a radar share in [0, 1]; got {action[bad][:3].tolist()}"
-            )
-        return action.to(torch.float64)
+        """The radar shares of ``levels`` / ``continuous`` actions (``checked_shares``)."""
+        return checked_shares(self.params.env, action)
 
     @property
     def num_states(self) -> int:

@@ -7,6 +7,11 @@
 - ``gymnasium.make_vec("irdrc/DFRC-v0", num_envs=N, **overrides)``: N envs stepped together by
   ``Dynamics`` (torch), with gymnasium's next-step autoreset.
 
+The action space follows ``env.actions`` (MODEL.md § D): ``Discrete(2)`` (binary, the default),
+``Discrete(G)`` (``levels``: radar share level / (G − 1)) or ``Box(0, 1, (1,))`` (``continuous``:
+the radar share ρ). Time-sharing steps go through ``irdrc.core.dynamics.step_shares`` (torch, one
+env at a time in ``DFRCGymEnv``); an action out of range is an error, never clipped.
+
 The scenario is ``params=Params(...)``, or overrides named as everywhere else (each key with its
 section, as on the command line): ``env={"p1": {"speed": 0.5}}, reward={"r4": 50}`` (nested), or
 ``**{"env.p1.speed": 0.5, "reward.r4": 50}`` (dotted).
@@ -24,7 +29,13 @@ import torch
 from gymnasium import spaces
 from gymnasium.vector import AutoresetMode, VectorEnv
 
-from irdrc.core.dynamics import Dynamics, checked_actions, observation_high
+from irdrc.core.dynamics import (
+    Dynamics,
+    checked_actions,
+    checked_shares,
+    observation_high,
+    step_shares,
+)
 from irdrc.core.overrides import full_key
 from irdrc.core.params import Params
 
@@ -51,14 +62,20 @@ def _params(params: Params | None, overrides: dict[str, Any]) -> Params:
     return Params.from_overrides(overrides)
 
 
-def _binary(params: Params) -> Params:
-    """``params`` if its action space is v1's; the gymnasium envs step comm or radar only."""
-    if params.env.actions != "binary":
-        raise ValueError(
-            f"env.actions={params.env.actions}: the gymnasium envs step comm or radar (binary); "
-            "time-sharing (MODEL.md § D) runs on irdrc.core.env.DFRCEnv"
-        )
-    return params
+def _action_space(params: Params) -> spaces.Space:
+    """The gymnasium action space of ``env.actions``."""
+    env = params.env
+    if env.actions == "continuous":
+        return spaces.Box(0.0, 1.0, shape=(1,), dtype=np.float32)
+    return spaces.Discrete(2 if env.actions == "binary" else env.levels)
+
+
+def _shares(params: Params, action: Any, n: int) -> torch.Tensor:
+    """``n`` gymnasium actions of a time-sharing env as radar shares (``checked_shares``)."""
+    a = torch.as_tensor(np.asarray(action, dtype=np.float64)).reshape(-1)
+    if a.numel() != n:
+        raise ValueError(f"{a.numel()} actions for {n} env(s): action={action!r}")
+    return checked_shares(params.env, a)
 
 
 def _observation_space(params: Params) -> spaces.Box:
@@ -91,10 +108,10 @@ class DFRCGymEnv(gymnasium.Env):
     metadata = {"render_modes": []}  # noqa: RUF012 - gymnasium's convention
 
     def __init__(self, params: Params | None = None, **overrides: Any) -> None:
-        self.params = _binary(_params(params, overrides))
+        self.params = _params(params, overrides)
         self.dynamics = dyn = Dynamics(self.params)
         self.observation_space = _observation_space(self.params)
-        self.action_space = spaces.Discrete(2)
+        self.action_space = _action_space(self.params)
         # The tables of Dynamics (scenario 0), as Python lists for a step without tensor overhead.
         self._event = dyn.event_prob.tolist()
         self._thr = dyn.thresholds.tolist()  # [2F][factor][k]: P(level′ ≥ k + 1 | a, f)
@@ -113,6 +130,8 @@ class DFRCGymEnv(gymnasium.Env):
         self._S = dyn.num_states
         self._horizon = self.params.env.horizon
         self._rng = random.Random(int(np.random.SeedSequence().generate_state(1)[0]))
+        self._torch_rng = torch.Generator()  # time-sharing steps (``step_shares``)
+        self._torch_rng.manual_seed(self._rng.getrandbits(63))
         self._state = -1  # no episode yet: step() before reset() is refused
         self._steps = 0
 
@@ -124,6 +143,7 @@ class DFRCGymEnv(gymnasium.Env):
         super().reset(seed=seed)
         if seed is not None:
             self._rng.seed(int(seed))
+            self._torch_rng.manual_seed(self._rng.getrandbits(63))
         start = (options or {}).get("state")
         if start is None:
             self._state = int(self._rng.random() * self._S)
@@ -135,9 +155,11 @@ class DFRCGymEnv(gymnasium.Env):
         return self._obs[self._state].copy(), {"state": self._state, "step_count": 0}
 
     def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
-        """Apply action 0 (comm) or 1 (radar)."""
+        """Apply action 0 (comm) or 1 (radar), or a radar share (``env.actions``)."""
         if self._state < 0:
             raise gymnasium.error.ResetNeeded("call reset() before step()")
+        if self.params.env.actions != "binary":
+            return self._step_shares(_shares(self.params, action, 1))
         a = _action(action)
         s, u, nf = self._state, self._rng.random, self._nf
         d, f = divmod(s, nf)
@@ -180,6 +202,25 @@ class DFRCGymEnv(gymnasium.Env):
         truncated = self._steps >= self._horizon
         return self._obs[self._state].copy(), reward, False, truncated, info
 
+    def _step_shares(self, rho: torch.Tensor) -> tuple[np.ndarray, float, bool, bool, dict]:
+        """One time-sharing step (MODEL.md § D) through ``step_shares``."""
+        state = torch.tensor([self._state])
+        res = step_shares(self.dynamics, state, rho, self._torch_rng)
+        self._state = int(res.state[0])
+        self._steps += 1
+        info = {
+            "state": self._state,
+            "event": bool(res.event[0]),
+            "missed": bool(res.missed[0]),
+            "false_alarm": bool(res.false_alarm[0]),
+            "sent": int(res.sent[0]),
+            "dropped": int(res.dropped[0]),
+            "capacity": int(res.capacity[0]),
+            "step_count": self._steps,
+        }
+        truncated = self._steps >= self._horizon
+        return self._obs[self._state].copy(), float(res.reward[0]), False, truncated, info
+
 
 class DFRCVectorEnv(VectorEnv):
     """``num_envs`` iRDRC envs stepped together by ``Dynamics``, for gymnasium's vector API.
@@ -194,11 +235,11 @@ class DFRCVectorEnv(VectorEnv):
     def __init__(self, num_envs: int = 1, params: Params | None = None, **overrides: Any) -> None:
         if isinstance(num_envs, bool) or not isinstance(num_envs, int) or num_envs < 1:
             raise ValueError(f"num_envs={num_envs!r} must be an integer >= 1")
-        self.params = _binary(_params(params, overrides))
+        self.params = _params(params, overrides)
         self.dynamics = Dynamics(self.params)
         self.num_envs = num_envs
         self.single_observation_space = _observation_space(self.params)
-        self.single_action_space = spaces.Discrete(2)
+        self.single_action_space = _action_space(self.params)
         self.observation_space = gymnasium.vector.utils.batch_space(
             self.single_observation_space, num_envs
         )
@@ -221,13 +262,17 @@ class DFRCVectorEnv(VectorEnv):
         return self.dynamics.obs[self._state].numpy(), {"state": self._state.numpy().copy()}
 
     def step(self, actions: Any):
-        """Step every env with ``actions`` (0 or 1 each)."""
+        """Step every env with ``actions`` (0 or 1 each, or radar shares: ``env.actions``)."""
         if self._state is None:
             raise gymnasium.error.ResetNeeded("call reset() before step()")
-        a = checked_actions(torch.as_tensor(np.asarray(actions)).reshape(-1))
-        if a.numel() != self.num_envs:
-            raise ValueError(f"{a.numel()} actions for {self.num_envs} envs")
-        res = self.dynamics.step(self._state, a, self._rng)
+        if self.params.env.actions != "binary":
+            rho = _shares(self.params, actions, self.num_envs)
+            res = step_shares(self.dynamics, self._state, rho, self._rng)
+        else:
+            a = checked_actions(torch.as_tensor(np.asarray(actions)).reshape(-1))
+            if a.numel() != self.num_envs:
+                raise ValueError(f"{a.numel()} actions for {self.num_envs} envs")
+            res = self.dynamics.step(self._state, a, self._rng)
         fresh = self.dynamics.reset_states(self.num_envs, self._rng)
         done_before = self._autoreset
         state = torch.where(done_before, fresh, res.state)

@@ -53,6 +53,31 @@ def test_at_tag_regions_are_closed_and_cut():
         assert body.count("<!-- at-tag:") == body.count("<!-- /at-tag -->"), doc.name
 
 
+TAG_NAME = re.compile(r"(?:tag|tagged|at-tag:) `?([a-z0-9]+(?:-[a-z0-9]+)*-v\d+)`?")
+TAG_ROW = re.compile(r"^\| `([\w.-]+)` \| ([0-9a-f]{7,40}) \|", re.M)
+
+
+def test_every_tag_a_doc_names_has_its_commit_in_defaults():
+    """A clone may lack the tags: DEFAULTS.md's table names each one's commit, and that commit is
+    in this history."""
+    table = dict(TAG_ROW.findall((ROOT / "docs" / "DEFAULTS.md").read_text()))
+    named = {t for doc in [README, *DOCS] for t in TAG_NAME.findall(doc.read_text())}
+    assert named, "the pattern finds no tag: it no longer matches how the docs name tags"
+    assert named <= set(table), (
+        f"tags without a commit in DEFAULTS.md: {sorted(named - set(table))}"
+    )
+    shallow = subprocess.run(
+        ["git", "rev-parse", "--is-shallow-repository"], cwd=ROOT, capture_output=True, text=True
+    )
+    if shallow.returncode != 0 or shallow.stdout.strip() != "false":
+        return  # not a full clone: the commits' presence cannot be checked here
+    for tag, commit in table.items():
+        ok = subprocess.run(
+            ["git", "cat-file", "-e", f"{commit}^{{commit}}"], cwd=ROOT, capture_output=True
+        )
+        assert ok.returncode == 0, f"{tag}: commit {commit} is not in this history"
+
+
 def commands(text: str) -> list[tuple[str, list[str]]]:
     """(recipe, arguments) of every ``python recipes/NAME.py …`` and ``irdrc NAME …`` in ``text``
     outside its ``at-tag`` regions, comments after ``#`` dropped."""

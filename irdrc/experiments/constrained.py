@@ -119,6 +119,25 @@ class Config(Learning):
         for key, hi in (("max_drop", 1e12), ("min_radar", 1.0)):
             if getattr(self, key) is not None:
                 object.__setattr__(self, key, checks.check_number(key, getattr(self, key), 0, hi))
+        actions = self.params.env.actions
+        if actions != "binary":
+            if self.learner == "dqn_lagrangian":
+                raise ValueError(
+                    f"env.actions={actions}: learner=dqn_lagrangian learns whole-step modes "
+                    "(env.actions=binary); over the radar share the region is solved exactly "
+                    "(learner=lp)"
+                )
+            if self.frontier and actions == "levels":
+                raise ValueError(
+                    "frontier=true draws binary modes against time-sharing over ρ ∈ [0, 1]: "
+                    "env.actions=binary or continuous"
+                )
+            for key in ("max_drop", "min_radar"):
+                if actions == "continuous" and getattr(self, key) is not None:
+                    raise ValueError(
+                        f"{key}={getattr(self, key)}: over ρ ∈ [0, 1] the region bounds "
+                        f"target_miss alone; env.actions=levels takes {key} (an LP)"
+                    )
         if self.learner == "dqn_lagrangian":
             if self.frontier:
                 raise ValueError("learner=dqn_lagrangian learns one target: use frontier=false")
@@ -144,6 +163,10 @@ def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
     """The typed config, checked; a learner's model must fit the dense scorer, and one target's
     feasibility is the LP itself (``run`` solves it before any file is written)."""
     cfg = checks.build(Config, composed.cfg)
+    if cfg.params.env.actions != "binary":
+        from irdrc.experiments.solve import check_shares_fit
+
+        check_shares_fit(cfg.params)
     if cfg.learner == "dqn_lagrangian":
         check_dense(cfg.params)  # the learner's exact scorer needs the dense model
     if resume is not None and int(resume["frames"]) >= cfg.algo.dqn.total_frames:
@@ -163,6 +186,10 @@ def run(cfg: Config, run) -> dict[str, Any]:
         summary = run_frontier(cfg, run)
     elif cfg.learner == "dqn_lagrangian":
         summary = run_learned(cfg, run)
+    elif cfg.params.env.actions != "binary":
+        from irdrc.experiments.share_region import solve_shares
+
+        summary = solve_shares(cfg, run)
     else:
         summary = solve_lp(cfg, run)
     if summary is not None:

@@ -1,6 +1,8 @@
 """The design question's frontier (``recipes/constrained.py frontier=true``): the most data for each
 miss-detection target, exactly (the LP), against the paper's route of tuning the detection reward r4
-(the reward-optimal deterministic policy at each r4), on the same axes."""
+(the reward-optimal deterministic policy at each r4), on the same axes; with
+``env.actions=continuous`` also the trade-off region of time-sharing (MODEL.md § D: the randomised
+ρ policy and the dual bound at every target, the LP over 21 levels at the table's targets)."""
 
 from __future__ import annotations
 
@@ -17,7 +19,8 @@ from irdrc.core.exact import build_model, stationary_metrics, value_iteration
 from irdrc.core.metrics import Metrics
 from irdrc.core.params import Params
 from irdrc.experiments.progress import Ticker
-from irdrc.experiments.results import atomic_savefig, write_rows_csv
+from irdrc.experiments.results import atomic_savefig, md_table, write_rows_csv, write_table_md
+from irdrc.experiments.share_region import binary_params, levels_lp_value, share_points
 
 FRONTIER_COLUMNS = (
     "p1_speed",
@@ -30,6 +33,7 @@ FRONTIER_COLUMNS = (
     "link_capacity",
     "avg_reward",
     "randomised_states",
+    "upper",
 )
 
 
@@ -58,6 +62,7 @@ def _lp_points(
                 "r4": None,
                 **{k: getattr(sol.metrics, k) for k in FRONTIER_COLUMNS[4:9]},
                 "randomised_states": len(sol.randomised),
+                "upper": None,
             }
         )
     return rows
@@ -76,9 +81,61 @@ def _r4_points(params: Params, p: float, r4s: list[float], gamma: float, ticker:
                 "r4": r4,
                 **{k: getattr(m, k) for k in FRONTIER_COLUMNS[4:9]},
                 "randomised_states": 0,
+                "upper": None,
             }
         )
     return rows
+
+
+def share_table(
+    share: list[dict], gap: list[dict], levels: dict[tuple[float, float], float]
+) -> list[dict]:
+    """``gap`` rows with time-sharing's bounds at their target (``share``'s rows) and the LP over
+    levels (``levels``: (p1_speed, target) → value)."""
+    out = []
+    for g in gap:
+        row = next(
+            r
+            for r in share
+            if r["p1_speed"] == g["p1_speed"] and r["target_miss"] == g["target_miss"]
+        )
+        out.append(
+            {
+                **g,
+                "share_lower": row["throughput"],
+                "share_upper": row["upper"],
+                "levels_lp": levels.get((g["p1_speed"], g["target_miss"])),
+            }
+        )
+    return out
+
+
+def region_md(gap: list[dict], levels: int) -> str:
+    """The trade-off region's table at the table's targets (``tradeoff_region.md``)."""
+    rows = [
+        [
+            f"{g['p1_speed']:g}",
+            f"{g['target_miss']:g}",
+            f"{g['share_lower']:.6f}",
+            f"{g['share_upper']:.6f}",
+            f"{g['share_upper'] - g['share_lower']:.1e}",
+            f"{g['levels_lp']:.6f}",
+            f"{g['lp_throughput']:.4f}",
+            f"×{g['share_lower'] / g['lp_throughput']:.2f}" if g["lp_throughput"] > 0 else "—",
+        ]
+        for g in gap
+    ]
+    header = [
+        "p^v_1",
+        "target miss",
+        "time-sharing: feasible ρ policy",
+        "dual bound",
+        "gap",
+        f"LP over {levels} levels",
+        "binary modes' LP",
+        "time-sharing / binary",
+    ]
+    return md_table(header, rows)
 
 
 def give_up_table(lp: list[dict], r4: list[dict], targets: list[float]) -> list[dict]:
@@ -117,20 +174,40 @@ def run_frontier(cfg: Any, run) -> dict[str, Any]:
     t0 = time.perf_counter()
     lp_rows: list[dict] = []
     r4_rows: list[dict] = []
-    scenarios = {p: ref_params(cfg.params, p) for p in ps}
+    shared = cfg.params.env.actions == "continuous"
+    shares = {p: ref_params(cfg.params, p) for p in ps}
+    scenarios = {p: binary_params(shares[p]) for p in ps}
     lp_targets = {p: _lp_targets(scenarios[p], n, cfg.optimum_gamma, targets) for p in ps}
-    # one count for the whole run, LP solves and r4 solves alike, so the first ETA is a fair one
-    total = sum(len(t) for t in lp_targets.values()) + len(ps) * len(r4s)
-    ticker = Ticker(total, "frontier: exact LP solves per target, then value iteration per r4")
+    # one count for the whole run, every solve alike, so the first ETA is a fair one
+    total = sum(len(t) for t in lp_targets.values()) * (2 if shared else 1) + len(ps) * len(r4s)
+    total += len(ps) * len(targets) if shared else 0
+    what = "exact LP solves per target, then value iteration per r4"
+    if shared:
+        what += ", then time-sharing's bounds per target and its LP over levels at the table's"
+    ticker = Ticker(total, f"frontier: {what}")
     for p in ps:
         lp_rows += _lp_points(scenarios[p], p, kwargs, lp_targets[p], ticker)
     for p in ps:
         r4_rows += _r4_points(scenarios[p], p, r4s, cfg.optimum_gamma, ticker)
+    share_rows: list[dict] = []
+    levels: dict[tuple[float, float], float] = {}
+    if shared:
+        from irdrc.core.share_cmdp import LEVELS
+
+        for p in ps:
+            share_rows += share_points(shares[p], p, kwargs["objective"], lp_targets[p], ticker)
+            for t in targets:
+                levels[(p, t)] = levels_lp_value(shares[p], t, kwargs["objective"], LEVELS)
+                ticker.tick()
     gap = give_up_table(lp_rows, r4_rows, targets)
+    if shared:
+        gap = share_table(share_rows, gap, levels)
     wall = time.perf_counter() - t0
-    write_rows_csv(run.dir / "frontier.csv", [*lp_rows, *r4_rows], FRONTIER_COLUMNS)
+    write_rows_csv(run.dir / "frontier.csv", [*lp_rows, *r4_rows, *share_rows], FRONTIER_COLUMNS)
     write_rows_csv(run.dir / "frontier_gap.csv", gap)
-    plot_frontier(lp_rows, r4_rows, run.dir / "frontier.png", targets=targets)
+    if shared:
+        write_table_md(run.dir / "tradeoff_region.md", region_md(gap, LEVELS), wall)
+    plot_frontier(lp_rows, r4_rows, run.dir / "frontier.png", targets=targets, share=share_rows)
     print(
         f"\nthe most data per miss-detection target (LP, {n} targets per p^v_1) against the best "
         f"reward-optimal policy over r4 ∈ [{r4s[0]:g}, {r4s[-1]:g}] (step {grid.r4.step:g}), "
@@ -148,6 +225,20 @@ def run_frontier(cfg: Any, run) -> dict[str, Any]:
             f"{g['p1_speed']:>8g}  {g['target_miss']:>6g}  {g['lp_throughput']:>13.4f}  "
             f"{r4txt:>24}  {lost:>8}"
         )
+    if shared:
+        print(
+            f"\ntime-sharing (MODEL.md § D, {cfg.params.env.sensing} sensing): the most data at "
+            "each target over ρ ∈ [0, 1] — a feasible randomised ρ policy, the dual bound above "
+            f"it, and the LP over {LEVELS} levels — against the binary modes' LP:\n"
+        )
+        print("p1.speed  target  time-sharing [feasible, bound]  LP over levels  binary LP  gain")
+        for g in gap:
+            times = g["share_lower"] / g["lp_throughput"] if g["lp_throughput"] > 0 else None
+            print(
+                f"{g['p1_speed']:>8g}  {g['target_miss']:>6g}  "
+                f"[{g['share_lower']:.6f}, {g['share_upper']:.6f}]  {g['levels_lp']:>14.6f}  "
+                f"{g['lp_throughput']:>9.4f}  {'—' if times is None else f'×{times:.2f}'}"
+            )
     return {
         "method": "constrained_frontier",
         "p1_speed": ps,
@@ -172,10 +263,17 @@ def optimal_at(params: Params, r4: float, gamma: float) -> tuple[torch.Tensor, M
 
 
 def plot_frontier(
-    lp: Sequence[Mapping], r4: Sequence[Mapping], path: Path, *, targets: Sequence[float] = ()
+    lp: Sequence[Mapping],
+    r4: Sequence[Mapping],
+    path: Path,
+    *,
+    targets: Sequence[float] = (),
+    share: Sequence[Mapping] = (),
 ) -> None:
     """Throughput against miss detection: the LP frontier (a line per p^v_1) and the reward-optimal
-    deterministic policies over r4 (markers, same colour), with the targets as vertical lines."""
+    deterministic policies over r4 (markers, same colour), with the targets as vertical lines; with
+    ``share`` rows, time-sharing's frontier (thick line: the feasible policies; dotted: the dual
+    bound at each target)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -200,12 +298,35 @@ def plot_frontier(
             color=line.get_color(),
             label=f"reward-optimal policy at each r4 (r4 route), p1.speed={p:g}",
         )
+        mine = sorted(
+            (r for r in share if float(r["p1_speed"]) == p), key=lambda r: r["target_miss"]
+        )
+        if mine:
+            ax.plot(
+                [r["miss_detection"] for r in mine],
+                [r["throughput"] for r in mine],
+                lw=3,
+                alpha=0.6,
+                color=line.get_color(),
+                label=f"time-sharing over ρ (feasible), p1.speed={p:g}",
+            )
+            ax.plot(
+                [r["target_miss"] for r in mine],
+                [r["upper"] for r in mine],
+                ":",
+                color="black",
+                lw=1,
+                label="time-sharing's dual bound"
+                if p == min(float(r["p1_speed"]) for r in lp)
+                else None,
+            )
     for i, t in enumerate(targets):
         label = "the recipe's targets (target_miss)" if i == 0 else None
         ax.axvline(t, color="tab:red", linestyle=":", alpha=0.6, label=label)
     ax.set_xlabel("miss detection probability")
     ax.set_ylabel("throughput (packets sent per step)")
-    ax.set_title("The design question: most data subject to a miss-detection target")
+    title = "The design question: most data subject to a miss-detection target"
+    ax.set_title(title + (": whole-step modes against time-sharing" if share else ""), fontsize=10)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8, loc="lower right")
     fig.tight_layout()

@@ -74,6 +74,41 @@ def write_policy_csv(
     atomic_write_text(Path(path), "\n".join(lines) + "\n")
 
 
+SHARE_POLICY_COLUMNS = ("rho", "rho_alt", "p_alt")
+"""A randomised ρ policy's columns after the state (``irdrc.core.share_cmdp.SharePolicy``): the
+share used, and the other share used there with probability ``p_alt`` (0 where deterministic); with
+``env.actions=levels`` the shares' levels (``action``, ``action_alt``) too."""
+
+
+def write_share_policy_csv(
+    path: Path,
+    policy: Any,
+    levels: Sequence[int] | None = None,
+    shares: Sequence[float] | None = None,
+) -> None:
+    """``policy.csv`` of a ``SharePolicy`` (``SHARE_POLICY_COLUMNS``); ``shares``: the levels'
+    shares, which adds each share's level index (``env.actions=levels``)."""
+    cols = decode_state(torch.arange(policy.rho.shape[0]), levels)
+    header = list(POLICY_COLUMNS[:6]) + (["phase"] if cols.shape[-1] == 7 else [])
+    grid = None if shares is None else torch.as_tensor(shares, dtype=torch.float64)
+
+    def level(rho: torch.Tensor) -> list[int]:
+        return (rho[:, None] - grid[None]).abs().argmin(-1).tolist()
+
+    if grid is not None:
+        header += ["action", "rho", "action_alt", "rho_alt", "p_alt"]
+        fields = [level(policy.rho), policy.rho.tolist(), level(policy.rho_alt)]
+        fields += [policy.rho_alt.tolist(), policy.p_alt.tolist()]
+    else:
+        header += list(SHARE_POLICY_COLUMNS)
+        fields = [policy.rho.tolist(), policy.rho_alt.tolist(), policy.p_alt.tolist()]
+    rows = [
+        ",".join(map(str, [*c, *(repr(f) if isinstance(f, float) else f for f in vals)]))
+        for c, *vals in zip(cols.tolist(), *fields, strict=True)
+    ]
+    atomic_write_text(Path(path), "\n".join([",".join(header), *rows]) + "\n")
+
+
 def _prob(p: float) -> str:
     return "0" if p == 0 else "1" if p == 1 else repr(p)
 

@@ -42,6 +42,9 @@ class Segments:
         lo, hi: [K] each segment's ends.
         grid: [K, GRID] the shares of each segment's grid.
         weights: [K, GRID, 4] Q(grid) = weights @ Q(nodes), exact on the span.
+        inverse: [K, 4, 4] the basis at the nodes, inverted: weights = basis @ inverse.
+        scale: [K, 5] each segment's constants of its basis (``_basis``): c, a₀, a₁, a₂, c_w.
+        sensing, gain: the sensing curve the basis's ũ follows.
     """
 
     shares: torch.Tensor
@@ -50,11 +53,44 @@ class Segments:
     hi: torch.Tensor
     grid: torch.Tensor
     weights: torch.Tensor
+    inverse: torch.Tensor
+    scale: torch.Tensor
+    sensing: str
+    gain: float
+
+    def at(self, rho: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """([S] the segment of each share, [S, 4] its weights on that segment's nodes): any
+        function in the span takes the value weights @ (its values at the nodes) at ``rho``."""
+        rho = torch.as_tensor(rho, dtype=torch.float64)
+        k = torch.searchsorted(self.hi, rho).clamp(max=self.hi.shape[0] - 1)
+        lo, hi = self.lo[k], self.hi[k]
+        u = reaction(torch.stack([rho, lo, hi]), self.sensing, self.gain)
+        t = (rho - lo) / (hi - lo)
+        ut = (u[0] - u[1]) / (u[2] - u[1])
+        return k, torch.einsum("sj,sjk->sk", _basis(t, ut, self.scale[k].T), self.inverse[k])
 
 
-def _basis(t: torch.Tensor, ut: torch.Tensor) -> torch.Tensor:
-    """[…, 4]: 1, t, ũ, t·ũ (t and ũ the share and the reaction, each rescaled to the segment)."""
-    return torch.stack([torch.ones_like(t), t, ut, t * ut], -1)
+def _basis(t: torch.Tensor, ut: torch.Tensor, k: Any) -> torch.Tensor:
+    """[…, 4]: a basis of the span of {1, ρ, u, ρu} on one segment that stays well conditioned
+    where the segment is narrow (there ũ ≈ t and tũ ≈ t², so the plain basis {1, t, ũ, tũ} is
+    nearly dependent): 1, t, v = (ũ − t)/c and w = (tũ − a₀ − a₁t − a₂v)/c_w, the part of tũ
+    outside {1, t, v}, each of order 1. t and ũ are the share and the reaction rescaled to the
+    segment; ``k`` = (c, a₀, a₁, a₂, c_w), ``segments`` fits them."""
+    c, a0, a1, a2, cw = k
+    v = (ut - t) / c
+    w = (t * ut - a0 - a1 * t - a2 * v) / cw
+    return torch.stack([torch.ones_like(t), t, v, w], -1)
+
+
+def _fit_basis(tg: torch.Tensor, ug: torch.Tensor) -> tuple[float, ...]:
+    """``_basis``'s constants on a segment from t and ũ on its grid."""
+    bend = float((ug - tg).abs().max())
+    c = bend if bend > 1e-12 else 1.0  # linear sensing: ũ = t, v ≡ 0
+    v = (ug - tg) / c
+    A = torch.stack([torch.ones_like(tg), tg, v], -1)
+    a = torch.linalg.lstsq(A, (tg * ug)[:, None], driver="gelsd").solution[:, 0]
+    rest = float((tg * ug - A @ a).abs().max())
+    return (c, *a.tolist(), rest if rest > 1e-12 else 1.0)
 
 
 def segments(params: Params, grid: int = GRID) -> Segments:
@@ -62,7 +98,7 @@ def segments(params: Params, grid: int = GRID) -> Segments:
     env = params.env
     ends = breakpoints(params)
     shares: list[float] = [0.0]
-    nodes, los, his, grids, weights = [], [], [], [], []
+    nodes, los, his, grids, weights, inverses, scales = [], [], [], [], [], [], []
     frac = torch.tensor(NODES, dtype=torch.float64)
     tg = torch.linspace(0.0, 1.0, grid, dtype=torch.float64)
     for lo, hi in itertools.pairwise(ends):
@@ -70,14 +106,19 @@ def segments(params: Params, grid: int = GRID) -> Segments:
         for x in NODES[1:]:
             shares.append(lo + x * (hi - lo))
             idx.append(len(shares) - 1)
-        ua, ub = (float(reaction(torch.tensor(x), env.sensing, env.dwell_gain)) for x in (lo, hi))
+        ua, ub = (
+            float(reaction(torch.tensor(x, dtype=torch.float64), env.sensing, env.dwell_gain))
+            for x in (lo, hi)
+        )
 
         def rescaled(t: torch.Tensor, lo=lo, hi=hi, ua=ua, ub=ub) -> torch.Tensor:
             u = reaction(lo + t * (hi - lo), env.sensing, env.dwell_gain)
             return (u - ua) / (ub - ua)
 
-        B = _basis(frac, rescaled(frac))  # [4 nodes, 4 functions]
-        weights.append(_basis(tg, rescaled(tg)) @ torch.linalg.pinv(B, rtol=1e-12))
+        scales.append(_fit_basis(tg, rescaled(tg)))
+        B = _basis(frac, rescaled(frac), scales[-1])  # [4 nodes, 4 functions]
+        inverses.append(torch.linalg.pinv(B, rtol=1e-12))
+        weights.append(_basis(tg, rescaled(tg), scales[-1]) @ inverses[-1])
         nodes.append(idx)
         los.append(lo)
         his.append(hi)
@@ -89,6 +130,35 @@ def segments(params: Params, grid: int = GRID) -> Segments:
         hi=torch.tensor(his, dtype=torch.float64),
         grid=torch.stack(grids),
         weights=torch.stack(weights),
+        inverse=torch.stack(inverses),
+        scale=torch.tensor(scales, dtype=torch.float64),
+        sensing=env.sensing,
+        gain=env.dwell_gain,
+    )
+
+
+def chain_at(nodes: DenseModel, seg: Segments, rho: torch.Tensor) -> DenseModel:
+    """``policy_model`` of the ρ policy ``rho`` [S] from the node model ``nodes`` (built on
+    ``seg.shares``): every row of its transitions and expectations is in the span of the four
+    functions on its segment, so it is the weighted sum of the nodes' rows — the same chain to
+    rounding (a test), without rebuilding the queue's tables."""
+    k, w = seg.at(rho)
+    idx = seg.nodes[k]  # [S, 4]
+    s = torch.arange(nodes.num_states)
+
+    def rows(table: torch.Tensor) -> torch.Tensor:
+        return (w.reshape(*w.shape, *([1] * (table.ndim - 2))) * table[idx, s[:, None]]).sum(1)
+
+    e = {n: rows(getattr(nodes, n))[None] for n in ("R", "missed", "false_alarms", "sent")}
+    return DenseModel(
+        params=nodes.params,
+        P=rows(nodes.P)[None],
+        event=nodes.event,
+        dropped=rows(nodes.dropped)[None],
+        capacity=rows(nodes.capacity)[None],
+        queue=nodes.queue,
+        radar=torch.as_tensor(rho, dtype=torch.float64)[None],
+        **e,
     )
 
 
@@ -174,8 +244,7 @@ def solve_continuum(
     nodes = build_model(params, shares=seg.shares)
     start = value_iteration(nodes, gamma=gamma, tol=1e-9)
     rho = seg.shares[start.policy]
-    S = nodes.num_states
-    eye = torch.eye(S, dtype=torch.float64)
+    eye = torch.eye(nodes.num_states, dtype=torch.float64)
     it = 0
     while True:
         it += 1
@@ -184,13 +253,12 @@ def solve_continuum(
         pm = policy_model(params, rho)
         V = torch.linalg.solve(eye - gamma * pm.P[0], pm.R[0])
         Q = nodes.q_values(V, gamma).T  # [S, N]
-        Qg = torch.einsum("skj,kgj->skg", Q[:, seg.nodes], seg.weights)  # [S, K, GRID]
-        best, at = Qg.reshape(S, -1).max(-1)
+        best, share = maximise(seg, Q)
         better = best > V + 1e-12 * V.abs().clamp(min=1.0)
         if not bool(better.any()):
             break
-        rho = torch.where(better, seg.grid.reshape(-1)[at], rho)
-    step = _step_bound(params, seg, Q)
+        rho = torch.where(better, share, rho)
+    step = step_bound(params, seg, Q)
     return ContinuumSolution(
         rho=rho,
         values=V,
@@ -201,21 +269,34 @@ def solve_continuum(
     )
 
 
-def _step_bound(params: Params, seg: Segments, Q: torch.Tensor) -> float:
-    """h²/8 · sup |∂²Q/∂ρ²| over states and segments, from Q's coefficients in the basis
-    {1, t, ũ, t·ũ} (t = (ρ − lo)/Δ, ũ = (u − u_lo)/δ): ∂²/∂ρ² = c₂ũ″ + c₃(2t′ũ′ + tũ″)."""
+def maximise(seg: Segments, Q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """([S] the largest value, [S] its share) of Q(s, ρ) over every segment's grid, from Q at the
+    nodes ``Q`` [S, N] (any function in the span of {1, ρ, u, ρu} on each segment)."""
+    Qg = torch.bmm(Q[:, seg.nodes].transpose(0, 1), seg.weights.transpose(1, 2))  # [K, S, GRID]
+    top, at = Qg.max(-1)  # [K, S]
+    best, k = top.max(0)
+    return best, seg.grid[k, at.gather(0, k[None])[0]]
+
+
+def step_bound(params: Params, seg: Segments, Q: torch.Tensor) -> float:
+    """h²/8 · sup |∂²Q/∂ρ²| over states and segments, from Q's coefficients in ``_basis``
+    (Q = b₀ + b₁t + b₂v + b₃w; t = (ρ − lo)/Δ, ũ = (u − u_lo)/δ): t″ = 0, v″ = ũ″/c and
+    w″ = ((tũ)″ − a₂v″)/c_w with |(tũ)″| ≤ 2|ũ′|/Δ + |ũ″|; |ũ′| = u′/δ and |ũ″| = |u″|/δ are
+    largest at lo (u′ > 0 falls, |u″| falls)."""
     env = params.env
-    frac = torch.tensor(NODES, dtype=torch.float64)
     out = 0.0
     for j in range(seg.nodes.shape[0]):
         lo, hi = float(seg.lo[j]), float(seg.hi[j])
         width = hi - lo
-        u = reaction(torch.tensor([lo, hi]), env.sensing, env.dwell_gain)
+        c, _, _, a2, cw = seg.scale[j].tolist()
+        u = reaction(torch.tensor([lo, hi], dtype=torch.float64), env.sensing, env.dwell_gain)
         du = float(u[1] - u[0])
-        u_t = (reaction(lo + frac * width, env.sensing, env.dwell_gain) - u[0]) / du
-        coef = Q[:, seg.nodes[j]] @ torch.linalg.pinv(_basis(frac, u_t), rtol=1e-12).T  # [S, 4]
+        coef = Q[:, seg.nodes[j]] @ seg.inverse[j].T  # [S, 4]
         d1, d2 = reaction_slope_bound(lo, env.sensing, env.dwell_gain)
-        curv = coef[:, 2].abs() * d2 / du + coef[:, 3].abs() * (2 * d1 / (width * du) + d2 / du)
+        u1, u2 = d1 / du, d2 / du
+        v2 = u2 / c
+        w2 = (2 * u1 / width + u2 + abs(a2) * v2) / cw
+        curv = coef[:, 2].abs() * v2 + coef[:, 3].abs() * w2
         h = width / (seg.grid.shape[1] - 1)
         out = max(out, float(curv.max()) * h * h / 8)
     return out

@@ -288,6 +288,19 @@ LEARNERS = {
         ],
         6400,
     ),
+    "ppo": (
+        "recipes/ppo.py",
+        [
+            "algo.num_envs=8",
+            "algo.frames_per_batch=64",
+            "algo.total_frames=6400",
+            "algo.batch_size=32",
+            "eval.every_frames=320",
+            "checkpoint.every_frames=640",
+            "logger=none",
+        ],
+        6400,
+    ),
     "qlearning": (
         "recipes/qlearning.py",
         ["algo.episodes=40", "eval.every_frames=800", "checkpoint.every_frames=800"],

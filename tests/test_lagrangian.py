@@ -487,7 +487,7 @@ def test_objective_centering_shifts_the_objective_signal_only():
         batch_size=[2],
     )
     plain = loss.signals(td)
-    # the shared loop centres the objective's key in every sample (``OffPolicyLoop.center_key``)
+    # the shared loop centres the objective's key in every sample (``TrainingLoop.center_key``)
     center = RewardCenter(0.01, value=0.75)
     centred = loss.signals(center.center(td.clone(), ("next", "sent")))
     assert torch.allclose(centred[:, 0], plain[:, 0] - 0.75)

@@ -168,11 +168,11 @@ def test_every_recipe_is_one_module_with_a_typed_config():
 
 
 def test_every_off_policy_learner_runs_on_the_one_loop():
-    """DQN, the Lagrangian DQN and the fleet's mixers hand their parts to ``OffPolicyLoop``; none
+    """DQN, the Lagrangian DQN and the fleet's mixers hand their parts to ``TrainingLoop``; none
     of them has its own evaluate / stop / checkpoint code."""
     for name in ("dqn", "lagrangian", "marl"):
         text = (PKG / "agents" / f"{name}.py").read_text()
-        assert "OffPolicyLoop(" in text or "dqn.train(" in text, name
+        assert "TrainingLoop(" in text or "dqn.train(" in text, name
         for own in ("stop_requested", "checkpoint_due", "scorer.metrics(", "progress_record("):
             assert own not in text, (name, own)
 

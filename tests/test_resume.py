@@ -135,3 +135,21 @@ def test_sac_resumes_to_a_longer_run():
     resumed = train_sac(p, longer, seed=0, eval_every_frames=160, resume=run.state)
     assert resumed.env_steps == 480 and steps(resumed) == [0, 160, 320, 480]
     assert scored(resumed.history[:3]) == scored(run.history)
+
+
+def test_ppo_resumes_to_a_longer_run():
+    """PPO learns on the same loop without a replay: its checkpoint holds the networks, the
+    optimiser and the reward centre, and a resumed run keeps its history."""
+    from irdrc.agents.configs.continuous import PPOConfig
+    from irdrc.agents.ppo import train as train_ppo
+
+    p = Params.from_overrides({"env.actions": "continuous"})
+    small = {"num_envs": 8, "frames_per_batch": 80, "total_frames": 320, "batch_size": 40}
+    run = train_ppo(p, PPOConfig(**small), seed=0, eval_every_frames=160)
+    assert steps(run) == [0, 160, 320] and run.greedy.shape == (1, 352)
+    assert run.updates == 4 * 2 * 4  # 4 rollouts × 2 minibatches × 4 epochs
+    assert run.state["reward_center"] is not None
+    longer = PPOConfig(**{**small, "total_frames": 480})
+    resumed = train_ppo(p, longer, seed=0, eval_every_frames=160, resume=run.state)
+    assert resumed.env_steps == 480 and steps(resumed) == [0, 160, 320, 480]
+    assert scored(resumed.history[:3]) == scored(run.history)

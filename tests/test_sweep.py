@@ -409,3 +409,15 @@ def test_seed_statistics_per_point_and_banded_curves(tmp_path):
     assert png is not None and png.read_bytes()[:4] == b"\x89PNG"
     (tmp_path / "nogrid.csv").write_text("reward.r4,status,point_id\n5,DONE,x\n")
     assert write_seed_summary(tmp_path / "nogrid.csv", tmp_path / "x") is None
+
+
+def test_seed_curve_labels_leave_out_what_every_point_shares():
+    """A benchmark's points differ by method and a few overrides; the legend names only those."""
+    from irdrc.experiments.seeds import series_labels
+
+    points = [
+        {"method": "sac", "base": "env.p1.speed=1.0 optimum_gamma=0.99"},
+        {"method": "dqn", "base": "env.p1.speed=1.0 env.actions=levels optimum_gamma=0.99"},
+    ]
+    assert series_labels(points) == ["method=sac", "method=dqn, env.actions=levels"]
+    assert series_labels([{"reward.r4": "5"}]) == ["all"]

@@ -19,7 +19,7 @@ from torchrl.objectives import DQNLoss
 
 from irdrc.agents.base import Hooks, RunContext, RunRecord
 from irdrc.agents.configs import DQNConfig
-from irdrc.agents.loop import Learner, OffPolicyLoop, start_frames
+from irdrc.agents.loop import Learner, TrainingLoop, start_frames
 from irdrc.agents.offpolicy import (
     PolyakUpdate,
     action_values,
@@ -117,7 +117,7 @@ def train(
             return greedy_table(qnet, env)
 
     run = RunContext(scorer, eval_every_frames, hooks, resume)
-    loop = OffPolicyLoop(cfg, collector, buffer, sampler, optimizer, run)
+    loop = TrainingLoop(cfg, collector, buffer, sampler, optimizer, run)
     record = loop.run(Learner(loss=loss, update=update, policy=policy))
     with policy_view(loss, cfg):
         record.q = action_values(qnet, env)[None]

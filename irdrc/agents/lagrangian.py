@@ -36,7 +36,7 @@ from torchrl.objectives import LossModule
 
 from irdrc.agents.base import Hooks, RunContext, RunRecord
 from irdrc.agents.configs import LagrangianConfig
-from irdrc.agents.loop import Learner, OffPolicyLoop, start_frames
+from irdrc.agents.loop import Learner, TrainingLoop, start_frames
 from irdrc.agents.offpolicy import (
     STORED_KEYS,
     PolyakUpdate,
@@ -87,7 +87,7 @@ class LagrangianDQNLoss(LossModule):
     DQN, ``double_dqn``) or in the target network, and valued by the target network's heads. Writes
     ``td_error`` (|δ_J| + |δ_C|) for prioritised replay; the loss is the (importance-weighted) mean
     of δ_J² + δ_C². The objective signal arrives centred when reward
-    centering is on (``OffPolicyLoop`` centres it in every sample)."""
+    centering is on (``TrainingLoop`` centres it in every sample)."""
 
     value_network: TwoHeads
     value_network_params: TensorDictParams
@@ -271,7 +271,7 @@ def train(
 
     signals = (("next", objective_key), ("next", "missed"), ("next", "event"))
     run = RunContext(scorer, eval_every_frames, hooks, resume)
-    loop = OffPolicyLoop(
+    loop = TrainingLoop(
         dq,
         collector,
         buffer,

@@ -1,8 +1,10 @@
-"""The one loop of every value learner (DQN, the Lagrangian DQN, the fleet's learners): collect from
-many env rows at once, store each batch in replay, run the gradient updates that are due, and own
-what every run needs around that — the exact evaluations on a schedule, the stop asked for by a
-signal, the checkpoints, and resuming from one. A learner supplies only its parts: the update, the
-policy an evaluation scores, and, where it has them, per-batch work and state of its own.
+"""The one training loop of every learner (DQN, the Lagrangian DQN, the fleet's learners, SAC, PPO):
+collect from many env rows at once, learn from each batch — off-policy, by storing it in replay and
+running the gradient updates that are due; on-policy, by handing it to the learner — and own what
+every run needs around that: the exact evaluations on a schedule, the stop asked for by a signal,
+the checkpoints, and resuming from one. A learner supplies only its parts: the update (or its
+learning from a batch), the policy an evaluation scores, and, where it has them, per-batch work and
+state of its own.
 """
 
 from __future__ import annotations
@@ -30,7 +32,11 @@ class Learner:
 
     Attributes:
         loss: its loss module (networks and target networks: checkpointed).
-        update: one gradient update on a (centred) replay sample; returns the loss value.
+        update: one gradient update on a (centred) replay sample; returns the loss value (an
+            off-policy learner).
+        learn_batch: instead of ``update``, an on-policy learner's learning from each collected
+            (centred) batch itself; returns (gradient updates done, the last loss value). The loop
+            then keeps no replay.
         policy: the table an exact evaluation scores (a greedy table; the fleet's per vehicle).
         after_batch: optional, after each batch's updates: ``(batch, learned) -> scalars`` to
             report beside the loop's own (the Lagrangian DQN adapts its multiplier here).
@@ -38,15 +44,16 @@ class Learner:
     """
 
     loss: nn.Module
-    update: Callable[[TensorDictBase], float]
+    update: Callable[[TensorDictBase], float] | None
     policy: Callable[[], torch.Tensor]
+    learn_batch: Callable[[TensorDictBase], tuple[int, float]] | None = None
     after_batch: Callable[[TensorDictBase, bool], dict[str, Any]] | None = None
     state: Callable[[], dict[str, Any]] | None = None
     load: Callable[[dict[str, Any]], None] | None = None
 
 
 RESUME_KEYS = ("frames", "updates", "history", "loss", "optimizer")
-"""What a learner's checkpoint (``OffPolicyLoop.state``) holds at least."""
+"""What a learner's checkpoint (``TrainingLoop.state``) holds at least."""
 
 
 def start_frames(resume: dict[str, Any] | None) -> int:
@@ -65,11 +72,14 @@ def start_frames(resume: dict[str, Any] | None) -> int:
     return int(resume["frames"])
 
 
-class OffPolicyLoop:
-    """Collect → store → learn → (evaluate, checkpoint, stop), over one collector and one replay.
+class TrainingLoop:
+    """Collect → store → learn → (evaluate, checkpoint, stop), over one collector and one replay
+    (none for an on-policy learner: ``buffer`` and ``sampler`` None).
 
     Args:
-        cfg: the machinery's hyperparameters.
+        cfg: the machinery's hyperparameters (``num_envs``, ``total_frames``, ``batch_size``,
+            ``init_random_frames``, ``updates_per_batch``, ``reward_centering``, ``lr``, ``lr_end``,
+            ``prioritized``, ``name``).
         collector, buffer, sampler, optimizer: the learner's parts.
         run: the scorer of ``Learner.policy``'s tables, the evaluation period, the hooks and the
             checkpoint to go on from (``RunContext``).
@@ -111,8 +121,10 @@ class OffPolicyLoop:
         self.seconds = {"collect": 0.0, "store": 0.0, "learn": 0.0, "evaluate": 0.0}
         """Wall seconds spent collecting (policy and env steps), storing (episodes, centre,
         replay), learning (sampling, updates, priorities) and evaluating: where the time goes."""
-        self.record.info["replay_sampler"] = type(sampler).__name__ + (
-            " (prioritised)" if cfg.prioritized else " (uniform)"
+        self.record.info["replay_sampler"] = (
+            "none (on-policy)"
+            if buffer is None
+            else type(sampler).__name__ + (" (prioritised)" if cfg.prioritized else " (uniform)")
         )
         self.hooks.start(dict(self.record.info))
         self.t0 = time.perf_counter() - (float(resume["wall_seconds"]) if resume else 0.0)
@@ -133,7 +145,8 @@ class OffPolicyLoop:
                 data = self.prepare(data)
             self.episodes.add(data, self.frames)
             self.center.update(data.get(self.center_key))
-            self.buffer.extend(data.select(*self.keys).reshape(-1))
+            if self.buffer is not None:
+                self.buffer.extend(data.select(*self.keys).reshape(-1))
             self.frames += data.numel()
             anneal(self.cfg, self.optimizer, self.sampler, self.frames)
             self.seconds["store"] += time.perf_counter() - t1
@@ -152,6 +165,14 @@ class OffPolicyLoop:
         self.seconds["learn"] += time.perf_counter() - t0
         return True
 
+    def learn_on_policy(self, learn_batch: Callable[[TensorDictBase], tuple[int, float]], data):
+        """An on-policy learner's learning from the (centred) batch ``data``."""
+        t0 = time.perf_counter()
+        updates, self.last_loss = learn_batch(self.center.center(data, self.center_key))
+        self.updates += updates
+        self.seconds["learn"] += time.perf_counter() - t0
+        return True
+
     def scalars(self, **extra: Any) -> dict[str, Any]:
         """What is reported after each batch: env steps, episodes, the last loss, PER's β (NaN
         for uniform replay), the replay's size, and ``extra``."""
@@ -160,7 +181,7 @@ class OffPolicyLoop:
             "episodes": len(self.record.episode_rewards),
             "loss": self.last_loss,
             "beta": getattr(self.sampler, "beta", math.nan),
-            "buffer": len(self.buffer),
+            "buffer": 0 if self.buffer is None else len(self.buffer),
             **extra,
         }
 
@@ -224,7 +245,10 @@ class OffPolicyLoop:
         next_eval = (self.frames // every + 1) * every
         for data in self.batches():
             before = self.frames - data.numel()
-            learned = self.learn(learner.update)
+            if learner.learn_batch is not None:
+                learned = self.learn_on_policy(learner.learn_batch, data)
+            else:
+                learned = self.learn(learner.update)
             extra = learner.after_batch(data, learned) if learner.after_batch else {}
             self.hooks.batch(self.scalars(**extra))
             stop = self.hooks.stop_requested()

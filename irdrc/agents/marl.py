@@ -27,7 +27,7 @@ from torchrl.objectives.multiagent import QMixerLoss
 from irdrc.agents import dqn
 from irdrc.agents.base import Hooks, RunContext, RunRecord
 from irdrc.agents.configs import MIXERS, FleetLearnerConfig, OffPolicyConfig, check_fleet_learner
-from irdrc.agents.loop import Learner, OffPolicyLoop, start_frames
+from irdrc.agents.loop import Learner, TrainingLoop, start_frames
 from irdrc.agents.offpolicy import (
     LadderExploration,
     PolyakUpdate,
@@ -281,7 +281,7 @@ def train_mixer(
         with loss.target_local_value_network_params.to_module(loss.local_value_network):
             return greedy_policy(qnet, env)
 
-    loop = OffPolicyLoop(
+    loop = TrainingLoop(
         dq, collector, buffer, sampler, optimizer, run, keys=MIXER_KEYS, prepare=team_reward
     )
     return loop.run(Learner(loss=loss, update=update, policy=policy))

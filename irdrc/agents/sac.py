@@ -24,7 +24,7 @@ from torchrl.objectives import SACLoss
 
 from irdrc.agents.base import Hooks, RunContext, RunRecord
 from irdrc.agents.configs.continuous import SACConfig
-from irdrc.agents.loop import Learner, OffPolicyLoop, start_frames
+from irdrc.agents.loop import Learner, TrainingLoop, start_frames
 from irdrc.agents.offpolicy import (
     PolyakUpdate,
     clip_and_step,
@@ -125,7 +125,7 @@ def train(
         return value
 
     run = RunContext(scorer, eval_every_frames, hooks, resume)
-    loop = OffPolicyLoop(cfg, collector, buffer, sampler, optimizer, run)
+    loop = TrainingLoop(cfg, collector, buffer, sampler, optimizer, run)
 
     def policy() -> torch.Tensor:  # the Polyak-averaged actor: one noisy update moves it little
         with loss.target_actor_network_params.to_module(actor):

@@ -1,7 +1,10 @@
 """The parts of a learner of the radar share ρ ∈ [0, 1] (MODEL.md § D), apart from its loss: a critic
-Q(observation, ρ), exploration of shares over the env rows, and the policy's table of shares."""
+Q(observation, ρ), exploration of shares over the env rows, a Beta distribution of shares, and the
+policy's table of shares."""
 
 from __future__ import annotations
+
+from typing import Any
 
 import torch
 from tensordict import TensorDict
@@ -22,6 +25,37 @@ class Critic(nn.Module):
 
     def forward(self, observation: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
         return self.body(torch.cat([observation, action], -1))
+
+
+class ShareBeta(torch.distributions.Beta):
+    """A Beta distribution of shares for a ``ProbabilisticActor`` (Chou et al. 2017: bounded, no
+    mass lost at the ends): samples kept within ``EPS`` of [0, 1]'s ends (a float32 sample of
+    exactly 0 or 1 has an infinite log-density), and the mode as the deterministic share — it
+    reaches 1 (β = 1), which the mean never does. The actor's concentrations are > 1
+    (``BetaConcentrations``), so the mode exists."""
+
+    EPS = 1e-6
+
+    def sample(self, sample_shape: Any = ()) -> torch.Tensor:
+        return super().sample(sample_shape).clamp(self.EPS, 1.0 - self.EPS)
+
+    def rsample(self, sample_shape: Any = ()) -> torch.Tensor:
+        return super().rsample(sample_shape).clamp(self.EPS, 1.0 - self.EPS)
+
+    @property
+    def deterministic_sample(self) -> torch.Tensor:
+        """The mode (α − 1)/(α + β − 2); the mean where α = β = 1."""
+        a, b = self.concentration1, self.concentration0
+        mode = (a - 1.0) / (a + b - 2.0).clamp(min=1e-6)
+        return torch.where(a + b > 2.0 + 1e-6, mode, self.mean)
+
+
+class BetaConcentrations(nn.Module):
+    """Two network outputs → the Beta's concentrations α, β = 1 + softplus(·) > 1 (unimodal)."""
+
+    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        c = nn.functional.softplus(x) + 1.0
+        return c[..., :1], c[..., 1:]
 
 
 class ShareLadder(nn.Module):

@@ -126,6 +126,20 @@ def _curve(metrics_csv: Path) -> dict[int, float]:
     return out
 
 
+def series_labels(points: list[dict[str, str]]) -> list[str]:
+    """A legend label per point (grid key → value), leaving out what every point shares: the keys
+    with one value throughout, and the ``base`` overrides common to every point's base."""
+    common = set.intersection(*(set(p.get("base", "").split()) for p in points))
+    labels = []
+    for p in points:
+        parts = [
+            f"{k}={v}" for k, v in p.items() if k != "base" and len({q.get(k) for q in points}) > 1
+        ]
+        own = [o for o in p.get("base", "").split() if o not in common]
+        labels.append(", ".join([*parts, *own]) or "all")
+    return labels
+
+
 def plot_seed_curves(summary_csv: Path, trials_dir: Path, out: Path) -> Path | None:
     """``learning_curves.png``: per point (the grid without ``seed``), the mean curve over the
     DONE seeds with its 95 % t-band and the seeds' min–max; None without ``seed`` in the grid or
@@ -151,10 +165,15 @@ def plot_seed_curves(summary_csv: Path, trials_dir: Path, out: Path) -> Path | N
             continue
         steps = sorted(set.intersection(*(set(c) for c in curves)))
         if steps:
-            label = ", ".join(f"{k}={v}" for k, v in zip(keys, key, strict=True)) or "all"
-            series.append((label, steps, curves))
+            series.append((dict(zip(keys, key, strict=True)), steps, curves))
     if not series:
         return None
+    series = [
+        (label, steps, curves)
+        for label, (_, steps, curves) in zip(
+            series_labels([point for point, _, _ in series]), series, strict=True
+        )
+    ]
     fig, ax = plt.subplots(figsize=(6.4, 4.0))
     colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     for i, (label, steps, curves) in enumerate(series):

@@ -25,7 +25,7 @@ from pathlib import Path
 from typing import Any
 
 from irdrc.core.checks import check_choice
-from irdrc.experiments import constrained, dqn, fleet, qlearning, solve
+from irdrc.experiments import constrained, dqn, fleet, ppo, qlearning, sac, solve
 from irdrc.experiments.compose import compose, rename_overrides
 from irdrc.experiments.grid import (
     format_value,
@@ -37,7 +37,7 @@ from irdrc.experiments.results import atomic_write_text
 from irdrc.experiments.sections import Executor
 from irdrc.experiments.seeds import plot_seed_curves, write_seed_summary
 
-METHODS = {m.NAME: m for m in (dqn, qlearning, solve, constrained, fleet)}
+METHODS = {m.NAME: m for m in (dqn, qlearning, solve, constrained, fleet, sac, ppo)}
 """The recipes a grid point may run (``method``)."""
 # Settings a sweep gives every trial before the user's base overrides (which may change them).
 TRIAL_DEFAULTS = {
@@ -46,6 +46,8 @@ TRIAL_DEFAULTS = {
     "solve": [],
     "constrained": ["progress=false", "logger=none"],
     "fleet": ["progress=false", "logger=none"],
+    "sac": ["progress=false", "logger=none"],
+    "ppo": ["progress=false", "logger=none"],
 }
 STATUSES = ("DONE", "ERROR", "INCOMPLETE")
 

@@ -116,3 +116,96 @@ class SACConfig(ShareConfig):
             "algo.",
             (("temperature_init", 0, 1e3, {"open_lo": True}), ("target_entropy", -100, 100, {})),
         )
+
+
+@dataclass(frozen=True)
+class PPOConfig:
+    """PPO's hyperparameters (``recipes/ppo.py``, section ``algo``): on-policy, so no replay, no
+    exploration schedule and no target networks — the actor's own sampling explores.
+
+    Attributes:
+        num_envs: env rows stepped together.
+        frames_per_batch: env steps per collection (a multiple of ``num_envs``): ``num_envs``
+            rows × frames_per_batch / num_envs steps of each, one rollout to learn from.
+        total_frames: env steps of the whole run (whole rollouts).
+        gamma: discount γ.
+        gae_lambda: GAE's λ (the advantage's bias–variance trade-off).
+        reward_centering: rate per env step of the average reward subtracted from the collected
+            rewards before the advantages (0: off); see ``OffPolicyConfig``.
+        epochs: passes over each rollout.
+        batch_size: transitions per gradient update (a rollout is split into minibatches of this).
+        clip_epsilon: PPO's clip of the probability ratio.
+        entropy_coeff: weight of the entropy bonus.
+        critic_coeff: weight of the critic's loss.
+        lr, lr_end: Adam's learning rate, annealed linearly.
+        max_grad_norm: gradient clipping (0: off).
+        network: the actor's and the critic's shape.
+    """
+
+    num_envs: int = 1000
+    frames_per_batch: int = 32_000
+    total_frames: int = 1_920_000
+    gamma: float = 0.99
+    gae_lambda: float = 0.95
+    reward_centering: float = 1e-5
+    epochs: int = 4
+    batch_size: int = 4000
+    clip_epsilon: float = 0.1
+    entropy_coeff: float = 1e-3
+    critic_coeff: float = 0.5
+    lr: float = 3e-3
+    lr_end: float = 1e-5
+    max_grad_norm: float = 1.0
+    network: NetworkConfig = field(default_factory=NetworkConfig, metadata={"keys": ()})
+    name: str = field(default="ppo", compare=False)
+
+    NUMBERS: ClassVar[tuple] = (
+        ("num_envs", 1, 10**7, checks.INT),
+        ("frames_per_batch", 1, 10**8, checks.INT),
+        ("total_frames", 1, 10**12, checks.INT),
+        ("gamma", 0, 1, checks.OPEN_HI),
+        ("gae_lambda", 0, 1, {}),
+        ("reward_centering", 0, 1, checks.OPEN_HI),
+        ("epochs", 1, 1000, checks.INT),
+        ("batch_size", 1, 10**8, checks.INT),
+        ("clip_epsilon", 0, 10, {"open_lo": True}),
+        ("entropy_coeff", 0, 100, {}),
+        ("critic_coeff", 0, 100, {}),
+        ("lr", 0, 1, {"open_lo": True, "open_hi": True}),
+        ("lr_end", 0, 1, checks.OPEN_HI),
+        ("max_grad_norm", 0, 1e9, {}),
+    )
+
+    init_random_frames: ClassVar[int] = 0
+    """The actor acts from the first step (the loop's warm-up, for off-policy learners)."""
+    prioritized: ClassVar[bool] = False
+    """No replay."""
+
+    def __post_init__(self) -> None:
+        checks.check_numbers(self, "algo.", self.NUMBERS)
+        if self.frames_per_batch % self.num_envs:
+            raise ValueError(
+                f"algo.frames_per_batch={self.frames_per_batch} must be a multiple of "
+                f"algo.num_envs={self.num_envs}"
+            )
+        if self.total_frames % self.frames_per_batch:
+            raise ValueError(
+                f"algo.total_frames={self.total_frames} must be a multiple of "
+                f"algo.frames_per_batch={self.frames_per_batch} (whole rollouts)"
+            )
+        if self.batch_size > self.frames_per_batch:
+            raise ValueError(
+                f"algo.batch_size={self.batch_size} is larger than a rollout "
+                f"(algo.frames_per_batch={self.frames_per_batch})"
+            )
+
+    @property
+    def updates_per_batch(self) -> int:
+        """Gradient updates per rollout: ``epochs`` passes of ⌈frames_per_batch / batch_size⌉."""
+        return self.epochs * -(-self.frames_per_batch // self.batch_size)
+
+    @classmethod
+    def from_sections(cls, algo: Any, network: Any) -> Any:
+        """From the ``algo`` and ``network`` sections; unknown keys are refused."""
+        built = checks.build(cls, {k: v for k, v in dict(algo).items() if k != "network"}, "algo.")
+        return dataclasses.replace(built, network=NetworkConfig.from_dict(network))

@@ -266,7 +266,7 @@ def test_fleet_env_specs_seeding_and_misuse():
             td = env.step(td)
             out.append(td["next", "agents", "reward"].clone())
             nxt = td["next"]
-            assert torch.equal(nxt["state"], env.sim.fleet_index(nxt["vehicle_state"]))
+            assert torch.equal(nxt["joint_index"], env.sim.fleet_index(nxt["vehicle_state"]))
             td = step_mdp(td)
         return torch.stack(out)
 

@@ -104,14 +104,14 @@ def test_qlearning_resumed_is_the_uninterrupted_run():
         qlearning.train(Params(), cfg, num_learners=3, resume=mid)
 
 
-@pytest.mark.parametrize("learner", ["vdn", "idqn"])
+@pytest.mark.parametrize("learner", ["vdn", "idqn", "mappo"])
 def test_fleet_learners_resume_in_fleet_steps(learner):
     """The fleet's learners checkpoint through the same loop; idqn's rows (N per fleet step) are
     counted in fleet steps in its history and its checkpoint's ``env_steps``."""
     model = FleetModel(FleetSpec(vehicles=2))
     scorer = FleetScorer(model)
     small = {"num_envs": 8, "frames_per_batch": 32, "total_frames": 320, "batch_size": 16}
-    cfg = FleetLearnerConfig.from_sections(learner, small)
+    cfg = FleetLearnerConfig.from_sections(learner, small, None, small)
     saved = []
     hooks = Hooks(on_checkpoint=saved.append, checkpoint_every_frames=160)
     first = marl.train(model, cfg, seed=0, scorer=scorer, eval_every_frames=160, hooks=hooks)

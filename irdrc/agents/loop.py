@@ -78,7 +78,8 @@ class TrainingLoop:
 
     Args:
         cfg: the machinery's hyperparameters (``num_envs``, ``total_frames``, ``batch_size``,
-            ``init_random_frames``, ``updates_per_batch``, ``reward_centering``, ``lr``, ``lr_end``,
+            ``init_random_frames``, ``updates_per_batch``, ``reward_centering`` (and
+            ``reward_std`` where the learner has it), ``lr``, ``lr_end``,
             ``prioritized``, ``name``).
         collector, buffer, sampler, optimizer: the learner's parts.
         run: the scorer of ``Learner.policy``'s tables, the evaluation period, the hooks and the
@@ -108,7 +109,7 @@ class TrainingLoop:
         self.resume = resume = run.resume
         self.keys, self.center_key, self.prepare = keys, center_key, prepare
         self.record = RunRecord(method=cfg.name, greedy=torch.zeros(1, 1, dtype=torch.int64))
-        self.center = RewardCenter(cfg.reward_centering)
+        self.center = RewardCenter(cfg.reward_centering, getattr(cfg, "reward_std", 0.0))
         self.frames = start_frames(resume)
         self.updates = 0
         self.episodes = EpisodeTracker(cfg.num_envs, self.record)
@@ -215,7 +216,7 @@ class TrainingLoop:
             "wall_seconds": time.perf_counter() - self.t0,
             "history": list(self.record.history),
             "episode_rewards": list(self.record.episode_rewards),
-            **({"reward_center": self.center.value} if self.center.value is not None else {}),
+            **self.center.state(),
             **(learner.state() if learner.state is not None else {}),
         }
 
@@ -226,8 +227,7 @@ class TrainingLoop:
             return
         learner.loss.load_state_dict(resume["loss"])
         self.optimizer.load_state_dict(resume["optimizer"])
-        if self.center.on and resume.get("reward_center") is not None:
-            self.center.value = float(resume["reward_center"])
+        self.center.load(resume)
         self.updates = int(resume["updates"])
         self.record.history = list(resume.get("history", []))
         self.record.episode_rewards = list(resume.get("episode_rewards", []))

@@ -8,7 +8,8 @@ step (one step of every vehicle of a fleet), every policy scored against the cen
   into the fleet's (``VDNMixer`` sums them, ``QMixer`` mixes them monotonically from the fleet's
   observations) and regresses that on the team reward;
 - ``joint``: DQN over the 2^N joint actions on every vehicle's state (``FleetJointEnv``): one
-  network every vehicle executes alike, taking its own bit.
+  network every vehicle executes alike, taking its own bit;
+- ``mappo`` / ``ippo``: multi-agent PPO (``irdrc.agents.mappo``).
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ from dataclasses import replace
 from typing import Any
 
 import torch
-from tensordict import TensorDict, TensorDictBase
+from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule, TensorDictSequential
 from torch import nn
 from torchrl.modules import QValueModule
@@ -26,8 +27,16 @@ from torchrl.objectives.multiagent import QMixerLoss
 
 from irdrc.agents import dqn
 from irdrc.agents.base import Hooks, RunContext, RunRecord
-from irdrc.agents.configs import MIXERS, FleetLearnerConfig, OffPolicyConfig, check_fleet_learner
+from irdrc.agents.configs import (
+    MIXERS,
+    POLICY_GRADIENT,
+    FleetLearnerConfig,
+    OffPolicyConfig,
+    check_fleet_learner,
+)
+from irdrc.agents.fleet_parts import AgentIndex, greedy_policy, observation_top
 from irdrc.agents.loop import Learner, TrainingLoop, start_frames
+from irdrc.agents.mappo import train_ppo
 from irdrc.agents.offpolicy import (
     LadderExploration,
     PolyakUpdate,
@@ -39,7 +48,7 @@ from irdrc.agents.offpolicy import (
     make_collector,
     make_optimizer,
 )
-from irdrc.fleet.env import GROUP, FleetEnv, fleet_observation, fleet_observation_high
+from irdrc.fleet.env import GROUP, FleetEnv
 from irdrc.fleet.model import FleetModel
 from irdrc.fleet.views import FleetJointEnv, FleetRowsEnv
 
@@ -74,6 +83,8 @@ def train(
     run = RunContext(scorer, eval_every_frames, hooks, resume)
     if cfg.learner in MIXERS:
         return train_mixer(model, cfg, run, observe=observe, seed=seed)
+    if cfg.learner in POLICY_GRADIENT:
+        return train_ppo(model, cfg, run, observe=observe, seed=seed)
     if cfg.learner == "joint":
         env = FleetJointEnv(model, fleets=cfg.dqn.num_envs, seed=seed)
         return dqn.train(
@@ -142,17 +153,6 @@ def rows_state(state: dict[str, Any], n: int) -> dict[str, Any]:
 # -- value decomposition ---------------------------------------------------------------------------
 
 
-class AgentIndex(nn.Module):
-    """Appends each agent's one-hot index to its observation ([..., N, W] → [..., N, W + N])."""
-
-    def __init__(self, n_agents: int) -> None:
-        super().__init__()
-        self.register_buffer("eye", torch.eye(n_agents))
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return torch.cat([x, self.eye.expand(*x.shape[:-1], self.eye.shape[0])], -1)
-
-
 class FleetState(nn.Module):
     """The mixer's state: every vehicle's scaled observation, flattened ([..., N, W] → [..., N·W])."""
 
@@ -162,11 +162,6 @@ class FleetState(nn.Module):
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
         return self.scale(obs).flatten(-2)
-
-
-def observation_top(env: FleetEnv) -> torch.Tensor:
-    """[W] the largest value of each entry of a vehicle's observation."""
-    return fleet_observation_high(env.model.spec.vehicle, env.n_agents, env.observe).float()
 
 
 def make_agent_qnet(env: FleetEnv, cfg: FleetLearnerConfig) -> TensorDictSequential:
@@ -214,24 +209,6 @@ def make_mixer(env: FleetEnv, cfg: FleetLearnerConfig) -> TensorDictModule:
         out_keys=["chosen_action_value"],
     )
     return TensorDictSequential(state, mixer)
-
-
-def greedy_policy(qnet: TensorDictSequential, env: FleetEnv) -> torch.Tensor:
-    """The vehicles' greedy policy as ``FleetScorer`` reads it: with ``own`` observations each
-    vehicle's action in every single-vehicle state ([N·S], vehicle-major); with ``full``
-    observations the joint action of every joint state ([S_fleet])."""
-    n, model = env.n_agents, env.model
-    if env.observe == "own":
-        states = torch.arange(model.single.num_states)[:, None].expand(-1, n)
-    else:
-        states = model.vehicle_states()
-    obs = fleet_observation(env.sim.dyn.obs[states], env.own, env.observe)  # [rows, N, W]
-    td = TensorDict({GROUP: TensorDict({"observation": obs}, list(obs.shape[:2]))}, [len(obs)])
-    with torch.no_grad():
-        action = qnet(td).get((GROUP, "action")).long().cpu()  # [rows, N]
-    if env.observe == "own":
-        return action.T.reshape(-1)
-    return (action << torch.arange(n)).sum(1)
 
 
 def team_reward(data: TensorDictBase) -> TensorDictBase:

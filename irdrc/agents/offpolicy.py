@@ -249,13 +249,17 @@ def make_optimizer(loss: nn.Module, cfg: OffPolicyConfig) -> torch.optim.Adam:
 
 
 class RewardCenter:
-    """The running average r̄ of collected rewards that reward centering subtracts
-    (``OffPolicyConfig.reward_centering``): the first batch's mean, then an exponential average at
-    ``rate`` per env step."""
+    """What the loss sees of the collected rewards: centred by their running average r̄
+    (``OffPolicyConfig.reward_centering``: the first batch's mean, then an exponential average at
+    ``rate`` per env step) and, with ``std`` > 0 (``OffPolicyConfig.reward_std``), divided by a
+    scale fixed at the first batch — its standard deviation over ``std`` — so that a scenario's
+    reward weights, from 0.1 to 100, do not set the size of the values the network must fit (the
+    greedy policy is the same for any positive scale)."""
 
-    def __init__(self, rate: float, value: float | None = None) -> None:
-        self.rate = float(rate)
+    def __init__(self, rate: float, std: float = 0.0, value: float | None = None) -> None:
+        self.rate, self.std = float(rate), float(std)
         self.value = value
+        self.scale: float | None = None
 
     @property
     def on(self) -> bool:
@@ -264,6 +268,8 @@ class RewardCenter:
 
     def update(self, reward: torch.Tensor) -> None:
         """Fold in one collected batch of one-step rewards (any shape)."""
+        if self.std > 0 and self.scale is None:
+            self.scale = max(float(reward.double().std()), 1e-12) / self.std
         if not self.on:
             return
         mean = float(reward.double().mean())
@@ -273,11 +279,31 @@ class RewardCenter:
             self.value += (1.0 - (1.0 - self.rate) ** reward.numel()) * (mean - self.value)
 
     def center(self, sample: TensorDictBase, key: Any = ("next", "reward")) -> TensorDictBase:
-        """``sample`` with r̄ subtracted from ``key``."""
-        if not self.on or self.value is None:
-            return sample
-        sample.set(key, sample.get(key) - self.value)
+        """``sample`` with r̄ subtracted from ``key`` and divided by the scale (where on)."""
+        r = sample.get(key)
+        if self.on and self.value is not None:
+            r = r - self.value
+        if self.scale is not None:
+            r = r / self.scale
+        if r is not sample.get(key):
+            sample.set(key, r)
         return sample
+
+    def state(self) -> dict[str, float]:
+        """The checkpoint's entries: the average and the scale, where set."""
+        out = {}
+        if self.value is not None:
+            out["reward_center"] = self.value
+        if self.scale is not None:
+            out["reward_scale"] = self.scale
+        return out
+
+    def load(self, state: dict[str, Any]) -> None:
+        """Restore ``state``'s entries (a checkpoint without them leaves them to the first batch)."""
+        if self.on and state.get("reward_center") is not None:
+            self.value = float(state["reward_center"])
+        if self.std > 0 and state.get("reward_scale") is not None:
+            self.scale = float(state["reward_scale"])
 
 
 def anneal(cfg: OffPolicyConfig, optimizer: torch.optim.Optimizer, sampler: Any, frames: int):

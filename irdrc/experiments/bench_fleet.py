@@ -3,9 +3,9 @@ centralised optimum at N = 2, and against the baselines (Monte-Carlo) as the fle
 
 Part A — N = 2, every (share, channels) cell × learner × seed, one ``recipes/fleet.py`` run each
 through the sweep engine: the final ratio to the exact optimum, fleet steps and seconds to 95 % /
-99 %, beside the exact baselines of the cell; in one cell, the best decentralised policy local
-search finds from the best own-observation run (``irdrc.fleet.search``) — how far own observations
-can go. Part B — N = 2 (part A's runs) and ``vehicles`` (one channel, share 0.5), the own-observation
+99 %, beside the exact baselines of the cell; in every cell, the best decentralised policy found
+(``irdrc.experiments.fleet_best``) — how far own observations can go: the information gap apart
+from the learning gap. Part B — N = 2 (part A's runs) and ``vehicles`` (one channel, share 0.5), the own-observation
 learners against the baselines: fleet reward, miss detection, throughput, denial rate. A figure: the fleet's
 frontier (throughput against miss detection) at N = 2 for the optimum, the learners and the
 baselines, one panel per cell.
@@ -28,7 +28,6 @@ import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
-import torch
 
 from irdrc.agents.configs import FLEET_LEARNERS
 from irdrc.core import checks
@@ -43,7 +42,7 @@ from irdrc.experiments.results import (
 from irdrc.experiments.sections import EXECUTOR, Executor, Plot
 
 NAME = "bench_fleet"
-OWN_LEARNERS = ("idqn", "vdn", "qmix")
+OWN_LEARNERS = ("idqn", "vdn", "qmix", "mappo", "ippo")
 """Learners whose vehicles see only their own state (``env.observe=own``)."""
 
 BASELINES = (
@@ -81,7 +80,6 @@ class Config:
     overrides: tuple[str, ...] = ()
     eval: dict = field(default_factory=lambda: {"every_frames": 50_000})
     search: bool = True
-    search_cell: tuple = (0.5, 1)
     search_sweeps: int = 10
     plot: Plot = field(default_factory=Plot)
     csv: str = "bench_fleet.csv"
@@ -108,8 +106,6 @@ class Config:
                 self, key, checks.check_list(key, getattr(self, key), item, empty=empty)
             )
         checks.check_bool("search", self.search)
-        cell = checks.check_list("search_cell", self.search_cell, length=2)
-        object.__setattr__(self, "search_cell", cell)
         checks.check_numbers(self, "", (("search_sweeps", 1, 1000, checks.INT),))
         from irdrc.core.checks import check_number
 
@@ -195,9 +191,12 @@ def run(cfg: Config, run) -> int:
     text = []
     if a:
         text.append(exact_table(a, tables, len(cfg.seeds)))
-        search = decentralised_search(cfg, a, specs, out) if cfg.search else None
-        if search:
-            text.append(search)
+        if cfg.search and any(r["observe"] == "own" for r in a):
+            from irdrc.experiments.fleet_best import best_per_cell
+
+            section, found = best_per_cell(a, specs, out, cfg.search_sweeps)
+            write_rows_csv(out / "best_decentralised_summary.csv", found)
+            text.append(section)
     if b:
         text.append(scale_table(b, tables))
     table = "\n\n".join(text)
@@ -294,50 +293,6 @@ def exact_table(rows: list[dict[str, Any]], tables: dict[str, Any], seeds: int) 
     return "\n\n".join(out)
 
 
-def decentralised_search(
-    cfg: Config, rows: list[dict[str, Any]], specs: dict[str, Any], out: Path
-) -> str | None:
-    """Local search (``irdrc.fleet.search``) from the best own-observation run of the cell
-    ``search_cell``: the best decentralised policy it finds, against that run and the optimum
-    (the run's own fleet: ``specs`` holds every run's fleet by point id)."""
-    from irdrc.fleet.model import FleetModel
-    from irdrc.fleet.search import improve_tables
-
-    share, k = float(cfg.search_cell[0]), int(cfg.search_cell[1])
-    own = [r for r in rows if r["observe"] == "own" and (r["share"], r["channels"]) == (share, k)]
-    if not own:
-        return None
-    best = max(own, key=lambda r: r["final_ratio"])
-    model = FleetModel(specs[best["point_id"]])
-    lines = (out / "trials" / best["point_id"] / "policy.csv").read_text().splitlines()
-    header = lines[0].split(",")
-    cols = [header.index(f"action{i + 1}") for i in range(2)]
-    joint = torch.tensor([[int(x.split(",")[c]) for c in cols] for x in lines[1:]])
-    states = model.vehicle_states()
-    tables = torch.zeros(2, model.single.num_states, dtype=torch.int64)
-    for i in range(2):
-        tables[i, states[:, i]] = joint[:, i]
-    print(
-        f"\nlocal search from {best['learner']} seed {best['seed']} ({best['final_ratio']:.4f}) …"
-    )
-    res = improve_tables(
-        model,
-        tables.reshape(-1),
-        max_sweeps=int(cfg.search_sweeps),
-        progress=lambda s, v, f: print(
-            f"  sweep {s}: {v:.4f} per fleet step, {f} flips", flush=True
-        ),
-    )
-    opt = best["avg_reward"] / best["final_ratio"]
-    return (
-        f"**The best decentralised policy local search finds** (N = 2, share {share:g}, {k} "
-        f"channel(s), own observations): from {best['learner']} seed {best['seed']} at "
-        f"{res.start_reward / opt:.4f} of the centralised optimum, {res.flips} single-entry flips "
-        f"over {res.sweeps} sweeps ({res.evaluations} exact evaluations, {res.seconds:.0f} s) end "
-        f"at **{res.reward / opt:.4f}**: no single change of either vehicle's table improves it."
-    )
-
-
 def scale_table(rows: list[dict[str, Any]], tables: dict[str, Any]) -> str:
     """Part B as Markdown: per N, each learner (median over seeds) and each baseline: fleet reward
     per fleet step, miss detection, throughput, denial rate."""
@@ -376,7 +331,7 @@ def frontier_figure(rows: list[dict[str, Any]], tables: dict[str, Any], path: Pa
     cols = min(3, len(cells))
     nrows = math.ceil(len(cells) / cols)
     fig, axes = plt.subplots(nrows, cols, figsize=(4.6 * cols, 3.9 * nrows), squeeze=False)
-    marks = {"idqn": "o", "vdn": "s", "qmix": "^", "joint": "D"}
+    marks = {"idqn": "o", "vdn": "s", "qmix": "^", "joint": "D", "mappo": "v", "ippo": "P"}
     for ax, (share, k) in zip(axes.flat, cells, strict=False):
         mine = [r for r in rows if (r["share"], r["channels"]) == (share, k)]
         table = tables[mine[0]["point_id"]]

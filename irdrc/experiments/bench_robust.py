@@ -1,9 +1,12 @@
 """``recipes/bench_robust.py``: DQN over many unseen seeds × scenarios through the sweep engine,
 every final greedy policy scored exactly against its own optimum — how many runs hold, and why the
-others fail (where their policy differs from the optimum).
+others fail (where their policy differs from the optimum). The scenarios are the named grid
+(p^v_1 × r4 of a scenario file) or, with ``scenarios=random``, contested scenarios drawn at random
+from every model key (``irdrc.experiments.random_scenarios``).
 
     python recipes/bench_robust.py                                   # 20 seeds × 6 scenarios
     python recipes/bench_robust.py env=multilevel 'p1_speed=[0.1]'
+    python recipes/bench_robust.py scenarios=random                  # 100 random draws × 1 seed
     python recipes/bench_robust.py 'candidates={dqn: [], small: [network=small]}'
 """
 
@@ -16,13 +19,25 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from irdrc.core.checks import build, check_list, check_number, numbers
+from irdrc.core.checks import (
+    INT,
+    build,
+    check_choice,
+    check_list,
+    check_number,
+    check_numbers,
+    numbers,
+)
 from irdrc.experiments.compose import Composed
 from irdrc.experiments.grid import candidate_overrides, parse_grid
+from irdrc.experiments.random_scenarios import REPORTING, command_line, contested_draws
 from irdrc.experiments.results import md_table
 from irdrc.experiments.sections import EXECUTOR, Eval, Executor, check_common, seeds
 
 NAME = "bench_robust"
+
+SCENARIO_SETS = ("grid", "random")
+"""``scenarios``: the named grid (p^v_1 × r4), or contested draws of every model key."""
 
 
 @dataclass(frozen=True)
@@ -30,9 +45,12 @@ class Config:
     """The benchmark's keys (``recipes/conf/bench_robust.yaml``); ``planned``: every run, checked
     (``irdrc.experiments.trials.plan``), and ``owner``: each run's candidate."""
 
-    seeds: tuple[int, ...] = tuple(range(5, 25))
+    scenarios: str = "grid"
+    seeds: tuple[int, ...] | None = None
     p1_speed: tuple[float, ...] = (0.1, 0.5, 1.0)
     r4: tuple[float, ...] = (5.0, 50.0)
+    draws: int = 100
+    first_draw: int = REPORTING
     candidates: dict | None = None
     overrides: tuple[str, ...] = ()
     eval: Eval = field(default_factory=Eval)
@@ -47,7 +65,12 @@ class Config:
 
     def __post_init__(self) -> None:
         check_common(self)
-        object.__setattr__(self, "seeds", seeds("seeds", self.seeds))
+        check_choice("scenarios", self.scenarios, SCENARIO_SETS)
+        default = tuple(range(5, 25)) if self.scenarios == "grid" else (5,)
+        object.__setattr__(
+            self, "seeds", seeds("seeds", default if self.seeds is None else self.seeds)
+        )
+        check_numbers(self, "", (("draws", 1, 100_000, INT), ("first_draw", 0, 10**9, INT)))
         object.__setattr__(self, "p1_speed", check_list("p1_speed", self.p1_speed, numbers(0, 1)))
         object.__setattr__(self, "r4", check_list("r4", self.r4, numbers(0, 1e9)))
         object.__setattr__(self, "overrides", check_list("overrides", self.overrides, empty=True))
@@ -56,7 +79,9 @@ class Config:
 
     @property
     def grid(self) -> dict[str, list]:
-        """The grid every candidate runs: p^v_1 × r4 × seed."""
+        """The grid every candidate runs: p^v_1 × r4 × seed (with random draws: seed)."""
+        if self.scenarios == "random":
+            return {"seed": list(self.seeds)}
         return {
             "env.p1.speed": list(self.p1_speed),
             "reward.r4": list(self.r4),
@@ -80,11 +105,29 @@ def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
         "checkpoint.every_frames=0",
     ]
     planned, owner = [], {}
+    draws = random_draws(cfg) if cfg.scenarios == "random" else [None]
     for name, extra in candidate_overrides(cfg.candidates).items():
-        for p in plan("dqn", parse_grid(cfg.grid), [*base, *extra]):
-            planned.append(p)
-            owner[p["point_id"]] = name
+        for draw in draws:
+            scenario = [] if draw is None else command_line(draw.overrides)
+            for p in plan("dqn", parse_grid(cfg.grid), [*base, *scenario, *extra]):
+                if draw is not None:
+                    p["point"] = {"draw": draw.index, **p["point"]}
+                planned.append(p)
+                owner[p["point_id"]] = name
     return replace(cfg, planned=tuple(planned), owner=owner)
+
+
+def random_draws(cfg: Config) -> list:
+    """The ``draws`` contested draws from ``first_draw`` up, with a line as they are found."""
+    import sys
+
+    def say(kept: int, tried: int) -> None:
+        if kept == cfg.draws or tried % 50 == 0:
+            print(
+                f"random scenarios: {kept}/{cfg.draws} contested of {tried} drawn", file=sys.stderr
+            )
+
+    return contested_draws(cfg.first_draw, cfg.draws, cfg.optimum_gamma, say)
 
 
 def run(cfg: Config, run) -> int:
@@ -108,8 +151,18 @@ def run(cfg: Config, run) -> int:
             rows.append(run_row(cfg, p, tdir, read_csv_rows(tdir / "metrics.csv")))
     write_rows_csv(out / cfg.csv, rows)
     candidates = candidate_overrides(cfg.candidates)
-    scenarios = parse_grid({k: v for k, v in cfg.grid.items() if k != "seed"})
+    scenarios = (
+        [{}]
+        if cfg.scenarios == "random"
+        else parse_grid({k: v for k, v in cfg.grid.items() if k != "seed"})
+    )
     table = robust_table(rows, candidates, scenarios, th, len(cfg.seeds))
+    if cfg.scenarios == "random":
+        last = max((r["draw"] for r in rows), default=cfg.first_draw)
+        table += (
+            f"\n\n{cfg.draws} contested scenarios drawn at random (draws {cfg.first_draw}–{last}"
+            " of `irdrc.experiments.random_scenarios`; a run's draw is in bench_robust.csv)."
+        )
     print("\n" + table)
     failures = []
     for row in (r for r in rows if not r["holds"]):
@@ -196,7 +249,7 @@ def robust_table(
         for point in scenarios:
             mine = [r for r in theirs if all(r[k] == v for k, v in point.items())]
             if mine:
-                label = ", ".join(f"{k} = {v:g}" for k, v in point.items())
+                label = ", ".join(f"{k} = {v:g}" for k, v in point.items()) or "random draws"
                 body.append([name, label, *summary(mine)])
         if len(scenarios) > 1:
             body.append([f"**{name}**", "**all**", *summary(theirs)])

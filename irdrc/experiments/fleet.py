@@ -14,7 +14,12 @@ import time
 from dataclasses import dataclass, field
 from typing import Any
 
-from irdrc.agents.configs import FLEET_LEARNERS, FleetLearnerConfig, check_fleet_learner
+from irdrc.agents.configs import (
+    FLEET_LEARNERS,
+    POLICY_GRADIENT,
+    FleetLearnerConfig,
+    check_fleet_learner,
+)
 from irdrc.core.checks import INT, build, check_choice, check_numbers
 from irdrc.experiments.compose import Composed
 from irdrc.experiments.sections import (
@@ -52,7 +57,9 @@ class FleetEval:
 
 
 def _learner(data: Any, prefix: str) -> FleetLearnerConfig:
-    return FleetLearnerConfig.from_sections(data.get("learner"), data["algo"], data["network"])
+    return FleetLearnerConfig.from_sections(
+        data.get("learner"), data["algo"], data["network"], data.get("ppo")
+    )
 
 
 @dataclass(frozen=True)
@@ -62,7 +69,7 @@ class Config(Learning):
     fleet: Any = field(default=None, metadata=A_FLEET)
     learner: FleetLearnerConfig = field(
         default_factory=FleetLearnerConfig,
-        metadata={"keys": ("learner", "algo", "network"), "build": _learner},
+        metadata={"keys": ("learner", "algo", "network", "ppo"), "build": _learner},
     )
     eval: FleetEval = field(default_factory=FleetEval)
     plot: Plot = field(default_factory=Plot)
@@ -73,12 +80,21 @@ class Config(Learning):
     @property
     def total(self) -> int:
         """Fleet steps of the run."""
-        return self.learner.dqn.total_frames
+        return self.learner.machinery.total_frames
 
 
 def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
     """The typed config, checked: values, the fleet, that the learner can serve it."""
-    check_choice("learner", composed.cfg.get("learner"), FLEET_LEARNERS)
+    learner = composed.cfg.get("learner")
+    check_choice("learner", learner, FLEET_LEARNERS)
+    own, other = ("ppo", "algo") if learner in POLICY_GRADIENT else ("algo", "ppo")
+    stray = sorted(k for k in composed.explicit if k.startswith(f"{other}."))
+    if stray:
+        raise ValueError(
+            f"{stray[0]}: learner={learner} reads {own}.* ({'PPO' if own == 'ppo' else 'DQN'}'s "
+            f"keys); {other}.* are for learner="
+            + ("|".join(POLICY_GRADIENT) if other == "ppo" else "idqn|vdn|qmix|joint")
+        )
     cfg = build(Config, composed.cfg)
     spec, observe = cfg.fleet
 
@@ -213,6 +229,10 @@ def finish_fleet(cfg: Config, run, model, observe: str, record, scorer, single) 
             "\nMonte-Carlo 95 % half-widths of the fleet reward: "
             + ", ".join(f"{k} ± {v:.4f}" for k, v in errors.items())
         )
+        extra["verdict"] = verdict(name, measured, scorer.reference)
+        print("\n" + extra["verdict"])
+    elif not record.interrupted and (line := fleet_warning(name, observe, learned, scorer)):
+        print("\n" + line)
     return summary_dict(
         method=name,
         scenario=run.scenario,
@@ -233,3 +253,42 @@ def finish_fleet(cfg: Config, run, model, observe: str, record, scorer, single) 
         **extra,
         **record.info,
     )
+
+
+def verdict(name: str, measured: dict[str, Any], best: str) -> str:
+    """Beyond the exact model: the learner against the best baseline (Monte-Carlo), which wins —
+    or that the two are within their 95 % intervals of each other."""
+    mine, theirs = measured[f"{name} (Monte-Carlo)"], measured[f"{best} (Monte-Carlo)"]
+    a, b = mine.fleet.avg_reward, theirs.fleet.avg_reward
+    half = (mine.ci95**2 + theirs.ci95**2) ** 0.5
+    head = (
+        f"{name} earns {a:.4f} ± {mine.ci95:.4f} per fleet step, the best baseline ({best}) "
+        f"{b:.4f} ± {theirs.ci95:.4f} (Monte-Carlo, 95 %): "
+    )
+    if a - b > half:
+        return head + f"{name} wins by {a - b:.4f}"
+    if b - a > half:
+        return head + (
+            f"the baseline wins by {b - a:.4f}; a longer run (algo.total_frames, or ppo."
+            "total_frames for mappo and ippo) is the first thing to try"
+        )
+    return head + "neither wins: the difference is within the intervals"
+
+
+def fleet_warning(name: str, observe: str, learned: Any, scorer: Any) -> str | None:
+    """Within the exact model: a warning when the learner ends below 0.99 of the centralised
+    optimum, with the one override most likely to help — every vehicle's state where it saw its
+    own only (the gap may be information no own-observation policy has: docs/FLEET.md), else a
+    longer run."""
+    ratio = learned.avg_reward / scorer.optimal_metrics.avg_reward
+    if ratio >= 0.99:
+        return None
+    head = f"warning: {name} ends at {ratio:.4f} of the centralised optimum; "
+    if observe == "own":
+        return head + (
+            "with its own state a vehicle may not reach it at all (docs/FLEET.md: the best "
+            "decentralised policy found per cell); learner=joint env.observe=full sees every "
+            "vehicle's state"
+        )
+    key = "ppo.total_frames" if name in POLICY_GRADIENT else "algo.total_frames"
+    return head + f"a longer run ({key}) is the first thing to try"

@@ -1,14 +1,17 @@
 """``FleetEnv``: the fleet as a batched TorchRL multi-agent env (MODEL.md § C).
 
-TorchRL's multi-agent conventions (as its VMAS wrapper): the agents' entries under the group key
-``"agents"`` with shape [*batch, N] — each agent's ``observation`` (``OBSERVE``: by default its
-own d, c, v, m and the shared r, w, as the single-vehicle env's observation), ``action`` (0 comm,
-1 radar), ``reward`` [*batch, N, 1], and the per-step signals ``event``, ``missed``,
-``detected_by_other``, ``granted``, ``denied``, ``sent``, ``dropped`` — and the shared entries at
-the root: ``state`` (the exact fleet model's joint index, for exact scoring, where the exact model
-reaches), ``vehicle_state`` [*batch, N] (each vehicle's single-vehicle state), ``step_count`` and
-``done`` / ``terminated`` / ``truncated`` (episodes end by truncation at the horizon).
-``group_map`` is ``{"agents": ["vehicle_1", …]}``.
+TorchRL's multi-agent conventions (as its VMAS and PettingZoo wrappers, and BenchMARL's tasks):
+the agents' entries under the group key ``"agents"`` with shape [*batch, N] — each agent's
+``observation`` (``OBSERVE``: by default its own d, c, v, m and the shared r, w, as the
+single-vehicle env's observation), ``action`` (0 comm, 1 radar), ``reward`` [*batch, N, 1]
+(``REWARDS``: each vehicle's own, or the team's — the fleet's sum, the same for every vehicle — for
+a cooperative learner), and the per-step signals ``event``, ``missed``, ``detected_by_other``,
+``granted``, ``denied``, ``sent``, ``dropped`` — and the shared entries at the root: ``state`` (a
+centralised critic's features: the shared r, w, then every vehicle's own d, c, v, m, as floats,
+the same layout at every N — ``critic_state``), ``joint_index`` (the exact fleet model's joint
+state, for exact scoring, where the exact model reaches), ``vehicle_state`` [*batch, N] (each
+vehicle's single-vehicle state), ``step_count`` and ``done`` / ``terminated`` / ``truncated``
+(episodes end by truncation at the horizon). ``group_map`` is ``{"agents": ["vehicle_1", …]}``.
 """
 
 from __future__ import annotations
@@ -52,6 +55,28 @@ def fleet_observation_high(params, n: int, observe: str) -> torch.Tensor:
     return torch.cat([high, *([high[own_columns(params)]] * (n - 1))])
 
 
+def shared_columns() -> list[int]:
+    """The single-vehicle observation's columns every vehicle shares (r, w)."""
+    return [2, 3]
+
+
+def critic_state(obs: torch.Tensor, own: list[int]) -> torch.Tensor:
+    """A centralised critic's features [..., 2 + N·len(own)] from the vehicles' single-vehicle
+    observations [..., N, W]: the shared r, w, then each vehicle's own columns in vehicle order."""
+    shared = obs[..., 0, shared_columns()]
+    return torch.cat([shared, obs[..., own].flatten(-2)], -1)
+
+
+def critic_state_high(params, n: int) -> torch.Tensor:
+    """[2 + N·len(own)] the largest value of each entry of ``critic_state``."""
+    high = observation_high(params)
+    return torch.cat([high[shared_columns()], *([high[own_columns(params)]] * n)])
+
+
+REWARDS = ("own", "team")
+"""``FleetEnv``'s ``("agents", "reward")``: each vehicle's own reward, or the team's (the fleet's sum,
+given to every vehicle)."""
+
 SIGNALS = ("event", "missed", "detected_by_other", "granted", "denied")
 """Per-agent boolean signals of a step (with ``sent`` and ``dropped``, int64)."""
 
@@ -77,6 +102,7 @@ class FleetEnv(EnvBase):
         device: the device of the tensors.
         seed: the generator's seed (None: a fresh one).
         observe: ``own`` or ``full`` (``OBSERVE``).
+        reward: ``own`` or ``team`` (``REWARDS``).
     """
 
     def __init__(
@@ -86,10 +112,13 @@ class FleetEnv(EnvBase):
         device: torch.device | str = "cpu",
         seed: int | None = None,
         observe: str = "own",
+        reward: str = "own",
     ) -> None:
         if observe not in OBSERVE:
             raise ValueError(f"observe={observe!r} must be one of {', '.join(OBSERVE)}")
-        self.observe = observe
+        if reward not in REWARDS:
+            raise ValueError(f"reward={reward!r} must be one of {', '.join(REWARDS)}")
+        self.observe, self.reward = observe, reward
         if isinstance(batch_size, int):
             batch_size = (batch_size,)
         batch_size = torch.Size(batch_size)
@@ -108,6 +137,7 @@ class FleetEnv(EnvBase):
         B, N, dev = self.batch_size[0], self.n_agents, self.device
         params = self.model.spec.vehicle
         high = fleet_observation_high(params, N, self.observe)
+        critic = critic_state_high(params, N)
         self.own = own_columns(params)
         width = high.shape[0]
         cap = int(self.sim.dyn.capacity.max())
@@ -129,9 +159,16 @@ class FleetEnv(EnvBase):
                     shape=agent,
                     device=dev,
                 ),
+                "state": Bounded(
+                    low=torch.zeros(B, critic.shape[0], device=dev),
+                    high=critic.to(dev).expand(B, -1).clone(),
+                    shape=(B, critic.shape[0]),
+                    dtype=torch.float32,
+                    device=dev,
+                ),
                 **(
                     {
-                        "state": Categorical(
+                        "joint_index": Categorical(
                             self.model.num_states, shape=(B,), dtype=torch.int64, device=dev
                         )
                     }
@@ -177,8 +214,8 @@ class FleetEnv(EnvBase):
 
     def _out(self, states: torch.Tensor, steps: torch.Tensor, res=None) -> TensorDict:
         B, N = self.batch_size[0], self.n_agents
-        obs = self.sim.dyn.obs[states.reshape(-1)].reshape(B, N, -1)
-        obs = fleet_observation(obs, self.own, self.observe)
+        single = self.sim.dyn.obs[states.reshape(-1)].reshape(B, N, -1)
+        obs = fleet_observation(single, self.own, self.observe)
         agents: dict[str, torch.Tensor] = {"observation": obs.to(self.device)}
         falses = torch.zeros(B, N, dtype=torch.bool)
         zeros = torch.zeros(B, N, dtype=torch.int64)
@@ -193,13 +230,14 @@ class FleetEnv(EnvBase):
                 denied=res.denied,
                 sent=res.sent,
                 dropped=res.dropped,
-                reward=res.reward.to(torch.float32).unsqueeze(-1),
+                reward=self._reward(res.reward).to(torch.float32).unsqueeze(-1),
             )
         truncated = (steps >= self.model.spec.vehicle.env.horizon).reshape(B, 1)
-        root = {"state": self.sim.fleet_index(states)} if self.model.exact else {}
+        root = {"joint_index": self.sim.fleet_index(states)} if self.model.exact else {}
         return TensorDict(
             {
                 GROUP: TensorDict(agents, batch_size=(B, N)),
+                "state": critic_state(single, self.own).to(self.device),
                 **root,
                 "vehicle_state": states,
                 "step_count": steps.reshape(B, 1),
@@ -210,6 +248,12 @@ class FleetEnv(EnvBase):
             batch_size=(B,),
             device=self.device,
         )
+
+    def _reward(self, reward: torch.Tensor) -> torch.Tensor:
+        """[B, N] each vehicle's reward as ``reward`` asks (``team``: the fleet's sum, to each)."""
+        if self.reward == "team":
+            return reward.sum(-1, keepdim=True).expand_as(reward)
+        return reward
 
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDict:
         B, m = self.batch_size[0], self.model

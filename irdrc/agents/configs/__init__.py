@@ -11,7 +11,9 @@ from irdrc.agents.configs.fleet import (
     FLEET_LEARNERS,
     FLEET_OBSERVES,
     MIXERS,
+    POLICY_GRADIENT,
     FleetLearnerConfig,
+    FleetPPOConfig,
     check_fleet_learner,
 )
 from irdrc.agents.configs.lagrangian import (
@@ -35,8 +37,10 @@ __all__ = [
     "LAGRANGIAN_KEYS",
     "MIXERS",
     "OBJECTIVES",
+    "POLICY_GRADIENT",
     "DQNConfig",
     "FleetLearnerConfig",
+    "FleetPPOConfig",
     "LagrangianConfig",
     "NetworkConfig",
     "OffPolicyConfig",

@@ -158,6 +158,7 @@ class PPOConfig:
     max_grad_norm: float = 1.0
     network: NetworkConfig = field(default_factory=NetworkConfig, metadata={"keys": ()})
     name: str = field(default="ppo", compare=False)
+    _section: str = field(default="algo", compare=False, repr=False)
 
     NUMBERS: ClassVar[tuple] = (
         ("num_envs", 1, 10**7, checks.INT),
@@ -182,21 +183,22 @@ class PPOConfig:
     """No replay."""
 
     def __post_init__(self) -> None:
-        checks.check_numbers(self, "algo.", self.NUMBERS)
+        p = f"{self._section}."
+        checks.check_numbers(self, p, self.NUMBERS)
         if self.frames_per_batch % self.num_envs:
             raise ValueError(
-                f"algo.frames_per_batch={self.frames_per_batch} must be a multiple of "
-                f"algo.num_envs={self.num_envs}"
+                f"{p}frames_per_batch={self.frames_per_batch} must be a multiple of "
+                f"{p}num_envs={self.num_envs}"
             )
         if self.total_frames % self.frames_per_batch:
             raise ValueError(
-                f"algo.total_frames={self.total_frames} must be a multiple of "
-                f"algo.frames_per_batch={self.frames_per_batch} (whole rollouts)"
+                f"{p}total_frames={self.total_frames} must be a multiple of "
+                f"{p}frames_per_batch={self.frames_per_batch} (whole rollouts)"
             )
         if self.batch_size > self.frames_per_batch:
             raise ValueError(
-                f"algo.batch_size={self.batch_size} is larger than a rollout "
-                f"(algo.frames_per_batch={self.frames_per_batch})"
+                f"{p}batch_size={self.batch_size} is larger than a rollout "
+                f"({p}frames_per_batch={self.frames_per_batch})"
             )
 
     @property
@@ -206,6 +208,8 @@ class PPOConfig:
 
     @classmethod
     def from_sections(cls, algo: Any, network: Any) -> Any:
-        """From the ``algo`` and ``network`` sections; unknown keys are refused."""
-        built = checks.build(cls, {k: v for k, v in dict(algo).items() if k != "network"}, "algo.")
+        """From its section (``algo``; the fleet's: ``ppo``) and ``network``; unknown keys are
+        refused."""
+        data = {k: v for k, v in dict(algo).items() if k != "network"}
+        built = checks.build(cls, data, f"{cls._section}.")
         return dataclasses.replace(built, network=NetworkConfig.from_dict(network))

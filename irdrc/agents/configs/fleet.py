@@ -5,22 +5,43 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
+from irdrc.agents.configs.continuous import PPOConfig
 from irdrc.agents.configs.value import OffPolicyConfig
 from irdrc.core.checks import INT, check_bool, check_choice, check_numbers
 
-FLEET_LEARNERS = ("idqn", "vdn", "qmix", "joint")
+FLEET_LEARNERS = ("idqn", "vdn", "qmix", "joint", "mappo", "ippo")
 """The fleet's learners (``learner=…``): independent DQN with parameter sharing, value
-decomposition (VDN, QMIX), and DQN over the joint actions."""
+decomposition (VDN, QMIX), DQN over the joint actions, and multi-agent PPO with a centralised
+(MAPPO) or each vehicle's own (IPPO) critic."""
 
 FLEET_OBSERVES = {
     "idqn": ("own",),
     "vdn": ("own", "full"),
     "qmix": ("own", "full"),
     "joint": ("full",),
+    "mappo": ("own", "full"),
+    "ippo": ("own", "full"),
 }
 """What each fleet learner's vehicles may observe (``env.observe``)."""
 
 MIXERS = ("vdn", "qmix")
+
+POLICY_GRADIENT = ("mappo", "ippo")
+"""The fleet learners whose hyperparameters are PPO's (section ``ppo``); the others' are DQN's
+machinery (section ``algo``)."""
+
+
+@dataclass(frozen=True)
+class FleetPPOConfig(PPOConfig):
+    """PPO's keys for the fleet (section ``ppo`` of ``recipes/conf/fleet.yaml``), counted in fleets
+    and fleet steps: ``num_envs`` fleets, ``frames_per_batch`` fleet steps a rollout."""
+
+    num_envs: int = 500
+    frames_per_batch: int = 16_000
+    total_frames: int = 1_600_000
+    entropy_coeff: float = 0.01
+    name: str = field(default="mappo", compare=False)
+    _section: str = field(default="ppo", compare=False, repr=False)
 
 
 def check_fleet_learner(learner: str, model: Any, observe: str) -> None:
@@ -46,20 +67,28 @@ class FleetLearnerConfig:
 
     Attributes:
         learner: ``FLEET_LEARNERS``.
-        dqn: the machinery's keys; ``algo.prioritized`` and ``algo.double_dqn`` left null take the
-            learner's default — idqn, joint: true; vdn, qmix: false (TorchRL's ``QMixerLoss`` takes
-            each vehicle's maximum under the target network and weighs no sample by importance).
+        dqn: the value learners' machinery (section ``algo``); ``algo.prioritized`` and
+            ``algo.double_dqn`` left null take the learner's default — idqn, joint: true; vdn,
+            qmix: false (TorchRL's ``QMixerLoss`` takes each vehicle's maximum under the target
+            network and weighs no sample by importance).
+        ppo: mappo and ippo's PPO (section ``ppo``): each rollout of ``ppo.num_envs`` fleets.
         mixing_embed_dim: QMIX's mixing width.
-        agent_index: vdn, qmix: each vehicle's network input carries its one-hot index (idqn:
-            always; joint: every vehicle's state is its input).
+        agent_index: vdn, qmix: each vehicle's network input carries its one-hot index (idqn,
+            mappo, ippo: always; joint: every vehicle's state is its input).
     """
 
     learner: str = "vdn"
     dqn: OffPolicyConfig = field(
         default_factory=lambda: OffPolicyConfig(prioritized=False, double_dqn=False, name="vdn")
     )
+    ppo: FleetPPOConfig = field(default_factory=FleetPPOConfig)
     mixing_embed_dim: int = 32
     agent_index: bool = True
+
+    @property
+    def machinery(self) -> OffPolicyConfig | FleetPPOConfig:
+        """The hyperparameters the learner trains with (``ppo`` or ``dqn``)."""
+        return self.ppo if self.learner in POLICY_GRADIENT else self.dqn
 
     def __post_init__(self) -> None:
         check_choice("learner", self.learner, FLEET_LEARNERS)
@@ -76,11 +105,16 @@ class FleetLearnerConfig:
                     )
 
     @classmethod
-    def from_sections(cls, learner: str, algo: Any, network: Any = None) -> FleetLearnerConfig:
-        """From ``learner``, the ``algo`` mapping (DQN's keys and the mixers') and ``network``:
-        null values take the learner's defaults, and a mixer's key set for a learner that does
-        not read it is refused."""
+    def from_sections(
+        cls, learner: str, algo: Any, network: Any = None, ppo: Any = None
+    ) -> FleetLearnerConfig:
+        """From ``learner``, the ``algo`` mapping (DQN's keys and the mixers'), ``network`` and the
+        ``ppo`` mapping (mappo, ippo): null values take the learner's defaults, and a mixer's key
+        set for a learner that does not read it is refused."""
         check_choice("learner", learner, FLEET_LEARNERS)
+        if learner in POLICY_GRADIENT:
+            data = {**dict(ppo or {}), "name": learner}
+            return cls(learner=learner, ppo=FleetPPOConfig.from_sections(data, network or {}))
         data = dict(algo)
         read_by = {"mixing_embed_dim": ("qmix",), "agent_index": ("vdn", "qmix")}
         own = {k: data.pop(k) for k in read_by if k in data}

@@ -58,6 +58,10 @@ class OffPolicyConfig:
             collected rewards, subtracted from every sampled reward (Naik et al. 2024): without
             terminal states this shifts every Q-value by r̄/(1 − γ) and leaves the greedy policy
             unchanged, and the network fits only the differences between states.
+        reward_std: 0 (off), or the standard deviation the sampled rewards are scaled to: they are
+            divided by the first collected batch's standard deviation over this (fixed for the
+            run), so the values the network fits have the same size whatever the scenario's reward
+            weights; the greedy policy is unchanged by the scale.
         batch_size: transitions per gradient update.
         updates_per_batch: gradient updates after each collection (the replay ratio is
             ``updates_per_batch · batch_size / frames_per_batch`` samples per env step).
@@ -85,6 +89,7 @@ class OffPolicyConfig:
     gamma: float = 0.99
     double_dqn: bool = True
     reward_centering: float = 1e-5
+    reward_std: float = 0.0
     batch_size: int = 1000
     updates_per_batch: int = 4
     lr: float = 3e-3
@@ -114,6 +119,7 @@ class OffPolicyConfig:
         ("tau", 0, 1, {}),
         ("beta_start", 0, 1, {}),
         ("reward_centering", 0, 1, checks.OPEN_HI),
+        ("reward_std", 0, 1e6, {}),
         ("alpha", 0, 10, {}),
     )
 

@@ -102,19 +102,30 @@ class DenseModel(ExactMDP):
 
 
 def stationary_distribution(P: torch.Tensor) -> torch.Tensor:
-    """μ with μ P = μ, Σμ = 1, by a least-squares solve of the stacked linear system.
+    """μ with μ P = μ, Σμ = 1: one LU solve of (P^T − I) with its last equation replaced by
+    Σμ = 1, or, where that system is singular, a least-squares solve of the stacked system.
 
     Assumes the chain has a single recurrent class (true whenever every factor chain mixes, as
     with the defaults); raises if the solution is not a distribution to 1e-8.
     """
     n = P.shape[0]
-    A = torch.cat([P.T - torch.eye(n, dtype=P.dtype), torch.ones(1, n, dtype=P.dtype)])
-    b = torch.zeros(n + 1, dtype=P.dtype)
+    b = torch.zeros(n, dtype=P.dtype)
     b[-1] = 1.0
-    mu = torch.linalg.lstsq(A, b[:, None], driver="gelsd").solution[:, 0]
-    if bool((mu < -1e-8).any()) or float((mu @ P - mu).abs().max()) > 1e-8:
+    A = P.T - torch.eye(n, dtype=P.dtype)
+    A[-1] = 1.0
+    mu, info = torch.linalg.solve_ex(A, b)
+    if int(info) != 0 or not bool(torch.isfinite(mu).all()) or not _is_stationary(mu, P):
+        A = torch.cat([P.T - torch.eye(n, dtype=P.dtype), torch.ones(1, n, dtype=P.dtype)])
+        rhs = torch.cat([torch.zeros(n, dtype=P.dtype), torch.ones(1, dtype=P.dtype)])
+        mu = torch.linalg.lstsq(A, rhs[:, None], driver="gelsd").solution[:, 0]
+    if not _is_stationary(mu, P):
         raise RuntimeError("the chain has no unique stationary distribution")
     return mu.clamp(min=0) / mu.clamp(min=0).sum()
+
+
+def _is_stationary(mu: torch.Tensor, P: torch.Tensor) -> bool:
+    """Whether ``mu`` is a distribution invariant under ``P``, to 1e-8."""
+    return not bool((mu < -1e-8).any()) and float((mu @ P - mu).abs().max()) <= 1e-8
 
 
 def _poisson_pmf(rate: float, k: int) -> float:

@@ -197,3 +197,22 @@ def test_the_frontier_over_rho_writes_time_sharing_beside_the_binary_modes(tmp_p
     table = (tmp_path / "tradeoff_region.md").read_text()
     assert "dual bound" in table and "LP over 21 levels" in table
     assert "time-sharing (MODEL.md § D" in res.stdout
+
+
+def test_a_multilevel_scenario_keeps_its_factors_across_action_spaces():
+    """DQN over levels reads the optimum over ρ of the same scenario, and the region reads the
+    binary modes', by replacing ``env.actions``: a scenario with three-level factors keeps them
+    (it was refused: its built factors were read back as a config)."""
+    import dataclasses
+
+    from irdrc.experiments.share_region import binary_params
+
+    speed = {
+        "levels": ["low", "medium", "high"],
+        "transition": [[0.8, 0.2, 0.0], [0.1, 0.8, 0.1], [0.0, 0.25, 0.75]],
+        "event": [0.003, 0.01, 0.1],
+    }
+    p = Params.from_overrides({"env.actions": "levels", "env.factors": {"speed": speed}})
+    q = dataclasses.replace(p, env=dataclasses.replace(p.env, actions="continuous"))
+    assert q.env.factors == p.env.factors and q.env.num_states == p.env.num_states == 528
+    assert binary_params(q).env.factors == p.env.factors

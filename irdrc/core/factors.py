@@ -24,8 +24,8 @@ def _factor_specs(value: Any) -> tuple[FactorSpec, ...]:
     value = _plain(value)
     if value is None or (isinstance(value, tuple | list) and not value):
         return ()
-    if isinstance(value, tuple) and all(isinstance(v, FactorSpec) for v in value):
-        return value
+    if isinstance(value, list) and all(isinstance(v, FactorSpec) for v in value):
+        return tuple(value)  # already built (``dataclasses.replace`` of an EnvParams)
     if not isinstance(value, Mapping):
         raise ValueError(
             f"env.factors={value!r} must be a mapping: factor name → levels, transition, …"

@@ -25,7 +25,8 @@ from irdrc.agents.base import RunContext, RunRecord
 from irdrc.agents.configs import FleetLearnerConfig
 from irdrc.agents.fleet_parts import AgentIndex, greedy_policy, observation_top
 from irdrc.agents.loop import Learner, TrainingLoop, start_frames
-from irdrc.agents.offpolicy import clip_and_step, make_body, make_collector, make_optimizer
+from irdrc.agents.offpolicy import make_body, make_collector, make_optimizer
+from irdrc.agents.ppo import learn_rollout
 from irdrc.fleet.env import GROUP, FleetEnv, critic_state_high
 from irdrc.fleet.model import FleetModel
 
@@ -130,16 +131,7 @@ def train_ppo(
     def learn_batch(data: TensorDictBase) -> tuple[int, float]:
         with torch.no_grad():
             loss.value_estimator(data)
-        flat = data.reshape(-1)
-        updates, value = 0, float("nan")
-        for _ in range(pc.epochs):
-            order = torch.randperm(flat.shape[0], device=flat.device)
-            for i in range(0, flat.shape[0], pc.batch_size):
-                out = loss(flat[order[i : i + pc.batch_size]])
-                total = out["loss_objective"] + out["loss_critic"] + out["loss_entropy"]
-                value = clip_and_step(loss, optimizer, pc.max_grad_norm, total)
-                updates += 1
-        return updates, value
+        return learn_rollout(loss, optimizer, pc, data)
 
     loop = TrainingLoop(
         pc,

@@ -25,7 +25,7 @@ from torchrl.objectives.value import GAE
 
 from irdrc.agents.base import Hooks, RunContext, RunRecord
 from irdrc.agents.configs.continuous import PPOConfig
-from irdrc.agents.loop import Learner, TrainingLoop, start_frames
+from irdrc.agents.loop import Learner, TrainingLoop
 from irdrc.agents.offpolicy import (
     clip_and_step,
     make_body,
@@ -33,7 +33,7 @@ from irdrc.agents.offpolicy import (
     make_optimizer,
     observation_top,
 )
-from irdrc.agents.shares import BetaConcentrations, ShareBeta, share_table
+from irdrc.agents.shares import BetaConcentrations, ShareBeta, share_run, share_table
 from irdrc.core.env import DFRCEnv
 from irdrc.core.params import Params
 
@@ -54,6 +54,23 @@ def make_actor(env: DFRCEnv, cfg: PPOConfig) -> ProbabilisticActor:
     )
 
 
+def learn_rollout(
+    loss: Any, optimizer: torch.optim.Optimizer, cfg: Any, data: TensorDictBase
+) -> tuple[int, float]:
+    """``cfg.epochs`` passes over a rollout whose advantages are in ``data``, in shuffled
+    minibatches of ``cfg.batch_size``; returns (updates, the last loss value)."""
+    flat = data.reshape(-1)
+    updates, value = 0, float("nan")
+    for _ in range(cfg.epochs):
+        order = torch.randperm(flat.shape[0], device=flat.device)
+        for i in range(0, flat.shape[0], cfg.batch_size):
+            out = loss(flat[order[i : i + cfg.batch_size]])
+            total = out["loss_objective"] + out["loss_critic"] + out["loss_entropy"]
+            value = clip_and_step(loss, optimizer, cfg.max_grad_norm, total)
+            updates += 1
+    return updates, value
+
+
 def train(
     params: Params,
     cfg: PPOConfig | None = None,
@@ -71,20 +88,10 @@ def train(
     Returns:
         The run's record: ``greedy`` [1, S] the final shares (float64), ``state`` the checkpoint.
     """
-    if params.env.actions != "continuous":
-        raise ValueError(
-            f"PPO acts on radar shares: env.actions=continuous (got {params.env.actions})"
-        )
     cfg = cfg or PPOConfig()
-    torch.manual_seed(seed)
-    env = DFRCEnv(params, batch_size=[cfg.num_envs], device=device, seed=seed)
-    if scorer is None:
-        from irdrc.core.exact.continuum import ContinuumScorer
-
-        scorer = ContinuumScorer(params)
-    start = start_frames(resume)
-    if start >= cfg.total_frames:
-        raise ValueError(f"nothing to resume: the checkpoint is at {start} ≥ algo.total_frames")
+    env, scorer, start = share_run(
+        params, cfg, seed=seed, device=device, scorer=scorer, resume=resume
+    )
 
     # 1. model: the actor (Beta on [0, 1]) and a critic V(observation)
     actor = make_actor(env, cfg)
@@ -110,16 +117,7 @@ def train(
     def learn_batch(data: TensorDictBase) -> tuple[int, float]:
         with torch.no_grad():
             advantage(data)
-        flat = data.reshape(-1)
-        updates, value = 0, float("nan")
-        for _ in range(cfg.epochs):
-            order = torch.randperm(flat.shape[0], device=flat.device)
-            for i in range(0, flat.shape[0], cfg.batch_size):
-                out = loss(flat[order[i : i + cfg.batch_size]])
-                total = out["loss_objective"] + out["loss_critic"] + out["loss_entropy"]
-                value = clip_and_step(loss, optimizer, cfg.max_grad_norm, total)
-                updates += 1
-        return updates, value
+        return learn_rollout(loss, optimizer, cfg, data)
 
     run = RunContext(scorer, eval_every_frames, hooks, resume)
     loop = TrainingLoop(cfg, collector, None, None, optimizer, run)

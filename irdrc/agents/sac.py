@@ -24,7 +24,7 @@ from torchrl.objectives import SACLoss
 
 from irdrc.agents.base import Hooks, RunContext, RunRecord
 from irdrc.agents.configs.continuous import SACConfig
-from irdrc.agents.loop import Learner, TrainingLoop, start_frames
+from irdrc.agents.loop import Learner, TrainingLoop
 from irdrc.agents.offpolicy import (
     PolyakUpdate,
     clip_and_step,
@@ -34,7 +34,7 @@ from irdrc.agents.offpolicy import (
     make_optimizer,
     observation_top,
 )
-from irdrc.agents.shares import Critic, ShareLadder, share_table
+from irdrc.agents.shares import Critic, ShareLadder, share_run, share_table
 from irdrc.core.env import DFRCEnv
 from irdrc.core.params import Params
 
@@ -70,20 +70,10 @@ def train(
     Returns:
         The run's record: ``greedy`` [1, S] the final shares (float64), ``state`` the checkpoint.
     """
-    if params.env.actions != "continuous":
-        raise ValueError(
-            f"SAC acts on radar shares: env.actions=continuous (got {params.env.actions})"
-        )
     cfg = cfg or SACConfig()
-    torch.manual_seed(seed)
-    env = DFRCEnv(params, batch_size=[cfg.num_envs], device=device, seed=seed)
-    if scorer is None:
-        from irdrc.core.exact.continuum import ContinuumScorer
-
-        scorer = ContinuumScorer(params)
-    start = start_frames(resume)
-    if start >= cfg.total_frames:
-        raise ValueError(f"nothing to resume: the checkpoint is at {start} ≥ algo.total_frames")
+    env, scorer, start = share_run(
+        params, cfg, seed=seed, device=device, scorer=scorer, resume=resume
+    )
 
     # 1. model: the actor (TanhNormal on [0, 1]) and a critic Q(observation, ρ)
     actor = make_actor(env, cfg)

@@ -12,8 +12,10 @@ from torch import nn
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from irdrc.agents.configs.value import NetworkConfig
+from irdrc.agents.loop import start_frames
 from irdrc.agents.offpolicy import eps_ladder, make_body
 from irdrc.core.env import DFRCEnv
+from irdrc.core.params import Params
 
 
 class Critic(nn.Module):
@@ -79,3 +81,30 @@ def share_table(actor: nn.Module, env: DFRCEnv) -> torch.Tensor:
     with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
         out = actor(TensorDict({"observation": obs}, batch_size=[obs.shape[0]]))
     return out["action"].reshape(-1).double().clamp(0.0, 1.0).cpu()
+
+
+def share_run(
+    params: Params, cfg: Any, *, seed: int, device: str, scorer: Any, resume: Any
+) -> tuple[DFRCEnv, Any, int]:
+    """What every learner of the radar share starts with: the check that the scenario's actions
+    are shares, torch seeded, ``cfg.num_envs`` env rows, the exact scorer (the continuum's
+    optimum unless ``scorer`` is given) and the env steps a resumed run starts at.
+
+    Raises:
+        ValueError: a discrete action space, or a checkpoint with nothing left to train.
+    """
+    name = cfg.name.upper()
+    if params.env.actions != "continuous":
+        raise ValueError(
+            f"{name} acts on radar shares: env.actions=continuous (got {params.env.actions})"
+        )
+    torch.manual_seed(seed)
+    env = DFRCEnv(params, batch_size=[cfg.num_envs], device=device, seed=seed)
+    if scorer is None:
+        from irdrc.core.exact.continuum import ContinuumScorer
+
+        scorer = ContinuumScorer(params)
+    start = start_frames(resume)
+    if start >= cfg.total_frames:
+        raise ValueError(f"nothing to resume: the checkpoint is at {start} ≥ algo.total_frames")
+    return env, scorer, start

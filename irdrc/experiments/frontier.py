@@ -326,7 +326,7 @@ def plot_frontier(
     ax.set_xlabel("miss detection probability")
     ax.set_ylabel("throughput (packets sent per step)")
     title = "The design question: most data subject to a miss-detection target"
-    ax.set_title(title + (": whole-step modes against time-sharing" if share else ""), fontsize=10)
+    ax.set_title(title + ("\nwhole-step modes against time-sharing" if share else ""), fontsize=10)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8, loc="lower right")
     fig.tight_layout()

@@ -59,3 +59,14 @@ def test_a_run_that_ends_badly_says_so_and_where_its_best_was():
     assert drift is None
     many = end_warning(_hist((0, 0.5), (10, 1.0)) + _hist((0, 0.5), (10, 0.5), learner=1))
     assert many.startswith("warning: 1 of 2 learners end badly") and "learner 1:" in many
+
+
+def test_a_run_below_the_threshold_is_told_the_override_to_try():
+    """DQN's warning ends with the one override most likely to help; a run that ends well gets
+    no line, advice or not."""
+    from irdrc.experiments.report import ADVICE
+
+    line = end_warning(_hist((0, 0.3), (50_000, 0.97)), ADVICE["dqn"])
+    assert line.startswith("warning: the final greedy policy is 0.9700")
+    assert line.endswith("; try " + ADVICE["dqn"]) and "algo.updates_per_batch=8" in line
+    assert end_warning(_hist((0, 0.3), (50_000, 0.999)), ADVICE["dqn"]) is None

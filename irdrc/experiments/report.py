@@ -196,7 +196,7 @@ def print_learner(
     )
     print(f"\nfinal greedy policy: {final:.4f} of the optimum's average reward (exact); {reached}")
     print(policy_differences(scorers[0].model, record.greedy[0].cpu(), scorers[0].optimal.policy))
-    if not record.interrupted and (warning := end_warning(record.history)):
+    if not record.interrupted and (warning := end_warning(record.history, ADVICE.get(lr.name))):
         print(warning, flush=True)
 
 
@@ -263,11 +263,19 @@ END_SLACK = 0.01
 """… as does one whose final policy is more than this below its own best evaluation."""
 
 
-def end_warning(history: list[dict[str, Any]]) -> str | None:
+ADVICE = {
+    "dqn": "algo.updates_per_batch=8 (twice the updates per env step: of 8 random scenarios "
+    "where the default fell short, it held on 3; docs/DQN.md)",
+}
+"""The one override most likely to help a learner that ends below the threshold, by profile."""
+
+
+def end_warning(history: list[dict[str, Any]], advice: str | None = None) -> str | None:
     """One warning line when a learner's final greedy policy is below ``END_THRESHOLD`` of the
     optimum, or more than ``END_SLACK`` below its own best evaluation, saying where that best
-    evaluation was; ``None`` when every learner ends well. The exact model only scores: the
-    warning does not change which network the run returns."""
+    evaluation was and, with ``advice``, the override to try; ``None`` when every learner ends
+    well. The exact model only scores: the warning does not change which network the run
+    returns."""
     runs: dict[int, list[dict[str, Any]]] = {}
     for e in history:
         runs.setdefault(int(e.get("learner", 0)), []).append(e)
@@ -289,7 +297,8 @@ def end_warning(history: list[dict[str, Any]]) -> str | None:
             )
     if not bad:
         return None
+    tail = f"; try {advice}" if advice else ""
     if len(runs) == 1:
-        return f"warning: the final greedy policy is {bad[0][1]} (metrics.csv)"
+        return f"warning: the final greedy policy is {bad[0][1]} (metrics.csv){tail}"
     each = "; ".join(f"learner {i}: {text}" for i, text in bad)
-    return f"warning: {len(bad)} of {len(runs)} learners end badly — {each} (metrics.csv)"
+    return f"warning: {len(bad)} of {len(runs)} learners end badly — {each} (metrics.csv){tail}"

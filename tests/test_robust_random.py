@@ -1,0 +1,61 @@
+"""The default DQN on scenarios nobody tuned it for (``irdrc.experiments.random_scenarios``): the
+slow tier trains it on a handful of contested random draws and holds each final greedy policy to
+0.99 of the exact optimum, and keeps the draw where it is known to fall short in view."""
+
+from __future__ import annotations
+
+import pytest
+
+from irdrc.agents.configs import DQNConfig
+from irdrc.core.exact import Scorer, build_model
+from irdrc.core.params import Params
+from irdrc.experiments.random_scenarios import REPORTING, contested_draws, draw_overrides
+
+SHORT = 1261
+"""A report draw where the default ends far below 0.99 (0.782 in docs/BENCHMARKS.md's random
+benchmark, seed 5: r3 = 60.7 against r1 = 1.23 and r4 = 0.373; radar where the optimum sends)."""
+
+
+def final_ratio(index: int, cfg: DQNConfig, seed: int = 5, *, rewards: bool = True) -> float:
+    """The final greedy policy's exact ratio on draw ``index``; ``rewards=False`` trains on the
+    draw with the paper's reward weights (the mutation) and still scores it on the draw's."""
+    from irdrc.agents.dqn import train
+
+    overrides = draw_overrides(index)
+    params = Params.from_overrides(overrides)
+    scorer = Scorer(build_model(params))
+    if not rewards:
+        overrides = {k: v for k, v in overrides.items() if not k.startswith("reward.")}
+    learn = Params.from_overrides(overrides)
+    rec = train(
+        learn,
+        cfg,
+        seed=seed,
+        scorer=scorer if rewards else None,
+        eval_every_frames=cfg.total_frames,
+    )
+    return scorer.ratio(rec.greedy[0])
+
+
+@pytest.mark.slow
+def test_the_default_dqn_holds_on_random_contested_scenarios():
+    """The first three contested report draws (none looked at when choosing the default), seed 5:
+    every final greedy policy ≥ 0.99 of its exact optimum."""
+    draws = [d.index for d in contested_draws(REPORTING, 3)]
+    ratios = {i: final_ratio(i, DQNConfig()) for i in draws}
+    assert all(r >= 0.99 for r in ratios.values()), ratios
+
+
+@pytest.mark.slow
+def test_a_learner_blind_to_the_scenarios_rewards_fails_there():
+    """The mutation the test above guards against: DQN trained on draw 1007's dynamics with the
+    paper's reward weights (r3 = 50 where the draw's is 0.186) is scored on the draw's own rewards
+    and ends far below 0.99."""
+    assert final_ratio(1007, DQNConfig(), rewards=False) < 0.9
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="the default's known shortfall (docs/BENCHMARKS.md)")
+def test_the_draw_where_the_default_falls_short():
+    """Strict: the day the default holds on this draw, this test fails and the docs must say so."""
+    assert final_ratio(SHORT, DQNConfig()) >= 0.99

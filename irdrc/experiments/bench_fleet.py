@@ -74,7 +74,7 @@ class Config:
     seeds: tuple[int, ...] = (0, 1, 2, 3, 4)
     share: tuple[float, ...] = (0.0, 0.5, 1.0)
     channels: tuple[int, ...] = (1, 2)
-    scale_learners: tuple[str, ...] = OWN_LEARNERS
+    scale_learners: tuple[str, ...] = ("idqn", "vdn", "qmix", "ippo")
     vehicles: tuple[int, ...] = (3, 4, 6, 8)
     scale_seeds: tuple[int, ...] = (0, 1)
     overrides: tuple[str, ...] = ()

@@ -38,7 +38,7 @@ class FleetPPOConfig(PPOConfig):
 
     num_envs: int = 500
     frames_per_batch: int = 16_000
-    total_frames: int = 1_600_000
+    total_frames: int = 800_000
     entropy_coeff: float = 0.01
     name: str = field(default="mappo", compare=False)
     _section: str = field(default="ppo", compare=False, repr=False)

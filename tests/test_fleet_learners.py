@@ -213,7 +213,7 @@ def test_fleet_recipe_files_and_tables(tmp_path):
     r = run_recipe("fleet.py", *TINY, f"hydra.run.dir={out}", cwd=tmp_path)
     assert r.returncode == 0, r.stderr[-2000:]
     s = json.loads((out / "summary.json").read_text())
-    assert s["method"] == "vdn" and s["reference"] == "centralised optimum (exact)"
+    assert s["method"] == "qmix" and s["reference"] == "centralised optimum (exact)"
     assert s["fleet"] == {
         "vehicles": 2,
         "channels": 1,
@@ -238,7 +238,7 @@ def test_fleet_recipe_files_and_tables(tmp_path):
     assert (out / "learning_curve.png").is_file()
     assert "fleet reward / reference" in r.stdout
     # 256 fleet steps end far below the optimum: the warning names the one override to try
-    assert "warning: vdn ends at" in r.stdout and "learner=joint env.observe=full" in r.stdout
+    assert "warning: qmix ends at" in r.stdout and "learner=joint env.observe=full" in r.stdout
 
 
 def test_fleet_recipe_beyond_the_exact_model(tmp_path):

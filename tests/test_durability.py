@@ -355,3 +355,24 @@ def test_every_learner_survives_kill_9_and_sigterm(name, tmp_path):
     _, stderr = proc.communicate(timeout=120)
     assert proc.returncode == 128 + signal.SIGTERM, stderr[-2000:]
     assert "go on with: " in stderr and "resume=" in stderr and "Traceback" not in stderr
+
+
+def test_threads_are_capped_by_the_cores_and_a_trials_cpus(monkeypatch):
+    """``num_threads`` above the machine's cores runs on the cores (a recipe's default of 2 on a
+    one-core machine), and a sweep trial given one CPU runs on one thread whatever its recipe says
+    (SAC's default is 2: two such trials side by side would fight over the cores)."""
+    from irdrc.experiments.scaffold import Run
+
+    before = torch.get_num_threads()
+    monkeypatch.setattr("os.cpu_count", lambda: 1)
+    try:
+        Run.threads(2)
+        assert torch.get_num_threads() == 1
+        monkeypatch.setattr("os.cpu_count", lambda: 8)
+        Run.threads(2)
+        assert torch.get_num_threads() == 2
+        monkeypatch.setattr(Run, "max_threads", 1)
+        Run.threads(2)
+        assert torch.get_num_threads() == 1
+    finally:
+        torch.set_num_threads(before)

@@ -451,6 +451,38 @@ def test_bench_fleet_tables_search_and_figure(tmp_path):
 
 
 @pytest.mark.slow
+def test_the_searchs_chain_is_the_exact_model(two):
+    """The search's solves (GMRES on the chain's operator) give the exact core's long-run reward of
+    decentralised tables, and a derivative the reward's slope along that entry's switch: the
+    switch of the entry with the largest derivative is read against a small randomisation of it
+    (the slope within 1e-3 of the derivative; the curvature over ε = 1e-4 is far smaller)."""
+    from irdrc.experiments.fleet_best import structured_starts
+    from irdrc.fleet.policies import joint_policy
+    from irdrc.fleet.scorer import fleet_metrics
+    from irdrc.fleet.search import Chain
+
+    chain = Chain(two)
+    for _, tables in structured_starts(two)[:3] + structured_starts(two)[-1:]:
+        exact = fleet_metrics(two, joint_policy(two, tables.reshape(-1)))[0].avg_reward
+        assert abs(chain.value(tables) - exact) < 1e-9 * max(1.0, abs(exact))
+    tables = structured_starts(two)[0][1]
+    grad = chain.derivatives(tables)
+    i, o = divmod(int(grad.reshape(-1).argmax()), grad.shape[1])
+    eps = 1e-4
+    pol = joint_policy(two, tables.reshape(-1))
+    probs = torch.nn.functional.one_hot(pol, two.num_actions).double()
+    mine = chain.owner[:, i] == o
+    switched = pol[mine] ^ (1 << i)
+    probs[mine] *= 1 - eps
+    probs[mine, switched] += eps
+    slope = (fleet_metrics(two, probs)[0].avg_reward - chain.value(tables)) / eps
+    assert float(grad[i, o]) > 0
+    assert abs(slope - float(grad[i, o])) < 1e-3 * max(1.0, abs(float(grad[i, o]))), (
+        slope,
+        grad[i, o],
+    )
+
+
 def test_the_default_fleet_learner_is_within_0_99_of_the_best_decentralised_policy_found(two):
     """The recipe's default learner on own observations (N = 2, one channel, share 0.5; seed 20,
     which no choice looked at) ends within 0.99 of the best decentralised policy the search finds

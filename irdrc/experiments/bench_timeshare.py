@@ -28,7 +28,7 @@ NAME = "bench_timeshare"
 LEARNERS = {
     "sac": ("sac", []),
     "ppo": ("ppo", []),
-    "dqn_levels": ("dqn", ["env.actions=levels", "eval.mc_episodes=0"]),
+    "dqn_levels": ("dqn", ["algo=dqn_levels", "env.actions=levels", "eval.mc_episodes=0"]),
 }
 """Each learner's recipe and the overrides that make it a learner of shares."""
 

@@ -295,12 +295,17 @@ class Run:
 
     # -- around the work ------------------------------------------------------------------------
 
-    @staticmethod
-    def threads(n: int) -> None:
-        """torch's threads for this run (one is fastest for small networks here)."""
+    max_threads: int | None = None
+    """At most this many torch threads per run (None: no cap); a sweep's trial sets its CPUs."""
+
+    @classmethod
+    def threads(cls, n: int) -> None:
+        """torch's threads for this run (one is fastest for small networks here), at most the
+        machine's cores and ``Run.max_threads`` (a trial given one CPU runs on one thread)."""
         import torch
 
-        torch.set_num_threads(int(n))
+        cap = min(os.cpu_count() or 1, cls.max_threads or 4096)
+        torch.set_num_threads(max(1, min(int(n), cap)))
 
     def make_logger(self, cfg: Logger, name: str) -> Any:
         """The run's logger (``logger=…``), named ``scenario__name__seed``; None for ``none``."""

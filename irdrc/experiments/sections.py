@@ -7,7 +7,6 @@ check a CUDA device, when one is asked for).
 from __future__ import annotations
 
 import math
-import os
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -231,7 +230,8 @@ def check_common(obj: Any) -> None:
     if hasattr(obj, "seed"):
         checks.check_numbers(obj, "", (("seed", 0, 2**32 - 1, checks.INT),))
     if hasattr(obj, "num_threads"):
-        checks.check_numbers(obj, "", (("num_threads", 1, os.cpu_count() or 1, checks.INT),))
+        # Above the machine's cores is allowed: ``Run.threads`` caps it (a config runs anywhere).
+        checks.check_numbers(obj, "", (("num_threads", 1, 4096, checks.INT),))
     if hasattr(obj, "optimum_gamma"):
         checks.check_numbers(obj, "", (("optimum_gamma", 0, 1, checks.OPEN_HI),))
     if hasattr(obj, "device"):

@@ -58,10 +58,13 @@ def _matches(point_ov: list[str], fail_on: list[str]) -> bool:
 
 def trial(config: dict[str, Any]) -> None:
     """One Tune trial: run the planned point and report its results."""
-    config = config["point"]
     import torch
     from ray import tune
 
+    from irdrc.experiments.scaffold import Run
+
+    Run.max_threads = int(config.get("cpus", 1))  # the recipe's num_threads, within its CPUs
+    config = config["point"]
     torch.set_num_threads(1)
     try:
         out = Path(tune.get_context().get_trial_dir())
@@ -362,7 +365,7 @@ def _run_tune(
         )
         tuner = tune.Tuner(
             tune.with_resources(trial, {"cpu": int(cfg.cpus_per_trial)}),
-            param_space={"point": tune.grid_search(todo)},
+            param_space={"point": tune.grid_search(todo), "cpus": int(cfg.cpus_per_trial)},
             # A worker process runs trial after trial: no process start and imports per trial.
             tune_config=tune.TuneConfig(reuse_actors=True),
             run_config=tune.RunConfig(

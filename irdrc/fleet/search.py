@@ -30,7 +30,28 @@ from irdrc.fleet.model import FleetModel
 from irdrc.fleet.policies import joint_policy
 
 TOL = 1e-12
-"""Power iterations and relative value iterations stop when a step moves less than this."""
+"""Relative tolerance of the exact solves, and the least relative gain a search step keeps."""
+
+RESTART, MAX_ITER = 60, 400
+"""GMRES's restart length and most restarts per solve."""
+
+
+def _krylov(apply: Callable[[torch.Tensor], torch.Tensor], rhs: torch.Tensor, x0: torch.Tensor):
+    """Solve ``apply(y) = rhs`` by restarted GMRES (the operator is never a matrix); returns the
+    solution and whether it reached ``TOL`` (relative residual)."""
+    import numpy as np
+    from scipy.sparse.linalg import LinearOperator, gmres
+
+    n = rhs.numel()
+
+    def matvec(y: np.ndarray) -> np.ndarray:
+        return apply(torch.from_numpy(np.ascontiguousarray(y).reshape(-1))).numpy()
+
+    op = LinearOperator((n, n), matvec=matvec, dtype=np.float64)
+    y, info = gmres(
+        op, rhs.numpy(), x0=x0.numpy(), rtol=TOL, atol=0.0, restart=RESTART, maxiter=MAX_ITER
+    )
+    return torch.from_numpy(y), info == 0
 
 
 @dataclass(frozen=True)
@@ -49,7 +70,16 @@ class SearchResult:
 
 class Chain:
     """The joint chain of decentralised tables on ``model``: its stationary distribution, gain and
-    differential values, each solve warm-started from the last."""
+    differential values, each solve warm-started from the last.
+
+    Both are linear systems in the chain's operator, solved by GMRES to ``TOL``: with v uniform,
+    the stationary x solves x(I − P + 1vᵀ) = vᵀ, and the differential values h solve
+    (I − P + 1vᵀ)h = r − g·1 (h up to a constant, which no derivative reads). Power iteration, the
+    obvious alternative, never converges on a periodic chain (two vehicles taking turns on one
+    channel can make one) and crawls on a slowly mixing one; a solve that does not reach ``TOL`` is
+    finished by power iteration on the lazy chain (x + xP)/2, which has the same stationary law and
+    no period.
+    """
 
     def __init__(self, model: FleetModel) -> None:
         self.model = model
@@ -63,32 +93,35 @@ class Chain:
         return joint_policy(self.model, tables.reshape(-1))
 
     def value(self, tables: torch.Tensor, max_iter: int = 100_000) -> float:
-        """The fleet's exact long-run average reward of ``tables`` (power iteration to ``TOL``)."""
-        pol = self.joint(tables)
-        probs = torch.nn.functional.one_hot(pol, self.model.num_actions).to(torch.float64)
-        x = self.x
-        for _ in range(max_iter):
-            nxt = self.model.step(x, probs)
-            nxt = nxt / nxt.sum()
-            if float((nxt - x).abs().sum()) < TOL:
-                break
+        """The fleet's exact long-run average reward of ``tables`` (see the class docstring)."""
+        model, pol = self.model, self.joint(tables)
+        probs = torch.nn.functional.one_hot(pol, model.num_actions).to(torch.float64)
+        v = torch.full_like(self.x, 1.0 / self.x.numel())
+        x, ok = _krylov(lambda y: y - model.step(y, probs) + v * y.sum(), v, self.x)
+        x = x.clamp_min(0.0)
+        x = x / x.sum()
+        if not ok:  # the lazy chain's power iteration from GMRES's answer
+            for _ in range(max_iter):
+                nxt = 0.5 * (x + model.step(x, probs))
+                nxt = nxt / nxt.sum()
+                if float((nxt - x).abs().sum()) < TOL:
+                    break
+                x = nxt
             x = nxt
-        self.x = nxt
-        return float(nxt @ self.model.R.gather(0, pol[None])[0])
+        self.x = x
+        return float(x @ model.R.gather(0, pol[None])[0])
 
-    def derivatives(self, tables: torch.Tensor, max_iter: int = 100_000) -> torch.Tensor:
+    def derivatives(self, tables: torch.Tensor) -> torch.Tensor:
         """[N, S] the exact derivative of the reward along each entry's switch (module docstring)."""
         model, pol = self.model, self.joint(tables)
-        self.value(tables)
+        g = self.value(tables)
         r = model.R.gather(0, pol[None])[0]
-        h = self.h
-        for _ in range(max_iter):  # relative value iteration: h = r − g + P h, h[0] = 0
-            nxt = r + model.expect(h).gather(0, pol[None])[0]
-            nxt = nxt - nxt[0]
-            if float((nxt - h).abs().max()) < TOL:
-                break
-            h = nxt
-        self.h = nxt
+        v = torch.full_like(r, 1.0 / r.numel())
+
+        def apply(y: torch.Tensor) -> torch.Tensor:
+            return y - model.expect(y).gather(0, pol[None])[0] + (v @ y)
+
+        self.h, _ = _krylov(apply, r - g, self.h)
         Q = model.R + model.expect(self.h)  # [A, S]
         now = Q.gather(0, pol[None])[0]
         out = torch.zeros(tables.shape, dtype=torch.float64)

@@ -4,6 +4,7 @@ optimum over the continuum and the facts § D states at the paper's defaults."""
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 import subprocess
 import sys
@@ -336,6 +337,15 @@ def test_dqn_over_levels_scores_against_both_optima(tmp_path):
     assert 0 <= mc["radar_fraction"] <= 1  # the share of each level, not the level
 
 
+def test_the_levels_profile_is_dqn_over_levels_for_longer():
+    """``algo=dqn_levels`` is DQN's defaults over G levels with 1 M env steps (nothing else)."""
+    from conftest import load
+
+    levels, dqn = load("dqn", "algo=dqn_levels"), load("dqn")
+    assert levels.params.env.actions == "levels" and levels.algo.total_frames == 1_000_000
+    assert levels.algo == dataclasses.replace(dqn.algo, total_frames=1_000_000)
+
+
 def test_dqn_refuses_continuous_shares(tmp_path):
     r = run_recipe("recipes/dqn.py", "env.actions=continuous", f"hydra.run.dir={tmp_path / 'r'}")
     assert (
@@ -345,16 +355,20 @@ def test_dqn_refuses_continuous_shares(tmp_path):
 
 @pytest.mark.slow
 def test_dqn_over_five_levels_reaches_their_optimum_and_fails_without_the_sensing_curve():
-    """The default DQN over G = 5 levels ends ≥ 0.99 of the 5-level optimum (seed 0); trained where
-    sensing is linear (the curve ignored) and scored on the dwell model, it does not."""
+    """DQN over G = 5 levels with its profile (``algo=dqn_levels``) ends ≥ 0.99 of the 5-level
+    optimum (seed 0); trained where sensing is linear (the curve ignored) and scored on the dwell
+    model, it does not."""
+    from conftest import load
+
     from irdrc.agents.dqn import train
     from irdrc.core.exact import Scorer
 
+    cfg = load("dqn", "algo=dqn_levels").algo
     p = params(**{"env.actions": "levels"})
     scorer = Scorer(build_model(p))
-    good = train(p, seed=0, scorer=scorer, eval_every_frames=100_000)
+    good = train(p, cfg, seed=0, scorer=scorer, eval_every_frames=100_000)
     assert scorer.ratio(good.greedy[0]) >= 0.99, [e["optimality_ratio"] for e in good.history]
-    blind = train(params(**{"env.actions": "levels", "env.sensing": "linear"}), seed=0)
+    blind = train(params(**{"env.actions": "levels", "env.sensing": "linear"}), cfg, seed=0)
     assert scorer.ratio(blind.greedy[0]) < 0.95
 
 

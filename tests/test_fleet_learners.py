@@ -450,7 +450,6 @@ def test_bench_fleet_tables_search_and_figure(tmp_path):
     assert (out / "fleet_frontier.png").is_file()
 
 
-@pytest.mark.slow
 def test_the_searchs_chain_is_the_exact_model(two):
     """The search's solves (GMRES on the chain's operator) give the exact core's long-run reward of
     decentralised tables, and a derivative the reward's slope along that entry's switch: the
@@ -483,6 +482,7 @@ def test_the_searchs_chain_is_the_exact_model(two):
     )
 
 
+@pytest.mark.slow
 def test_the_default_fleet_learner_is_within_0_99_of_the_best_decentralised_policy_found(two):
     """The recipe's default learner on own observations (N = 2, one channel, share 0.5; seed 20,
     which no choice looked at) ends within 0.99 of the best decentralised policy the search finds

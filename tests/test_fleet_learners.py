@@ -448,6 +448,14 @@ def test_bench_fleet_tables_search_and_figure(tmp_path):
     rows = (out / "bench_fleet.csv").read_text().splitlines()
     assert len(rows) == 1 + 2
     assert (out / "fleet_frontier.png").is_file()
+    # the finished search is kept for a resumed run, and reused only for the same starts
+    from irdrc.experiments.fleet_best import _cached
+
+    saved = json.loads((out / "search" / "share0.5_channels1.json").read_text())
+    key = saved["key"]
+    assert _cached(out, 0.5, 1, key)["reward"] == float(best[0]["best_decentralised"])
+    assert _cached(out, 0.5, 1, {**key, "starts": key["starts"][1:]}) is None
+    assert _cached(out, 0.5, 1, {**key, "sweeps": key["sweeps"] + 1}) is None
 
 
 def test_the_searchs_chain_is_the_exact_model(two):

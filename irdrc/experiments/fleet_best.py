@@ -11,6 +11,7 @@ decentralised policies, not a proof of the global one (the policy space is 2^(2Â
 
 from __future__ import annotations
 
+import json
 import statistics
 from pathlib import Path
 from typing import Any
@@ -67,7 +68,8 @@ def best_per_cell(
 ) -> tuple[str, list[dict[str, Any]]]:
     """For every cell of ``rows`` (part A's runs, ``specs`` their fleets by point id): the best
     decentralised policy found, written to ``best_decentralised.csv`` (a row per cell, vehicle and
-    state); returns the Markdown section and one summary row per cell."""
+    state); returns the Markdown section and one summary row per cell. A cell's finished search is
+    kept in ``search/`` and reused by a later run of the same directory with the same starts."""
     from irdrc.fleet.model import FleetModel
     from irdrc.fleet.search import best_decentralised, improve_tables
 
@@ -88,10 +90,24 @@ def best_per_cell(
         def say(name: str, res: Any, opt: float = opt) -> None:
             print(f"  {name}: {res.start_reward / opt:.4f} â†’ {res.reward / opt:.4f}", flush=True)
 
-        best = best_decentralised(model, starts, certify=False, progress=say)
-        cert = improve_tables(model, best.tables, max_sweeps=sweeps)
-        say(f"{best.start}, every single switch", cert)
-        ratio = cert.reward / opt
+        key = {"starts": [name for name, _ in starts], "sweeps": sweeps, "centralised": opt}
+        cell = _cached(out, share, k, key)
+        if cell is None:
+            best = best_decentralised(model, starts, certify=False, progress=say)
+            cert = improve_tables(model, best.tables, max_sweeps=sweeps)
+            say(f"{best.start}, every single switch", cert)
+            cell = {
+                "start": best.start,
+                "reward": cert.reward,
+                "sweeps_run": cert.sweeps,
+                "flips": cert.flips,
+                "tables": cert.tables.tolist(),
+            }
+            _cache_path(out, share, k).write_text(json.dumps({"key": key, "cell": cell}))
+        else:
+            print(f"  (found by an earlier run: {_cache_path(out, share, k)})")
+        tables = torch.tensor(cell["tables"], dtype=torch.int64)
+        ratio = cell["reward"] / opt
         learners = {}
         for learner in dict.fromkeys(r["learner"] for r in own):
             learners[learner] = statistics.median(
@@ -102,13 +118,13 @@ def best_per_cell(
                 "share": share,
                 "channels": k,
                 "centralised": opt,
-                "best_decentralised": cert.reward,
+                "best_decentralised": cell["reward"],
                 "best_ratio": ratio,
-                "best_start": best.start,
+                "best_start": cell["start"],
                 "starts": len(starts),
-                "certify_sweeps": cert.sweeps,
-                "certify_flips": cert.flips,
-                "local_optimum": cert.flips == 0 or cert.sweeps < sweeps,
+                "certify_sweeps": cell["sweeps_run"],
+                "certify_flips": cell["flips"],
+                "local_optimum": cell["flips"] == 0 or cell["sweeps_run"] < sweeps,
                 **{f"{name}_ratio": v for name, v in learners.items()},
             }
         )
@@ -116,7 +132,7 @@ def best_per_cell(
         for i in range(model.N):
             tables_out += [
                 {"share": share, "channels": k, "vehicle": i + 1, "state": s, "action": int(a)}
-                for s, a in zip(range(S), cert.tables[i].tolist(), strict=True)
+                for s, a in zip(range(S), tables[i].tolist(), strict=True)
             ]
         learned = ", ".join(
             f"{name} {v:.4f} (gap {1 - v / ratio:+.4f})" for name, v in learners.items()
@@ -127,7 +143,7 @@ def best_per_cell(
                 str(k),
                 f"**{ratio:.4f}**",
                 f"{1 - ratio:.4f}",
-                best.start,
+                cell["start"],
                 learned,
             ]
         )
@@ -150,10 +166,32 @@ def best_per_cell(
         + "\n\nEach cell's search starts from every own-observation run, the baselines' tables, "
         f"both role splits and {RANDOM_STARTS} random tables, improves each on the exact model "
         "(`irdrc.fleet.search`) and certifies the best by exact single switches "
-        "(`best_decentralised.csv` has its tables)."
+        "(`best_decentralised.csv` has its tables; a resumed run reuses a cell whose search "
+        "finished with the same starts, `search/`)."
     )
     return section, found
 
 
 def _policy(out: Path, row: dict[str, Any]) -> Path:
     return Path(out) / "trials" / row["point_id"] / "policy.csv"
+
+
+def _cache_path(out: Path, share: float, channels: int) -> Path:
+    path = Path(out) / "search" / f"share{share:g}_channels{channels}.json"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    return path
+
+
+def _cached(out: Path, share: float, channels: int, key: dict[str, Any]) -> dict[str, Any] | None:
+    """A cell's finished search from an earlier run of the same directory, if its starts, sweeps
+    and centralised optimum are the same (a resumed benchmark skips it); else None."""
+    path = _cache_path(out, share, channels)
+    if not path.exists():
+        return None
+    saved = json.loads(path.read_text())
+    same = saved["key"]["starts"] == key["starts"] and saved["key"]["sweeps"] == key["sweeps"]
+    return (
+        saved["cell"]
+        if same and abs(saved["key"]["centralised"] - key["centralised"]) < 1e-9
+        else None
+    )

@@ -337,13 +337,19 @@ def test_dqn_over_levels_scores_against_both_optima(tmp_path):
     assert 0 <= mc["radar_fraction"] <= 1  # the share of each level, not the level
 
 
-def test_the_levels_profile_is_dqn_over_levels_for_longer():
-    """``algo=dqn_levels`` is DQN's defaults over G levels with 1 M env steps (nothing else)."""
+def test_the_levels_profile_is_dqn_over_levels_longer_and_wider():
+    """``algo=dqn_levels`` is DQN's defaults over G levels with 1 M env steps and the ``medium``
+    network (nothing else); a network chosen on the command line still wins."""
     from conftest import load
+
+    from irdrc.agents.configs.value import NetworkConfig
 
     levels, dqn = load("dqn", "algo=dqn_levels"), load("dqn")
     assert levels.params.env.actions == "levels" and levels.algo.total_frames == 1_000_000
-    assert levels.algo == dataclasses.replace(dqn.algo, total_frames=1_000_000)
+    medium = NetworkConfig(hidden=(128, 128))
+    assert levels.algo == dataclasses.replace(dqn.algo, total_frames=1_000_000, network=medium)
+    for chosen, hidden in (("network=large", (256, 256)), ("network.hidden=[32,32]", (32, 32))):
+        assert load("dqn", "algo=dqn_levels", chosen).algo.network.hidden == hidden
 
 
 def test_dqn_refuses_continuous_shares(tmp_path):

@@ -18,6 +18,7 @@ import io
 import json
 import logging
 import os
+import signal
 import tempfile
 import time
 import traceback
@@ -328,6 +329,20 @@ def _run_tune(
 
     t0 = time.perf_counter()
     done = {"n": already}
+    # A Ctrl-C that lands inside one of Tune's callbacks can be swallowed there: the flag keeps it,
+    # stops every trial at Tune's next check, and the sweep still ends as interrupted.
+    asked = {"stop": False}
+
+    def on_sigint(signum: int, frame: Any) -> None:
+        asked["stop"] = True
+        raise KeyboardInterrupt
+
+    class StopOnSigint(tune.stopper.Stopper):
+        def __call__(self, trial_id: str, result: dict) -> bool:
+            return asked["stop"]
+
+        def stop_all(self) -> bool:
+            return asked["stop"]
 
     class Progress(tune.Callback):
         def _line(self, trial, status: str, extra: str = "") -> None:
@@ -345,11 +360,15 @@ def _run_tune(
 
         def on_trial_complete(self, iteration, trials, trial, **info) -> None:
             # The trial's files are stored now, not when the sweep ends: a killed driver keeps them.
+            if asked["stop"]:  # stopped by Ctrl-C, not finished: it stays INCOMPLETE
+                return
             p = trial.config["point"]
             _record(trials_dir / p["point_id"], p, trial.last_result, None)
             self._line(trial, "DONE", (trial.last_result or {}).get("progress", ""))
 
         def on_trial_error(self, iteration, trials, trial, **info) -> None:
+            if asked["stop"]:
+                return
             p = trial.config["point"]
             try:
                 error = str(trial.get_error() or "the trial failed")
@@ -359,6 +378,7 @@ def _run_tune(
             self._line(trial, "ERROR: " + _last_line(error))
 
     _ray_init(str(cfg.ray.address), cfg.ray.num_cpus)
+    previous = signal.signal(signal.SIGINT, on_sigint)
     try:
         storage = (
             Path(str(cfg.storage_path)).expanduser().resolve() if cfg.storage_path else out / "ray"
@@ -374,14 +394,18 @@ def _run_tune(
                 failure_config=tune.FailureConfig(max_failures=int(cfg.max_failures)),
                 verbose=0,
                 callbacks=[Progress()],
+                stop=StopOnSigint(),
             ),
         )
         results = tuner.fit()
+        if asked["stop"]:
+            raise KeyboardInterrupt
         for result in results:
             p = (result.config or {}).get("point")
             if p is not None and read_status(trials_dir / p["point_id"]) is None:
                 _record(trials_dir / p["point_id"], p, result.metrics, result.error)
     finally:
+        signal.signal(signal.SIGINT, previous)
         ray.shutdown()
 
 

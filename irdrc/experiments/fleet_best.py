@@ -18,7 +18,7 @@ from typing import Any
 
 import torch
 
-from irdrc.experiments.results import md_table, write_rows_csv
+from irdrc.experiments.results import atomic_write_text, md_table, write_rows_csv
 
 RANDOM_STARTS = 2
 """Random tables among each cell's starts (seeded by the start's index)."""
@@ -103,7 +103,7 @@ def best_per_cell(
                 "flips": cert.flips,
                 "tables": cert.tables.tolist(),
             }
-            _cache_path(out, share, k).write_text(json.dumps({"key": key, "cell": cell}))
+            atomic_write_text(_cache_path(out, share, k), json.dumps({"key": key, "cell": cell}))
         else:
             print(f"  (found by an earlier run: {_cache_path(out, share, k)})")
         tables = torch.tensor(cell["tables"], dtype=torch.int64)

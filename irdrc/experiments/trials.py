@@ -16,9 +16,6 @@ import contextlib
 import csv
 import io
 import json
-import logging
-import os
-import signal
 import tempfile
 import time
 import traceback
@@ -100,24 +97,6 @@ def run_point(point: dict[str, Any], out: Path) -> dict[str, Any]:
         "summary_json": json.dumps(summary),
         "files": {n: (out / n).read_text() for n in RESULT_FILES if (out / n).is_file()},
     }
-
-
-def _ray_init(address: str, num_cpus: int | None) -> None:
-    import ray
-
-    os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
-    os.environ.setdefault("RAY_DEDUP_LOGS", "0")
-    os.environ.setdefault("RAY_AIR_NEW_OUTPUT", "0")
-    kwargs: dict[str, Any] = {
-        "include_dashboard": False,
-        "log_to_driver": False,
-        "logging_level": logging.WARNING,
-        "ignore_reinit_error": True,
-    }
-    if address == "local":
-        ray.init(num_cpus=num_cpus, **kwargs)
-    else:
-        ray.init(address=address, **kwargs)
 
 
 def read_status(trial_dir: Path) -> dict[str, Any] | None:
@@ -213,7 +192,9 @@ def execute(cfg: Executor, planned: list[dict[str, Any]], out: Path, recipe: str
     interrupted = False
     try:
         if todo and executor == "ray":
-            _run_tune(cfg, out, todo, total - len(todo), total, trials_dir)
+            from irdrc.experiments.tune_runner import run_tune
+
+            run_tune(cfg, out, todo, total - len(todo), total, trials_dir)
         elif todo:
             _run_local(todo, total - len(todo), total, trials_dir)
     except KeyboardInterrupt:
@@ -316,97 +297,6 @@ def _done_tail(result: dict[str, Any]) -> str:
         return f", exact optimum avg reward {num(metrics.get('avg_reward')):.4f}"
     ratio = result.get("optimality_ratio")
     return f", optimality ratio {ratio:.4f}" if ratio is not None else ""
-
-
-def _run_tune(
-    cfg: Executor, out: Path, todo: list[dict], already: int, total: int, trials_dir: Path
-) -> None:
-    # Ctrl-C reaches this driver as KeyboardInterrupt (Tune's own handler would mark the running
-    # trials as errors and print its Tuner.restore hint): they stay INCOMPLETE, resume reruns them.
-    os.environ.setdefault("TUNE_DISABLE_SIGINT_HANDLER", "1")
-    import ray
-    from ray import tune
-
-    t0 = time.perf_counter()
-    done = {"n": already}
-    # A Ctrl-C that lands inside one of Tune's callbacks can be swallowed there: the flag keeps it,
-    # stops every trial at Tune's next check, and the sweep still ends as interrupted.
-    asked = {"stop": False}
-
-    def on_sigint(signum: int, frame: Any) -> None:
-        asked["stop"] = True
-        raise KeyboardInterrupt
-
-    class StopOnSigint(tune.stopper.Stopper):
-        def __call__(self, trial_id: str, result: dict) -> bool:
-            return asked["stop"]
-
-        def stop_all(self) -> bool:
-            return asked["stop"]
-
-    class Progress(tune.Callback):
-        def _line(self, trial, status: str, extra: str = "") -> None:
-            done["n"] += 1
-            _progress_line(done["n"], total, already, t0, trial.config["point"], status + extra)
-
-        def on_trial_start(self, iteration, trials, trial, **info) -> None:
-            p = trial.config["point"]
-            label = (
-                " ".join([*p["base"], *p["overrides"]])
-                if p.get("base")
-                else " ".join(p["overrides"])
-            )
-            print(f"[started] {label}  (elapsed {time.perf_counter() - t0:.0f} s)", flush=True)
-
-        def on_trial_complete(self, iteration, trials, trial, **info) -> None:
-            # The trial's files are stored now, not when the sweep ends: a killed driver keeps them.
-            if asked["stop"]:  # stopped by Ctrl-C, not finished: it stays INCOMPLETE
-                return
-            p = trial.config["point"]
-            _record(trials_dir / p["point_id"], p, trial.last_result, None)
-            self._line(trial, "DONE", (trial.last_result or {}).get("progress", ""))
-
-        def on_trial_error(self, iteration, trials, trial, **info) -> None:
-            if asked["stop"]:
-                return
-            p = trial.config["point"]
-            try:
-                error = str(trial.get_error() or "the trial failed")
-            except Exception:  # the error file may not be readable yet
-                error = "the trial failed"
-            _record(trials_dir / p["point_id"], p, None, error)
-            self._line(trial, "ERROR: " + _last_line(error))
-
-    _ray_init(str(cfg.ray.address), cfg.ray.num_cpus)
-    previous = signal.signal(signal.SIGINT, on_sigint)
-    try:
-        storage = (
-            Path(str(cfg.storage_path)).expanduser().resolve() if cfg.storage_path else out / "ray"
-        )
-        tuner = tune.Tuner(
-            tune.with_resources(trial, {"cpu": int(cfg.cpus_per_trial)}),
-            param_space={"point": tune.grid_search(todo), "cpus": int(cfg.cpus_per_trial)},
-            # A worker process runs trial after trial: no process start and imports per trial.
-            tune_config=tune.TuneConfig(reuse_actors=True),
-            run_config=tune.RunConfig(
-                name=f"sweep-{int(time.time())}",
-                storage_path=str(storage),
-                failure_config=tune.FailureConfig(max_failures=int(cfg.max_failures)),
-                verbose=0,
-                callbacks=[Progress()],
-                stop=StopOnSigint(),
-            ),
-        )
-        results = tuner.fit()
-        if asked["stop"]:
-            raise KeyboardInterrupt
-        for result in results:
-            p = (result.config or {}).get("point")
-            if p is not None and read_status(trials_dir / p["point_id"]) is None:
-                _record(trials_dir / p["point_id"], p, result.metrics, result.error)
-    finally:
-        signal.signal(signal.SIGINT, previous)
-        ray.shutdown()
 
 
 def write_summary_csv(path: Path, planned: list[dict], trials_dir: Path) -> int:

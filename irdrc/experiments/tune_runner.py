@@ -11,8 +11,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+from irdrc.experiments.point import last_line, progress_line, read_status, record, trial
 from irdrc.experiments.sections import Executor
-from irdrc.experiments.trials import _last_line, _progress_line, _record, read_status, trial
 
 
 def _ray_init(address: str, num_cpus: int | None) -> None:
@@ -67,7 +67,7 @@ def run_tune(
     class Progress(tune.Callback):
         def _line(self, trial, status: str, extra: str = "") -> None:
             done["n"] += 1
-            _progress_line(done["n"], total, already, t0, trial.config["point"], status + extra)
+            progress_line(done["n"], total, already, t0, trial.config["point"], status + extra)
 
         def on_trial_start(self, iteration, trials, trial, **info) -> None:
             p = trial.config["point"]
@@ -86,7 +86,7 @@ def run_tune(
             p = trial.config["point"]
             asked["storing"] = True
             try:
-                _record(trials_dir / p["point_id"], p, result, None)
+                record(trials_dir / p["point_id"], p, result, None)
             finally:
                 asked["storing"] = False
             self._line(trial, "DONE", result.get("progress", ""))
@@ -101,8 +101,8 @@ def run_tune(
                 error = str(trial.get_error() or "the trial failed")
             except Exception:  # the error file may not be readable yet
                 error = "the trial failed"
-            _record(trials_dir / p["point_id"], p, None, error)
-            self._line(trial, "ERROR: " + _last_line(error))
+            record(trials_dir / p["point_id"], p, None, error)
+            self._line(trial, "ERROR: " + last_line(error))
 
     _ray_init(str(cfg.ray.address), cfg.ray.num_cpus)
     previous = signal.signal(signal.SIGINT, on_sigint)
@@ -130,7 +130,7 @@ def run_tune(
         for result in results:
             p = (result.config or {}).get("point")
             if p is not None and read_status(trials_dir / p["point_id"]) is None:
-                _record(trials_dir / p["point_id"], p, result.metrics, result.error)
+                record(trials_dir / p["point_id"], p, result.metrics, result.error)
     finally:
         signal.signal(signal.SIGINT, previous)
         ray.shutdown()

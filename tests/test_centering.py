@@ -128,3 +128,57 @@ def test_reward_scaling_fixes_the_first_batch_std_and_survives_a_checkpoint():
     td = TensorDict({("next", "reward"): torch.tensor([[10.0]])}, [1])
     assert float(plain.center(td)[("next", "reward")]) == pytest.approx(8.0)
     assert plain.scale is None and "reward_scale" not in plain.state()
+
+
+def test_following_the_values_moves_the_center_by_one_minus_gamma_times_the_level():
+    """``center_on=values``: values at a level L above zero mean rewards centred about (1 − γ)·L
+    too low; r̄ moves by that much (nothing when centering is off or before the first batch)."""
+    c = RewardCenter(0.01)
+    c.follow(30.0, 0.99)
+    assert c.value is None  # no batch yet: nothing to move
+    c.update(torch.tensor([-0.3, -0.3]))
+    c.follow(30.0, 0.99)
+    assert c.value == pytest.approx(-0.3 + 0.01 * 30.0, abs=1e-6)  # float32 rewards
+    off = RewardCenter(0.0)
+    off.update(torch.tensor([1.0]))
+    off.follow(30.0, 0.99)
+    assert off.value is None
+
+
+@pytest.mark.parametrize("center_on", ["rewards", "values"])
+def test_dqn_follows_the_greedy_values_of_each_collected_batch_only_when_asked(
+    monkeypatch, center_on
+):
+    """With ``algo.center_on=values`` every collected batch moves r̄ by the mean, over the batch's
+    states, of the network's largest action value; with ``rewards`` r̄ never reads the values."""
+    levels: list[float] = []
+    original = RewardCenter.follow
+
+    def spy(self, level, gamma):
+        levels.append(level)
+        original(self, level, gamma)
+
+    monkeypatch.setattr(RewardCenter, "follow", spy)
+    cfg = DQNConfig(
+        num_envs=8,
+        frames_per_batch=32,
+        total_frames=640,
+        init_random_frames=128,
+        buffer_size=640,
+        batch_size=32,
+        center_on=center_on,
+    )
+    run = train(Params(), cfg, seed=0, eval_every_frames=320)
+    if center_on == "rewards":
+        assert levels == []
+    else:
+        assert len(levels) == 640 // 32 and all(math.isfinite(x) for x in levels)
+        assert levels != [0.0] * len(levels)  # the network's values, not a constant
+        assert math.isfinite(run.state["reward_center"])
+
+
+def test_center_on_is_checked_and_the_fleet_refuses_values():
+    with pytest.raises(ValueError, match=r"algo\.center_on='x' must be one of rewards, values"):
+        DQNConfig(center_on="x")
+    with pytest.raises(ValueError, match=r"algo\.center_on=values: the fleet"):
+        load("fleet", "algo.center_on=values")

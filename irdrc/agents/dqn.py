@@ -117,7 +117,7 @@ def train(
             return greedy_table(qnet, env)
 
     run = RunContext(scorer, eval_every_frames, hooks, resume)
-    loop = TrainingLoop(cfg, collector, buffer, sampler, optimizer, run)
+    loop = TrainingLoop(cfg, collector, buffer, sampler, optimizer, run, values_key="action_value")
     record = loop.run(Learner(loss=loss, update=update, policy=policy))
     with policy_view(loss, cfg):
         record.q = action_values(qnet, env)[None]

@@ -86,6 +86,8 @@ class TrainingLoop:
             checkpoint to go on from (``RunContext``).
         keys: what replay keeps of a transition.
         center_key: the signal reward centering centres (``("next", "reward")``).
+        values_key: where a collected batch holds the network's values of its actions
+            (``"action_value"``), for ``cfg.center_on=values``; None: a learner without it.
         prepare: rewrites each collected batch before anything reads it (the fleet's value
             decomposition puts the team reward at the root there).
     """
@@ -101,6 +103,7 @@ class TrainingLoop:
         *,
         keys: tuple = STORED_KEYS,
         center_key: Any = ("next", "reward"),
+        values_key: Any = None,
         prepare: Callable[[TensorDictBase], TensorDictBase] | None = None,
     ) -> None:
         self.cfg, self.collector, self.buffer, self.sampler = cfg, collector, buffer, sampler
@@ -108,6 +111,7 @@ class TrainingLoop:
         self.eval_every = int(run.eval_every_frames)
         self.resume = resume = run.resume
         self.keys, self.center_key, self.prepare = keys, center_key, prepare
+        self.values_key = values_key if getattr(cfg, "center_on", "rewards") == "values" else None
         self.record = RunRecord(method=cfg.name, greedy=torch.zeros(1, 1, dtype=torch.int64))
         self.center = RewardCenter(cfg.reward_centering, getattr(cfg, "reward_std", 0.0))
         self.frames = start_frames(resume)
@@ -146,6 +150,9 @@ class TrainingLoop:
                 data = self.prepare(data)
             self.episodes.add(data, self.frames)
             self.center.update(data.get(self.center_key))
+            if self.values_key is not None:
+                level = data.get(self.values_key).max(-1).values.double().mean()
+                self.center.follow(float(level), self.cfg.gamma)
             if self.buffer is not None:
                 self.buffer.extend(data.select(*self.keys).reshape(-1))
             self.frames += data.numel()

@@ -278,6 +278,13 @@ class RewardCenter:
         else:
             self.value += (1.0 - (1.0 - self.rate) ** reward.numel()) * (mean - self.value)
 
+    def follow(self, level: float, gamma: float) -> None:
+        """Move r̄ by (1 − γ)·``level``, the mean greedy value the network gives a collected
+        batch (``OffPolicyConfig.center_on=values``): values that sit at a level L above zero
+        mean rewards centred too low by about (1 − γ)·L."""
+        if self.on and self.value is not None:
+            self.value += (1.0 - gamma) * float(level)
+
     def center(self, sample: TensorDictBase, key: Any = ("next", "reward")) -> TensorDictBase:
         """``sample`` with r̄ subtracted from ``key`` and divided by the scale (where on)."""
         r = sample.get(key)

@@ -79,7 +79,9 @@ class FleetLearnerConfig:
 
     learner: str = "vdn"
     dqn: OffPolicyConfig = field(
-        default_factory=lambda: OffPolicyConfig(prioritized=False, double_dqn=False, name="vdn")
+        default_factory=lambda: OffPolicyConfig(
+            prioritized=False, double_dqn=False, center_on="rewards", name="vdn"
+        )
     )
     ppo: FleetPPOConfig = field(default_factory=FleetPPOConfig)
     mixing_embed_dim: int = 32
@@ -94,6 +96,11 @@ class FleetLearnerConfig:
         check_choice("learner", self.learner, FLEET_LEARNERS)
         check_numbers(self, "algo.", (("mixing_embed_dim", 1, 4096, INT),))
         check_bool("algo.agent_index", self.agent_index)
+        if self.dqn.center_on != "rewards":
+            raise ValueError(
+                f"algo.center_on={self.dqn.center_on}: the fleet's learners centre on the team "
+                "rewards' average; set algo.center_on=rewards"
+            )
         if self.learner in MIXERS:
             for key, why in (
                 ("double_dqn", "takes each vehicle's maximum under the target network"),

@@ -11,6 +11,8 @@ from irdrc.core import checks
 
 ACTIVATIONS = ("relu", "tanh", "elu", "gelu", "silu")
 """Hidden-layer activations (``network.activation``)."""
+CENTER_ON = ("rewards", "values")
+"""What reward centering's r̄ follows (``OffPolicyConfig.center_on``)."""
 
 
 @dataclass(frozen=True)
@@ -58,6 +60,11 @@ class OffPolicyConfig:
             collected rewards, subtracted from every sampled reward (Naik et al. 2024): without
             terminal states this shifts every Q-value by r̄/(1 − γ) and leaves the greedy policy
             unchanged, and the network fits only the differences between states.
+        center_on: what r̄ follows — ``rewards``: the collected rewards' average alone;
+            ``values``: that average, moved after every collected batch by (1 − γ) times the
+            mean greedy value the network gives the collected states, so that the values the
+            network fits stay near zero (the collected rewards average the exploring rows' too,
+            far below what the greedy policy earns where exploring is costly).
         reward_std: 0 (off), or the standard deviation the sampled rewards are scaled to: they are
             divided by the first collected batch's standard deviation over this (fixed for the
             run), so the values the network fits have the same size whatever the scenario's reward
@@ -89,6 +96,7 @@ class OffPolicyConfig:
     gamma: float = 0.99
     double_dqn: bool = True
     reward_centering: float = 1e-5
+    center_on: str = "rewards"
     reward_std: float = 0.0
     batch_size: int = 1000
     updates_per_batch: int = 4
@@ -126,6 +134,7 @@ class OffPolicyConfig:
     def __post_init__(self) -> None:
         checks.check_numbers(self, "algo.", self.NUMBERS)
         checks.check_choice("algo.policy_network", self.policy_network, ("target", "online"))
+        checks.check_choice("algo.center_on", self.center_on, CENTER_ON)
         checks.check_bool("algo.double_dqn", self.double_dqn)
         checks.check_bool("algo.prioritized", self.prioritized)
         if not isinstance(self.network, NetworkConfig):

@@ -264,7 +264,7 @@ END_SLACK = 0.01
 
 
 ADVICE = {
-    "dqn": "network=large (a 256-256 Q-network: of 8 random scenarios where the default fell "
+    "dqn": "network=large (a 256-256 Q-network: of 8 random scenarios where DQN fell "
     "short, it held on 5, training at about half the speed; docs/DQN.md)",
 }
 """The one override most likely to help a learner that ends below the threshold, by profile."""

@@ -15,6 +15,16 @@ from irdrc.agents.configs import LagrangianConfig
 from irdrc.agents.dqn import DQNConfig, train
 from irdrc.agents.offpolicy import RewardCenter
 
+TINY = dict(
+    num_envs=8,
+    frames_per_batch=32,
+    total_frames=640,
+    init_random_frames=128,
+    buffer_size=640,
+    batch_size=32,
+)
+"""A DQN run of 640 env steps in 20 batches: enough to exercise centering, not to learn."""
+
 
 def _sample(rewards: list[float]) -> TensorDict:
     r = torch.tensor(rewards, dtype=torch.float32).reshape(-1, 1)
@@ -58,15 +68,7 @@ def test_rate_checked():
 
 
 def test_center_is_checkpointed_and_resumed(monkeypatch):
-    cfg = DQNConfig(
-        num_envs=8,
-        frames_per_batch=32,
-        total_frames=640,
-        init_random_frames=128,
-        buffer_size=640,
-        batch_size=32,
-        reward_centering=0.01,
-    )
+    cfg = DQNConfig(**TINY, reward_centering=0.01)
     first = train(Params(), cfg, seed=0, eval_every_frames=320)
     center = first.state["reward_center"]
     # the paper's rewards per step lie in [−r3, r4·5] = [−50, 25]; a random-ish policy's mean is
@@ -159,15 +161,7 @@ def test_dqn_follows_the_greedy_values_of_each_collected_batch_only_when_asked(
         original(self, level, gamma)
 
     monkeypatch.setattr(RewardCenter, "follow", spy)
-    cfg = DQNConfig(
-        num_envs=8,
-        frames_per_batch=32,
-        total_frames=640,
-        init_random_frames=128,
-        buffer_size=640,
-        batch_size=32,
-        center_on=center_on,
-    )
+    cfg = DQNConfig(**TINY, center_on=center_on)
     run = train(Params(), cfg, seed=0, eval_every_frames=320)
     if center_on == "rewards":
         assert levels == []

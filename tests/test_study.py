@@ -78,3 +78,16 @@ def test_timed_scorer_counts_every_call():
 def test_bad_studies_refused(kw, match):
     with pytest.raises(ValueError, match=match):
         Config(**kw)
+
+
+@pytest.mark.parametrize("learner", ["dqn", "qlearning"])
+def test_the_learners_take_a_model_beyond_the_dense_limit(learner):
+    """The study's ``large`` scenario (S = 100 800) has no dense model; its learners score on the
+    factored one, so their configs must load there (they refused it, naming the dense tensor's
+    151 GiB, and ``python recipes/study.py`` stopped at ``large``)."""
+    from conftest import load
+
+    from irdrc.experiments.sections import fits_dense
+
+    cfg = load(learner, "env=large")
+    assert cfg.params.env.num_states == 100_800 and not fits_dense(cfg.params)

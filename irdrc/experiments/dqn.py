@@ -18,7 +18,6 @@ from irdrc.experiments.compose import Composed
 from irdrc.experiments.sections import (
     OneVehicleLearning,
     algo_field,
-    check_dense,
     check_eval_period,
 )
 
@@ -47,7 +46,6 @@ def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
     """The typed config, checked: values, what the exact model and the final evaluation cost, and
     what a resumed run has left to train."""
     cfg = build(Config, composed.cfg)
-    check_dense(cfg.params)
     if cfg.params.env.actions != "binary":
         from irdrc.experiments.solve import check_shares_fit
 

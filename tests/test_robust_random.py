@@ -14,7 +14,7 @@ from irdrc.core.params import Params
 from irdrc.experiments.random_scenarios import contested_draws, draw_overrides
 
 FIRST_REPORT = 1000
-"""The first draw of the first report (draws 1000–1295; ``REPORTING`` is where the next starts)."""
+"""The first draw of the first report (draws 1000–1295; ``REPORTING`` is where today's starts)."""
 SHORT = 1261
 """A draw of the first report where the default ends far below 0.99 (0.782, seed 5: r3 = 60.7
 against r1 = 1.23 and r4 = 0.373; radar where the optimum sends): exploring rows that send in the
@@ -48,8 +48,8 @@ def final_ratio(index: int, cfg: DQNConfig, seed: int = 5, *, rewards: bool = Tr
 def test_the_default_dqn_holds_on_random_contested_scenarios():
     """The first three contested draws of the first report (1000 up: none of them looked at when
     choosing the default, nor screened since), seed 5: every final greedy policy ≥ 0.99 of its
-    exact optimum. (From ``REPORTING`` up, the second of them, draw 2005, ends at 0.9894: the
-    benchmark lists it, docs/BENCHMARKS.md.)"""
+    exact optimum. (The benchmark lists the draws from ``REPORTING`` up where it falls short:
+    docs/BENCHMARKS.md.)"""
     draws = [d.index for d in contested_draws(FIRST_REPORT, 3)]
     ratios = {i: final_ratio(i, DQNConfig()) for i in draws}
     assert all(r >= 0.99 for r in ratios.values()), ratios

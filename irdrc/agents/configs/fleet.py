@@ -80,7 +80,7 @@ class FleetLearnerConfig:
     learner: str = "vdn"
     dqn: OffPolicyConfig = field(
         default_factory=lambda: OffPolicyConfig(
-            prioritized=False, double_dqn=False, center_on="rewards", name="vdn"
+            prioritized=False, double_dqn=False, center_on="rewards", lr=3e-3, name="vdn"
         )
     )
     ppo: FleetPPOConfig = field(default_factory=FleetPPOConfig)

@@ -100,7 +100,7 @@ class OffPolicyConfig:
     reward_std: float = 0.0
     batch_size: int = 1000
     updates_per_batch: int = 4
-    lr: float = 3e-3
+    lr: float = 6e-3
     lr_end: float = 1e-5
     max_grad_norm: float = 10.0
     tau: float = 0.02

@@ -66,8 +66,8 @@ def refused(recipe: str, *overrides: str) -> str:
         ("dqn", ["network.hidden=[0]"], "network.hidden"),
         ("dqn", ["logger.mode=sometimes"], "logger.mode"),
         # what cannot run is refused with its cost
-        ("qlearning", ["env.queue_capacity=400"], "GiB"),
-        ("dqn", ["env.queue_capacity=10000"], "GiB"),
+        ("qlearning", ["env.queue_capacity=400000"], "GiB"),
+        ("dqn", ["env.queue_capacity=400000"], "GiB"),
         ("tradeoff", ["search.resolution=0.001"], "exact solves"),
         ("sweep", ["sweep.grid={}"], "sweep.grid is empty"),
         ("sweep", ["method=sarsa", "sweep.grid={seed: [0]}"], "method='sarsa'"),
@@ -104,7 +104,7 @@ def test_sweep_values_are_validated_before_any_trial():
     [
         (["recipes/dqn.py", "rewards.r4=50"], "did you mean reward.r4"),
         (["recipes/qlearning.py", "algo.alpha=abc"], "algo.alpha='abc'"),
-        (["recipes/dqn.py", "env.queue_capacity=10000"], "GiB"),
+        (["recipes/dqn.py", "env.queue_capacity=400000"], "GiB"),
     ],
 )
 def test_command_line_answer_is_one_line_without_traceback(tmp_path, args, named):

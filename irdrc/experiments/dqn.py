@@ -19,6 +19,7 @@ from irdrc.experiments.sections import (
     OneVehicleLearning,
     algo_field,
     check_eval_period,
+    check_exact,
 )
 
 NAME = "dqn"
@@ -46,6 +47,7 @@ def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
     """The typed config, checked: values, what the exact model and the final evaluation cost, and
     what a resumed run has left to train."""
     cfg = build(Config, composed.cfg)
+    check_exact(cfg.params)
     if cfg.params.env.actions != "binary":
         from irdrc.experiments.solve import check_shares_fit
 

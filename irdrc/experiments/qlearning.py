@@ -79,6 +79,9 @@ def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
             f"num_learners={cfg.num_learners} × {len(scenarios)} scenarios: the Q-tables would "
             f"take {table_bytes / 2**30:.1f} GiB (limit 4 GiB); use fewer learners"
         )
+    from irdrc.experiments.sections import check_exact
+
+    check_exact(cfg.params)
     cfg.eval.check_cost(cfg.params)
     total = cfg.algo.episodes * cfg.params.env.horizon
     check_eval_period(cfg.eval.every_frames, total, "eval.every_frames" in composed.explicit)

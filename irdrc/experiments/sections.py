@@ -87,6 +87,24 @@ def check_dense(params: Params) -> None:
         )
 
 
+EXACT_LIMIT_STATES = 10**7
+"""The largest model the exact scorer takes (the factored model held 10⁶ states in 0.6 GB,
+docs/SCALE.md)."""
+
+
+def check_exact(params: Params) -> None:
+    """Refuse a model too large for the exact scorer (dense or factored), with its size."""
+    S = params.env.num_states
+    if S > EXACT_LIMIT_STATES:
+        per_state = math.prod(params.env.factor_levels) or 1
+        top = EXACT_LIMIT_STATES // per_state - 1
+        raise ValueError(
+            f"env.queue_capacity={params.env.queue_capacity}: the exact model has S = {S} states, "
+            f"about {S * 600 / 2**30:.1f} GiB factored (limit {EXACT_LIMIT_STATES} states); use "
+            f"env.queue_capacity ≤ {top}"
+        )
+
+
 def check_device(device: Any) -> str:
     """``device`` if torch can use it here (``cpu``, or ``cuda[:n]`` with a CUDA device)."""
     if device == "cpu":

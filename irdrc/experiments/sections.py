@@ -88,8 +88,10 @@ def check_dense(params: Params) -> None:
 
 
 EXACT_LIMIT_STATES = 10**7
-"""The largest model the exact scorer takes (the factored model held 10⁶ states in 0.6 GB,
-docs/SCALE.md)."""
+"""The largest model the exact scorer takes (docs/SCALE.md: the factored model of 10⁶ states
+took 377 MB above the imports' 234 MB)."""
+EXACT_BYTES_PER_STATE = 377
+"""The factored model's memory per state, as measured there."""
 
 
 def check_exact(params: Params) -> None:
@@ -100,7 +102,7 @@ def check_exact(params: Params) -> None:
         top = EXACT_LIMIT_STATES // per_state - 1
         raise ValueError(
             f"env.queue_capacity={params.env.queue_capacity}: the exact model has S = {S} states, "
-            f"about {S * 600 / 2**30:.1f} GiB factored (limit {EXACT_LIMIT_STATES} states); use "
+            f"about {S * EXACT_BYTES_PER_STATE / 2**30:.1f} GiB factored (limit {EXACT_LIMIT_STATES} states); use "
             f"env.queue_capacity ≤ {top}"
         )
 

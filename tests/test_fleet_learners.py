@@ -163,6 +163,17 @@ def test_value_decomposition_trains_and_refuses_what_it_cannot_do(two):
         FleetLearnerConfig.from_sections("sum", {})
 
 
+@pytest.mark.parametrize("learner", ["idqn", "vdn", "qmix"])
+def test_the_fleet_recipe_runs_the_value_learners_as_measured(learner):
+    """``recipes/fleet.py`` composes DQN's machinery (algo/dqn.yaml) but its value learners keep
+    the learning rate they were measured at (3e-3, FleetLearnerConfig's), whatever DQN's own
+    default becomes."""
+    from conftest import load
+
+    cfg = load("fleet", f"learner={learner}").learner
+    assert cfg.dqn.lr == FleetLearnerConfig().dqn.lr == 3e-3
+
+
 def test_value_decomposition_sums_the_vehicles_values():
     """``VDNMixer`` through ``QMixerLoss``: the fleet's value of a transition is the sum of the
     vehicles' chosen action values, and the loss is (r + γ Σ max_a Q′ − Σ Q)² with the target

@@ -82,6 +82,22 @@ def test_qnet_sized_from_specs_and_greedy_table():
     assert table.shape == (6 * 32,) and set(table.unique().tolist()) <= {0, 1}
 
 
+def test_the_dueling_head_is_value_plus_centred_advantages():
+    """``algo.dueling``: the body's last layer has one output more (V first, then A), and each
+    action's value is V + A − mean(A); the greedy action is A's largest."""
+    from irdrc.agents.offpolicy import DuelingHead
+
+    env = DFRCEnv(Params.from_overrides({"env.queue_capacity": 5}), batch_size=[4])
+    qnet = make_qnet(env, NetworkConfig(hidden=(16,)), dueling=True)
+    head = qnet.module[0].module
+    assert isinstance(head, DuelingHead) and head.body[-1][-1].out_features == 3
+    td = qnet(env.reset())
+    out = head.body(td["observation"])
+    v, a = out[..., :1], out[..., 1:]
+    torch.testing.assert_close(td["action_value"], v + a - a.mean(-1, keepdim=True))
+    assert torch.equal(td["action"], a.argmax(-1))
+
+
 def test_polyak_update_is_torchrls_soft_update():
     """``PolyakUpdate`` (one foreach lerp over cached tensors) moves every target tensor exactly as
     TorchRL's ``SoftUpdate`` does, step after step, on two identical DQN losses whose online

@@ -75,6 +75,9 @@ class OffPolicyConfig:
         lr, lr_end: Adam's learning rate, annealed linearly from ``lr`` to ``lr_end``.
         max_grad_norm: gradient clipping (0 = off).
         tau: the target network's Polyak rate per update.
+        dueling: the Q-network's last layer gives a state value V and action advantages A, and
+            Q = V + A − mean(A) (Wang et al. 2016): the level all actions share and the small
+            differences between them are separate outputs.
         policy_network: whose greedy actions are the learner's policy — every evaluation and the
             final policy: ``target`` (a Polyak average, so one noisy update does not flip a
             near-tie) or ``online``. The online network always acts.
@@ -105,6 +108,7 @@ class OffPolicyConfig:
     max_grad_norm: float = 10.0
     tau: float = 0.02
     policy_network: str = "target"
+    dueling: bool = False
     network: NetworkConfig = field(default_factory=NetworkConfig, metadata={"keys": ()})
     name: str = field(default="dqn", compare=False)
 
@@ -136,6 +140,7 @@ class OffPolicyConfig:
         checks.check_choice("algo.policy_network", self.policy_network, ("target", "online"))
         checks.check_choice("algo.center_on", self.center_on, CENTER_ON)
         checks.check_bool("algo.double_dqn", self.double_dqn)
+        checks.check_bool("algo.dueling", self.dueling)
         checks.check_bool("algo.prioritized", self.prioritized)
         if not isinstance(self.network, NetworkConfig):
             raise ValueError(f"network={self.network!r} must be a NetworkConfig")

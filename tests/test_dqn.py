@@ -82,20 +82,16 @@ def test_qnet_sized_from_specs_and_greedy_table():
     assert table.shape == (6 * 32,) and set(table.unique().tolist()) <= {0, 1}
 
 
-def test_the_dueling_head_is_value_plus_centred_advantages():
-    """``algo.dueling``: the body's last layer has one output more (V first, then A), and each
-    action's value is V + A − mean(A); the greedy action is A's largest."""
-    from irdrc.agents.offpolicy import DuelingHead
-
-    env = DFRCEnv(Params.from_overrides({"env.queue_capacity": 5}), batch_size=[4])
-    qnet = make_qnet(env, NetworkConfig(hidden=(16,)), dueling=True)
-    head = qnet.module[0].module
-    assert isinstance(head, DuelingHead) and head.body[-1][-1].out_features == 3
-    td = qnet(env.reset())
-    out = head.body(td["observation"])
-    v, a = out[..., :1], out[..., 1:]
-    torch.testing.assert_close(td["action_value"], v + a - a.mean(-1, keepdim=True))
-    assert torch.equal(td["action"], a.argmax(-1))
+@pytest.mark.parametrize(
+    ("key", "kept", "other", "tag"),
+    [("dueling", False, True, "dueling-v1"), ("n_steps", 1, 3, "dqn-variants-v1")],
+)
+def test_a_retired_key_is_accepted_at_its_value_and_refused_naming_its_tag(key, kept, other, tag):
+    """A command line or checkpoint from an earlier version may set a retired key: to what this
+    version runs, it is accepted; to anything else, refused, naming the tag that runs it."""
+    assert DQNConfig.from_sections({key: kept}) == DQNConfig()
+    with pytest.raises(ValueError, match=rf"algo\.{key}={other!r} no longer exists.*tagged {tag}"):
+        DQNConfig.from_sections({key: other})
 
 
 def test_polyak_update_is_torchrls_soft_update():

@@ -161,20 +161,17 @@ def test_value_decomposition_trains_and_refuses_what_it_cannot_do(two):
         FleetLearnerConfig.from_sections("qmix", {"double_dqn": True})
     with pytest.raises(ValueError, match=r"learner='sum'"):
         FleetLearnerConfig.from_sections("sum", {})
-    with pytest.raises(ValueError, match=r"algo\.dueling=true"):
-        FleetLearnerConfig.from_sections("vdn", {"dueling": True})
 
 
 @pytest.mark.parametrize("learner", ["idqn", "vdn", "qmix"])
 def test_the_fleet_recipe_runs_the_value_learners_as_measured(learner):
     """``recipes/fleet.py`` composes DQN's machinery (algo/dqn.yaml) but its value learners keep
-    the learning rate they were measured at (3e-3, FleetLearnerConfig's) and a plain Q-network,
-    whatever DQN's own defaults become."""
+    the learning rate they were measured at (3e-3, FleetLearnerConfig's), whatever DQN's own
+    default becomes."""
     from conftest import load
 
     cfg = load("fleet", f"learner={learner}").learner
     assert cfg.dqn.lr == FleetLearnerConfig().dqn.lr == 3e-3
-    assert not cfg.dqn.dueling
 
 
 def test_value_decomposition_sums_the_vehicles_values():

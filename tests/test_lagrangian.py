@@ -56,7 +56,6 @@ def test_yaml_profile_equals_the_dataclass_defaults():
         ("bogus", 1),
         ("average_tau", 0.01),  # a DQN option the Lagrangian loop does not implement
         ("confirm", "maybe"),
-        ("dueling", True),  # its network has a reward head and a cost head
     ],
 )
 def test_bad_settings_named(key, value):

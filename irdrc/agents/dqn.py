@@ -83,7 +83,7 @@ def train(
         raise ValueError(f"nothing to resume: the checkpoint is at {start} ≥ algo.total_frames")
 
     # 1. model: scaled observation → MLP → one Q-value per action, greedy action
-    qnet = make_qnet(env, cfg.network, cfg.dueling)
+    qnet = make_qnet(env, cfg.network)
     # 2. exploration: an ε ladder over the env rows, random actions held for several steps
     exploration = make_exploration(env, cfg)
     # 3. collector: every row steps with the network and its own exploration

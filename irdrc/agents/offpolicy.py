@@ -90,25 +90,9 @@ def make_body(
     return nn.Sequential(Scale(high).to(device), mlp)
 
 
-class DuelingHead(nn.Module):
-    """Q = V + A − mean(A) from a body whose first output is the state value V and whose others
-    are the actions' advantages A (``OffPolicyConfig.dueling``)."""
-
-    def __init__(self, body: nn.Module) -> None:
-        super().__init__()
-        self.body = body
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        out = self.body(x)
-        value, advantage = out[..., :1], out[..., 1:]
-        return value + advantage - advantage.mean(-1, keepdim=True)
-
-
-def make_qnet(env: Any, net: NetworkConfig, dueling: bool = False) -> QValueActor:
-    """Q-value actor: observation in, one Q-value per action out, greedy action; ``dueling``:
-    through ``DuelingHead``."""
-    n = env.action_spec_unbatched.space.n
-    module = DuelingHead(make_mlp(env, net, n + 1)) if dueling else make_mlp(env, net, n)
+def make_qnet(env: Any, net: NetworkConfig) -> QValueActor:
+    """Q-value actor: observation in, one Q-value per action out, greedy action."""
+    module = make_mlp(env, net, env.action_spec_unbatched.space.n)
     return QValueActor(module=module, in_keys=["observation"], spec=env.action_spec_unbatched)
 
 

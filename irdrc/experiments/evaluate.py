@@ -81,8 +81,7 @@ def network_table(path: Path, params: Params) -> tuple[Any, str]:
             f"checkpoint={path}: not a DQN run's checkpoint (recipes/dqn.py); evaluate reads a "
             "single-vehicle DQN network"
         )
-    # a checkpoint written before algo.dueling existed holds a plain Q-network
-    cfg = DQNConfig.from_sections({"dueling": False, **saved["algo"]}, saved["network"])
+    cfg = DQNConfig.from_sections(saved["algo"], saved["network"])
     trained = Params.from_config(saved)
     train_env = DFRCEnv(trained, batch_size=[1])
     target_env = DFRCEnv(params, batch_size=[1])
@@ -93,7 +92,7 @@ def network_table(path: Path, params: Params) -> tuple[Any, str]:
             f"{shape} (bursty arrivals add the traffic phase): evaluate it on a scenario of the "
             "same kind"
         )
-    qnet = make_qnet(train_env, cfg.network, cfg.dueling)
+    qnet = make_qnet(train_env, cfg.network)
     with warnings.catch_warnings():  # no target updater: this loss only holds the networks
         warnings.filterwarnings("ignore", message="No target network updater")
         loss = DQNLoss(qnet, delay_value=True, action_space=train_env.action_spec_unbatched)

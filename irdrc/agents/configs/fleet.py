@@ -101,11 +101,6 @@ class FleetLearnerConfig:
                 f"algo.center_on={self.dqn.center_on}: the fleet's learners centre on the team "
                 "rewards' average; set algo.center_on=rewards"
             )
-        if self.dqn.dueling:
-            raise ValueError(
-                "algo.dueling=true: the fleet's learners have one network per vehicle without a "
-                "dueling head; set algo.dueling=false"
-            )
         if self.learner in MIXERS:
             for key, why in (
                 ("double_dqn", "takes each vehicle's maximum under the target network"),

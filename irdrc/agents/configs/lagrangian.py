@@ -119,11 +119,6 @@ class LagrangianConfig:
                 ("cost_window_frames", 1, 10**12, INT),
             ),
         )
-        if self.dqn.dueling:
-            raise ValueError(
-                "algo.dueling=true: the Lagrangian learner's network has two heads (reward and "
-                "cost) without a dueling form; set algo.dueling=false"
-            )
 
     @property
     def name(self) -> str:

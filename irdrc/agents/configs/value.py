@@ -75,9 +75,6 @@ class OffPolicyConfig:
         lr, lr_end: Adam's learning rate, annealed linearly from ``lr`` to ``lr_end``.
         max_grad_norm: gradient clipping (0 = off).
         tau: the target network's Polyak rate per update.
-        dueling: the Q-network's last layer gives a state value V and action advantages A, and
-            Q = V + A − mean(A) (Wang et al. 2016): the level all actions share and the small
-            differences between them are separate outputs.
         policy_network: whose greedy actions are the learner's policy — every evaluation and the
             final policy: ``target`` (a Polyak average, so one noisy update does not flip a
             near-tie) or ``online``. The online network always acts.
@@ -108,7 +105,6 @@ class OffPolicyConfig:
     max_grad_norm: float = 10.0
     tau: float = 0.02
     policy_network: str = "target"
-    dueling: bool = False
     network: NetworkConfig = field(default_factory=NetworkConfig, metadata={"keys": ()})
     name: str = field(default="dqn", compare=False)
 
@@ -140,7 +136,6 @@ class OffPolicyConfig:
         checks.check_choice("algo.policy_network", self.policy_network, ("target", "online"))
         checks.check_choice("algo.center_on", self.center_on, CENTER_ON)
         checks.check_bool("algo.double_dqn", self.double_dqn)
-        checks.check_bool("algo.dueling", self.dueling)
         checks.check_bool("algo.prioritized", self.prioritized)
         if not isinstance(self.network, NetworkConfig):
             raise ValueError(f"network={self.network!r} must be a NetworkConfig")
@@ -203,10 +198,14 @@ RETIRED = {
     "select_steps": None,
     "select_burn_in": None,
     "select_z": None,
+    "dueling": False,
 }
 """DQN keys this version no longer reads, with the one value it implements (None: any value, the
-key only tuned a variant that is gone). They lost every benchmark (docs/DQN.md); the commit tagged
-``dqn-variants-v1`` has them."""
+key only tuned a variant that is gone). They did not win where they were measured (docs/DQN.md);
+the commit tagged ``RETIRED_AT`` names has them."""
+
+RETIRED_AT = {"dueling": "dueling-v1"}
+"""The tag of the last commit that runs a retired key, where it is not ``dqn-variants-v1``."""
 
 
 def retire(algo: dict[str, Any]) -> dict[str, Any]:
@@ -216,10 +215,10 @@ def retire(algo: dict[str, Any]) -> dict[str, Any]:
         if key in algo:
             value = algo.pop(key)
             if implemented is not None and value != implemented:
+                tag = RETIRED_AT.get(key, "dqn-variants-v1")
                 raise ValueError(
-                    f"algo.{key}={value!r} no longer exists (it lost every benchmark: docs/DQN.md); "
-                    f"this version runs algo.{key}={implemented!r}; the commit tagged "
-                    "dqn-variants-v1 has the others"
+                    f"algo.{key}={value!r} no longer exists (it did not win: docs/DQN.md); this "
+                    f"version runs algo.{key}={implemented!r}; the commit tagged {tag} has the others"
                 )
     return algo
 

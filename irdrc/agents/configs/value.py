@@ -202,7 +202,7 @@ RETIRED = {
 }
 """DQN keys this version no longer reads, with the one value it implements (None: any value, the
 key only tuned a variant that is gone). They did not win where they were measured (docs/DQN.md);
-the commit tagged ``RETIRED_AT`` names has them."""
+the commit tagged ``dqn-variants-v1`` has them, or the one ``RETIRED_AT`` names."""
 
 RETIRED_AT = {"dueling": "dueling-v1"}
 """The tag of the last commit that runs a retired key, where it is not ``dqn-variants-v1``."""

@@ -116,8 +116,9 @@ class FleetLearnerConfig:
         cls, learner: str, algo: Any, network: Any = None, ppo: Any = None
     ) -> FleetLearnerConfig:
         """From ``learner``, the ``algo`` mapping (DQN's keys and the mixers'), ``network`` and the
-        ``ppo`` mapping (mappo, ippo): null values take the learner's defaults, and a mixer's key
-        set for a learner that does not read it is refused."""
+        ``ppo`` mapping (mappo, ippo): null values take the learner's defaults (``center_on``:
+        ``rewards``, the team rewards' average), and a mixer's key set for a learner that does not
+        read it is refused."""
         check_choice("learner", learner, FLEET_LEARNERS)
         if learner in POLICY_GRADIENT:
             data = {**dict(ppo or {}), "name": learner}
@@ -136,5 +137,6 @@ class FleetLearnerConfig:
         for key in ("prioritized", "double_dqn"):
             if data.get(key) is None:
                 data[key] = not mixer
+        data.setdefault("center_on", "rewards")  # DQN's own default follows its values
         data["name"] = learner
         return cls(learner=learner, dqn=OffPolicyConfig.from_sections(data, network), **own)

@@ -60,11 +60,12 @@ class OffPolicyConfig:
             collected rewards, subtracted from every sampled reward (Naik et al. 2024): without
             terminal states this shifts every Q-value by r̄/(1 − γ) and leaves the greedy policy
             unchanged, and the network fits only the differences between states.
-        center_on: what r̄ follows — ``rewards``: the collected rewards' average alone;
-            ``values``: that average, moved after every collected batch by (1 − γ) times the
-            mean greedy value the network gives the collected states, so that the values the
-            network fits stay near zero (the collected rewards average the exploring rows' too,
-            far below what the greedy policy earns where exploring is costly).
+        center_on: what r̄ follows — ``values`` (DQN's default): the collected rewards' average,
+            moved after every collected batch by (1 − γ) times the mean greedy value the network
+            gives the collected states, so that the values the network fits stay near zero (the
+            collected rewards average the exploring rows' too, far below what the greedy policy
+            earns where exploring is costly); ``rewards``: the collected rewards' average alone
+            (the fleet's learners, DQN over levels).
         reward_std: 0 (off), or the standard deviation the sampled rewards are scaled to: they are
             divided by the first collected batch's standard deviation over this (fixed for the
             run), so the values the network fits have the same size whatever the scenario's reward
@@ -96,7 +97,7 @@ class OffPolicyConfig:
     gamma: float = 0.99
     double_dqn: bool = True
     reward_centering: float = 1e-5
-    center_on: str = "rewards"
+    center_on: str = "values"
     reward_std: float = 0.0
     batch_size: int = 1000
     updates_per_batch: int = 4

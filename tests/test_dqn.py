@@ -17,7 +17,7 @@ from irdrc import DFRCEnv, Params
 from irdrc.agents.configs import DQNConfig, NetworkConfig
 from irdrc.agents.dqn import train
 from irdrc.agents.offpolicy import greedy_table, make_qnet
-from irdrc.experiments.tracking import resolve_wandb_mode
+from irdrc.experiments.tracking import MAX_NAME_BYTES, resolve_wandb_mode, run_name
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = [
@@ -241,6 +241,33 @@ def test_wandb_offline_without_network_or_key(tmp_path):
     runs = list((tmp_path / "run" / "logs" / "wandb").glob("offline-run-*"))
     assert runs, list((tmp_path / "run").rglob("*"))[:20]
     assert f"wandb sync {runs[0]}" in r.stdout
+
+
+def test_run_names_fit_one_directory_and_keep_scenarios_apart():
+    """A short scenario keeps its name; one of many overrides is cut to fit a directory's name,
+    with a digest that tells two long scenarios apart."""
+    assert run_name("paper[reward.r4=50]", "dqn", 3) == "paper[reward.r4=50]__dqn__3"
+    many = [f"env.p1.speed={i / 1000}" for i in range(40)]
+    a = run_name(f"paper[{','.join(many)}]", "dqn", 0)
+    b = run_name(f"paper[{','.join(many[:-1])},env.p1.speed=0.5]", "dqn", 0)
+    assert a != b and a.endswith("__dqn__0") and a.startswith("paper[env.p1.speed=0.0,")
+    assert max(len(a.encode()), len(b.encode())) <= MAX_NAME_BYTES
+    assert "/" not in run_name("custom[env.name=a/b]", "dqn", 0)
+
+
+def test_a_scenario_of_many_overrides_is_logged(tmp_path):
+    """The main job with the CSV logger on a scenario typed as 28 overrides (a file name too long
+    for the logger's directory, before the name was shortened) runs and logs its evaluations."""
+    chains = ("channel", "road", "weather", "speed", "object")
+    typed = [f"env.p{j}.{k}=0.0{j + 1}" for j in (0, 1) for k in chains[1:]]
+    typed += [f"env.stay_{s}.{k}=0.{n}" for s, n in (("good", 8), ("bad", 3)) for k in chains]
+    typed += ["reward.r1=0.638", "reward.r2=0.146", "reward.r3=48.4", "reward.r4=2.38"]
+    typed += ["env.arrival_rate=0.218", "env.queue_capacity=4", "env.packets_good=5"]
+    typed += ["env.packets_bad=2", "env.event_model=sum", "env.reaction_clear=0.662"]
+    r = run_dqn(tmp_path / "run", *typed, "logger=csv")
+    assert r.returncode == 0, r.stderr
+    scalars = list((tmp_path / "run" / "logs").rglob("*.csv"))
+    assert scalars, list((tmp_path / "run").rglob("*"))[:20]
 
 
 def test_tensorboard_logger_writes_the_evaluations(tmp_path):

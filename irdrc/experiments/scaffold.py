@@ -308,13 +308,14 @@ class Run:
         torch.set_num_threads(max(1, min(int(n), cap)))
 
     def make_logger(self, cfg: Logger, name: str) -> Any:
-        """The run's logger (``logger=…``), named ``scenario__name__seed``; None for ``none``."""
-        from irdrc.experiments.tracking import make_logger
+        """The run's logger (``logger=…``), named ``scenario__name__seed`` (``tracking.run_name``:
+        a long scenario shortened); None for ``none``."""
+        from irdrc.experiments.tracking import make_logger, run_name
 
         seed = self.composed.cfg.get("seed", 0)
         self.logger = make_logger(
             cfg.backend,
-            f"{self.scenario}__{name}__{seed}",
+            run_name(self.scenario, name, seed),
             self.dir / "logs",
             project=cfg.project,
             mode=cfg.mode,

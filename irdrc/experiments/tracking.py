@@ -6,6 +6,7 @@ login prompt; ``logger.mode=online`` without a key fails at start-up instead of 
 
 from __future__ import annotations
 
+import hashlib
 import netrc
 import os
 from pathlib import Path
@@ -13,6 +14,8 @@ from typing import Any
 
 BACKENDS = ("none", "csv", "tensorboard", "wandb")
 WANDB_MODES = ("auto", "online", "offline", "disabled")
+MAX_NAME_BYTES = 120
+"""The longest run name (a directory's name under ``logs/``; file systems allow 255 bytes)."""
 
 
 def wandb_api_key_configured() -> bool:
@@ -37,6 +40,19 @@ def resolve_wandb_mode(mode: str) -> str:
             "use logger.mode=offline and `wandb sync` later"
         )
     return mode
+
+
+def run_name(scenario: str, learner: str, seed: Any) -> str:
+    """The run's name, ``scenario__learner__seed``, usable as one directory's name: ``/`` replaced,
+    and a scenario too long for it (a command line of many overrides) cut to its first characters
+    and ``~`` with a digest of the whole, so that different scenarios keep different names (the run's
+    summary.json and config hold the scenario in full)."""
+    head, tail = str(scenario).replace("/", "_"), f"__{learner}__{seed}".replace("/", "_")
+    if len((head + tail).encode()) <= MAX_NAME_BYTES:
+        return head + tail
+    digest = hashlib.sha1(str(scenario).encode()).hexdigest()[:10]
+    room = max(0, MAX_NAME_BYTES - len(tail.encode()) - len(digest) - 1)
+    return head.encode()[:room].decode(errors="ignore") + "~" + digest + tail
 
 
 def make_logger(

@@ -279,3 +279,30 @@ def test_exact_model_is_float64_from_the_parameters_on(name):
         want = torch.tensor(want, dtype=torch.float64)
         err = float((got - want).abs().max() / want.abs().max().clamp(min=1.0))
         assert err < 1e-12, err
+
+
+def test_closest_decisions_are_the_smallest_margins_and_their_cost_is_exact():
+    """The table the solve recipe prints: rows in order of the smallest margin |Q*(comm) −
+    Q*(radar)| over queue lengths, and each row's ratio is the optimum with the other mode taken
+    at that factor combination (every d), evaluated here independently."""
+    from irdrc.core.exact import stationary_metrics, value_iteration
+    from irdrc.experiments.tables import closest_decisions
+
+    params = Params.from_overrides({"env.p1.speed": 1.0})
+    model = build_model(params)
+    sol = value_iteration(model, gamma=0.99, tol=1e-9)
+    lines = closest_decisions(model, sol.q, sol.policy, count=4).splitlines()
+    assert lines[0].startswith("c r w v m") and len(lines) == 5
+    nf = model.num_states // (params.env.queue_capacity + 1)
+    margin = (sol.q[0] - sol.q[1]).abs().view(-1, nf).min(0).values
+    best = stationary_metrics(model, sol.policy).avg_reward
+    for rank, line in enumerate(lines[1:]):
+        f = int(torch.argsort(margin)[rank])
+        bits = line[:9]
+        assert [int(b) for b in bits.split()] == [(f >> k) & 1 for k in (4, 3, 2, 1, 0)]
+        assert float(line.split()[7]) == pytest.approx(float(margin[f]), abs=1e-4)
+        flipped = sol.policy.view(-1, nf).clone()
+        flipped[:, f] = 1 - flipped[:, f]
+        ratio = stationary_metrics(model, flipped.reshape(-1)).avg_reward / best
+        assert float(line.split()[-1]) == pytest.approx(ratio, abs=1e-4)
+        assert ratio < 1.0  # the optimum's own mode is the better one there

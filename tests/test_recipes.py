@@ -110,6 +110,9 @@ def test_solve_recipe(tmp_path):
     )
     assert out.returncode == 0, out.stderr
     assert "optimal (stationary)" in out.stdout and "round_robin (episodic)" in out.stdout
+    assert (
+        "the optimum's closest decisions" in out.stdout and "other mode here: ratio" in out.stdout
+    )
     s = _check_summary(tmp_path, "optimal")
     assert s["optimality_ratio"] == 1.0
     assert s["scenario"] == "paper[env.p1.speed=1.0]"

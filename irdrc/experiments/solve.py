@@ -137,7 +137,7 @@ def solve_dense(cfg: Config, run) -> dict[str, Any]:
     from irdrc.core.metrics import format_table
     from irdrc.core.policies import table_policy
     from irdrc.experiments.report import degenerate_note
-    from irdrc.experiments.tables import policy_table, share_table
+    from irdrc.experiments.tables import closest_decisions, policy_table, share_table
 
     params, gamma = cfg.model, cfg.optimum_gamma
     t0 = time.perf_counter()
@@ -152,6 +152,11 @@ def solve_dense(cfg: Config, run) -> dict[str, Any]:
             f"optimal policy ({int(sol.policy.sum())} of {model.num_states} states in radar mode):\n"
         )
         print(policy_table(model, sol.policy))
+        print(
+            "\nthe optimum's closest decisions (a learner needs the most samples to choose right "
+            "where the margin is small against the rewards' spread):\n"
+        )
+        print(closest_decisions(model, sol.q, sol.policy))
     else:
         print(f"optimal policy over {model.num_actions} radar shares (env.actions=levels):\n")
         print(share_table(model, model.radar[sol.policy]))

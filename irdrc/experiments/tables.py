@@ -195,6 +195,14 @@ def _config_labels(params) -> list[tuple[str, int]]:
     return [(" ".join(map(str, c)), sum(c[1:5])) for c in cols]
 
 
+def binary_mode(col: torch.Tensor) -> str:
+    """One factor combination's modes over d = 0 … D: ``comm`` or ``radar`` when the same at every
+    queue length, else a letter per d (C = comm, R = radar)."""
+    if bool((col == col[0]).all()):
+        return "radar" if int(col[0]) else "comm"
+    return "".join("R" if int(a) else "C" for a in col)
+
+
 def policy_differences(model: Any, actions: torch.Tensor, optimal: torch.Tensor) -> str:
     """In words, where a policy differs from the optimum: one line per factor combination (c, r, w,
     v, m) with a difference, each policy's mode by queue length (C = comm, R = radar, d = 0 … D)."""
@@ -222,9 +230,7 @@ def policy_differences(model: Any, actions: torch.Tensor, optimal: torch.Tensor)
         def mode(col: torch.Tensor) -> str:
             if levels:  # § D's levels: the level, a digit per queue length (G ≤ 10), else "·"
                 return "".join(str(int(a)) if levels <= 10 else "·" for a in col)
-            if bool((col == col[0]).all()):
-                return "radar" if int(col[0]) else "comm"
-            return "".join("R" if int(a) else "C" for a in col)
+            return binary_mode(col)
 
         lines.append(
             f"  {bits}  {float(model.event[f]):8.4f}  {mode(acts[:, f]):<12}  {mode(opt[:, f])}"
@@ -245,4 +251,36 @@ def share_table(model: Any, rho: torch.Tensor) -> str:
         lo, hi = float(col.min()), float(col.max())
         text = f"{lo:.3f}" if hi - lo < 5e-4 else f"{lo:.3f} … {hi:.3f}"
         lines.append(f"{bits}  {b}  {float(model.event[f]):8.4f}  {text}")
+    return "\n".join(lines)
+
+
+def closest_decisions(model: Any, q: torch.Tensor, policy: torch.Tensor, count: int = 6) -> str:
+    """The optimum's closest calls, where a learner that estimates each mode's value from samples
+    needs the most of them to choose right: the ``count`` factor combinations with the smallest
+    margin |Q*(comm) − Q*(radar)| at some queue length, each with its mode, its margins over d, its
+    share of the optimum's time, and — exactly, by policy evaluation — the optimum's ratio were the
+    other mode taken there at every queue length. ``q`` is value iteration's [2, S]."""
+    from irdrc.core.exact import stationary_metrics, stationary_occupancy
+
+    D = model.params.env.queue_capacity
+    labels = _config_labels(model.params)
+    margin = (q[0] - q[1]).abs().double().view(D + 1, len(labels))
+    acts = torch.as_tensor(policy).long().view(D + 1, len(labels))
+    time = stationary_occupancy(model, policy).sum(0).double().view(D + 1, len(labels)).sum(0)
+    best = stationary_metrics(model, policy).avg_reward
+    phase = " phase" if model.params.env.factor_levels[-1] > 1 else ""
+    lines = [
+        f"c r w v m{phase}  P(event)  mode          margin (min … max over d)  share of time  "
+        "other mode here: ratio"
+    ]
+    for f in torch.argsort(margin.min(0).values)[:count].tolist():
+        mode = binary_mode(acts[:, f])
+        flipped = acts.clone()
+        flipped[:, f] = 1 - flipped[:, f]
+        ratio = stationary_metrics(model, flipped.reshape(-1)).avg_reward / best
+        lo, hi = float(margin[:, f].min()), float(margin[:, f].max())
+        lines.append(
+            f"{labels[f][0]}  {float(model.event[f]):8.4f}  {mode:<12}  "
+            f"{f'{lo:.4f} … {hi:.4f}':<25}  {float(time[f]):13.4f}  {ratio:.4f}"
+        )
     return "\n".join(lines)

@@ -68,5 +68,5 @@ def test_a_run_below_the_threshold_is_told_the_override_to_try():
 
     line = end_warning(_hist((0, 0.3), (50_000, 0.97)), ADVICE["dqn"])
     assert line.startswith("warning: the final greedy policy is 0.9700")
-    assert line.endswith("; try " + ADVICE["dqn"]) and "network=large" in line
+    assert line.endswith("; try " + ADVICE["dqn"]) and "algo.total_frames=" in line
     assert end_warning(_hist((0, 0.3), (50_000, 0.999)), ADVICE["dqn"]) is None

@@ -291,10 +291,18 @@ def _sweep_popen(tmp_path: Path, *overrides: str) -> subprocess.Popen:
 
 
 def _wait_for_done(tmp_path: Path, proc: subprocess.Popen, n: int, timeout: float = 240) -> None:
+    """Until ``n`` trials are done: a DONE status beside their summary (the status is written after
+    the summary, so a summary alone may still be a trial the driver has not marked done)."""
     import time
 
+    from irdrc.experiments.trials import read_status
+
+    def done() -> int:
+        trials = (tmp_path / "trials").glob("*/summary.json")
+        return sum((read_status(s.parent) or {}).get("status") == "DONE" for s in trials)
+
     t0 = time.monotonic()
-    while len(list((tmp_path / "trials").glob("*/summary.json"))) < n:
+    while done() < n:
         assert proc.poll() is None, proc.communicate()
         assert time.monotonic() - t0 < timeout, "no trial finished in time"
         time.sleep(0.2)

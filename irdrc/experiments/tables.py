@@ -171,18 +171,7 @@ def policy_table(model: Any, actions: torch.Tensor) -> str:
     phase = " phase" if model.params.env.factor_levels[-1] > 1 else ""
     lines = [f"c r w v m{phase}  b  P(event)  mode (by d = 0 … D when it varies)"]
     for f, (bits, b) in enumerate(labels):
-        col = acts[:, f]
-        if bool((col == col[0]).all()):
-            mode = "radar" if int(col[0]) else "comm"
-        elif D + 1 <= 64:
-            mode = "".join("R" if int(a) else "C" for a in col)
-        else:  # runs: "C×5 R×3120" = comm for d = 0 … 4, radar above
-            change = (col[1:] != col[:-1]).nonzero().flatten().tolist()
-            ends = [*(i + 1 for i in change), D + 1]
-            starts = [0, *ends[:-1]]
-            mode = " ".join(
-                f"{'R' if int(col[a]) else 'C'}×{b - a}" for a, b in zip(starts, ends, strict=True)
-            )
+        mode = binary_mode(acts[:, f])
         pe = float(model.event[f])
         lines.append(f"{bits}  {b}  {pe:8.4f}  {mode}")
     return "\n".join(lines)
@@ -197,10 +186,18 @@ def _config_labels(params) -> list[tuple[str, int]]:
 
 def binary_mode(col: torch.Tensor) -> str:
     """One factor combination's modes over d = 0 … D: ``comm`` or ``radar`` when the same at every
-    queue length, else a letter per d (C = comm, R = radar)."""
+    queue length, else a letter per d (C = comm, R = radar), or for D ≥ 64 its runs (``C×5
+    R×3120``: comm for d = 0 … 4, radar above)."""
     if bool((col == col[0]).all()):
         return "radar" if int(col[0]) else "comm"
-    return "".join("R" if int(a) else "C" for a in col)
+    if len(col) <= 64:
+        return "".join("R" if int(a) else "C" for a in col)
+    change = (col[1:] != col[:-1]).nonzero().flatten().tolist()
+    ends = [*(i + 1 for i in change), len(col)]
+    starts = [0, *ends[:-1]]
+    return " ".join(
+        f"{'R' if int(col[a]) else 'C'}×{b - a}" for a, b in zip(starts, ends, strict=True)
+    )
 
 
 def policy_differences(model: Any, actions: torch.Tensor, optimal: torch.Tensor) -> str:
@@ -266,7 +263,7 @@ def closest_decisions(model: Any, q: torch.Tensor, policy: torch.Tensor, count: 
     labels = _config_labels(model.params)
     margin = (q[0] - q[1]).abs().double().view(D + 1, len(labels))
     acts = torch.as_tensor(policy).long().view(D + 1, len(labels))
-    time = stationary_occupancy(model, policy).sum(0).double().view(D + 1, len(labels)).sum(0)
+    share = stationary_occupancy(model, policy).sum(0).double().view(D + 1, len(labels)).sum(0)
     best = stationary_metrics(model, policy).avg_reward
     phase = " phase" if model.params.env.factor_levels[-1] > 1 else ""
     lines = [
@@ -281,6 +278,6 @@ def closest_decisions(model: Any, q: torch.Tensor, policy: torch.Tensor, count: 
         lo, hi = float(margin[:, f].min()), float(margin[:, f].max())
         lines.append(
             f"{labels[f][0]}  {float(model.event[f]):8.4f}  {mode:<12}  "
-            f"{f'{lo:.4f} … {hi:.4f}':<25}  {float(time[f]):13.4f}  {ratio:.4f}"
+            f"{f'{lo:.4f} … {hi:.4f}':<25}  {float(share[f]):13.4f}  {ratio:.4f}"
         )
     return "\n".join(lines)

@@ -283,6 +283,14 @@ def test_bench_robust_recipe(tmp_path):
     for r in rows:
         hist = list(csv.DictReader((tmp_path / "trials" / r["point_id"] / "metrics.csv").open()))
         assert float(r["final_ratio"]) == pytest.approx(float(hist[-1]["optimality_ratio"]))
+        # a trial directory names its candidate, as does the sweep's summary.csv
+        status = json.loads((tmp_path / "trials" / r["point_id"] / "status.json").read_text())
+        assert (status["point"]["candidate"], status["point"]["seed"]) == (
+            r["candidate"],
+            int(r["seed"]),
+        )
+    summary = list(csv.DictReader((tmp_path / "summary.csv").open()))
+    assert sorted(s["candidate"] for s in summary) == ["ladder", "ladder", "plain", "plain"]
     table = (tmp_path / "bench_robust.md").read_text()
     assert "| ladder | env.p1.speed = 0.1, reward.r4 = 5 | " in table
     assert "| plain | env.p1.speed = 0.1, reward.r4 = 5 | " in table

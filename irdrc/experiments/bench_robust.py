@@ -110,8 +110,9 @@ def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
         for draw in draws:
             scenario = [] if draw is None else command_line(draw.overrides)
             for p in plan("dqn", parse_grid(cfg.grid), [*base, *scenario, *extra]):
-                if draw is not None:
-                    p["point"] = {"draw": draw.index, **p["point"]}
+                # what names the run in summary.csv, its progress line and its status.json
+                named = {"candidate": name, **({} if draw is None else {"draw": draw.index})}
+                p["point"] = {**named, **p["point"]}
                 planned.append(p)
                 owner[p["point_id"]] = name
     return replace(cfg, planned=tuple(planned), owner=owner)
@@ -170,7 +171,7 @@ def run(cfg: Config, run) -> int:
         model = build_model(p["config"].params)
         learned = read_policy_csv(Path(out) / "trials" / p["point_id"] / "policy.csv")
         optimum = Scorer(model, cfg.optimum_gamma).optimal.policy
-        label = " ".join(f"{k}={v}" for k, v in p["point"].items())
+        label = " ".join(f"{k}={v}" for k, v in p["point"].items() if k != "candidate")
         text = f"{row['candidate']} {label}: final {row['final_ratio']:.4f}; "
         failures.append(text + policy_differences(model, learned, optimum))
         print("\n" + failures[-1])

@@ -107,7 +107,8 @@ def record(tdir: Path, p: dict[str, Any], result: dict[str, Any] | None, error: 
     else:
         status = {"status": "ERROR", "error": [last_line(error)]}
     atomic_write_text(
-        tdir / "status.json", json.dumps({**status, "overrides": p["overrides"]}) + "\n"
+        tdir / "status.json",
+        json.dumps({**status, "point": p["point"], "overrides": p["overrides"]}) + "\n",
     )
 
 

@@ -108,7 +108,9 @@ def record(tdir: Path, p: dict[str, Any], result: dict[str, Any] | None, error: 
         status = {"status": "ERROR", "error": [last_line(error)]}
     atomic_write_text(
         tdir / "status.json",
-        json.dumps({**status, "point": p["point"], "overrides": p["overrides"]}) + "\n",
+        # default=str: a grid value JSON cannot hold still names the point, never fails the write
+        json.dumps({**status, "point": p["point"], "overrides": p["overrides"]}, default=str)
+        + "\n",
     )
 
 

@@ -161,6 +161,7 @@ def test_learner_stopped_by_sigterm_exits_with_its_signal(tmp_path):
             str(ROOT / "recipes" / "constrained.py"),
             "learner=dqn_lagrangian",
             "algo.total_frames=10000000",
+            "checkpoint.every_frames=2000",
             "progress=false",
             "logger=none",
             f"hydra.run.dir={tmp_path}",
@@ -172,11 +173,12 @@ def test_learner_stopped_by_sigterm_exits_with_its_signal(tmp_path):
     )
     try:
         t0 = time.monotonic()
-        while not (tmp_path / "config.yaml").exists():  # written just before the LP and training
+        # the first checkpoint is written inside training, where the stop is listened for (a
+        # fixed wait after the config raced a slow start: the signal came before the handler)
+        while not (tmp_path / "checkpoint.pt").exists():
             assert proc.poll() is None, proc.communicate()
-            assert time.monotonic() - t0 < 120
-            time.sleep(0.1)
-        time.sleep(8)  # the LP takes about a second: well inside training by now
+            assert time.monotonic() - t0 < 300
+            time.sleep(0.05)
         proc.send_signal(signal.SIGTERM)
         _, stderr = proc.communicate(timeout=120)
         assert proc.returncode == 128 + signal.SIGTERM, stderr[-2000:]

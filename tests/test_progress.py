@@ -70,3 +70,32 @@ def test_a_run_below_the_threshold_is_told_the_override_to_try():
     assert line.startswith("warning: the final greedy policy is 0.9700")
     assert line.endswith("; try " + ADVICE["dqn"]) and "algo.total_frames=" in line
     assert end_warning(_hist((0, 0.3), (50_000, 0.999)), ADVICE["dqn"]) is None
+
+
+def test_every_profile_a_learner_recipe_runs_is_told_an_override_that_exists():
+    """Each profile of ``recipes/conf/algo`` that ends through the learner report (all but the
+    constrained recipe's) has advice, and the advice starts with an override its recipe accepts:
+    a profile that exists, or a key of the profile's config."""
+    from dataclasses import fields
+    from pathlib import Path
+
+    import yaml
+
+    from irdrc.agents.configs import DQNConfig, QLearningConfig
+    from irdrc.experiments.report import ADVICE
+
+    conf = Path(__file__).resolve().parents[1] / "recipes" / "conf" / "algo"
+    names = {}
+    for f in sorted(conf.glob("*.yaml")):
+        data = yaml.safe_load(f.read_text())
+        names[(data.get("algo") or data)["name"]] = f.stem
+    names.pop("dqn_lagrangian")  # the constrained recipe scores it against the LP, not here
+    assert set(names) <= set(ADVICE), set(names) - set(ADVICE)
+    for name in names:
+        override = ADVICE[name].split()[0]
+        key, value = override.split("=", 1)
+        if key in ("algo", "network"):  # a config group's option
+            assert (conf.parent / key / f"{value}.yaml").is_file(), (name, override)
+        else:
+            config = QLearningConfig if name.startswith("qlearning") else DQNConfig
+            assert key.startswith("algo.") and key[5:] in {f.name for f in fields(config)}, override

@@ -132,6 +132,11 @@ def test_qlearning_recipe(tmp_path):
         f"hydra.run.dir={tmp_path}",
     )
     assert out.returncode == 0, out.stderr
+    # four episodes end far below the optimum: the last line says so and what to try
+    from irdrc.experiments.report import ADVICE
+
+    warning = [ln for ln in out.stdout.splitlines() if ln.startswith("warning:")]
+    assert len(warning) == 1 and warning[0].endswith("; try " + ADVICE["qlearning"]), warning
     s = _check_summary(tmp_path, "qlearning")
     assert s["seed"] == 3 and s["env_steps"] == 4 * 400 and len(s["learners"]) == 2
     hist = list(csv.DictReader((tmp_path / "metrics.csv").open()))

@@ -278,6 +278,7 @@ def test_ctrl_c_in_a_long_solve_is_one_line(tmp_path):
     """SIGINT while a 10⁶-state solve runs: its estimate and progress were shown, the answer is
     one line, exit 130."""
     import signal
+    import threading
     import time
 
     out = tmp_path / "run"
@@ -297,9 +298,19 @@ def test_ctrl_c_in_a_long_solve_is_one_line(tmp_path):
         # in a background job, whose commands start with SIGINT ignored (and pass that on)
         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
     )
-    time.sleep(15)  # the estimate, then sweeps with a progress line every 5 s
+    # wait for the first progress line of the sweeps (a fixed wait raced a slow start)
+    seen: list[str] = []
+    reader = threading.Thread(target=lambda: seen.extend(proc.stdout), daemon=True)
+    reader.start()
+    t0 = time.monotonic()
+    while not any("value iteration: sweep" in line for line in seen):
+        assert proc.poll() is None, proc.stderr.read()
+        assert time.monotonic() - t0 < 300, "no sweep progress line"
+        time.sleep(0.2)
     proc.send_signal(signal.SIGINT)
-    stdout, stderr = proc.communicate(timeout=60)
+    proc.wait(timeout=60)
+    reader.join(timeout=60)
+    stdout, stderr = "".join(seen), proc.stderr.read()
     assert proc.returncode == 130, stderr
     assert "estimate here" in stdout and "[solve] value iteration: sweep" in stdout
     assert "Traceback" not in stderr

@@ -95,13 +95,19 @@ def scenario(*overrides: str) -> Params:
     return load("solve", *overrides).model
 
 
+TINY_ALGO = dict(
+    num_envs=8,
+    frames_per_batch=32,
+    total_frames=640,
+    init_random_frames=128,
+    buffer_size=640,
+    batch_size=32,
+)
+"""``DQNConfig`` keys of a run of 640 env steps in 20 batches: enough to exercise a part, not to
+learn."""
+
 TINY_DQN = [
-    "algo.num_envs=8",
-    "algo.frames_per_batch=32",
-    "algo.total_frames=640",
-    "algo.init_random_frames=128",
-    "algo.buffer_size=640",
-    "algo.batch_size=32",
+    *(f"algo.{key}={value}" for key, value in TINY_ALGO.items()),
     "eval.every_frames=320",
     "progress=false",
     "logger=none",

@@ -7,7 +7,7 @@ import math
 
 import pytest
 import torch
-from conftest import load
+from conftest import TINY_ALGO, load
 from tensordict import TensorDict
 
 from irdrc import Params
@@ -15,15 +15,7 @@ from irdrc.agents.configs import LagrangianConfig
 from irdrc.agents.dqn import DQNConfig, train
 from irdrc.agents.offpolicy import RewardCenter
 
-TINY = dict(
-    num_envs=8,
-    frames_per_batch=32,
-    total_frames=640,
-    init_random_frames=128,
-    buffer_size=640,
-    batch_size=32,
-)
-"""A DQN run of 640 env steps in 20 batches: enough to exercise centering, not to learn."""
+TINY = TINY_ALGO
 
 
 def _sample(rewards: list[float]) -> TensorDict:

@@ -30,8 +30,10 @@ from irdrc.agents.offpolicy import (
     make_exploration,
     make_optimizer,
     make_qnet,
+    observation_top,
     policy_view,
 )
+from irdrc.agents.reward_means import RewardMeans
 from irdrc.core.env import DFRCEnv
 from irdrc.core.params import Params
 
@@ -116,8 +118,14 @@ def train(
         with policy_view(loss, cfg):
             return greedy_table(qnet, env)
 
+    # the targets' rewards: each sample's own, or the mean of every step at its (observation, action)
+    means = None
+    if cfg.reward_means:
+        means = RewardMeans(observation_top(env), env.action_spec_unbatched.space.n)
     run = RunContext(scorer, eval_every_frames, hooks, resume)
-    loop = TrainingLoop(cfg, collector, buffer, sampler, optimizer, run, values_key="action_value")
+    loop = TrainingLoop(
+        cfg, collector, buffer, sampler, optimizer, run, values_key="action_value", means=means
+    )
     record = loop.run(Learner(loss=loss, update=update, policy=policy))
     with policy_view(loss, cfg):
         record.q = action_values(qnet, env)[None]

@@ -24,6 +24,7 @@ from torchrl.data import TensorDictReplayBuffer
 from irdrc.agents.base import RunContext, RunRecord, progress_record
 from irdrc.agents.configs import OffPolicyConfig
 from irdrc.agents.offpolicy import STORED_KEYS, EpisodeTracker, RewardCenter, anneal
+from irdrc.agents.reward_means import RewardMeans
 
 
 @dataclass
@@ -90,6 +91,8 @@ class TrainingLoop:
             (``"action_value"``), for ``cfg.center_on=values``; None: a learner without it.
         prepare: rewrites each collected batch before anything reads it (the fleet's value
             decomposition puts the team reward at the root there).
+        means: the mean reward of each (observation, action), fed every collected batch and read
+            by every replay sample in place of its own reward (``OffPolicyConfig.reward_means``).
     """
 
     def __init__(
@@ -105,12 +108,14 @@ class TrainingLoop:
         center_key: Any = ("next", "reward"),
         values_key: Any = None,
         prepare: Callable[[TensorDictBase], TensorDictBase] | None = None,
+        means: RewardMeans | None = None,
     ) -> None:
         self.cfg, self.collector, self.buffer, self.sampler = cfg, collector, buffer, sampler
         self.optimizer, self.scorer, self.hooks = optimizer, run.scorer, run.hooks
         self.eval_every = int(run.eval_every_frames)
         self.resume = resume = run.resume
         self.keys, self.center_key, self.prepare = keys, center_key, prepare
+        self.means = means
         self.values_key = values_key if getattr(cfg, "center_on", "rewards") == "values" else None
         self.record = RunRecord(method=cfg.name, greedy=torch.zeros(1, 1, dtype=torch.int64))
         self.center = RewardCenter(cfg.reward_centering, getattr(cfg, "reward_std", 0.0))
@@ -150,6 +155,8 @@ class TrainingLoop:
                 data = self.prepare(data)
             self.episodes.add(data, self.frames)
             self.center.update(data.get(self.center_key))
+            if self.means is not None:
+                self.means.add(data)
             if self.values_key is not None:
                 level = data.get(self.values_key).max(-1).values.double().mean()
                 self.center.follow(float(level), self.cfg.gamma)
@@ -167,7 +174,10 @@ class TrainingLoop:
             return False
         t0 = time.perf_counter()
         for _ in range(self.cfg.updates_per_batch):
-            sample = self.center.center(self.buffer.sample(), self.center_key)
+            sample = self.buffer.sample()
+            if self.means is not None:
+                sample = self.means.apply(sample)
+            sample = self.center.center(sample, self.center_key)
             self.last_loss = update(sample)
             self.updates += 1
         self.seconds["learn"] += time.perf_counter() - t0

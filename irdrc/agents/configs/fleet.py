@@ -101,6 +101,11 @@ class FleetLearnerConfig:
                 f"algo.center_on={self.dqn.center_on}: the fleet's learners centre on the team "
                 "rewards' average; set algo.center_on=rewards"
             )
+        if self.dqn.reward_means:
+            raise ValueError(
+                "algo.reward_means=true: the fleet's learners read each sample's own team "
+                "reward; set algo.reward_means=false"
+            )
         if self.learner in MIXERS:
             for key, why in (
                 ("double_dqn", "takes each vehicle's maximum under the target network"),

@@ -119,6 +119,11 @@ class LagrangianConfig:
                 ("cost_window_frames", 1, 10**12, INT),
             ),
         )
+        if self.dqn.reward_means:
+            raise ValueError(
+                "algo.reward_means=true: the Lagrangian DQN learns two signals (reward and "
+                "misses) and keeps each sample's own; set algo.reward_means=false"
+            )
 
     @property
     def name(self) -> str:

@@ -66,6 +66,9 @@ class OffPolicyConfig:
             collected rewards average the exploring rows' too, far below what the greedy policy
             earns where exploring is costly); ``rewards``: the collected rewards' average alone
             (the fleet's learners, DQN over levels).
+        reward_means: each sampled reward replaced by the mean reward of every step collected at
+            its (observation, action) (``irdrc.agents.reward_means``): the target's expected
+            reward from all the run's data, without the one sample's noise (docs/DQN.md).
         reward_std: 0 (off), or the standard deviation the sampled rewards are scaled to: they are
             divided by the first collected batch's standard deviation over this (fixed for the
             run), so the values the network fits have the same size whatever the scenario's reward
@@ -98,6 +101,7 @@ class OffPolicyConfig:
     double_dqn: bool = True
     reward_centering: float = 1e-5
     center_on: str = "values"
+    reward_means: bool = False
     reward_std: float = 0.0
     batch_size: int = 1000
     updates_per_batch: int = 4
@@ -138,6 +142,7 @@ class OffPolicyConfig:
         checks.check_choice("algo.center_on", self.center_on, CENTER_ON)
         checks.check_bool("algo.double_dqn", self.double_dqn)
         checks.check_bool("algo.prioritized", self.prioritized)
+        checks.check_bool("algo.reward_means", self.reward_means)
         if not isinstance(self.network, NetworkConfig):
             raise ValueError(f"network={self.network!r} must be a NetworkConfig")
         # Combinations, named by their keys.

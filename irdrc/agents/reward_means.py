@@ -72,8 +72,3 @@ class RewardMeans:
         mean = self.sums[at] / self.counts[at].clamp(min=1.0)
         sample.set(self.reward_key, mean.to(reward.dtype).reshape(reward.shape))
         return sample
-
-    def mean(self, observation: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
-        """The mean reward of each (observation, action) (0 where none was collected)."""
-        at = self.index(observation, action)
-        return self.sums[at] / self.counts[at].clamp(min=1.0)

@@ -28,6 +28,7 @@ from torchrl.objectives import SoftUpdate
 
 from irdrc.agents.base import RunRecord
 from irdrc.agents.configs import NetworkConfig, OffPolicyConfig
+from irdrc.agents.levels import DistinctRows
 from irdrc.agents.replay import make_prioritized_sampler
 
 ACTIVATIONS = {"relu": nn.ReLU, "tanh": nn.Tanh, "elu": nn.ELU, "gelu": nn.GELU, "silu": nn.SiLU}
@@ -91,8 +92,11 @@ def make_body(
 
 
 def make_qnet(env: Any, net: NetworkConfig) -> QValueActor:
-    """Q-value actor: observation in, one Q-value per action out, greedy action."""
-    module = make_mlp(env, net, env.action_spec_unbatched.space.n)
+    """Q-value actor: observation in, one Q-value per action out, greedy action (the body a
+    ``DistinctRows``: outside autograd, one pass per distinct observation of a batch)."""
+    body = make_mlp(env, net, env.action_spec_unbatched.space.n)
+    # the collector's thousands of rows hold a few hundred distinct observations: one pass each
+    module = DistinctRows(*body, high=observation_top(env))
     return QValueActor(module=module, in_keys=["observation"], spec=env.action_spec_unbatched)
 
 

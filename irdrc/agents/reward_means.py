@@ -20,6 +20,8 @@ from typing import Any
 import torch
 from tensordict import TensorDictBase
 
+from irdrc.agents.levels import mixed_radix
+
 MAX_ENTRIES = 10**8
 """The largest table (observations × actions) accepted: 1.6 GB of float64 sums and counts."""
 
@@ -36,19 +38,13 @@ class RewardMeans:
     def __init__(
         self, high: torch.Tensor, num_actions: int, reward_key: Any = ("next", "reward")
     ) -> None:
-        levels = high.round().to(torch.int64).reshape(-1) + 1
-        if bool((levels < 1).any()):
-            raise ValueError(f"observation high={high.tolist()} must be >= 0")
-        size = int(torch.prod(levels.double()).item()) * int(num_actions)
+        radix, codes = mixed_radix(high)
+        size = codes * int(num_actions)
         if size > MAX_ENTRIES:
             raise ValueError(
                 f"algo.reward_means: {size} (observation, action) pairs exceed {MAX_ENTRIES}; "
                 "set algo.reward_means=false"
             )
-        # mixed radix, the last entry fastest, then the action
-        radix = torch.ones_like(levels)
-        for i in range(levels.numel() - 2, -1, -1):
-            radix[i] = radix[i + 1] * levels[i + 1]
         self.radix, self.num_actions, self.reward_key = radix, int(num_actions), reward_key
         self.sums = torch.zeros(size, dtype=torch.float64)
         self.counts = torch.zeros(size, dtype=torch.float64)

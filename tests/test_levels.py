@@ -9,7 +9,7 @@ import torch
 from irdrc import Params
 from irdrc.agents.configs import DQNConfig
 from irdrc.agents.levels import DistinctRows, mixed_radix
-from irdrc.agents.offpolicy import make_mlp, make_qnet, observation_top
+from irdrc.agents.offpolicy import PolyakUpdate, make_mlp, make_qnet, observation_top
 from irdrc.core.env import DFRCEnv
 
 
@@ -77,3 +77,66 @@ def test_dqn_q_network_is_distinct_rows_with_the_plain_keys():
     assert len(bodies) == 1
     plain = make_mlp(env, DQNConfig().network, 2)
     assert list(bodies[0].state_dict()) == list(plain.state_dict())  # checkpoints load as before
+
+
+def test_a_dqn_loss_through_distinct_rows_is_the_plain_loss_bit_for_bit(monkeypatch):
+    """DQNLoss's two passes over the next observations (detached online parameters, target
+    parameters) record no graph, so they take the distinct rows; the loss and every gradient are
+    the plain network's exactly, and the pass that records a graph stays plain."""
+    import copy
+
+    from tensordict import TensorDict
+    from torchrl.modules import QValueActor
+    from torchrl.objectives import DQNLoss
+
+    env = DFRCEnv(Params(), batch_size=[2])
+    torch.manual_seed(0)
+    fast = make_qnet(env, DQNConfig().network)
+    body = next(m for m in fast.modules() if isinstance(m, DistinctRows))
+    plain = QValueActor(
+        module=torch.nn.Sequential(*copy.deepcopy(list(body))),
+        in_keys=["observation"],
+        spec=env.action_spec_unbatched,
+    )
+    obs = env.dynamics.obs.float()
+    gen = torch.Generator().manual_seed(2)
+    rows = 4 * len(obs)
+    batch = TensorDict(
+        {
+            "observation": obs[torch.randint(0, len(obs), (rows,), generator=gen)],
+            "action": torch.randint(0, 2, (rows,), generator=gen),
+            ("next", "observation"): obs[torch.randint(0, len(obs), (rows,), generator=gen)],
+            ("next", "reward"): torch.randn(rows, 1, generator=gen),
+            ("next", "done"): torch.zeros(rows, 1, dtype=torch.bool),
+            ("next", "terminated"): torch.zeros(rows, 1, dtype=torch.bool),
+        },
+        batch_size=[rows],
+    )
+    distinct_passes = []
+    real = DistinctRows._records_graph
+
+    def spy(self):
+        recorded = real(self)
+        distinct_passes.append(not recorded)
+        return recorded
+
+    monkeypatch.setattr(DistinctRows, "_records_graph", spy)
+    losses = []
+    for net in (fast, plain):
+        loss = DQNLoss(
+            net,
+            loss_function="l2",
+            delay_value=True,
+            double_dqn=True,
+            action_space=env.action_spec_unbatched,
+        )
+        loss.make_value_estimator(gamma=0.99)
+        PolyakUpdate(loss, tau=0.02)  # as DQN builds it (the loss expects an updater)
+        value = loss(batch.clone())["loss"]
+        value.backward()
+        grads = [p.grad.clone() for p in loss.parameters() if p.grad is not None]
+        assert len(grads) == 10  # weight and bias of the three Linear and two LayerNorm layers
+        losses.append((value.detach(), grads))
+    assert distinct_passes == [False, True, True]
+    assert torch.equal(losses[0][0], losses[1][0])
+    assert all(torch.equal(a, b) for a, b in zip(losses[0][1], losses[1][1], strict=True))

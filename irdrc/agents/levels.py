@@ -32,10 +32,12 @@ def mixed_radix(high: torch.Tensor) -> tuple[torch.Tensor, int]:
 
 
 class DistinctRows(nn.Sequential):
-    """``nn.Sequential`` (same children, same state-dict keys) that, outside autograd, evaluates a
-    batch [rows, n] of integer-level observations once per distinct observation when the rows
-    outnumber the possible codes; otherwise (gradients on, fewer rows, other shapes, or inputs that
-    are not integers in [0, high]) it is the plain ``nn.Sequential``.
+    """``nn.Sequential`` (same children, same state-dict keys) that, in a pass autograd does not
+    record, evaluates a batch [rows, n] of integer-level observations once per distinct observation
+    when the rows outnumber the possible codes; otherwise (a pass that records a graph, fewer rows,
+    other shapes, or inputs that are not integers in [0, high]) it is the plain ``nn.Sequential``.
+    Passes not recorded: the collector's, the evaluations', and a loss's target passes through
+    detached or target parameters.
 
     Args:
         *layers: the network's layers.
@@ -51,9 +53,14 @@ class DistinctRows(nn.Sequential):
         self.top = high.round().to(torch.int64).to(high.device)
         self.codes = codes
 
+    def _records_graph(self) -> bool:
+        """Whether autograd would record this pass: gradients on and a parameter that needs them
+        (a loss's passes through detached or target parameters record nothing)."""
+        return torch.is_grad_enabled() and any(p.requires_grad for p in self.parameters())
+
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         rows = x.shape[0] if x.dim() == 2 else 0
-        if torch.is_grad_enabled() or rows <= self.codes or x.shape[-1] != self.radix.numel():
+        if rows <= self.codes or x.shape[-1] != self.radix.numel() or self._records_graph():
             return super().forward(x)
         levels = x.to(torch.int64)
         if not (

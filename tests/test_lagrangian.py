@@ -417,6 +417,9 @@ def test_short_run_reports_mu_measured_miss_and_a_probability_policy():
             frames_per_batch=32,
             total_frames=1024,
             init_random_frames=256,
+            batch_size=1000,
+            updates_per_batch=4,
+            reward_means=False,
             name="dqn_lagrangian",
         ),
         search=SearchConfig(measure_envs=8, measure_steps=50, measure_burn_in=10, mix_steps=2),
@@ -510,6 +513,8 @@ def test_centering_runs_and_tracks_the_objective_mean(monkeypatch):
         init_random_frames=64,
         buffer_size=256,
         batch_size=32,
+        updates_per_batch=4,
+        reward_means=False,
         reward_centering=0.01,
         name="dqn_lagrangian",
     )

@@ -3,6 +3,8 @@ the table, what the loss sees, where it is refused, and its means against the ex
 
 from __future__ import annotations
 
+import dataclasses
+
 import pytest
 import torch
 from conftest import TINY_ALGO, load
@@ -101,12 +103,13 @@ def test_dqn_learns_from_the_table_when_on_and_not_when_off(monkeypatch):
     run = train(Params(), DQNConfig(**TINY, reward_means=True), seed=0, eval_every_frames=320)
     assert len(made) == 1 and float(made[0].counts.sum()) == TINY["total_frames"]
     assert len(applied) == run.state["updates"] and set(applied) == {TINY["batch_size"]}
-    train(Params(), DQNConfig(**TINY), seed=0, eval_every_frames=320)
+    train(Params(), DQNConfig(**TINY, reward_means=False), seed=0, eval_every_frames=320)
     assert len(made) == 1  # off: no table
 
 
 def test_the_key_is_checked_and_the_learners_that_cannot_use_it_refuse_it():
-    assert DQNConfig().reward_means is False
+    assert DQNConfig().reward_means is True  # the default since the thirteenth random report
+    assert load("dqn", "algo.reward_means=false").algo.reward_means is False
     assert load("dqn").algo == DQNConfig()
     assert load("dqn", "algo.reward_means=true").algo.reward_means is True
     with pytest.raises(ValueError, match=r"algo\.reward_means"):
@@ -115,3 +118,16 @@ def test_the_key_is_checked_and_the_learners_that_cannot_use_it_refuse_it():
         load("fleet", "algo.reward_means=true")
     with pytest.raises(ValueError, match=r"algo\.reward_means=true: the Lagrangian"):
         LagrangianConfig.from_sections({"reward_means": True})
+
+
+def test_a_learners_partial_algo_mapping_keeps_its_own_shape():
+    """The Lagrangian and the fleet keep the shapes they were measured with, on the sampled
+    rewards: a mapping that leaves those keys out fills them from the learner's own default, not
+    from DQN's (which reads the mean rewards the two refuse)."""
+    from irdrc.agents.configs import FleetLearnerConfig
+
+    lag = LagrangianConfig.from_sections({"lr": 1e-3})
+    assert lag.dqn.lr == 1e-3 and lag.dqn == dataclasses.replace(LagrangianConfig().dqn, lr=1e-3)
+    vdn = FleetLearnerConfig.from_sections("vdn", {"tau": 0.05})
+    assert (vdn.dqn.num_envs, vdn.dqn.reward_means, vdn.dqn.tau) == (1000, False, 0.05)
+    assert DQNConfig.from_sections({"lr": 1e-3}).reward_means is True  # DQN's own default

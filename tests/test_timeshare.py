@@ -339,8 +339,9 @@ def test_dqn_over_levels_scores_against_both_optima(tmp_path):
 
 def test_the_levels_profile_is_dqn_over_levels_longer_and_wider():
     """``algo=dqn_levels`` is DQN's defaults over G levels with 1 M env steps, the ``medium``
-    network and the learning rate and reward centering it was measured at (3e-3, r̄ on the collected
-    rewards alone; nothing else); a network chosen on the command line still wins."""
+    network and the shape, learning rate and reward centering it was measured at (1 000 rows,
+    4 updates of 1 000 per collection on the sampled rewards, 3e-3, r̄ on the collected rewards
+    alone; nothing else); a network chosen on the command line still wins."""
     from conftest import load
 
     from irdrc.agents.configs.value import NetworkConfig
@@ -349,7 +350,16 @@ def test_the_levels_profile_is_dqn_over_levels_longer_and_wider():
     assert levels.params.env.actions == "levels" and levels.algo.total_frames == 1_000_000
     medium = NetworkConfig(hidden=(128, 128))
     assert levels.algo == dataclasses.replace(
-        dqn.algo, total_frames=1_000_000, network=medium, lr=3e-3, center_on="rewards"
+        dqn.algo,
+        total_frames=1_000_000,
+        network=medium,
+        lr=3e-3,
+        center_on="rewards",
+        num_envs=1000,
+        frames_per_batch=2000,
+        batch_size=1000,
+        updates_per_batch=4,
+        reward_means=False,
     )
     for chosen, hidden in (("network=large", (256, 256)), ("network.hidden=[32,32]", (32, 32))):
         assert load("dqn", "algo=dqn_levels", chosen).algo.network.hidden == hidden

@@ -264,11 +264,10 @@ END_SLACK = 0.01
 
 
 ADVICE = {
-    "dqn": "algo.total_frames=2000000 (four times the env steps and about four times a run's wall "
-    "time: of 13 runs on random scenarios where the default fell short it held on 10, "
-    "network=large on 5; docs/DQN.md)",
-    "dqn_paper": "algo=dqn (our profile, the default: 120 of 120 runs ≥ 0.99 on the named grid in "
-    "500 000 env steps; docs/DQN.md)",
+    "dqn": "algo.total_frames=8000000 (twice the env steps and about twice a run's wall time: "
+    "on random scenarios it held on all 7 runs where the default fell short; docs/DQN.md)",
+    "dqn_paper": "algo=dqn (our profile, the default: 120 of 120 runs ≥ 0.99 on the named grid, "
+    "about 18 s each here; docs/DQN.md)",
     "dqn_levels": "algo.total_frames=2000000 (twice the profile's env steps: on env=imperfect_radar "
     "seeds 6 and 8, at 0.9802 and 0.9742 of the G-level optimum after 10⁶, ended at 0.9958 and "
     "0.9938, network=large at 0.9934 and 0.9973; docs/TIMESHARING.md)",

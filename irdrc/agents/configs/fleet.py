@@ -80,7 +80,17 @@ class FleetLearnerConfig:
     learner: str = "vdn"
     dqn: OffPolicyConfig = field(
         default_factory=lambda: OffPolicyConfig(
-            prioritized=False, double_dqn=False, center_on="rewards", lr=3e-3, name="vdn"
+            num_envs=1000,
+            frames_per_batch=2000,
+            total_frames=500_000,
+            batch_size=1000,
+            updates_per_batch=4,
+            reward_means=False,
+            prioritized=False,
+            double_dqn=False,
+            center_on="rewards",
+            lr=3e-3,
+            name="vdn",
         )
     )
     ppo: FleetPPOConfig = field(default_factory=FleetPPOConfig)
@@ -144,4 +154,6 @@ class FleetLearnerConfig:
                 data[key] = not mixer
         data.setdefault("center_on", "rewards")  # DQN's own default follows its values
         data["name"] = learner
-        return cls(learner=learner, dqn=OffPolicyConfig.from_sections(data, network), **own)
+        own_dqn = cls.__dataclass_fields__["dqn"].default_factory()  # type: ignore[misc]
+        dqn = OffPolicyConfig.from_sections(data, network, base=own_dqn)
+        return cls(learner=learner, dqn=dqn, **own)

@@ -90,6 +90,8 @@ class LagrangianConfig:
             init_random_frames=512,
             buffer_size=20_000,
             batch_size=256,
+            updates_per_batch=4,
+            reward_means=False,
             lr=5e-4,
             tau=0.01,
             reward_centering=0.0,
@@ -147,5 +149,6 @@ class LagrangianConfig:
         )
         own = {k: data.pop(k) for k in LAGRANGIAN_KEYS if k in data}
         search = build(SearchConfig, {k: data.pop(k) for k in search_keys if k in data}, "algo.")
-        dqn = OffPolicyConfig.from_sections(data, network)
+        own_dqn = cls.__dataclass_fields__["dqn"].default_factory()  # type: ignore[misc]
+        dqn = OffPolicyConfig.from_sections(data, network, base=own_dqn)
         return cls(dqn=dqn, target_miss=target_miss, objective=objective, search=search, **own)

@@ -86,9 +86,9 @@ class OffPolicyConfig:
         name: the profile's name (runs are labelled with it).
     """
 
-    num_envs: int = 1000
-    frames_per_batch: int = 2000
-    total_frames: int = 500_000
+    num_envs: int = 8000
+    frames_per_batch: int = 16_000
+    total_frames: int = 4_000_000
     init_random_frames: int = 0
     eps_max: float = 1.0
     eps_min: float = 0.01
@@ -101,10 +101,10 @@ class OffPolicyConfig:
     double_dqn: bool = True
     reward_centering: float = 1e-5
     center_on: str = "values"
-    reward_means: bool = False
+    reward_means: bool = True
     reward_std: float = 0.0
-    batch_size: int = 1000
-    updates_per_batch: int = 4
+    batch_size: int = 2000
+    updates_per_batch: int = 2
     lr: float = 6e-3
     lr_end: float = 1e-5
     max_grad_norm: float = 10.0
@@ -177,15 +177,26 @@ class OffPolicyConfig:
         return {f.name for f in fields(cls) if f.name != "network"}
 
     @classmethod
-    def from_sections(cls, algo: Any, network: Any = None, **extra: Any):
+    def from_sections(cls, algo: Any, network: Any = None, *, base: Any = None, **extra: Any):
         """From the ``algo`` mapping and the ``network`` mapping; unknown keys are refused, naming
         the closest valid one (a retired key is accepted at the value this version implements:
-        ``RETIRED``)."""
+        ``RETIRED``). A key the mappings leave out takes ``base``'s value (a learner's own
+        default, e.g. the Lagrangian's), or this class's default without one."""
         data = retire(dict(algo))
+        if base is not None:
+            data = {
+                **{f.name: getattr(base, f.name) for f in fields(cls) if f.name != "network"},
+                **data,
+            }
         built = checks.build(cls, {k: v for k, v in data.items() if k != "network"}, "algo.")
-        if network is None and not extra:
+        if network is not None:
+            net = NetworkConfig.from_dict(network)
+        elif base is not None:
+            net = base.network
+        elif not extra:
             return built
-        net = NetworkConfig.from_dict(network) if network is not None else built.network
+        else:
+            net = built.network
         return _replace(built, network=net, **extra)
 
 

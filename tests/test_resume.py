@@ -60,7 +60,9 @@ def test_dqn_resumes_to_a_longer_run():
 
 def test_lagrangian_resumes_with_its_multiplier():
     search = SearchConfig(measure_envs=4, measure_steps=20, measure_burn_in=0, mix_steps=2)
-    dq = DQNConfig(**{**TINY, "reward_centering": 0.0, "name": "dqn_lagrangian"})
+    dq = DQNConfig(
+        **{**TINY, "reward_centering": 0.0, "reward_means": False, "name": "dqn_lagrangian"}
+    )
     cfg = LagrangianConfig(dqn=dq, search=search)
     saved = []
     hooks = Hooks(on_checkpoint=saved.append, checkpoint_every_frames=160)

@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from irdrc.agents.configs import DQNConfig
+from irdrc.agents.configs.value import THOUSAND_ROWS
 from irdrc.core.exact import Scorer, build_model
 from irdrc.core.params import Params
 from irdrc.experiments.random_scenarios import contested_draws, draw_overrides
@@ -22,15 +23,7 @@ SHORT = 6846
 0.45 in value. It holds there on 4 of seeds 0–7, and with twice the env steps on each of the four
 it misses (docs/DQN.md). The 1 000-row default before it ended at 0.8144 on draw 3888, seed 5,
 where today's holds."""
-PREVIOUS_DEFAULT = dataclasses.replace(
-    DQNConfig(),
-    num_envs=1000,
-    frames_per_batch=2000,
-    total_frames=500_000,
-    batch_size=1000,
-    updates_per_batch=4,
-    reward_means=False,
-)
+PREVIOUS_DEFAULT = dataclasses.replace(DQNConfig(), **THOUSAND_ROWS)
 """DQN's default until the thirteenth random report (``previous_default`` in bench_dqn.yaml)."""
 CENTERING = 1261
 """A draw of the first report where centering on the collected rewards alone ends at 0.7824

@@ -344,22 +344,17 @@ def test_the_levels_profile_is_dqn_over_levels_longer_and_wider():
     alone; nothing else); a network chosen on the command line still wins."""
     from conftest import load
 
-    from irdrc.agents.configs.value import NetworkConfig
+    from irdrc.agents.configs.value import THOUSAND_ROWS, NetworkConfig
 
     levels, dqn = load("dqn", "algo=dqn_levels"), load("dqn")
     assert levels.params.env.actions == "levels" and levels.algo.total_frames == 1_000_000
     medium = NetworkConfig(hidden=(128, 128))
     assert levels.algo == dataclasses.replace(
         dqn.algo,
-        total_frames=1_000_000,
         network=medium,
         lr=3e-3,
         center_on="rewards",
-        num_envs=1000,
-        frames_per_batch=2000,
-        batch_size=1000,
-        updates_per_batch=4,
-        reward_means=False,
+        **{**THOUSAND_ROWS, "total_frames": 1_000_000},
     )
     for chosen, hidden in (("network=large", (256, 256)), ("network.hidden=[32,32]", (32, 32))):
         assert load("dqn", "algo=dqn_levels", chosen).algo.network.hidden == hidden

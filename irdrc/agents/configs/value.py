@@ -200,6 +200,18 @@ class OffPolicyConfig:
         return _replace(built, network=net, **extra)
 
 
+THOUSAND_ROWS: dict[str, Any] = {
+    "num_envs": 1000,
+    "frames_per_batch": 2000,
+    "total_frames": 500_000,
+    "batch_size": 1000,
+    "updates_per_batch": 4,
+    "reward_means": False,
+}
+"""DQN's default shape until the thirteenth random report (1 000 rows, 500 000 env steps, 1 000
+updates of 1 000 on the sampled rewards): the fleet's value learners keep it, where they were
+measured (so do ``algo/dqn_levels.yaml``, ``fleet.yaml`` and bench_dqn's ``previous_default``)."""
+
 RETIRED = {
     "n_steps": 1,
     "loss_function": "l2",

@@ -90,3 +90,52 @@ def test_factory_choice():
     with pytest.raises(ValueError):
         make_prioritized_sampler(10, 0.6, 0.4, prefer="gpu")
     assert math.isclose(s.beta, 0.4)
+
+
+def multinomial_draw(s, n, batch, seed):
+    """What the sampler drew before its cumulative sums: ``torch.multinomial`` over the stored
+    items, and the weights from a minimum over the buffer."""
+    w = (s._raw[:n] + s._eps) ** s.alpha
+    g = torch.Generator().manual_seed(seed)
+    index = torch.multinomial(w, batch, replacement=True, generator=g)
+    return index, (w[index] / w.min()) ** (-s.beta)
+
+
+@pytest.mark.parametrize("capacity", [1000, 1024, 777])
+def test_draws_what_multinomial_draws(capacity):
+    """The cumulative sum picks the item ``torch.multinomial`` picks from the same uniforms, and the
+    kept minimum gives the same importance weights, through partial fills, wrap-around writes,
+    priority updates that lower and raise the least item (with repeated indices) and an α change.
+    The two normalise their sums differently, so float rounding could split a draw that lands
+    within ~1e-16 (relative) of a boundary: none of these 24 000 does."""
+    s = TorchPrioritizedSampler(capacity, alpha=0.6, beta=0.7)
+    storage = LazyTensorStorage(capacity)
+    rb = TensorDictReplayBuffer(storage=storage, sampler=s, batch_size=500)
+    gen = torch.Generator().manual_seed(1)
+    for step in range(12):
+        rb.extend(TensorDict({"x": torch.zeros(170)}, [170]))  # fills, then wraps
+        n = len(rb)
+        index = torch.randint(0, n, (400,), generator=gen)  # repeats on purpose
+        rb.update_priority(index, torch.rand(400, generator=gen) * 10 ** (step % 4))
+        if step == 6:
+            s.alpha = 0.9
+        s._rng = torch.Generator().manual_seed(step)
+        got, info = s.sample(rb.storage, 2000)
+        want, weight = multinomial_draw(s, n, 2000, step)
+        assert torch.equal(got, want), (step, (got != want).sum())
+        assert torch.equal(info["priority_weight"], weight.to(torch.float32))
+        assert int(got.max()) < n  # nothing beyond the stored items
+
+
+def test_draws_follow_a_load_and_a_smaller_storage(tmp_path):
+    rb, s = buffer(n=30)
+    rb.update_priority(torch.arange(30), torch.arange(30.0))
+    s.dumps(tmp_path)
+    s2 = TorchPrioritizedSampler(100, alpha=0.7, beta=0.5)
+    s2.loads(tmp_path)
+    rb2 = TensorDictReplayBuffer(storage=LazyTensorStorage(100), sampler=s2, batch_size=64)
+    rb2.extend(TensorDict({"x": torch.arange(10.0)}, [10]))  # fewer items than the state's
+    s2._rng = torch.Generator().manual_seed(0)
+    got, _ = s2.sample(rb2.storage, 4000)
+    want, _ = multinomial_draw(s2, 10, 4000, 0)
+    assert torch.equal(got, want) and int(got.max()) < 10

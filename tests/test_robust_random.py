@@ -19,9 +19,9 @@ FIRST_REPORT = 1000
 """The first draw of the first report (draws 1000–1295; ``REPORTING`` is where today's starts)."""
 SHORT = 7164
 """The worst known shortfall of today's default, on the fourteenth report (draws 7000–7323): 0.6542
-at seed 5, radar in the calm states once a packet waits, where the optimum sends; none of the
-changes screened there (twice the env steps, a slower target, a larger network, uniform replay,
-scaled rewards, … : docs/BENCHMARKS.md) lifts it on that seed. On the thirteenth report's draws it fell short
+at seed 5, radar in the calm states once a packet waits, where the optimum sends; of the changes
+screened there (twice the env steps, a slower target, a larger network, uniform replay, scaled
+rewards, …: docs/BENCHMARKS.md) only twice the updates per env step lifts it. On the thirteenth report's draws it fell short
 on 6846 (0.9852, seed 5), which a slower target lifts (docs/DQN.md)."""
 PREVIOUS_DEFAULT = dataclasses.replace(DQNConfig(), **THOUSAND_ROWS)
 """DQN's default until the thirteenth random report (``previous_default`` in bench_dqn.yaml)."""

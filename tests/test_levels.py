@@ -1,5 +1,6 @@
-"""``DistinctRows``: one pass per distinct observation gives the plain network's numbers bit for
-bit, and falls back to the plain pass wherever it cannot apply."""
+"""``DistinctRows``: one pass per distinct observation gives the plain network's outputs bit for
+bit and its gradients up to the order of a sum, and falls back to the plain pass wherever it
+cannot apply."""
 
 from __future__ import annotations
 
@@ -65,8 +66,8 @@ def test_distinct_rows_fall_back_where_they_cannot_apply(monkeypatch):
         distinct(many + 100)  # above high
         assert calls == [len(obs), len(many), len(many)]
     calls.clear()
-    out = distinct(many)  # gradients on (the loss): the plain pass, differentiable
-    assert calls == [len(many)] and out.requires_grad
+    out = distinct(many)  # gradients on (the loss): the distinct pass too, differentiable
+    assert calls == [len(obs)] and out.requires_grad
 
 
 def test_dqn_q_network_is_distinct_rows_with_the_plain_keys():
@@ -79,10 +80,10 @@ def test_dqn_q_network_is_distinct_rows_with_the_plain_keys():
     assert list(bodies[0].state_dict()) == list(plain.state_dict())  # checkpoints load as before
 
 
-def test_a_dqn_loss_through_distinct_rows_is_the_plain_loss_bit_for_bit(monkeypatch):
-    """DQNLoss's two passes over the next observations (detached online parameters, target
-    parameters) record no graph, so they take the distinct rows; the loss and every gradient are
-    the plain network's exactly, and the pass that records a graph stays plain."""
+def test_a_dqn_loss_through_distinct_rows_is_the_plain_loss(monkeypatch):
+    """All three of DQNLoss's passes (the one autograd records, and the two over the next
+    observations through detached and target parameters) take the distinct rows; the loss is the
+    plain network's bit for bit, and every gradient is the plain one summed in another order."""
     import copy
 
     from tensordict import TensorDict
@@ -112,15 +113,15 @@ def test_a_dqn_loss_through_distinct_rows_is_the_plain_loss_bit_for_bit(monkeypa
         },
         batch_size=[rows],
     )
-    distinct_passes = []
-    real = DistinctRows._records_graph
+    passes = []
+    real = torch.nn.Sequential.forward
 
-    def spy(self):
-        recorded = real(self)
-        distinct_passes.append(not recorded)
-        return recorded
+    def spy(self, x):
+        if self is body:
+            passes.append(x.shape[0])
+        return real(self, x)
 
-    monkeypatch.setattr(DistinctRows, "_records_graph", spy)
+    monkeypatch.setattr(torch.nn.Sequential, "forward", spy)
     losses = []
     for net in (fast, plain):
         loss = DQNLoss(
@@ -137,6 +138,12 @@ def test_a_dqn_loss_through_distinct_rows_is_the_plain_loss_bit_for_bit(monkeypa
         grads = [p.grad.clone() for p in loss.parameters() if p.grad is not None]
         assert len(grads) == 10  # weight and bias of the three Linear and two LayerNorm layers
         losses.append((value.detach(), grads))
-    assert distinct_passes == [False, True, True]
+    # three passes, each over the batch's distinct observations (fewer than its rows)
+    assert len(passes) == 3 and all(n < rows for n in passes), passes
     assert torch.equal(losses[0][0], losses[1][0])
-    assert all(torch.equal(a, b) for a, b in zip(losses[0][1], losses[1][1], strict=True))
+    for a, b in zip(losses[0][1], losses[1][1], strict=True):
+        # float32 sums of 1 408 rows' terms in two orders: they differ in the last bits alone
+        # (relative 1e-5 is ~100 float32 ulps; a wrong gradient, e.g. rows not summed, is off by
+        # whole multiples)
+        assert not torch.equal(a, torch.zeros_like(a))
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-7)

@@ -4,9 +4,12 @@ distinct observation of a batch once.
 Every DFRCEnv observation is a vector of integer levels in [0, high] (queue length, channel,
 weather, …), so a batch of thousands of env rows holds at most a few hundred distinct observations
 (352 in the paper's scenario). ``DistinctRows`` evaluates its layers on those alone and copies the
-result to every row: the same numbers as evaluating every row (a row's output depends on that row
-alone; ``tests/test_levels.py`` holds it to the plain network bit for bit), at a fraction of the
-cost when rows outnumber the possible observations — DQN's collector steps 10³–10⁴ rows at once.
+result to every row: the same outputs as evaluating every row (a row's output depends on that row
+alone; ``tests/test_levels.py`` holds them to the plain network bit for bit), at a fraction of the
+cost when rows outnumber the possible observations — DQN's collector steps 10³–10⁴ rows at once,
+and its loss samples 2 000 transitions from them. In a pass that autograd records, the copy's
+backward adds the gradients of a distinct observation's rows before the layers' backward: the
+plain network's gradient, summed in another order.
 """
 
 from __future__ import annotations
@@ -32,12 +35,11 @@ def mixed_radix(high: torch.Tensor) -> tuple[torch.Tensor, int]:
 
 
 class DistinctRows(nn.Sequential):
-    """``nn.Sequential`` (same children, same state-dict keys) that, in a pass autograd does not
-    record, evaluates a batch [rows, n] of integer-level observations once per distinct observation
-    when the rows outnumber the possible codes; otherwise (a pass that records a graph, fewer rows,
-    other shapes, or inputs that are not integers in [0, high]) it is the plain ``nn.Sequential``.
-    Passes not recorded: the collector's, the evaluations', and a loss's target passes through
-    detached or target parameters.
+    """``nn.Sequential`` (same children, same state-dict keys) that evaluates a batch [rows, n] of
+    integer-level observations once per distinct observation when the rows outnumber the possible
+    codes; otherwise (fewer rows, other shapes, or inputs that are not integers in [0, high]) it is
+    the plain ``nn.Sequential``. Every pass takes it: the collector's, the evaluations', and each of
+    a loss's passes (the one autograd records included).
 
     Args:
         *layers: the network's layers.
@@ -53,14 +55,9 @@ class DistinctRows(nn.Sequential):
         self.top = high.round().to(torch.int64).to(high.device)
         self.codes = codes
 
-    def _records_graph(self) -> bool:
-        """Whether autograd would record this pass: gradients on and a parameter that needs them
-        (a loss's passes through detached or target parameters record nothing)."""
-        return torch.is_grad_enabled() and any(p.requires_grad for p in self.parameters())
-
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         rows = x.shape[0] if x.dim() == 2 else 0
-        if rows <= self.codes or x.shape[-1] != self.radix.numel() or self._records_graph():
+        if rows <= self.codes or x.shape[-1] != self.radix.numel():
             return super().forward(x)
         levels = x.to(torch.int64)
         if not (

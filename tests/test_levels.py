@@ -22,6 +22,20 @@ def _nets(params: Params) -> tuple[torch.Tensor, torch.nn.Sequential, DistinctRo
     return env.dynamics.obs.float(), plain, distinct
 
 
+def _spy_passes(monkeypatch, module: torch.nn.Module) -> list[int]:
+    """The rows of every plain ``nn.Sequential`` pass ``module`` makes, as they happen."""
+    rows: list[int] = []
+    real = torch.nn.Sequential.forward
+
+    def spy(self, x):
+        if self is module:
+            rows.append(x.shape[0])
+        return real(self, x)
+
+    monkeypatch.setattr(torch.nn.Sequential, "forward", spy)
+    return rows
+
+
 def test_mixed_radix_codes_every_observation_once():
     env = DFRCEnv(Params(), batch_size=[2])
     radix, codes = mixed_radix(observation_top(env))
@@ -47,15 +61,7 @@ def test_distinct_rows_equal_the_plain_network_bit_for_bit(draw):
 
 def test_distinct_rows_fall_back_where_they_cannot_apply(monkeypatch):
     obs, _plain, distinct = _nets(Params())
-    calls = []
-    real = torch.nn.Sequential.forward
-
-    def spy(self, x):
-        if self is distinct:
-            calls.append(x.shape[0])
-        return real(self, x)
-
-    monkeypatch.setattr(torch.nn.Sequential, "forward", spy)
+    calls = _spy_passes(monkeypatch, distinct)
     many = obs[torch.arange(4 * len(obs)) % len(obs)]
     with torch.no_grad():
         distinct(many)  # applies: one pass over the distinct observations
@@ -113,15 +119,7 @@ def test_a_dqn_loss_through_distinct_rows_is_the_plain_loss(monkeypatch):
         },
         batch_size=[rows],
     )
-    passes = []
-    real = torch.nn.Sequential.forward
-
-    def spy(self, x):
-        if self is body:
-            passes.append(x.shape[0])
-        return real(self, x)
-
-    monkeypatch.setattr(torch.nn.Sequential, "forward", spy)
+    passes = _spy_passes(monkeypatch, body)
     losses = []
     for net in (fast, plain):
         loss = DQNLoss(

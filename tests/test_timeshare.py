@@ -351,10 +351,9 @@ def test_the_levels_profile_is_dqn_over_levels_longer_and_wider():
     medium = NetworkConfig(hidden=(128, 128))
     assert levels.algo == dataclasses.replace(
         dqn.algo,
-        network=medium,
         lr=3e-3,
         center_on="rewards",
-        **{**THOUSAND_ROWS, "total_frames": 1_000_000},
+        **{**THOUSAND_ROWS, "total_frames": 1_000_000, "network": medium},
     )
     for chosen, hidden in (("network=large", (256, 256)), ("network.hidden=[32,32]", (32, 32))):
         assert load("dqn", "algo=dqn_levels", chosen).algo.network.hidden == hidden

@@ -7,7 +7,7 @@ import math
 from dataclasses import dataclass, field, fields
 from typing import Any
 
-from irdrc.agents.configs.value import OffPolicyConfig
+from irdrc.agents.configs.value import DEFAULT_NETWORK, OffPolicyConfig
 from irdrc.core.checks import (
     INT,
     build,
@@ -95,6 +95,7 @@ class LagrangianConfig:
             lr=5e-4,
             tau=0.01,
             reward_centering=0.0,
+            network=DEFAULT_NETWORK,
             name="dqn_lagrangian",
         )
     )

@@ -37,6 +37,14 @@ class NetworkConfig:
         return checks.build(cls, {k: v for k, v in dict(data).items() if k != "name"}, prefix)
 
 
+LARGE = NetworkConfig(hidden=(256, 256))
+"""``network=large``: DQN's network since the fifteenth random report (docs/DQN.md)."""
+
+DEFAULT_NETWORK = NetworkConfig()
+"""``network=default`` (64-64): DQN's network until the fifteenth random report; the Lagrangian DQN
+and the fleet's value learners keep it, where they were measured."""
+
+
 @dataclass(frozen=True)
 class OffPolicyConfig:
     """DQN's hyperparameters (config group ``algo``), which every value learner shares; each key
@@ -82,7 +90,7 @@ class OffPolicyConfig:
         policy_network: whose greedy actions are the learner's policy — every evaluation and the
             final policy: ``target`` (a Polyak average, so one noisy update does not flip a
             near-tie) or ``online``. The online network always acts.
-        network: the network's shape (config group ``network``).
+        network: the network's shape (config group ``network``; DQN's: ``large``, 256-256).
         name: the profile's name (runs are labelled with it).
     """
 
@@ -103,14 +111,14 @@ class OffPolicyConfig:
     center_on: str = "values"
     reward_means: bool = True
     reward_std: float = 0.0
-    batch_size: int = 2000
+    batch_size: int = 4000
     updates_per_batch: int = 2
     lr: float = 6e-3
     lr_end: float = 1e-5
     max_grad_norm: float = 10.0
     tau: float = 0.02
     policy_network: str = "target"
-    network: NetworkConfig = field(default_factory=NetworkConfig, metadata={"keys": ()})
+    network: NetworkConfig = field(default_factory=lambda: LARGE, metadata={"keys": ()})
     name: str = field(default="dqn", compare=False)
 
     NUMBERS = (
@@ -207,10 +215,12 @@ THOUSAND_ROWS: dict[str, Any] = {
     "batch_size": 1000,
     "updates_per_batch": 4,
     "reward_means": False,
+    "network": DEFAULT_NETWORK,
 }
 """DQN's default shape until the thirteenth random report (1 000 rows, 500 000 env steps, 1 000
-updates of 1 000 on the sampled rewards): the fleet's value learners keep it, where they were
-measured (so do ``algo/dqn_levels.yaml``, ``fleet.yaml`` and bench_dqn's ``previous_default``)."""
+updates of 1 000 on the sampled rewards, the 64-64 network): the fleet's value learners keep it,
+where they were measured (so do ``algo/dqn_levels.yaml``, ``fleet.yaml`` and bench_dqn's
+``previous_default``)."""
 
 RETIRED = {
     "n_steps": 1,

@@ -265,8 +265,7 @@ END_SLACK = 0.01
 
 ADVICE = {
     "dqn": "algo.total_frames=8000000 (twice the env steps and about twice a run's wall time: "
-    "on random scenarios it held on all 7 runs where the default before today's 256-256 network "
-    "fell short; docs/DQN.md)",
+    "it held on all 3 random-scenario runs where the default is known to fall short; docs/DQN.md)",
     "dqn_paper": "algo=dqn (our profile, the default: 120 of 120 runs ≥ 0.99 on the named grid, "
     "about 18 s each here; docs/DQN.md)",
     "dqn_levels": "algo.total_frames=2000000 (twice the profile's env steps: on env=imperfect_radar "

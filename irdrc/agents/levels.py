@@ -7,7 +7,7 @@ weather, …), so a batch of thousands of env rows holds at most a few hundred d
 result to every row: the same outputs as evaluating every row (a row's output depends on that row
 alone; ``tests/test_levels.py`` holds them to the plain network bit for bit), at a fraction of the
 cost when rows outnumber the possible observations — DQN's collector steps 10³–10⁴ rows at once,
-and its loss samples 2 000 transitions from them. In a pass that autograd records, the copy's
+and its loss samples thousands of transitions from them. In a pass that autograd records, the copy's
 backward adds the gradients of a distinct observation's rows before the layers' backward: the
 plain network's gradient, summed in another order.
 """

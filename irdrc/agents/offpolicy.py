@@ -93,10 +93,10 @@ def make_body(
 
 def make_qnet(env: Any, net: NetworkConfig) -> QValueActor:
     """Q-value actor: observation in, one Q-value per action out, greedy action (the body a
-    ``DistinctRows``: in a pass autograd does not record, one pass per distinct observation)."""
+    ``DistinctRows``: in every pass, one evaluation per distinct observation)."""
     body = make_mlp(env, net, env.action_spec_unbatched.space.n)
-    # the collector's thousands of rows, and a loss's next-state batches, hold a few hundred
-    # distinct observations: one pass each
+    # the collector's thousands of rows, and a loss's samples, hold a few hundred distinct
+    # observations: one evaluation each
     module = DistinctRows(*body, high=observation_top(env))
     return QValueActor(module=module, in_keys=["observation"], spec=env.action_spec_unbatched)
 

@@ -76,6 +76,23 @@ def test_distinct_rows_fall_back_where_they_cannot_apply(monkeypatch):
     assert calls == [len(obs)] and out.requires_grad
 
 
+def test_distinct_rows_reuse_a_split_only_for_the_same_unchanged_input():
+    """A loss's two passes over one tensor split it once; a tensor changed in place, or another
+    tensor, is split again (a stale split would give row 0 the output of obs[0])."""
+    obs, plain, distinct = _nets(Params())
+    many = obs[torch.arange(4 * len(obs)) % len(obs)]
+    first = distinct._distinct(many)
+    assert distinct._distinct(many) is first
+    with torch.no_grad():
+        assert torch.equal(distinct(many), plain(many))
+        many[0] = obs[7]  # in place: a new version of the same tensor
+        assert distinct._distinct(many) is not first
+        assert torch.equal(distinct(many), plain(many))
+        again = many.clone()
+        assert distinct._distinct(again) is not distinct._distinct(many)
+        assert torch.equal(distinct(again), plain(again))
+
+
 def test_dqn_q_network_is_distinct_rows_with_the_plain_keys():
     env = DFRCEnv(Params(), batch_size=[2])
     bodies = [

@@ -8,8 +8,9 @@ import pytest
 import torch
 from tensordict import TensorDict
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+from torchrl.data.replay_buffers.samplers import RandomSampler
 
-from irdrc.agents.replay import TorchPrioritizedSampler, make_prioritized_sampler
+from irdrc.agents.replay import PackedStorage, TorchPrioritizedSampler, make_prioritized_sampler
 
 
 def buffer(n=10, alpha=0.7, beta=0.5, batch=64):
@@ -139,3 +140,49 @@ def test_draws_follow_a_load_and_a_smaller_storage(tmp_path):
     got, _ = s2.sample(rb2.storage, 4000)
     want, _ = multinomial_draw(s2, 10, 4000, 0)
     assert torch.equal(got, want) and int(got.max()) < 10
+
+
+def _transitions(n: int, gen: torch.Generator) -> TensorDict:
+    """Leaves of every kind a learner stores: floats, integers, flags, nested keys, doubles."""
+    return TensorDict(
+        {
+            "observation": torch.randn(n, 3, generator=gen),
+            "action": torch.randint(0, 5, (n,), generator=gen),
+            ("next", "observation"): torch.randn(n, 3, generator=gen),
+            ("next", "reward"): torch.randn(n, 1, generator=gen).double(),
+            ("next", "done"): torch.rand(n, 1, generator=gen) < 0.5,
+            "code": torch.randint(-(2**40), 2**40, (n, 2), generator=gen),
+        },
+        [n],
+    )
+
+
+def test_packed_storage_gives_back_what_was_written_bit_for_bit():
+    """Against TorchRL's LazyTensorStorage given the same writes (through a wrap-around): the
+    same keys, dtypes, shapes and values for an index tensor, a mask, a slice and one item."""
+    gen = torch.Generator().manual_seed(0)
+    packed = TensorDictReplayBuffer(storage=PackedStorage(50), sampler=RandomSampler())
+    plain = TensorDictReplayBuffer(storage=LazyTensorStorage(50), sampler=RandomSampler())
+    for _ in range(4):  # 80 rows into 50
+        batch = _transitions(20, gen)
+        packed.extend(batch.clone())
+        plain.extend(batch.clone())
+    assert len(packed) == len(plain) == 50
+    index = torch.randint(0, 50, (200,), generator=gen)
+    for at in (index, torch.arange(50) % 3 == 0, slice(5, 17), 7):
+        got, want = packed.storage.get(at), plain.storage.get(at)
+        assert set(got.keys(True, True)) == set(want.keys(True, True))
+        for key in want.keys(True, True):
+            assert got.get(key).dtype == want.get(key).dtype, key
+            assert torch.equal(got.get(key), want.get(key)), (key, at)
+    sample = packed.sample(64)
+    assert torch.equal(sample["action"], plain.storage.get(sample["index"])["action"])
+
+
+def test_packed_storage_rejects_a_batch_of_another_layout():
+    packed = TensorDictReplayBuffer(storage=PackedStorage(10), sampler=RandomSampler())
+    packed.extend(TensorDict({"x": torch.zeros(4, 2)}, [4]))
+    with pytest.raises(ValueError, match="replay holds"):
+        packed.extend(TensorDict({"x": torch.zeros(4, 2, dtype=torch.float64)}, [4]))
+    with pytest.raises(ValueError, match="replay holds"):
+        packed.extend(TensorDict({"x": torch.zeros(4, 3)}, [4]))

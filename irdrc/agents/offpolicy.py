@@ -20,7 +20,7 @@ from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModuleBase, TensorDictSequential
 from torch import nn
 from torchrl.collectors import Collector
-from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+from torchrl.data import TensorDictReplayBuffer
 from torchrl.data.replay_buffers.samplers import RandomSampler
 from torchrl.envs.utils import ExplorationType, exploration_type
 from torchrl.modules import MLP, QValueActor
@@ -29,7 +29,7 @@ from torchrl.objectives import SoftUpdate
 from irdrc.agents.base import RunRecord
 from irdrc.agents.configs import NetworkConfig, OffPolicyConfig
 from irdrc.agents.levels import DistinctRows
-from irdrc.agents.replay import make_prioritized_sampler
+from irdrc.agents.replay import PackedStorage, make_prioritized_sampler
 
 ACTIVATIONS = {"relu": nn.ReLU, "tanh": nn.Tanh, "elu": nn.ELU, "gelu": nn.GELU, "silu": nn.SiLU}
 
@@ -219,13 +219,14 @@ def make_collector(
 
 def make_buffer(cfg: OffPolicyConfig) -> tuple[TensorDictReplayBuffer, Any]:
     """Replay: prioritised (``irdrc.agents.replay``: TorchRL's sampler where its extension loads,
-    else ours) or uniform, ``batch_size`` per sample. Returns (buffer, sampler)."""
+    else ours) or uniform, ``batch_size`` per sample, each transition one row of a
+    ``PackedStorage``. Returns (buffer, sampler)."""
     if cfg.prioritized:
         sampler = make_prioritized_sampler(cfg.buffer_size, cfg.alpha, cfg.beta_start)
     else:
         sampler = RandomSampler()
     rb = TensorDictReplayBuffer(
-        storage=LazyTensorStorage(cfg.buffer_size), sampler=sampler, batch_size=cfg.batch_size
+        storage=PackedStorage(cfg.buffer_size), sampler=sampler, batch_size=cfg.batch_size
     )
     return rb, sampler
 

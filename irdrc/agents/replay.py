@@ -1,4 +1,5 @@
-"""Prioritised replay that works on every install.
+"""Replay that works on every install and gathers a sample in one pass: prioritised sampling in
+pure torch, and a storage that keeps each transition in one row.
 
 TorchRL's ``PrioritizedSampler`` needs the compiled extension ``torchrl._torchrl`` (its segment
 trees); published wheels do not load it against every torch build (then it raises
@@ -10,6 +11,10 @@ Formulas (Schaul et al., 2016, proportional variant): item i with raw priority p
 probability P(i) = (pᵢ + ε)^α / Σⱼ (pⱼ + ε)^α; its importance weight is wᵢ = (N·P(i))^(−β) divided by
 the largest weight in the buffer, i.e. ((pᵢ + ε)^α / minⱼ (pⱼ + ε)^α)^(−β). New items get the largest
 raw priority seen so far, so each is likely to be replayed soon after it arrives.
+
+``PackedStorage`` is TorchRL's ``LazyTensorStorage`` with every entry of a transition side by side
+in one row of bytes: a sample of thousands of transitions from a replay of a million is then one
+gather of rows (each a cache line or two), not one cache-missing gather per stored key.
 """
 
 from __future__ import annotations
@@ -18,6 +23,8 @@ from pathlib import Path
 from typing import Any
 
 import torch
+from tensordict import TensorDict, TensorDictBase, is_tensor_collection
+from torchrl.data import LazyTensorStorage
 from torchrl.data.replay_buffers.samplers import Sampler
 
 
@@ -221,3 +228,75 @@ def make_prioritized_sampler(
             "TorchRL's PrioritizedSampler is not available (torchrl._torchrl does not load)"
         )
     return TorchPrioritizedSampler(max_capacity, alpha, beta, eps)
+
+
+class PackedStorage(LazyTensorStorage):
+    """``LazyTensorStorage`` that keeps each stored TensorDict row as one row of bytes.
+
+    The first batch written fixes the layout: its leaves (any dtypes and shapes), each as the
+    bytes of its row, side by side. Writing packs a batch of TensorDicts into those rows; reading
+    gathers the rows asked for and unpacks them into a TensorDict with the same keys, dtypes and
+    shapes, bit for bit the values written (``tests/test_replay.py``). Everything else —
+    the cursor, the length, the samplers' view of it — is ``LazyTensorStorage``'s.
+
+    Args:
+        max_size: capacity, rows.
+    """
+
+    def __init__(self, max_size: int) -> None:
+        super().__init__(max_size, device="cpu")
+        # (key, dtype, shape of one row's leaf, first byte, end byte) of every leaf
+        self._layout: list[tuple[Any, torch.dtype, torch.Size, int, int]] | None = None
+
+    def _pack(self, data: TensorDictBase) -> torch.Tensor:
+        """[rows, bytes] of a TensorDict batch [rows] (the layout fixed at the first call)."""
+        leaves = data if data.batch_dims else data.reshape(1)
+        rows = leaves.batch_size[0]  # the leading batch dim; the rest belongs to each row
+        if self._layout is None:
+            layout, at = [], 0
+            for key in leaves.keys(True, True):
+                leaf = leaves.get(key)
+                size = leaf[0].numel() * leaf.element_size()
+                layout.append((key, leaf.dtype, leaf.shape[1:], at, at + size))
+                at += size
+            self._layout = layout
+        parts = []
+        for key, dtype, shape, _, _ in self._layout:
+            leaf = leaves.get(key)
+            if leaf.dtype != dtype or leaf.shape[1:] != shape:
+                raise ValueError(
+                    f"replay holds {key!r} as {dtype} {list(shape)}; this batch has "
+                    f"{leaf.dtype} {list(leaf.shape[1:])}"
+                )
+            parts.append(leaf.reshape(rows, -1).contiguous().view(torch.uint8))
+        if len(parts) != len(list(leaves.keys(True, True))):
+            raise ValueError(f"replay holds {[k for k, *_ in self._layout]}; this batch has more")
+        packed = torch.cat(parts, dim=1)
+        return packed if data.batch_dims else packed[0]
+
+    def _unpack(self, packed: torch.Tensor) -> TensorDictBase:
+        """The TensorDict [rows] (or a single row, unbatched) of ``packed`` [rows, bytes]."""
+        single = packed.dim() == 1
+        packed = packed.reshape(-1, packed.shape[-1])
+        rows = packed.shape[0]
+        out = TensorDict(batch_size=[rows])
+        for key, dtype, shape, start, stop in self._layout or []:
+            leaf = packed[:, start:stop].clone(memory_format=torch.contiguous_format)
+            out.set(key, leaf.view(dtype).reshape(rows, *shape))  # a fresh copy: aligned
+        return out[0] if single else out
+
+    def set(self, cursor: Any, data: Any, *, set_cursor: bool = True) -> None:
+        """Write ``data`` (a TensorDict batch, or rows already packed) at ``cursor``."""
+        if is_tensor_collection(data):
+            data = self._pack(data)
+        super().set(cursor, data, set_cursor=set_cursor)
+
+    def get(self, index: Any) -> TensorDictBase:
+        """The rows at ``index``, unpacked (a 1-D index tensor: one ``index_select`` of rows)."""
+        if self._layout is None:
+            raise RuntimeError("cannot get elements out of an empty PackedStorage")
+        if isinstance(index, torch.Tensor) and index.dim() == 1 and not index.is_floating_point():
+            if index.dtype == torch.bool:
+                index = index.nonzero().squeeze(-1)
+            return self._unpack(self._storage.index_select(0, index.to(torch.long)))
+        return self._unpack(super().get(index))

@@ -303,9 +303,19 @@ class PackedStorage(LazyTensorStorage):
         return out[0] if single else out
 
     def set(self, cursor: Any, data: Any, *, set_cursor: bool = True) -> None:
-        """Write ``data`` (a TensorDict batch, or rows already packed) at ``cursor``."""
+        """Write ``data`` (a TensorDict batch, or rows already packed) at ``cursor``; rows at
+        consecutive indices (the round-robin writer's, until it wraps) as one slice."""
         if is_tensor_collection(data):
             data = self._pack(data)
+        if (
+            isinstance(cursor, torch.Tensor)
+            and cursor.dim() == 1
+            and cursor.numel() > 1
+            and cursor.dtype == torch.long
+            and bool((cursor.diff() == 1).all())
+        ):
+            start = int(cursor[0])
+            cursor = slice(start, start + cursor.numel())
         super().set(cursor, data, set_cursor=set_cursor)
 
     def get(self, index: Any) -> TensorDictBase:

@@ -24,7 +24,7 @@ from irdrc.experiments.grid import format_value
 CONTESTED = 0.9
 """A draw is kept when both always-radar and always-comm earn less than this of the optimum."""
 
-TUNING = range(0, 7800)
+TUNING = range(0, 8200)
 """Draw indices the defaults may be chosen on: 0–999; 1000–1999 since the first report on draws
 1000–1295 (its shortfalls were screened when reward centering was made to follow the values),
 2000–2999 since the second, on draws 2000–2313 (its shortfalls were screened for the learning rate),
@@ -43,10 +43,11 @@ as many updates of twice the transitions), 6300–6699 since the twelfth, on dra
 6700–6999 since the thirteenth, on draws 6700–6994 (the same with half as many updates of twice
 the transitions; its shortfall was rerun over seeds), 7000–7399 since the fourteenth, on draws
 7000–7323 (where a slower target was; its shortfalls were rerun with other changes, and were part
-of the screen that chose the network and batch of the default since the fifteenth), and 7400–7799
-since the fifteenth, on draws 7400–7721 (where that network and batch were)."""
+of the screen that chose the network and batch of the default since the fifteenth), 7400–7799
+since the fifteenth, on draws 7400–7721 (where that network and batch were), and 7800–8199 since
+the sixteenth, on draws 7800–8098 (where that default was measured against the one before it)."""
 
-REPORTING = 7800
+REPORTING = 8200
 """The first draw index of the reported benchmark (``first_draw``): none of them was looked at
 before it reported."""
 

@@ -65,8 +65,8 @@ class DistinctRows(nn.Sequential):
         found = self._distinct(x)
         if found is None:
             return super().forward(x)
-        rows, position = found
-        return super().forward(x[rows])[position]
+        pick, position = found
+        return super().forward(x[pick])[position]
 
     def _distinct(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor] | None:
         """(a row of ``x`` holding each distinct observation, the position of every row's

@@ -186,3 +186,7 @@ def test_packed_storage_rejects_a_batch_of_another_layout():
         packed.extend(TensorDict({"x": torch.zeros(4, 2, dtype=torch.float64)}, [4]))
     with pytest.raises(ValueError, match="replay holds"):
         packed.extend(TensorDict({"x": torch.zeros(4, 3)}, [4]))
+    with pytest.raises(ValueError, match="replay holds the keys"):
+        packed.extend(TensorDict({"y": torch.zeros(4, 2)}, [4]))
+    with pytest.raises(ValueError, match="replay holds the keys"):
+        packed.extend(TensorDict({"x": torch.zeros(4, 2), "y": torch.zeros(4)}, [4]))

@@ -52,8 +52,9 @@ class TorchPrioritizedSampler(Sampler):
     on either side). It finds that item in two steps — the block of ``BLOCK`` items whose
     cumulative sum reaches the uniform, then the item inside that block — so a draw of 4 000 from
     2²⁰ items reads the priorities once and a block per item, not a cumulative sum of the whole
-    buffer and a binary search over it (about 1.1 against 2.0 ms in a DQN run here). The importance weights' minimum
-    priority is kept up to date as priorities change, not recomputed over the buffer per draw.
+    buffer and a binary search over it (about 1.1 against 2.0 ms in a DQN run here). The
+    importance weights' minimum priority is kept up to date as priorities change, not recomputed
+    over the buffer per draw.
 
     Args:
         max_capacity: size of the storage it indexes.
@@ -277,6 +278,9 @@ class PackedStorage(LazyTensorStorage):
                 layout.append((key, leaf.dtype, leaf.shape[1:], at, at + size))
                 at += size
             self._layout = layout
+        held, given = [k for k, *_ in self._layout], list(leaves.keys(True, True))
+        if set(held) != set(given):
+            raise ValueError(f"replay holds the keys {held}; this batch has {given}")
         parts = []
         for key, dtype, shape, _, _ in self._layout:
             leaf = leaves.get(key)
@@ -286,8 +290,6 @@ class PackedStorage(LazyTensorStorage):
                     f"{leaf.dtype} {list(leaf.shape[1:])}"
                 )
             parts.append(leaf.reshape(rows, -1).contiguous().view(torch.uint8))
-        if len(parts) != len(list(leaves.keys(True, True))):
-            raise ValueError(f"replay holds {[k for k, *_ in self._layout]}; this batch has more")
         packed = torch.cat(parts, dim=1)
         return packed if data.batch_dims else packed[0]
 
@@ -297,7 +299,7 @@ class PackedStorage(LazyTensorStorage):
         packed = packed.reshape(-1, packed.shape[-1])
         rows = packed.shape[0]
         out = TensorDict(batch_size=[rows])
-        for key, dtype, shape, start, stop in self._layout or []:
+        for key, dtype, shape, start, stop in self._layout:
             leaf = packed[:, start:stop].clone(memory_format=torch.contiguous_format)
             out.set(key, leaf.view(dtype).reshape(rows, *shape))  # a fresh copy: aligned
         return out[0] if single else out

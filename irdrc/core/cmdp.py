@@ -266,7 +266,8 @@ def _solve_once(
     # Ties (e.g. throughput is capped at λ, reached by many policies): among the optimal
     # occupancies, the one with the fewest missed events per step.
     keep = Constraint("optimum", -table, -(lp.value - TIE_TOL * max(1.0, abs(lp.value))))
-    with contextlib.suppress(InfeasibleTarget):  # numerically at the edge: keep the first
+    # numerically at the edge (infeasible, or a status HiGHS cannot settle): keep the first
+    with contextlib.suppress(InfeasibleTarget, RuntimeError):
         lp = solve_lp(P, -model.missed.to(torch.float64).cpu(), [*constraints, keep])
     mass = lp.occupancy.sum(0)
     several = (lp.policy > RANDOMISED_TOL).sum(-1) > 1

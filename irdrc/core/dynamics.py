@@ -209,6 +209,12 @@ class Dynamics:
             setattr(self, name, getattr(self, name).to(self.device))
 
     @property
+    def num_uniforms(self) -> int:
+        """Uniforms one step draws per row: event, arrivals, one per drawn factor, and the radar's
+        detection / false alarm when it is imperfect."""
+        return 2 + self._nfac + (1 if self._imperfect else 0)
+
+    @property
     def next1(self) -> torch.Tensor:
         """[G·2F, 5]: P(factor′ = 1 | a, f) of two-level factors (v1's table)."""
         if self._lmax != 1:
@@ -238,18 +244,23 @@ class Dynamics:
         action: torch.Tensor,
         generator: torch.Generator,
         group: torch.Tensor | None = None,
+        uniforms: torch.Tensor | None = None,
     ) -> StepResult:
         """One step of MODEL.md from flat int64 ``state`` and ``action`` (0 comm, 1 radar).
 
         ``group`` (int64, like ``state``) is each row's scenario index when several were given;
-        None means scenario 0 for every row.
+        None means scenario 0 for every row. ``uniforms`` [n, ``num_uniforms``] (float64): the
+        step's draws, in the class docstring's order, in place of drawing them from ``generator``.
         """
         n = state.shape[0]
         nf, nfac = self.num_configs, self._nfac
         # Uniforms per env in one call (see the class docstring). float64 so the Poisson tail is
         # sampled down to ~1e-16 (see ``poisson_cdf``).
-        ncol = 2 + nfac + (1 if self._imperfect else 0)
-        u = torch.rand(n, ncol, generator=generator, device=self.device, dtype=torch.float64)
+        u = uniforms
+        if u is None:
+            u = torch.rand(
+                n, self.num_uniforms, generator=generator, device=self.device, dtype=torch.float64
+            )
         d, f = self.split(state)
         ev_idx, af, rw_idx = f, action * nf + f, action * (2 * nf) + f
         if group is not None:

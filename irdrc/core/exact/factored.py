@@ -20,7 +20,7 @@ import torch
 
 from irdrc.core.exact.mdp import ExactMDP
 from irdrc.core.params import Params
-from irdrc.core.tables import model_tables
+from irdrc.core.tables import ModelTables, model_tables
 
 ARRIVAL_TAIL = 1e-17
 """Arrivals are summed exactly up to the smallest K with P(A ≥ K) < this; the rest (below float64's
@@ -33,7 +33,7 @@ class FactoredModel(ExactMDP):
     the factor configurations (``irdrc.core.tables``; v1: 32), A actions.
 
     Attributes:
-        params: the parameters it was built from.
+        params: the parameters it was built from (None: a model a learner estimated).
         F: [A, F, F] P(factors′ | a, factors).
         pmf: [n_rates, K] arrival probabilities per distinct Poisson rate, the last kept entry of
             each row holding its tail (rows padded with zeros to the longest).
@@ -44,9 +44,10 @@ class FactoredModel(ExactMDP):
         groups: (ν, pmf row) per queue dynamics.
         sent_q, dropped_q: [G, D + 1] expected packets sent / dropped per queue dynamics and d.
         radar: [A] share of the step in radar mode.
+        episode_steps: steps per episode of a model without ``params`` (a learner's).
     """
 
-    params: Params
+    params: Params | None
     F: torch.Tensor
     pmf: torch.Tensor
     per_config: dict
@@ -55,6 +56,7 @@ class FactoredModel(ExactMDP):
     sent_q: torch.Tensor
     dropped_q: torch.Tensor
     radar: torch.Tensor
+    episode_steps: int | None = None
 
     def __post_init__(self) -> None:
         # Per action, the configurations of each queue dynamics: a slice when contiguous (v1: the
@@ -82,6 +84,11 @@ class FactoredModel(ExactMDP):
     def num_actions(self) -> int:  # type: ignore[override]
         """A."""
         return int(self.F.shape[0])
+
+    @property
+    def horizon(self) -> int:
+        """Steps per episode (``env.horizon``, or ``episode_steps`` without a scenario)."""
+        return int(self.params.env.horizon) if self.params is not None else int(self.episode_steps)
 
     @property
     def device(self) -> torch.device:
@@ -307,9 +314,20 @@ def _arrival_pmf(lam: float) -> torch.Tensor:
 def build_factored(params: Params, device: str | torch.device = "cpu") -> FactoredModel:
     """The factored exact model of ``params`` (any queue capacity D; the general model of
     MODEL.md § B too)."""
+    return factored_model(model_tables(params), params.env.queue_capacity, params, device)
+
+
+def factored_model(
+    t: ModelTables,
+    D: int,
+    params: Params | None = None,
+    device: str | torch.device = "cpu",
+    episode_steps: int | None = None,
+) -> FactoredModel:
+    """The factored exact model of per-configuration tables ``t`` (``irdrc.core.tables``) with a
+    queue of capacity ``D``: ``build_factored``'s, or a model a learner estimated (``params``
+    None: no scenario behind it; ``episode_steps`` its episodes' length)."""
     dev = torch.device(device)
-    D = params.env.queue_capacity
-    t = model_tables(params)
     A, nf = t.nu.shape
     rates = sorted(set(t.rate.tolist()))
     pmfs = [_arrival_pmf(r) for r in rates]
@@ -345,4 +363,5 @@ def build_factored(params: Params, device: str | torch.device = "cpu") -> Factor
         sent_q=torch.stack(sent).to(dev),
         dropped_q=torch.stack(dropped).to(dev),
         radar=torch.tensor([0.0, 1.0], dtype=torch.float64, device=dev),
+        episode_steps=episode_steps,
     )

@@ -8,7 +8,13 @@ from typing import Any
 import torch
 
 from irdrc.core.exact.mdp import ExactMDP
-from irdrc.core.exact.solve import DEFAULT_OPTIMUM_GAMMA, stationary_metrics, value_iteration
+from irdrc.core.exact.solve import (
+    DEFAULT_OPTIMUM_GAMMA,
+    expected_sums,
+    metrics_from_occupancy,
+    stationary_occupancy,
+    value_iteration,
+)
 from irdrc.core.metrics import Metrics
 from irdrc.core.params import Params
 
@@ -20,13 +26,17 @@ class Scorer:
         model: the exact model (dense, factored, or a fleet's).
         optimal: value iteration's ``Solution`` at ``gamma``.
         optimal_metrics: the optimum's exact long-run metrics.
+        optimal_sums: the optimum's long-run expectations per step (``sums``).
     """
 
     def __init__(self, model: ExactMDP, gamma: float = DEFAULT_OPTIMUM_GAMMA, tol: float = 1e-9):
         self.model = model
         self.optimal = value_iteration(model, gamma=gamma, tol=tol)
-        self.optimal_metrics = stationary_metrics(model, self.optimal.policy)
         self._cache: dict[tuple, Metrics] = {}
+        self._sums: dict[tuple, dict[str, float]] = {}
+        occ = stationary_occupancy(model, self.optimal.policy)
+        self.optimal_metrics = metrics_from_occupancy(model, occ)
+        self.optimal_sums = expected_sums(occ, model.tables())
 
     def policy(self, table: torch.Tensor) -> Any:
         """The model's policy for a learner's ``table`` (here the table itself; the fleet's scorer
@@ -35,11 +45,22 @@ class Scorer:
 
     def metrics(self, table: torch.Tensor) -> Metrics:
         """Exact stationary ``Metrics`` of the policy ``table`` ([S] actions or [S, A])."""
+        return self._cache[self._score(table)]
+
+    def sums(self, table: torch.Tensor) -> dict[str, float]:
+        """The policy ``table``'s long-run expectations per step (``expected_sums``: ``reward``,
+        ``event``, ``missed``, ``sent``, ``dropped`` …), the rates its metrics are made of."""
+        return self._sums[self._score(table)]
+
+    def _score(self, table: torch.Tensor) -> tuple:
+        """The cache key of ``table``, its stationary occupancy scored once."""
         t = torch.as_tensor(table).cpu()
         key = (str(t.dtype), tuple(t.shape), t.numpy().tobytes())
         if key not in self._cache:
-            self._cache[key] = stationary_metrics(self.model, self.policy(t))
-        return self._cache[key]
+            occ = stationary_occupancy(self.model, self.policy(t))
+            self._cache[key] = metrics_from_occupancy(self.model, occ)
+            self._sums[key] = expected_sums(occ, self.model.tables())
+        return key
 
     def ratio(self, table: torch.Tensor) -> float:
         """Average reward of ``table`` over the optimal average reward (both stationary)."""

@@ -143,7 +143,7 @@ def metrics_from_occupancy(mdp: ExactMDP, occ: torch.Tensor) -> Metrics:
     """The ``Metrics`` of a state-action occupancy [A, S] on ``mdp``; the false-alarm
     rate only where the scenario has false alarms (P_fa > 0)."""
     r = long_run_rates(expected_sums(occ, mdp.tables()))
-    if mdp.params.env.false_alarm_prob == 0.0:
+    if mdp.params is not None and mdp.params.env.false_alarm_prob == 0.0:
         r["false_alarm_rate"] = math.nan
     return Metrics(
         avg_reward=r["avg_reward"],

@@ -1,0 +1,152 @@
+"""One vehicle's own stream (MODEL.md § E): the simulator's step for a single env row, one step at a
+time, at the speed of plain Python.
+
+``Dynamics.step`` costs the same few kernels whatever its batch, about 200 µs for a batch of one. A
+vehicle that learns from its own stream steps one row at a time, so ``VehicleStream`` takes the
+``Dynamics`` tables as Python lists and steps an integer state with Python arithmetic (a few µs).
+Given the same uniforms it returns exactly what ``Dynamics.step`` returns (tests/test_stream.py holds
+the two equal on every state and action of several scenarios): it is the same simulator.
+
+The uniforms are drawn from a ``torch.Generator`` one episode at a time: ``[horizon, k + 1]``, the
+``k = Dynamics.num_uniforms`` columns of each step and, in row 0, one more for the reset that
+starts the episode (a state drawn uniformly from all S, MODEL.md step 5). A stream checkpointed
+between episodes is restored from its generator's state alone.
+"""
+
+from __future__ import annotations
+
+from bisect import bisect_right
+from typing import Any, NamedTuple
+
+import torch
+
+from irdrc.core.dynamics import Dynamics
+from irdrc.core.params import Params
+
+
+class Step(NamedTuple):
+    """What one step of the stream produced (``Dynamics.StepResult`` for one row, as Python
+    numbers)."""
+
+    state: int
+    reward: float
+    event: bool
+    missed: bool
+    sent: int
+    dropped: int
+    false_alarm: bool
+    arrivals: int
+
+
+class VehicleStream:
+    """One vehicle's trajectory: episodes of ``env.horizon`` steps, each from a uniform reset.
+
+    Args:
+        params: the scenario (binary actions: comm 0, radar 1).
+        seed: the stream's generator seed.
+
+    Attributes:
+        num_states: S.
+        horizon: steps per episode.
+        state: the current state index (after ``reset``).
+        steps_left: steps left in the current episode.
+    """
+
+    def __init__(self, params: Params, seed: int = 0) -> None:
+        if params.env.actions != "binary":
+            raise ValueError(
+                f"env.actions={params.env.actions}: one vehicle's stream takes the binary modes "
+                "(comm or radar each step)"
+            )
+        dyn = Dynamics(params)
+        self.params = params
+        self.num_states = dyn.num_states
+        self.horizon = int(params.env.horizon)
+        self._nf = dyn.num_configs
+        self._D = dyn.queue_capacity
+        self._ncol = dyn.num_uniforms
+        self._event = dyn.event_prob.tolist()
+        levels = dyn.levels[: dyn._nfac]
+        # Each drawn factor's thresholds P(level′ ≥ k | a, f), k = 1 … L − 1 (Dynamics pads them
+        # with zeros up to the largest L, which no uniform falls below).
+        self._thr = [
+            tuple(tuple(row[i][: levels[i] - 1]) for i in range(dyn._nfac))
+            for row in dyn.thresholds.tolist()
+        ]
+        self._radix = tuple(int(r) for r in dyn.radix.tolist())
+        self._reward = dyn.reward.tolist()  # the float32 values, as Python floats
+        self._capacity = [int(c) for c in dyn.capacity.tolist()]
+        cdf = dyn.arrival_cdf
+        self._cdfs = [cdf.tolist()] if dyn._shared_arrivals else cdf.tolist()
+        self._phases = dyn.num_phases if not dyn._shared_arrivals else 1
+        self._imperfect = dyn._imperfect
+        self._pd = float(dyn.detection[0])
+        self._pfa = float(dyn.false_alarm[0])
+        self._miss_reward = float(dyn.miss_reward[0])
+        self._alarm_reward = float(dyn.alarm_reward[0])
+        self.generator = torch.Generator()
+        self.generator.manual_seed(int(seed))
+        self._u: list[list[float]] = []
+        self._t = 0
+        self.state = 0
+        self.steps_left = 0
+
+    def reset(self) -> int:
+        """Start an episode: draw its uniforms and a uniform initial state; returns the state."""
+        u = torch.rand(self.horizon, self._ncol + 1, generator=self.generator, dtype=torch.float64)
+        self._u = u.tolist()
+        self._t = 0
+        self.steps_left = self.horizon
+        self.state = min(int(self._u[0][self._ncol] * self.num_states), self.num_states - 1)
+        return self.state
+
+    def step(self, action: int) -> Step:
+        """One step of the current episode from ``state`` with ``action`` (0 comm, 1 radar)."""
+        if self.steps_left <= 0:
+            raise RuntimeError("the episode is over: call reset() first")
+        out = self.transition(self.state, action, self._u[self._t])
+        self._t += 1
+        self.steps_left -= 1
+        self.state = out.state
+        return out
+
+    def transition(self, state: int, action: int, u: list[float]) -> Step:
+        """MODEL.md's step from ``state`` with ``action`` and the step's uniforms ``u`` (in
+        ``Dynamics.step``'s order): exactly what ``Dynamics.step`` returns for them."""
+        nf = self._nf
+        d, f = divmod(state, nf)
+        event = u[0] < self._event[f]
+        af = action * nf + f
+        f_next = 0
+        for i, (thr, radix) in enumerate(zip(self._thr[af], self._radix, strict=False)):
+            x = u[2 + i]
+            f_next += sum(1 for t in thr if x < t) * radix
+        cdf = self._cdfs[f % self._phases if self._phases > 1 else 0]
+        arrivals = bisect_right(cdf, u[1])
+        total = d + arrivals
+        sent = min(total, self._capacity[af])
+        rest = total - sent
+        d_next = min(rest, self._D)
+        reward = self._reward[action * 2 * nf + (nf if event else 0) + f]
+        missed = event and action == 0
+        false_alarm = False
+        if self._imperfect and action == 1:
+            ud = u[len(self._radix) + 2]
+            if event and ud >= self._pd:
+                missed, reward = True, self._miss_reward
+            elif not event and ud < self._pfa:
+                false_alarm, reward = True, self._alarm_reward
+        return Step(
+            d_next * nf + f_next, reward, event, missed, sent, rest - d_next, false_alarm, arrivals
+        )
+
+    def state_dict(self) -> dict[str, Any]:
+        """The stream between episodes: its generator's state."""
+        if self.steps_left:
+            raise RuntimeError("a stream is checkpointed between episodes")
+        return {"generator": self.generator.get_state()}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restore ``state_dict``'s generator (the next ``reset`` goes on from there)."""
+        self.generator.set_state(state["generator"])
+        self.steps_left = 0

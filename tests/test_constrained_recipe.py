@@ -107,7 +107,10 @@ def test_learner_run_writes_its_exact_score_beside_the_lp(tmp_path):
     rows = list(csv.DictReader((tmp_path / "policy.csv").open()))
     assert list(rows[-1]) == ["d", "c", "r", "w", "v", "m", "action", "p_radar"]
     mu = list(csv.DictReader((tmp_path / "mu.csv").open()))
-    assert list(mu[0]) == ["env_steps", "mu", "measured_miss"] and len(mu) == 1024 // 32
+    assert (
+        list(mu[0]) == ["env_steps", "mu", "measured_miss", "cumulative_miss"]
+        and len(mu) == 1024 // 32
+    )
     assert float(mu[0]["mu"]) > 0
     hist = list(csv.DictReader((tmp_path / "metrics.csv").open()))
     assert int(hist[-1]["env_steps"]) == 1024

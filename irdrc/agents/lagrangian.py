@@ -170,11 +170,14 @@ def final_policy(
 class Multiplier:
     """The multiplier μ and the learner's own measured constraint: missed / event on the steps
     where it acted greedily (exploration's random comm steps would bias it), exponentially averaged
-    over ``cost_window_frames``; dual ascent after each batch that learned."""
+    over ``cost_window_frames``; dual ascent after each batch that learned. Beside it, every
+    training step's missed events and events so far: the cumulative miss detection its training
+    realised (``cumulative_miss``), what a vehicle learning this way would have missed."""
 
     def __init__(self, mu: torch.Tensor, cfg: LagrangianConfig) -> None:
         self.mu, self.cfg = mu, cfg
         self.missed = self.events = 0.0
+        self.total_missed = self.total_events = 0
         self.measured = math.nan
         self.trace: list[dict[str, float]] = []
 
@@ -187,20 +190,25 @@ class Multiplier:
             self.missed += float((data["next", "missed"].reshape(-1) & greedy).sum())
             self.events += float((data["next", "event"].reshape(-1) & greedy).sum())
         self.measured = self.missed / self.events if self.events > 0 else math.nan
+        self.total_missed += int(data["next", "missed"].sum())
+        self.total_events += int(data["next", "event"].sum())
         if learned and not math.isnan(self.measured):
             self.mu.fill_(dual_step(float(self.mu), self.measured, data.numel(), self.cfg))
-        return {"mu": float(self.mu), "measured_miss": self.measured}
+        cumulative = self.total_missed / self.total_events if self.total_events else math.nan
+        return {"mu": float(self.mu), "measured_miss": self.measured, "cumulative_miss": cumulative}
 
     def state(self) -> dict[str, Any]:
         return {
             "mu": float(self.mu),
             "measured": [self.missed, self.events],
+            "cumulative": [self.total_missed, self.total_events],
             "mu_trace": list(self.trace),
         }
 
     def load(self, resume: dict[str, Any]) -> None:
         self.mu.fill_(float(resume["mu"]))
         self.missed, self.events = (float(x) for x in resume["measured"])
+        self.total_missed, self.total_events = (int(x) for x in resume.get("cumulative", (0, 0)))
         self.trace = list(resume["mu_trace"])
 
 

@@ -94,11 +94,17 @@ def make_body(
 def make_qnet(env: Any, net: NetworkConfig) -> QValueActor:
     """Q-value actor: observation in, one Q-value per action out, greedy action (the body a
     ``DistinctRows``: in every pass, one evaluation per distinct observation)."""
-    body = make_mlp(env, net, env.action_spec_unbatched.space.n)
+    return q_actor(observation_top(env), net, env.action_spec_unbatched, env.device)
+
+
+def q_actor(high: torch.Tensor, net: NetworkConfig, spec: Any, device: Any = "cpu") -> QValueActor:
+    """``make_qnet`` for observations whose entries are integer levels in [0, ``high``] and the
+    discrete action spec ``spec``."""
+    body = make_body(high, net, spec.space.n, device)
     # the collector's thousands of rows, and a loss's samples, hold a few hundred distinct
     # observations: one evaluation each
-    module = DistinctRows(*body, high=observation_top(env))
-    return QValueActor(module=module, in_keys=["observation"], spec=env.action_spec_unbatched)
+    module = DistinctRows(*body, high=high.to(device))
+    return QValueActor(module=module, in_keys=["observation"], spec=spec)
 
 
 # -- exploration -----------------------------------------------------------------------------------
@@ -292,15 +298,20 @@ class RewardCenter:
             self.value += (1.0 - gamma) * float(level)
 
     def center(self, sample: TensorDictBase, key: Any = ("next", "reward")) -> TensorDictBase:
-        """``sample`` with r̄ subtracted from ``key`` and divided by the scale (where on)."""
+        """``sample`` with its rewards under ``key`` ``centred``."""
         r = sample.get(key)
-        if self.on and self.value is not None:
-            r = r - self.value
-        if self.scale is not None:
-            r = r / self.scale
-        if r is not sample.get(key):
-            sample.set(key, r)
+        out = self.centred(r)
+        if out is not r:
+            sample.set(key, out)
         return sample
+
+    def centred(self, reward: torch.Tensor) -> torch.Tensor:
+        """``reward`` with r̄ subtracted and divided by the scale (where on; else itself)."""
+        if self.on and self.value is not None:
+            reward = reward - self.value
+        if self.scale is not None:
+            reward = reward / self.scale
+        return reward
 
     def state(self) -> dict[str, float]:
         """The checkpoint's entries: the average and the scale, where set."""

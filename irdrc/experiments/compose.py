@@ -140,14 +140,19 @@ def _select(node: Any, key: str) -> Any:
 
 def prepare_overrides(config_name: str, overrides: list[str]) -> list[str]:
     """The command line as Hydra takes it: ``key={…}`` for a key whose default is a mapping
-    (``profiles={…}``) replaces it (``~key`` then ``+key=…``, not a merge), and an optional key of
-    the general model is added where the scenario lacks it (``++``)."""
+    (``profiles={…}``) replaces it (``~key`` then ``+key=…``, not a merge), an optional key of
+    the general model is added where the scenario lacks it (``++``), and so is a key of a section
+    the recipe leaves open (``algo: {}`` in ``online.yaml``: its keys are the chosen learner's,
+    checked by the recipe)."""
     primary, out = _primary(config_name), []
     for o in overrides:
         key = override_key(o)
+        section = _select(primary, key.split(".")[0]) if "." in key else None
         if "={" in o and o[0] not in "+~" and isinstance(_select(primary, key), dict):
             out += [f"~{key}", f"+{o}"]
-        elif o[0] not in "+~" and "=" in o and key.startswith(OPTIONAL_KEYS):
+        elif (o[0] not in "+~" and "=" in o and key.startswith(OPTIONAL_KEYS)) or (
+            o[0] not in "+~" and "=" in o and section == {}
+        ):
             out.append(f"++{o}")
         else:
             out.append(o)

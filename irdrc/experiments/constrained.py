@@ -30,8 +30,9 @@ NAME = "constrained"
 RESUMABLE = True
 LEARNERS = ("lp", "dqn_lagrangian")
 """``learner``: ``lp`` solves exactly; ``dqn_lagrangian`` also learns and is scored against it."""
-MU_FIELDS = ("env_steps", "mu", "measured_miss")
-"""Columns of ``mu.csv``: the multiplier and the learner's measured miss detection over training."""
+MU_FIELDS = ("env_steps", "mu", "measured_miss", "cumulative_miss")
+"""Columns of ``mu.csv``: the multiplier, the learner's measured miss detection, and the cumulative
+miss detection of every training step so far (what its own training missed), over training."""
 
 
 @dataclass(frozen=True)

@@ -11,6 +11,7 @@ ends below the optimum.
 from __future__ import annotations
 
 import statistics
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -43,6 +44,10 @@ class LearnerRun:
         eval: the evaluation keys (``eval.every_frames``; the Monte-Carlo rows at the end).
         seed: the run's seed.
         plot_format: the learning curve's format.
+        advice: the override a run that ends below the optimum is told to try (default: the
+            profile's ``ADVICE``).
+        plot: draws the learning curve, ``plot(record, path, title)`` (default
+            ``plot_learning_curve``: against env steps).
         labels: each scenario's overrides as command-line words (from ``points``).
     """
 
@@ -55,10 +60,22 @@ class LearnerRun:
     eval: Eval
     seed: int
     plot_format: str = "png"
+    advice: str | None = None
+    plot: Callable[..., None] | None = None
     labels: list[list[str]] = field(init=False)
 
     def __post_init__(self) -> None:
         self.labels = [point_overrides(point) for point in self.points]
+        if self.advice is None:
+            self.advice = ADVICE.get(self.name)
+
+    @property
+    def final_policy(self):
+        """Learner 0's final policy: its randomised [S, A] probabilities where it has them, else
+        its greedy table [S]."""
+        if self.record.policy is not None:
+            return self.record.policy[0].cpu()
+        return self.record.greedy[0].cpu()
 
 
 def finish_learner(run: Run, lr: LearnerRun) -> dict[str, Any]:
@@ -72,8 +89,8 @@ def finish_learner(run: Run, lr: LearnerRun) -> dict[str, Any]:
     write_rows_csv(run.dir / "learners.csv", learners)
     greedy = record.greedy[0].cpu()
     curve = run.dir / f"learning_curve.{lr.plot_format}"
-    plot_learning_curve(record, curve, title=f"{lr.name} on {run.scenario}")
-    rows, errs = final_rows(lr, greedy)
+    (lr.plot or plot_learning_curve)(record, curve, title=f"{lr.name} on {run.scenario}")
+    rows, errs = final_rows(lr, lr.final_policy)
     summary = summary_dict(
         method=lr.name,
         scenario=run.scenario,
@@ -98,13 +115,14 @@ def finish_learner(run: Run, lr: LearnerRun) -> dict[str, Any]:
     print_learner(run, lr, learners, rows, errs)
     env = lr.scenarios[0].env
     shares = env.shares if env.actions == "levels" else None
-    write_policy_csv(run.dir / "policy.csv", greedy, env.factor_levels, shares)
+    write_policy_csv(run.dir / "policy.csv", lr.final_policy, env.factor_levels, shares)
     return summary
 
 
 def final_rows(lr: LearnerRun, greedy) -> tuple[dict[str, Metrics], dict[str, dict]]:
-    """The final table: the learned policy exactly (long run, and episodic beside the
-    Monte-Carlo row), the optimum and round-robin; Monte-Carlo ± 95 % CI."""
+    """The final table: the learned policy ``greedy`` ([S] actions or [S, A] probabilities)
+    exactly (long run, and episodic beside the Monte-Carlo row), the optimum and round-robin;
+    Monte-Carlo ± 95 % CI."""
     scorer, name = lr.scorers[0], lr.name
     model = scorer.model
     rows: dict[str, Metrics] = {f"{name} (exact, long run)": scorer.metrics(greedy)}
@@ -113,7 +131,9 @@ def final_rows(lr: LearnerRun, greedy) -> tuple[dict[str, Metrics], dict[str, di
     episodic = mc > 0 and isinstance(model, DenseModel)
     if mc:
         env = DFRCEnv(lr.scenarios[0], batch_size=[int(lr.eval.mc_num_envs)], seed=lr.seed + 1)
-        ev = evaluate(table_policy(greedy, num_actions=model.num_actions), env, episodes=mc)
+        ev = evaluate(
+            table_policy(greedy, seed=lr.seed + 2, num_actions=model.num_actions), env, episodes=mc
+        )
         if episodic:  # what the Monte-Carlo row estimates, exactly
             rows[f"{name} (exact, episodic)"] = episodic_metrics(model, greedy)
         label = f"{name} (Monte-Carlo, episodic)"
@@ -196,7 +216,7 @@ def print_learner(
     )
     print(f"\nfinal greedy policy: {final:.4f} of the optimum's average reward (exact); {reached}")
     print(policy_differences(scorers[0].model, record.greedy[0].cpu(), scorers[0].optimal.policy))
-    if not record.interrupted and (warning := end_warning(record.history, ADVICE.get(lr.name))):
+    if not record.interrupted and (warning := end_warning(record.history, lr.advice)):
         print(warning, flush=True)
 
 
@@ -207,7 +227,9 @@ def learner_rows(lr: LearnerRun) -> list[dict[str, Any]]:
     record, rows = lr.record, []
     for n in range(record.num_learners):
         g = record.group[n]
-        final = lr.scorers[g].metrics(record.greedy[n].cpu())
+        final = lr.scorers[g].metrics(
+            record.policy[n].cpu() if record.policy is not None else record.greedy[n].cpu()
+        )
         rows.append(
             {
                 **lr.points[g],

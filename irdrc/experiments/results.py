@@ -165,10 +165,13 @@ def read_csv_rows(path: Path) -> list[dict[str, str]]:
 
 def write_metrics_csv(path: Path, history: Sequence[dict[str, Any]]) -> None:
     """``metrics.csv``: every exact evaluation of a run, in ``PROGRESS_FIELDS``, with
-    ``false_alarm_rate`` after them where a row has it (a scenario with radar false alarms)."""
+    ``false_alarm_rate`` after them where a row has it (a scenario with radar false alarms), then
+    any columns a learner adds (a learner on one stream: its ledger, ``irdrc.online.ledger``)."""
     from irdrc.agents.base import PROGRESS_FIELDS
 
-    extra = ("false_alarm_rate",) if any("false_alarm_rate" in r for r in history) else ()
+    extra = ["false_alarm_rate"] if any("false_alarm_rate" in r for r in history) else []
+    for row in history:
+        extra += [k for k in row if k not in PROGRESS_FIELDS and k not in extra]
     write_rows_csv(path, history, (*PROGRESS_FIELDS, *extra))
 
 

@@ -63,15 +63,24 @@ def pytest_configure(config):
 
 
 def recipe_module(name: str):
-    """The recipe module behind ``recipes/<name>.py``."""
+    """The recipe module behind ``recipes/<name>.py``: the one its ``app.main(…)`` runs, by the
+    script's own import (``from irdrc.<package> import app, <module>``)."""
     import importlib
+    import re
+    from pathlib import Path
 
-    for pkg in ("irdrc.experiments", "irdrc.paper"):
-        try:
-            return importlib.import_module(f"{pkg}.{name}")
-        except ModuleNotFoundError:
-            continue
-    raise ValueError(f"no recipe {name}")
+    script = Path(__file__).resolve().parents[1] / "recipes" / f"{name}.py"
+    if not script.is_file():
+        raise ValueError(f"no recipe {name}")
+    text = script.read_text()
+    main = re.search(r"app\.main\((\w+)\)", text)
+    if main is None:
+        raise ValueError(f"recipes/{name}.py calls no app.main(…)")
+    module = main.group(1)
+    found = re.search(rf"from (irdrc[\w.]*) import [^\n]*\b{module}\b", text)
+    if found is None:
+        raise ValueError(f"recipes/{name}.py does not import {module} from irdrc")
+    return importlib.import_module(f"{found.group(1)}.{module}")
 
 
 def load(recipe: str, *overrides: str):

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 PKG = Path(__file__).resolve().parents[1] / "irdrc"
-LAYERS = {"core": 0, "fleet": 1, "agents": 2, "experiments": 3, "paper": 4}
+LAYERS = {"core": 0, "fleet": 1, "agents": 2, "experiments": 3, "online": 4, "paper": 5}
 """Each layer may import only the layers before it (and itself)."""
 
 
@@ -135,18 +135,10 @@ def test_every_layer_says_what_it_holds_and_may_import(package):
 
 
 def recipe_modules():
-    import importlib
+    from conftest import recipe_module
 
     names = [p.stem for p in (PKG.parent / "recipes").glob("*.py")]
-    out = {}
-    for name in sorted(names):
-        for pkg in ("irdrc.experiments", "irdrc.paper"):
-            try:
-                out[name] = importlib.import_module(f"{pkg}.{name}")
-                break
-            except ModuleNotFoundError:
-                continue
-    return names, out
+    return names, {name: recipe_module(name) for name in sorted(names)}
 
 
 def test_every_recipe_is_one_module_with_a_typed_config():
@@ -164,7 +156,7 @@ def test_every_recipe_is_one_module_with_a_typed_config():
         assert list(inspect.signature(m.load).parameters) == ["composed", "resume"], name
         assert list(inspect.signature(m.run).parameters) == ["cfg", "run"], name
         script = (PKG.parent / "recipes" / f"{name}.py").read_text()
-        assert f"app.main({name})" in script, name
+        assert f"app.main({m.__name__.rsplit('.', 1)[1]})" in script, name
 
 
 def test_every_off_policy_learner_runs_on_the_one_loop():

@@ -138,11 +138,16 @@ def _is_qlearning(name: str) -> bool:
     return name.startswith("qlearning")
 
 
-def check_claims(n: FigureNumbers) -> list[Verdict]:
-    """The claims table: one verdict per (claim, subject)."""
+def claim1(
+    optimum_episode: float,
+    round_robin_episode: float,
+    final_episode: Mapping[str, float],
+    episodes_to_95: Mapping[str, float | None],
+) -> list[Verdict]:
+    """Claim 1 (panel (a)) from ``FigureNumbers``' first four fields: the verdicts of 1a–1c."""
     out: list[Verdict] = []
-    opt, rr = n.optimum_episode, n.round_robin_episode
-    learners = list(n.final_episode)
+    opt, rr = optimum_episode, round_robin_episode
+    learners = list(final_episode)
     dqns = [k for k in learners if _is_dqn(k)]
     qls = [k for k in learners if _is_qlearning(k)]
 
@@ -150,12 +155,12 @@ def check_claims(n: FigureNumbers) -> list[Verdict]:
     c1a = "1a. DQN and Q-learning converge to the same total reward (Fig. 2a)"
     pairs = [(d, q) for d in dqns for q in qls if d.endswith("_paper") == q.endswith("_paper")]
     for d, q in pairs:
-        gap = abs(n.final_episode[d] - n.final_episode[q])
+        gap = abs(final_episode[d] - final_episode[q])
         out.append(
             Verdict(
                 c1a,
                 f"{d} vs {q}",
-                f"{n.final_episode[d]:.1f} vs {n.final_episode[q]:.1f} (optimum {opt:.1f}): "
+                f"{final_episode[d]:.1f} vs {final_episode[q]:.1f} (optimum {opt:.1f}): "
                 f"{gap / abs(opt):.1%} of the optimum apart (≤ {SAME_REWARD_TOL:.0%} asked)",
                 _v(gap <= SAME_REWARD_TOL * abs(opt)),
             )
@@ -164,19 +169,19 @@ def check_claims(n: FigureNumbers) -> list[Verdict]:
         out.append(Verdict(c1a, "-", "needs a DQN and a Q-learning profile", UNTESTED))
     c1b = "1b. … far above round-robin"
     for k in learners:
-        closed = (n.final_episode[k] - rr) / (opt - rr) if opt != rr else math.nan
+        closed = (final_episode[k] - rr) / (opt - rr) if opt != rr else math.nan
         out.append(
             Verdict(
                 c1b,
                 k,
-                f"{n.final_episode[k]:.1f} vs round-robin {rr:.1f}: {closed:.0%} of the gap to "
+                f"{final_episode[k]:.1f} vs round-robin {rr:.1f}: {closed:.0%} of the gap to "
                 f"the optimum closed (≥ {FAR_ABOVE:.0%} asked)",
                 _v(closed >= FAR_ABOVE),
             )
         )
     c1c = "1c. DQN needs fewer episodes than Q-learning (paper: ~170 vs ~280) to approach it"
     for d, q in pairs:
-        ed, eq = n.episodes_to_95.get(d), n.episodes_to_95.get(q)
+        ed, eq = episodes_to_95.get(d), episodes_to_95.get(q)
         measured = f"to 95 % of the optimum: {d} {_ep(ed)}, {q} {_ep(eq)} episodes"
         if ed is None:
             verdict = FAILS
@@ -187,7 +192,12 @@ def check_claims(n: FigureNumbers) -> list[Verdict]:
         out.append(Verdict(c1c, f"{d} vs {q}", measured, verdict))
     if not pairs:
         out.append(Verdict(c1c, "-", "needs a DQN and a Q-learning profile", UNTESTED))
+    return out
 
+
+def check_claims(n: FigureNumbers) -> list[Verdict]:
+    """The claims table: one verdict per (claim, subject)."""
+    out = claim1(n.optimum_episode, n.round_robin_episode, n.final_episode, n.episodes_to_95)
     out += _claim2(n)
 
     # Claim 3 — r4.

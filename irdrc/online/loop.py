@@ -1,0 +1,223 @@
+"""One vehicle learning from its own stream (MODEL.md § E): the loop every learner on one stream runs.
+
+Episodes of the paper's length follow one another on one ``VehicleStream``. At each step the learner
+acts on the state and sees what the step produced; at each episode's end it does its end-of-episode
+work, the ``Ledger`` adds the period (the behaviour policy the learner had at the episode's start and
+what the stream recorded), and, every ``eval_every_frames`` env steps, the greedy policy is scored
+exactly. Checkpoints fall between episodes: the learner's whole state (its replay included), the
+stream's generator and the ledger, so a resumed run goes on exactly as the uninterrupted one would.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import torch
+
+from irdrc.agents.base import Hooks, RunRecord, progress_record
+from irdrc.core.params import Params
+from irdrc.core.stream import Step, VehicleStream
+from irdrc.online.ledger import Ledger, Tally
+
+
+class StreamLearner:
+    """What a learner on one stream supplies to the loop (subclasses override what they need).
+
+    Attributes:
+        name: the profile's name.
+        updates: learning updates so far (gradient steps, plans, table updates).
+    """
+
+    name: str = "learner"
+    updates: int = 0
+
+    def begin_episode(self, episode: int) -> None:
+        """Before the episode's first step (0-based ``episode``)."""
+
+    def act(self, state: int) -> int:
+        """The behaviour's action in ``state`` (exploration included)."""
+        raise NotImplementedError
+
+    def observe(self, state: int, action: int, step: Step) -> None:
+        """What the step from ``state`` with ``action`` produced."""
+
+    def end_episode(self, episode: int) -> dict[str, float]:
+        """After the episode's last step; returns scalars to log (``train/…``)."""
+        return {}
+
+    def behaviour(self) -> torch.Tensor:
+        """[S, A] the behaviour policy now: what ``act`` draws from."""
+        raise NotImplementedError
+
+    def greedy(self) -> torch.Tensor:
+        """The policy it would deploy if learning stopped now: [S] actions or [S, A]
+        probabilities."""
+        raise NotImplementedError
+
+    def info(self) -> dict[str, Any]:
+        """Facts worth reporting at the end (e.g. where its time went)."""
+        return {}
+
+    def state_dict(self) -> dict[str, Any]:
+        """Everything it needs to go on exactly (between episodes)."""
+        return {}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restore ``state_dict``."""
+
+
+RESUME_KEYS = ("episode", "learner", "stream", "ledger", "history")
+"""What a checkpoint of a run on one stream holds (besides the counters every learner's has)."""
+
+
+def learn_on_stream(
+    learner: StreamLearner,
+    params: Params,
+    scorer: Any,
+    *,
+    episodes: int,
+    seed: int = 0,
+    eval_every_frames: int | None = None,
+    hooks: Hooks | None = None,
+    resume: dict[str, Any] | None = None,
+    greedy_scorer: Any = None,
+) -> RunRecord:
+    """Run ``learner`` on one vehicle's stream for ``episodes`` episodes.
+
+    Args:
+        learner: the learner.
+        params: the scenario.
+        scorer: its exact scorer: the ledger's behaviour policies and the greedy policy.
+        episodes: episodes of the stream (``env.horizon`` steps each).
+        seed: the stream's seed (the learner seeds its own randomness).
+        eval_every_frames: the greedy policy is scored at the end of the first episode reaching
+            each multiple of this many env steps, and at the end (default: every episode).
+        hooks: ``on_eval`` with each evaluation's record (``PROGRESS_FIELDS`` and the ledger's
+            ``LEDGER_FIELDS``), ``on_batch`` after each episode, ``on_checkpoint`` every
+            ``checkpoint_every_frames`` env steps, ``should_stop`` after each episode.
+        resume: a checkpoint (``RunRecord.state``) to go on from.
+        greedy_scorer: scores the greedy policy's row (default ``scorer``); its ``extra(table)``,
+            where it has one, adds columns (the safe learner's objective against the LP's).
+
+    Returns:
+        The record: ``history`` one row per evaluation, ``greedy`` [1, S] the final greedy policy
+        (its most likely action), ``policy`` [1, S, A] where that policy randomises, ``state`` the
+        final checkpoint, ``info`` the ledger's final row and where the time went.
+    """
+    hooks = hooks or Hooks()
+    greedy_scorer = greedy_scorer or scorer
+    stream = VehicleStream(params, seed)
+    T = stream.horizon
+    every = int(eval_every_frames or T)
+    if every < 1:
+        raise ValueError(f"eval.every_frames={every!r} must be >= 1")
+    ledger = Ledger(scorer)
+    record = RunRecord(method=learner.name, greedy=torch.zeros(1, 1, dtype=torch.int64))
+    optimum = greedy_scorer.optimal_metrics.avg_reward
+    seconds = {"act_and_learn": 0.0, "episode_end": 0.0, "evaluate": 0.0}
+    start = 0
+    t0 = time.perf_counter()
+    if resume is not None:
+        missing = [k for k in RESUME_KEYS if k not in resume]
+        if missing:
+            raise ValueError(
+                f"resume: the checkpoint has no {', '.join(missing)}: not a checkpoint of a "
+                "learner on one stream"
+            )
+        start = int(resume["episode"])
+        learner.load_state_dict(resume["learner"])
+        stream.load_state_dict(resume["stream"])
+        ledger.load_state_dict(resume["ledger"])
+        record.history = list(resume["history"])
+        record.episode_rewards = list(resume.get("episode_rewards", []))
+        t0 -= float(resume["wall_seconds"])
+
+    def evaluate(done: int) -> None:
+        e0 = time.perf_counter()
+        table = learner.greedy()
+        row = progress_record(
+            0,
+            done * T,
+            done,
+            time.perf_counter() - t0,
+            learner.updates,
+            greedy_scorer.metrics(table),
+            optimum,
+        )
+        row.update(ledger.row())
+        extra = getattr(greedy_scorer, "extra", None)
+        if extra is not None:
+            row.update(extra(table))
+        record.history.append(row)
+        hooks.eval([row])
+        seconds["evaluate"] += time.perf_counter() - e0
+
+    def state(done: int) -> dict[str, Any]:
+        return {
+            "episode": done,
+            "frames": done * T,
+            "updates": learner.updates,
+            "wall_seconds": time.perf_counter() - t0,
+            "learner": learner.state_dict(),
+            "stream": stream.state_dict(),
+            "ledger": ledger.state_dict(),
+            "history": list(record.history),
+            "episode_rewards": list(record.episode_rewards),
+        }
+
+    if resume is None:
+        evaluate(0)
+    next_eval = (start * T // every + 1) * every
+    act, observe = learner.act, learner.observe
+    for episode in range(start, episodes):
+        learner.begin_episode(episode)
+        behaviour = learner.behaviour()
+        a0 = time.perf_counter()
+        s = stream.reset()
+        tally = Tally(steps=T)
+        for _ in range(T):
+            a = act(s)
+            out = stream.step(a)
+            observe(s, a, out)
+            tally.reward += out.reward
+            tally.events += out.event
+            tally.missed += out.missed
+            tally.sent += out.sent
+            tally.dropped += out.dropped
+            s = out.state
+        a1 = time.perf_counter()
+        scalars = learner.end_episode(episode)
+        seconds["act_and_learn"] += a1 - a0
+        seconds["episode_end"] += time.perf_counter() - a1
+        done = episode + 1
+        ledger.add(behaviour, tally)
+        record.episode_rewards.append(
+            {"learner": 0, "episode": done, "env_steps": done * T, "reward": tally.reward}
+        )
+        hooks.batch({"env_steps": done * T, "episodes": done, **scalars})
+        stop = hooks.stop_requested()
+        if done * T >= next_eval or done == episodes or stop:
+            evaluate(done)
+            next_eval = (done * T // every + 1) * every
+        if hooks.checkpoint_due((done - 1) * T, done * T) and done < episodes:
+            hooks.on_checkpoint(state(done))
+        if stop:
+            record.interrupted = True
+            break
+    done = len(record.episode_rewards)
+    final = learner.greedy()
+    if final.dim() == 2:
+        record.policy = final[None].to(torch.float64)
+        final = final.argmax(-1)
+    record.greedy = final[None].long()
+    record.env_steps = record.updates = done * T
+    record.updates = learner.updates
+    record.episodes = done
+    record.wall_seconds = time.perf_counter() - t0
+    record.state = state(done)
+    record.info["ledger"] = ledger.row()
+    record.info.update(learner.info())
+    for phase, secs in seconds.items():
+        record.info[f"seconds_{phase}"] = secs
+    return record

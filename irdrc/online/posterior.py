@@ -1,0 +1,93 @@
+"""Posterior sampling on the model's form (``learner=posterior``; MODEL.md § E): the structure-aware
+learner that the model-free ones are read against.
+
+It is told the model's form and nothing else (``irdrc.online.form``). Its first episode, before any
+data, picks each mode with probability 1/2 (every reward, the detection and the links show
+themselves). Before every later episode it draws
+one model from the posterior of every number its counts allow (Dirichlet rows for the chains, Beta
+for the event, detection and false-alarm probabilities, Gamma for the arrival rates) and acts all
+episode by that model's optimal policy, planned exactly on the factored operator with value
+iteration at the optimum's discount (posterior sampling for reinforcement learning, Osband, Russo
+and Van Roy 2013). Its greedy policy, the one it would deploy, is the plan of the posterior mean.
+"""
+
+from __future__ import annotations
+
+import random
+from typing import Any
+
+import numpy as np
+import torch
+
+from irdrc.core.exact import value_iteration
+from irdrc.core.params import Params
+from irdrc.core.stream import Step
+from irdrc.online.configs import PosteriorConfig
+from irdrc.online.form import FormCounts
+from irdrc.online.loop import StreamLearner
+from irdrc.online.qlearning import tuple_state
+
+
+class PosteriorSampling(StreamLearner):
+    """Posterior sampling, one plan per episode (see the module docstring).
+
+    Args:
+        cfg: the profile (``irdrc.online.configs.POSTERIOR``).
+        params: the scenario; only its observation space is read (``FormCounts``).
+        seed: the posterior draws' seed.
+    """
+
+    def __init__(self, cfg: PosteriorConfig, params: Params, seed: int = 0) -> None:
+        self.cfg, self.name = cfg, cfg.name
+        self.counts = FormCounts(params, cfg.prior_count)
+        self.rng = np.random.default_rng(seed)
+        self.plan: list[int] | None = None  # None: no data yet, each mode w.p. 1/2
+        self.coin = random.Random(seed)
+        self.num_states = params.env.num_states
+        self.updates = 0
+        self._greedy: tuple[int, torch.Tensor] | None = None
+
+    def _solve(self, est) -> torch.Tensor:
+        model = self.counts.model(est)
+        return value_iteration(model, gamma=self.cfg.gamma, tol=self.cfg.tol).policy
+
+    def begin_episode(self, episode: int) -> None:
+        if self.counts.steps:
+            self.plan = self._solve(self.counts.estimate(self.rng)).tolist()
+            self.updates += 1
+
+    def act(self, state: int) -> int:
+        if self.plan is None:
+            return self.coin.randrange(2)
+        return self.plan[state]
+
+    def observe(self, state: int, action: int, step: Step) -> None:
+        self.counts.observe(state, action, step)
+        self._greedy = None
+
+    def behaviour(self) -> torch.Tensor:
+        if self.plan is None:
+            return torch.full((self.num_states, 2), 0.5, dtype=torch.float64)
+        return torch.tensor(self.plan)
+
+    def greedy(self) -> torch.Tensor:
+        if self._greedy is None:
+            self._greedy = self._solve(self.counts.estimate())
+        return self._greedy
+
+    def state_dict(self) -> dict[str, Any]:
+        return {
+            "counts": self.counts.state_dict(),
+            "rng": self.rng.bit_generator.state,
+            "coin": self.coin.getstate(),
+            "plan": None if self.plan is None else list(self.plan),
+            "updates": self.updates,
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.counts.load_state_dict(state["counts"])
+        self.rng.bit_generator.state = state["rng"]
+        self.coin.setstate(tuple_state(state["coin"]))
+        self.plan = None if state["plan"] is None else list(state["plan"])
+        self.updates = int(state["updates"])
+        self._greedy = None

@@ -1,0 +1,192 @@
+"""``recipes/online.py`` — one vehicle learning on the road from its own stream (MODEL.md § E), scored
+exactly while it learns: the greedy policy against the optimum, and the price of learning (the
+regret and the missed events of the policy it behaved by) every episode.
+
+    python recipes/online.py                                 # DQN on one stream, paper scenario
+    python recipes/online.py learner=posterior env=multilevel
+    python recipes/online.py learner=safe algo.target_miss=0.1
+    python recipes/online.py learner=qlearning_paper algo.episodes=600
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+from irdrc.core.checks import build
+from irdrc.core.params import Params
+from irdrc.experiments.compose import Composed
+from irdrc.experiments.sections import ONE_VEHICLE, Learning, Plot, check_eval_period, check_exact
+from irdrc.online.configs import LEARNERS, learner_config
+
+NAME = "online"
+RESUMABLE = True
+
+ADVICE = {
+    "dqn": "learner=posterior (told the model's form, it needs far fewer episodes: docs/ONLINE.md)"
+    " or algo.episodes=600",
+    "dqn_paper": "learner=dqn (our profile on one stream: docs/ONLINE.md)",
+    "qlearning": "learner=posterior (docs/ONLINE.md) or algo.episodes=1200",
+    "qlearning_paper": "learner=qlearning (step sizes 1/k: docs/ONLINE.md)",
+    "posterior": "algo.episodes=600",
+    "safe": "algo.episodes=600",
+}
+"""What a run that ends below the optimum is told to try, per learner."""
+
+
+def _algo(data: Any, prefix: str) -> Any:
+    return learner_config(data.get("learner", "dqn"), data.get("algo") or {})
+
+
+@dataclass(frozen=True)
+class Config(Learning):
+    """The keys of ``recipes/conf/online.yaml``."""
+
+    params: Params = field(default=None, metadata=ONE_VEHICLE)
+    learner: str = "dqn"
+    algo: Any = field(default=None, metadata={"keys": ("algo",), "build": _algo})
+    plot: Plot = field(default_factory=Plot)
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if self.learner not in LEARNERS:
+            raise ValueError(f"learner={self.learner!r} must be one of {', '.join(LEARNERS)}")
+        if self.algo is None:
+            object.__setattr__(self, "algo", learner_config(self.learner, {}))
+
+    @property
+    def total_frames(self) -> int:
+        """Env steps of the whole stream."""
+        return self.algo.episodes * self.params.env.horizon
+
+
+def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
+    """The typed config, checked: values, the exact model's size, the evaluation period, what a
+    resumed run has left."""
+    cfg = build(Config, composed.cfg)
+    check_exact(cfg.params)
+    if cfg.params.env.actions != "binary":
+        raise ValueError(
+            f"env.actions={cfg.params.env.actions}: a vehicle on one stream chooses comm or radar "
+            "each step (env.actions=binary); the radar share is learned by recipes/sac.py"
+        )
+    if cfg.learner == "safe":
+        from irdrc.core.exact import fits_dense
+
+        if not fits_dense(cfg.params):
+            raise ValueError(
+                f"learner=safe solves an LP over S = {cfg.params.env.num_states} states every "
+                "episode: use a scenario whose dense model fits (env.queue_capacity smaller)"
+            )
+    explicit = "eval.every_frames" in composed.explicit
+    check_eval_period(cfg.eval.every_frames, cfg.total_frames, explicit)
+    if resume is not None and int(resume.get("episode", 0)) >= cfg.algo.episodes:
+        raise ValueError(
+            f"resume={cfg.resume} is at episode {resume.get('episode')}, algo.episodes="
+            f"{cfg.algo.episodes}: nothing left to learn; raise algo.episodes to go on"
+        )
+    return cfg
+
+
+def convergence(history: list[dict[str, Any]]) -> dict[str, Any]:
+    """Episodes until the greedy policy first reaches 0.95 and 0.99 of the optimum, and the share
+    of the later evaluations that stay at or above 0.99 (None where it never reached it)."""
+    first = {
+        t: next((r["episodes"] for r in history if r["optimality_ratio"] >= t), None)
+        for t in (0.95, 0.99)
+    }
+    later = [r for r in history if first[0.99] is not None and r["episodes"] > first[0.99]]
+    stay = sum(r["optimality_ratio"] >= 0.99 for r in later) / len(later) if later else None
+    return {"episodes_to_95": first[0.95], "episodes_to_99": first[0.99], "stay_99": stay}
+
+
+def run(cfg: Config, run) -> dict[str, Any]:
+    """Learn on the stream, then finish the run directory as every learner's (``finish_learner``)
+    with the ledger beside it."""
+    from irdrc.core.exact import exact_scorer
+    from irdrc.experiments.report import LearnerRun, finish_learner
+    from irdrc.online.figures import plot_run
+    from irdrc.online.learners import make_learner
+    from irdrc.online.loop import learn_on_stream
+
+    run.threads(cfg.num_threads)
+    run.make_logger(cfg.logger, cfg.algo.name)
+    scorer = exact_scorer(cfg.params, cfg.optimum_gamma)
+    greedy_scorer = None
+    if cfg.learner == "safe":
+        from irdrc.online.safe import ConstrainedScorer
+
+        greedy_scorer = ConstrainedScorer(scorer, cfg.algo.target_miss)
+    learner = make_learner(cfg.learner, cfg.algo, cfg.params, cfg.seed)
+    with run.training(
+        cfg.total_frames, cfg.algo.name, checkpoint_every=cfg.checkpoint.every_frames
+    ) as hooks:
+        record = learn_on_stream(
+            learner,
+            cfg.params,
+            scorer,
+            episodes=cfg.algo.episodes,
+            seed=cfg.seed,
+            eval_every_frames=cfg.eval.every_frames,
+            hooks=hooks,
+            resume=run.resume_state,
+            greedy_scorer=greedy_scorer,
+        )
+    summary = finish_learner(
+        run,
+        LearnerRun(
+            name=cfg.algo.name,
+            record=record,
+            scenarios=[cfg.params],
+            scorers=[scorer],
+            points=[{}],
+            num_learners=1,
+            eval=cfg.eval,
+            seed=cfg.seed,
+            plot_format=cfg.plot.format,
+            advice=ADVICE[cfg.learner],
+            plot=plot_run,
+        ),
+    )
+    ledger = record.history[-1]
+    summary["learner"] = cfg.learner
+    summary["episodes"] = record.episodes
+    summary.update(convergence(record.history))
+    summary["ledger"] = {k: v for k, v in record.info.pop("ledger").items()}
+    summary.update({k: v for k, v in record.info.items() if k.startswith("seconds_")})
+    summary["env_steps_per_second"] = record.env_steps / max(record.wall_seconds, 1e-9)
+    if greedy_scorer is not None:
+        summary["target_miss"] = cfg.algo.target_miss
+        summary["lp"] = {
+            "throughput": greedy_scorer.lp.value,
+            "miss_detection": greedy_scorer.lp.metrics.miss_detection,
+        }
+        summary["lp_ratio"] = ledger["lp_ratio"]
+    print_ledger(ledger, summary, cfg)
+    run.finish(summary, interrupted_at=record.env_steps if record.interrupted else None)
+    return summary
+
+
+def print_ledger(row: dict[str, Any], summary: dict[str, Any], cfg: Config) -> None:
+    """The price of learning, in a few lines."""
+    conv = (
+        f"first ≥ 0.99 after {summary['episodes_to_99']} episodes, ≥ 0.99 at "
+        f"{summary['stay_99']:.0%} of the evaluations after"
+        if summary["episodes_to_99"] is not None
+        else "never ≥ 0.99"
+    )
+    print(
+        f"\nthe price of learning over {summary['episodes']} episodes (exact, from the behaviour "
+        f"policy of each episode; realised on the stream in brackets):\n"
+        f"  regret {row['regret']:.1f} ({row['realised_regret']:.1f}) in reward units; "
+        f"missed events {row['expected_missed']:.1f} ({row['realised_missed']:.0f}) where the "
+        f"optimum misses {row['floor_missed']:.1f}; packets sent {row['expected_sent']:.0f} "
+        f"({row['realised_sent']:.0f})\n"
+        f"  cumulative miss detection {row['cumulative_miss_detection']:.4f}; greedy policy: {conv}"
+    )
+    if cfg.learner == "safe":
+        print(
+            f"  target_miss={cfg.algo.target_miss}: the greedy plan sends {row['lp_ratio']:.4f} of "
+            f"the LP's packets, its long-run miss detection {row['miss_detection']:.4f}"
+        )
+    print(f"  {summary['env_steps_per_second']:.0f} env steps/s of training (evaluations included)")

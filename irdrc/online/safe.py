@@ -1,0 +1,172 @@
+"""The safe learner (``learner=safe``; MODEL.md § E, safe learning): the vehicle's cumulative miss
+detection — events missed so far over events so far, on its own stream — stays at or under the
+target m* at every step, while it climbs toward the constrained optimum (the LP of MODEL.md § A).
+
+Two parts:
+
+- **The budget.** With E events so far and M of them missed, M ≤ m*·E must hold after every step.
+  A comm step can miss one event, so the vehicle may send only while the slack m*·E − M is at
+  least 1 − m*: then even a miss leaves M + 1 ≤ m*·(E + 1). Otherwise it senses. A radar that
+  detects every event (P_d = 1) never misses in radar mode, so with it the bound holds at every
+  step of every run, with probability 1; it starts in radar mode (no slack yet) and earns its
+  first comm step after (1 − m*)/m* detected events (19 at m* = 0.05). A radar that misses events
+  (P_d < 1) can break it in radar mode, which no choice of mode prevents: the budget then holds
+  only as far as the radar's own misses allow.
+- **The plan.** Before every episode it solves the LP for the most packets at miss target m* on
+  the posterior-mean model of what it has counted (``irdrc.online.form``: told the model's form,
+  not its numbers); an infeasible plan is radar everywhere. It acts by the plan wherever the budget
+  allows. A level of the channel whose capacity has not shown yet is planned as carrying every
+  packet (optimism), so the plan tries it. Its greedy policy, the one it would deploy, is the plan.
+
+Its behaviour policy in the ledger is the plan, or radar everywhere while the budget forbids
+sending at the episode's start: the budget's interventions within an episode are not in the exact
+ledger (the realised counts have them).
+"""
+
+from __future__ import annotations
+
+import random
+from typing import Any
+
+import torch
+
+from irdrc.core.cmdp import (
+    InfeasibleTarget,
+    build_constraints,
+    objective_table,
+    solve_cmdp,
+    solve_lp,
+    transitions,
+)
+from irdrc.core.params import Params
+from irdrc.core.stream import Step
+from irdrc.online.configs import SafeConfig
+from irdrc.online.form import FormCounts
+from irdrc.online.loop import StreamLearner
+from irdrc.online.qlearning import tuple_state
+
+
+class SafeLearner(StreamLearner):
+    """A miss budget and a pessimistic LP plan (see the module docstring).
+
+    Args:
+        cfg: the profile (``irdrc.online.configs.SAFE``).
+        params: the scenario; only its observation space is read (``FormCounts``).
+        seed: the seed of its draws between a randomised plan's modes.
+    """
+
+    def __init__(self, cfg: SafeConfig, params: Params, seed: int = 0) -> None:
+        self.cfg, self.name = cfg, cfg.name
+        self.counts = FormCounts(params, cfg.prior_count)
+        self.num_states = params.env.num_states
+        self.rng = random.Random(seed)
+        self.events = 0
+        self.missed = 0
+        self.radar = torch.ones(self.num_states, dtype=torch.int64)
+        self.plan = torch.nn.functional.one_hot(self.radar, 2).to(torch.float64)
+        self.comm = [0.0] * self.num_states  # P(comm | s) of the plan
+        self.updates = 0
+        self.forced = 0  # radar steps the budget imposed on the plan
+
+    @property
+    def slack(self) -> float:
+        """m*·events − missed: how far the cumulative miss detection is under the target."""
+        return self.cfg.target_miss * self.events - self.missed
+
+    def _may_send(self) -> bool:
+        return self.slack >= 1.0 - self.cfg.target_miss
+
+    def _solve(self) -> torch.Tensor:
+        """The LP's policy [S, 2] on the posterior-mean model of the counts so far: radar
+        everywhere where no policy meets the target, the plan so far where the solver cannot
+        settle the LP."""
+        model = self.counts.model(self.counts.estimate())
+        try:
+            lp = solve_lp(
+                transitions(model),
+                objective_table(model, "throughput"),
+                build_constraints(model, self.cfg.target_miss),
+            )
+        except InfeasibleTarget:
+            return torch.nn.functional.one_hot(self.radar, 2).to(torch.float64)
+        except RuntimeError:
+            return self.plan
+        return lp.policy
+
+    def begin_episode(self, episode: int) -> None:
+        self.plan = self._solve()
+        self.comm = self.plan[:, 0].tolist()
+        self.updates += 1
+
+    def act(self, state: int) -> int:
+        p = self.comm[state]
+        if p <= 0.0:
+            return 1
+        if not self._may_send():
+            self.forced += 1
+            return 1
+        return 0 if p >= 1.0 or self.rng.random() < p else 1
+
+    def observe(self, state: int, action: int, step: Step) -> None:
+        self.counts.observe(state, action, step)
+        self.events += step.event
+        self.missed += step.missed
+
+    def end_episode(self, episode: int) -> dict[str, float]:
+        return {"slack": self.slack, "forced_radar": self.forced}
+
+    def behaviour(self) -> torch.Tensor:
+        if self._may_send():
+            return self.plan
+        return torch.nn.functional.one_hot(self.radar, 2).to(torch.float64)
+
+    def greedy(self) -> torch.Tensor:
+        return self.plan
+
+    def state_dict(self) -> dict[str, Any]:
+        return {
+            "counts": self.counts.state_dict(),
+            "rng": self.rng.getstate(),
+            "events": self.events,
+            "missed": self.missed,
+            "plan": self.plan,
+            "updates": self.updates,
+            "forced": self.forced,
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.counts.load_state_dict(state["counts"])
+        self.rng.setstate(tuple_state(state["rng"]))
+        self.events, self.missed = int(state["events"]), int(state["missed"])
+        self.plan = state["plan"]
+        self.comm = self.plan[:, 0].tolist()
+        self.updates, self.forced = int(state["updates"]), int(state["forced"])
+
+
+class ConstrainedScorer:
+    """Scores a safe learner's greedy policy against the constrained optimum (the LP at m*): its
+    exact metrics, and ``extra`` columns — ``lp_ratio`` (its packets per step over the LP's) and
+    ``meets_target`` (its long-run miss detection ≤ m*).
+
+    Args:
+        scorer: the scenario's exact scorer.
+        target_miss: m*.
+    """
+
+    def __init__(self, scorer: Any, target_miss: float) -> None:
+        self.scorer = scorer
+        self.target_miss = float(target_miss)
+        self.lp = solve_cmdp(scorer.model, target_miss)
+        self.optimal_metrics = scorer.optimal_metrics
+
+    def metrics(self, table: torch.Tensor):
+        """The exact metrics of ``table`` (``Scorer.metrics``)."""
+        return self.scorer.metrics(table)
+
+    def extra(self, table: torch.Tensor) -> dict[str, float]:
+        """``lp_ratio`` and ``meets_target`` of ``table``."""
+        m = self.scorer.metrics(table)
+        return {
+            "lp_ratio": m.throughput / self.lp.value if self.lp.value > 0 else float("nan"),
+            "meets_target": float(m.miss_detection <= self.target_miss + 1e-12),
+        }

@@ -1,0 +1,13 @@
+"""Benchmark: the learners on one stream, scored by the price of learning, on seeds and scenarios no
+tuning used.
+
+    python recipes/bench_online.py                                    # the whole benchmark
+    python recipes/bench_online.py 'scenarios=[paper]' random_draws=0 'safe_targets=[]'
+    python recipes/bench_online.py resume=true hydra.run.dir=outputs/…   # run only what is missing
+"""
+
+from irdrc.experiments import app
+from irdrc.online import bench
+
+if __name__ == "__main__":
+    app.main(bench)

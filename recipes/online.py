@@ -1,0 +1,13 @@
+"""One vehicle learning on the road from its own stream, with the price of learning counted exactly.
+
+python recipes/online.py                                 # DQN on one stream, paper scenario
+python recipes/online.py learner=posterior env=multilevel
+python recipes/online.py learner=safe algo.target_miss=0.1
+python recipes/online.py learner=qlearning_paper algo.episodes=600
+"""
+
+from irdrc.experiments import app
+from irdrc.online import recipe
+
+if __name__ == "__main__":
+    app.main(recipe)

@@ -1,0 +1,271 @@
+"""One vehicle on the road (``irdrc.online``): the price of learning, the loop, its learners."""
+
+from __future__ import annotations
+
+import dataclasses
+import io
+import json
+import math
+import random
+
+import pytest
+import torch
+
+from irdrc.agents.base import Hooks
+from irdrc.core.exact import build_model, episodic_metrics, exact_scorer, stationary_metrics
+from irdrc.core.params import Params
+from irdrc.online import configs
+from irdrc.online.learners import make_learner
+from irdrc.online.loop import StreamLearner, learn_on_stream
+from irdrc.online.safe import ConstrainedScorer, SafeLearner
+
+PAPER = Params()
+
+
+@pytest.fixture(scope="module")
+def scorer():
+    return exact_scorer(PAPER)
+
+
+class Fixed(StreamLearner):
+    """A learner that never learns: ε-greedy around a fixed table."""
+
+    name = "fixed"
+
+    def __init__(self, table: torch.Tensor, eps: float = 0.0, seed: int = 0) -> None:
+        self.table, self.eps, self.rng = table.long(), eps, random.Random(seed)
+        self.actions = self.table.tolist()
+
+    def act(self, state: int) -> int:
+        if self.eps and self.rng.random() < self.eps:
+            return self.rng.randrange(2)
+        return self.actions[state]
+
+    def greedy(self) -> torch.Tensor:
+        return self.table
+
+    def behaviour(self) -> torch.Tensor:
+        probs = torch.nn.functional.one_hot(self.table, 2).double()
+        return (1 - self.eps) * probs + self.eps / 2
+
+
+def test_always_radar_pays_its_hand_computed_price(scorer):
+    """Always radar for 5 episodes: regret (g* − g_radar)·2000 exactly, no missed event (a perfect
+    radar), the floor the optimum's missed events per step × 2000."""
+    model = scorer.model
+    radar = torch.ones(model.num_states, dtype=torch.int64)
+    rec = learn_on_stream(Fixed(radar), PAPER, scorer, episodes=5)
+    row = rec.history[-1]
+    g_star = stationary_metrics(model, scorer.optimal.policy).avg_reward
+    g_radar = stationary_metrics(model, "always_radar").avg_reward
+    assert row["regret"] == pytest.approx((g_star - g_radar) * 2000, rel=1e-12)
+    assert row["behaviour_ratio"] == pytest.approx(g_radar / g_star, rel=1e-12)
+    assert row["expected_missed"] == 0.0 and row["realised_missed"] == 0.0
+    events = float((model.event * 1.0).sum())  # placeholder to keep the names apart below
+    mu = scorer.model.stationary(torch.nn.functional.one_hot(scorer.optimal.policy, 2).double())
+    comm = scorer.optimal.policy == 0
+    floor = float((mu * model.event * comm).sum()) * 2000  # the optimum misses what comm meets
+    assert events > 0 and row["floor_missed"] == pytest.approx(floor, rel=1e-9)
+    assert [r["episodes"] for r in rec.history] == list(range(6))
+
+
+def test_the_ledger_scores_the_behaviour_policy_not_the_greedy_one(scorer):
+    """ε = 0.5 around the optimum: the regret is the mixture's, (g* − g(π_ε))·steps. Scoring the
+    greedy policy instead (the mutation) would give 0, which the hand value tells apart."""
+    model = scorer.model
+    g_star = scorer.optimal_metrics.avg_reward
+    mix = 0.5 * torch.nn.functional.one_hot(scorer.optimal.policy, 2).double() + 0.25
+    hand = (g_star - stationary_metrics(model, mix).avg_reward) * 1200
+
+    def regret(mutate: bool) -> float:
+        learner = Fixed(scorer.optimal.policy, eps=0.5)
+        if mutate:
+            learner.behaviour = learner.greedy
+        return learn_on_stream(learner, PAPER, scorer, episodes=3).history[-1]["regret"]
+
+    assert regret(False) == pytest.approx(hand, rel=1e-12)
+    assert hand > 100 and not math.isclose(regret(True), hand, rel_tol=1e-3)
+
+
+def test_realised_counts_match_the_exact_episodic_expectation(scorer):
+    """Over 300 episodes of the optimal policy, the realised reward and missed events are within
+    5 standard errors (from the episodes' own spread) of the exact episodic expectation (episodes
+    from a uniform reset: what the stream's episodes are)."""
+    model = build_model(PAPER)
+    policy = scorer.optimal.policy
+    K, T = 300, PAPER.env.horizon
+    rec = learn_on_stream(Fixed(policy), PAPER, scorer, episodes=K, seed=3, eval_every_frames=T * K)
+    per = torch.tensor([e["reward"] for e in rec.episode_rewards], dtype=torch.float64)
+    ep = episodic_metrics(model, policy)
+    row = rec.history[-1]
+    se = float(per.std()) * math.sqrt(K)
+    assert abs(row["realised_reward"] - ep.avg_reward * K * T) < 5 * se
+    assert row["realised_reward"] == pytest.approx(float(per.sum()), rel=1e-12)
+    # the optimum's own regret is exactly 0; its realised regret is g*·steps − the rewards, whose
+    # expectation is the resets' transient (an episode from a uniform state earns another amount)
+    g_star = scorer.optimal_metrics.avg_reward
+    assert row["regret"] == pytest.approx(0.0, abs=1e-6)
+    assert row["realised_regret"] == pytest.approx(g_star * K * T - row["realised_reward"])
+    assert abs(row["realised_regret"] - (g_star - ep.avg_reward) * K * T) < 5 * se
+
+
+def tiny(name: str) -> object:
+    base = {"episodes": 6}
+    if name.startswith("dqn"):
+        base.update(warmup_steps=100, batch_size=64, update_every=8, hidden=(16, 16))
+    if name == "safe":
+        base.update(target_miss=0.1)
+    return configs.learner_config(name, base)
+
+
+@pytest.mark.parametrize("name", ["dqn", "dqn_paper", "posterior", "qlearning", "safe"])
+def test_a_resumed_run_is_the_uninterrupted_run(scorer, name):
+    """Checkpointed after 3 of 6 episodes (through torch.save / weights_only load, as a checkpoint
+    file is), a resumed run's evaluations are the uninterrupted run's, number for number."""
+    cfg = tiny(name)
+    grader = ConstrainedScorer(scorer, 0.1) if name == "safe" else None
+    saved = {}
+
+    def keep(state):
+        buf = io.BytesIO()
+        torch.save(state, buf)
+        buf.seek(0)
+        saved["state"] = torch.load(buf, weights_only=True)
+
+    hooks = Hooks(on_checkpoint=keep, checkpoint_every_frames=1200)
+    whole = learn_on_stream(
+        make_learner(name, cfg, PAPER, 5),
+        PAPER,
+        scorer,
+        episodes=6,
+        seed=5,
+        hooks=hooks,
+        greedy_scorer=grader,
+    )
+    assert saved["state"]["episode"] == 3
+    resumed = learn_on_stream(
+        make_learner(name, cfg, PAPER, 5),
+        PAPER,
+        scorer,
+        episodes=6,
+        seed=5,
+        resume=saved["state"],
+        greedy_scorer=grader,
+    )
+
+    def numbers(rows):
+        return [{k: v for k, v in r.items() if k != "wall_seconds"} for r in rows]
+
+    assert json.dumps(numbers(resumed.history)) == json.dumps(numbers(whole.history))
+    assert resumed.episode_rewards == whole.episode_rewards
+
+
+def test_posterior_sampling_reaches_the_optimum_in_a_few_episodes(scorer):
+    """Told the model's form, it is ≥ 0.99 of the optimum within 10 episodes on the paper scenario
+    (3 on this seed when measured) and its regret levels off: the second five episodes cost less
+    than a fifth of the first five."""
+    cfg = configs.learner_config("posterior", {"episodes": 10})
+    rec = learn_on_stream(make_learner("posterior", cfg, PAPER, 0), PAPER, scorer, episodes=10)
+    ratios = [r["optimality_ratio"] for r in rec.history]
+    assert max(ratios[1:]) >= 0.99
+    regret = [r["regret"] for r in rec.history]
+    assert regret[10] - regret[5] < (regret[5] - regret[0]) / 5
+
+
+def comm_everywhere(learner: SafeLearner) -> None:
+    """A plan that sends in every state (the budget alone keeps the misses down)."""
+    learner._solve = lambda: torch.tensor([[1.0, 0.0]]).repeat(learner.num_states, 1)
+
+
+def test_the_miss_budget_keeps_cumulative_miss_detection_under_the_target(scorer):
+    """With a plan that sends everywhere, the budget alone holds the cumulative miss detection at
+    or under m* = 0.1 at every evaluation; with the budget lifted (the mutation) it breaks."""
+    cfg = configs.learner_config("safe", {"episodes": 5, "target_miss": 0.1})
+    grader = ConstrainedScorer(scorer, 0.1)
+
+    def worst(mutate: bool) -> float:
+        learner = make_learner("safe", cfg, PAPER, 0)
+        comm_everywhere(learner)
+        if mutate:
+            learner._may_send = lambda: True
+        rec = learn_on_stream(learner, PAPER, scorer, episodes=5, greedy_scorer=grader)
+        cum = [r["cumulative_miss_detection"] for r in rec.history[1:]]
+        return max(c for c in cum if not math.isnan(c))
+
+    assert worst(False) <= 0.1
+    assert worst(True) > 0.5
+
+
+def test_the_safe_learner_starts_in_radar_and_learns_to_send(scorer):
+    """Its first episode is radar everywhere (no slack yet); within 10 episodes of the paper
+    scenario at m* = 0.1 its plan sends more than half the LP's packets, with every evaluation's
+    cumulative miss detection ≤ 0.1."""
+    cfg = configs.learner_config("safe", {"episodes": 10, "target_miss": 0.1})
+    grader = ConstrainedScorer(scorer, 0.1)
+    rec = learn_on_stream(
+        make_learner("safe", cfg, PAPER, 1), PAPER, scorer, episodes=10, greedy_scorer=grader
+    )
+    first = rec.history[1]
+    assert first["realised_sent"] == 0 and first["realised_missed"] == 0
+    assert all(r["cumulative_miss_detection"] <= 0.1 for r in rec.history[1:])
+    assert rec.history[-1]["lp_ratio"] > 0.5
+
+
+def test_learner_keys_are_checked_against_the_chosen_learner():
+    with pytest.raises(ValueError, match=r"algo.batch_sze \(did you mean algo.batch_size\?\)"):
+        configs.learner_config("dqn", {"batch_sze": 3})
+    with pytest.raises(ValueError, match=r"algo\.target_miss"):
+        configs.learner_config("posterior", {"target_miss": 0.1})
+    with pytest.raises(ValueError, match="learner='ppo' must be one of"):
+        configs.learner_config("ppo", {})
+    with pytest.raises(ValueError, match=r"algo.hidden\[0\]"):
+        configs.learner_config("dqn", {"hidden": [0]})
+    assert dataclasses.replace(configs.DQN, episodes=5).epsilon(0) == configs.DQN.eps_start
+
+
+def test_the_recipe_writes_the_ledger_everywhere(tmp_path, capsys):
+    """``recipes/online.py`` in-process, 3 episodes of posterior sampling: exit 0; the ledger in
+    metrics.csv (a row per episode), summary.json and the printout; a checkpoint to resume from."""
+    import csv
+
+    from irdrc.experiments import app
+    from irdrc.online import recipe
+
+    args = ["learner=posterior", "algo.episodes=3", f"hydra.run.dir={tmp_path}", "logger=none"]
+    assert app.execute(recipe, [*args, "progress=false"]) == 0
+    rows = list(csv.DictReader((tmp_path / "metrics.csv").open()))
+    assert [int(r["episodes"]) for r in rows] == [0, 1, 2, 3]
+    assert {"regret", "expected_missed", "floor_missed", "realised_missed"} <= set(rows[0])
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["learner"] == "posterior" and summary["episodes"] == 3
+    assert summary["ledger"]["regret"] == pytest.approx(float(rows[-1]["regret"]))
+    assert (tmp_path / "checkpoint.pt").is_file() and (tmp_path / "learning_curve.png").is_file()
+    out = capsys.readouterr().out
+    assert "the price of learning over 3 episodes" in out and "where the optimum misses" in out
+    # nothing left to learn at 3 episodes; a longer run goes on from the checkpoint
+    resume = [f"resume={tmp_path / 'checkpoint.pt'}", "logger=none", "progress=false"]
+    assert app.execute(recipe, resume) == 2
+    assert "nothing left to learn" in capsys.readouterr().err
+    assert app.execute(recipe, [*resume, "algo.episodes=5"]) == 0
+    rows = list(csv.DictReader((tmp_path / "metrics.csv").open()))
+    assert [int(r["episodes"]) for r in rows] == [0, 1, 2, 3, 4, 5]
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["algo.batch_size=64"], "unknown key(s) algo.batch_size"),
+        (["learner=dqn", "algo.batch_sze=64"], "did you mean algo.batch_size?"),
+        (["learner=sac"], "learner='sac' must be one of"),
+        (["env.actions=continuous"], "env.actions=continuous"),
+        (["learner=safe", "algo.target_miss=1.5"], "algo.target_miss=1.5"),
+    ],
+)
+def test_the_recipe_refuses_before_any_work(tmp_path, capsys, args, message):
+    from irdrc.experiments import app
+    from irdrc.online import recipe
+
+    run_dir = tmp_path / "run"
+    code = app.execute(recipe, ["learner=posterior", *args, f"hydra.run.dir={run_dir}"])
+    assert code == 2 and message in capsys.readouterr().err
+    assert not run_dir.exists()

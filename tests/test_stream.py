@@ -7,10 +7,10 @@ import math
 import pytest
 import torch
 
+from irdrc.bench.random_scenarios import draw_overrides
 from irdrc.core.dynamics import Dynamics
 from irdrc.core.params import Params
 from irdrc.core.stream import VehicleStream
-from irdrc.experiments.random_scenarios import draw_overrides
 
 SCENARIOS = {
     "paper": {},
@@ -57,7 +57,7 @@ def test_a_mutated_step_is_caught():
     """The equality test can fail: a stream whose reward table is off in one entry differs."""
     params = Params()
     dyn, stream = Dynamics(params), VehicleStream(params)
-    stream._reward[0] += 1.0  # comm, no event, configuration 0
+    stream.steps._reward[0] += 1.0  # comm, no event, configuration 0
     u = torch.zeros(1, dyn.num_uniforms, dtype=torch.float64) + 0.99  # no event
     ref = dyn.step(torch.tensor([0]), torch.tensor([0]), None, uniforms=u)
     assert stream.transition(0, 0, u[0].tolist()).reward != float(ref.reward[0])

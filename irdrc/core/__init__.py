@@ -13,6 +13,6 @@
 - ``policies``: baseline and table policies as TensorDictModules;
 - ``evaluate``: Monte-Carlo evaluation with confidence intervals.
 
-May import: torch, tensordict, torchrl (env specs), gymnasium, numpy. Nothing from ``irdrc.agents``,
-``irdrc.experiments`` or ``irdrc.paper``; nothing of Hydra, files or Ray.
+May import: torch, tensordict, torchrl (env specs), gymnasium, numpy. Nothing from any layer
+above it (``irdrc.fleet``, ``irdrc.agents`` … ``irdrc.paper``); nothing of Hydra, files or Ray.
 """

@@ -19,7 +19,6 @@ section, as on the command line): ``env={"p1": {"speed": 0.5}}, reward={"r4": 50
 
 from __future__ import annotations
 
-import bisect
 import random
 from typing import Any
 
@@ -38,6 +37,7 @@ from irdrc.core.dynamics import (
 )
 from irdrc.core.overrides import full_key
 from irdrc.core.params import Params
+from irdrc.core.stream import ScalarStep
 
 ENV_ID = "irdrc/DFRC-v0"
 
@@ -112,19 +112,9 @@ class DFRCGymEnv(gymnasium.Env):
         self.dynamics = dyn = Dynamics(self.params)
         self.observation_space = _observation_space(self.params)
         self.action_space = _action_space(self.params)
-        # The tables of Dynamics (scenario 0), as Python lists for a step without tensor overhead.
-        self._event = dyn.event_prob.tolist()
-        self._thr = dyn.thresholds.tolist()  # [2F][factor][k]: P(level′ ≥ k + 1 | a, f)
-        self._reward = dyn.reward.tolist()
-        self._capacity = dyn.capacity.tolist()
-        cdf = dyn.arrival_cdf if dyn.arrival_cdf.ndim == 2 else dyn.arrival_cdf[None]
-        self._cdfs = cdf.tolist()  # one row per traffic phase
-        self._weights = dyn.radix.tolist()
+        # Dynamics' step on one state at a time, in Python (``irdrc.core.stream.ScalarStep``)
+        self._step = ScalarStep(dyn)
         self._nf, self._phases = dyn.num_configs, dyn.num_phases
-        env = self.params.env
-        self._imperfect = env.detection_prob < 1.0 or env.false_alarm_prob > 0.0
-        self._pd, self._pfa = env.detection_prob, env.false_alarm_prob
-        self._miss_r, self._alarm_r = -self.params.reward.r3, -self.params.reward.r5
         self._obs = [o for o in dyn.obs.numpy()]
         self._D = dyn.queue_capacity
         self._S = dyn.num_states
@@ -161,40 +151,21 @@ class DFRCGymEnv(gymnasium.Env):
         if self.params.env.actions != "binary":
             return self._step_shares(_shares(self.params, action, 1))
         a = _action(action)
-        s, u, nf = self._state, self._rng.random, self._nf
-        d, f = divmod(s, nf)
+        s, u = self._state, self._rng.random
         # The uniforms in Dynamics' order: event, arrivals, each factor, then the radar's draw.
-        event = u() < self._event[f]
-        phase = f % self._phases
-        arrivals = bisect.bisect_right(self._cdfs[phase if len(self._cdfs) > 1 else 0], u())
-        thr = self._thr[a * nf + f]
-        f_next = 0
-        for i, weight in enumerate(self._weights):
-            x = u()
-            f_next += weight * sum(1 for t in thr[i] if x < t)
-        capacity = self._capacity[a * nf + f]
-        total = d + arrivals
-        sent = min(total, capacity)
-        rest = total - sent
-        d_next = min(rest, self._D)
-        self._state = d_next * nf + f_next
+        out = self._step.transition(s, a, [u() for _ in range(self._step.num_uniforms)])
+        phase = (s % self._nf) % self._phases
+        self._state = out.state
         self._steps += 1
-        reward = self._reward[a * 2 * nf + event * nf + f]
-        missed, alarm = event and a == 0, False
-        if self._imperfect:
-            x = u()
-            if a == 1 and event and x >= self._pd:
-                missed, reward = True, self._miss_r
-            elif a == 1 and not event and x < self._pfa:
-                alarm, reward = True, self._alarm_r
+        reward = out.reward
         info = {
             "state": self._state,
-            "event": event,
-            "missed": missed,
-            "false_alarm": alarm,
-            "sent": sent,
-            "dropped": rest - d_next,
-            "capacity": capacity,
+            "event": out.event,
+            "missed": out.missed,
+            "false_alarm": out.false_alarm,
+            "sent": out.sent,
+            "dropped": out.dropped,
+            "capacity": self._step.capacity(s, a),
             "step_count": self._steps,
         }
         if self._phases > 1:

@@ -2,10 +2,11 @@
 time, at the speed of plain Python.
 
 ``Dynamics.step`` costs the same few kernels whatever its batch, about 200 µs for a batch of one. A
-vehicle that learns from its own stream steps one row at a time, so ``VehicleStream`` takes the
+vehicle that learns from its own stream steps one row at a time, so ``ScalarStep`` takes the
 ``Dynamics`` tables as Python lists and steps an integer state with Python arithmetic (a few µs).
 Given the same uniforms it returns exactly what ``Dynamics.step`` returns (tests/test_stream.py holds
-the two equal on every state and action of several scenarios): it is the same simulator.
+the two equal on every state and action of several scenarios): it is the same simulator. The
+gymnasium env (``irdrc.core.gym``) steps with it too.
 
 The uniforms are drawn from a ``torch.Generator`` one episode at a time: ``[horizon, k + 1]``, the
 ``k = Dynamics.num_uniforms`` columns of each step and, in row 0, one more for the reset that
@@ -38,33 +39,22 @@ class Step(NamedTuple):
     arrivals: int
 
 
-class VehicleStream:
-    """One vehicle's trajectory: episodes of ``env.horizon`` steps, each from a uniform reset.
-
-    Args:
-        params: the scenario (binary actions: comm 0, radar 1).
-        seed: the stream's generator seed.
+class ScalarStep:
+    """MODEL.md's step for one state at a time: ``Dynamics``' tables (scenario 0) as Python lists and
+    Python arithmetic, a few µs a step where ``Dynamics.step`` on one row costs ~200 µs. Given the
+    same uniforms it returns exactly what ``Dynamics.step`` returns. Shared by ``VehicleStream``
+    and the gymnasium env (``irdrc.core.gym``).
 
     Attributes:
-        num_states: S.
-        horizon: steps per episode.
-        state: the current state index (after ``reset``).
-        steps_left: steps left in the current episode.
+        num_uniforms: uniforms one step reads (``Dynamics.num_uniforms``).
+        num_configs, num_phases: F and the traffic phases.
     """
 
-    def __init__(self, params: Params, seed: int = 0) -> None:
-        if params.env.actions != "binary":
-            raise ValueError(
-                f"env.actions={params.env.actions}: one vehicle's stream takes the binary modes "
-                "(comm or radar each step)"
-            )
-        dyn = Dynamics(params)
-        self.params = params
-        self.num_states = dyn.num_states
-        self.horizon = int(params.env.horizon)
-        self._nf = dyn.num_configs
+    def __init__(self, dyn: Dynamics) -> None:
+        self.num_configs = dyn.num_configs
+        self.num_phases = dyn.num_phases
+        self.num_uniforms = dyn.num_uniforms
         self._D = dyn.queue_capacity
-        self._ncol = dyn.num_uniforms
         self._event = dyn.event_prob.tolist()
         levels = dyn.levels[: dyn._nfac]
         # Each drawn factor's thresholds P(level′ ≥ k | a, f), k = 1 … L − 1 (Dynamics pads them
@@ -84,36 +74,11 @@ class VehicleStream:
         self._pfa = float(dyn.false_alarm[0])
         self._miss_reward = float(dyn.miss_reward[0])
         self._alarm_reward = float(dyn.alarm_reward[0])
-        self.generator = torch.Generator()
-        self.generator.manual_seed(int(seed))
-        self._u: list[list[float]] = []
-        self._t = 0
-        self.state = 0
-        self.steps_left = 0
-
-    def reset(self) -> int:
-        """Start an episode: draw its uniforms and a uniform initial state; returns the state."""
-        u = torch.rand(self.horizon, self._ncol + 1, generator=self.generator, dtype=torch.float64)
-        self._u = u.tolist()
-        self._t = 0
-        self.steps_left = self.horizon
-        self.state = min(int(self._u[0][self._ncol] * self.num_states), self.num_states - 1)
-        return self.state
-
-    def step(self, action: int) -> Step:
-        """One step of the current episode from ``state`` with ``action`` (0 comm, 1 radar)."""
-        if self.steps_left <= 0:
-            raise RuntimeError("the episode is over: call reset() first")
-        out = self.transition(self.state, action, self._u[self._t])
-        self._t += 1
-        self.steps_left -= 1
-        self.state = out.state
-        return out
 
     def transition(self, state: int, action: int, u: list[float]) -> Step:
         """MODEL.md's step from ``state`` with ``action`` and the step's uniforms ``u`` (in
-        ``Dynamics.step``'s order): exactly what ``Dynamics.step`` returns for them."""
-        nf = self._nf
+        ``Dynamics.step``'s order: event, arrivals, each factor, the radar's draw)."""
+        nf = self.num_configs
         d, f = divmod(state, nf)
         event = u[0] < self._event[f]
         af = action * nf + f
@@ -139,6 +104,67 @@ class VehicleStream:
         return Step(
             d_next * nf + f_next, reward, event, missed, sent, rest - d_next, false_alarm, arrivals
         )
+
+    def capacity(self, state: int, action: int) -> int:
+        """ν of ``action`` in ``state`` (0 in radar mode)."""
+        return self._capacity[action * self.num_configs + state % self.num_configs]
+
+
+class VehicleStream:
+    """One vehicle's trajectory: episodes of ``env.horizon`` steps, each from a uniform reset.
+
+    Args:
+        params: the scenario (binary actions: comm 0, radar 1).
+        seed: the stream's generator seed.
+
+    Attributes:
+        num_states: S.
+        horizon: steps per episode.
+        state: the current state index (after ``reset``).
+        steps_left: steps left in the current episode.
+    """
+
+    def __init__(self, params: Params, seed: int = 0) -> None:
+        if params.env.actions != "binary":
+            raise ValueError(
+                f"env.actions={params.env.actions}: one vehicle's stream takes the binary modes "
+                "(comm or radar each step)"
+            )
+        dyn = Dynamics(params)
+        self.params = params
+        self.num_states = dyn.num_states
+        self.horizon = int(params.env.horizon)
+        self.steps = ScalarStep(dyn)
+        self._ncol = dyn.num_uniforms
+        self.generator = torch.Generator()
+        self.generator.manual_seed(int(seed))
+        self._u: list[list[float]] = []
+        self._t = 0
+        self.state = 0
+        self.steps_left = 0
+
+    def reset(self) -> int:
+        """Start an episode: draw its uniforms and a uniform initial state; returns the state."""
+        u = torch.rand(self.horizon, self._ncol + 1, generator=self.generator, dtype=torch.float64)
+        self._u = u.tolist()
+        self._t = 0
+        self.steps_left = self.horizon
+        self.state = min(int(self._u[0][self._ncol] * self.num_states), self.num_states - 1)
+        return self.state
+
+    def step(self, action: int) -> Step:
+        """One step of the current episode from ``state`` with ``action`` (0 comm, 1 radar)."""
+        if self.steps_left <= 0:
+            raise RuntimeError("the episode is over: call reset() first")
+        out = self.steps.transition(self.state, action, self._u[self._t])
+        self._t += 1
+        self.steps_left -= 1
+        self.state = out.state
+        return out
+
+    def transition(self, state: int, action: int, u: list[float]) -> Step:
+        """``ScalarStep.transition``: the step from ``state`` with ``action`` and uniforms ``u``."""
+        return self.steps.transition(state, action, u)
 
     def state_dict(self) -> dict[str, Any]:
         """The stream between episodes: its generator's state."""

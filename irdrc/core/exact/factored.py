@@ -19,6 +19,7 @@ from dataclasses import dataclass
 import torch
 
 from irdrc.core.exact.mdp import ExactMDP
+from irdrc.core.exact.stationary import stationary_distribution_factored
 from irdrc.core.params import Params
 from irdrc.core.tables import ModelTables, model_tables
 
@@ -228,8 +229,6 @@ class FactoredModel(ExactMDP):
 
     def stationary(self, probs: torch.Tensor, tol: float = 1e-13, max_iter: int = 1_000_000):
         """[S] by aggregation-disaggregation over the queue (``stationary_distribution_factored``)."""
-        from irdrc.core.exact.stationary import stationary_distribution_factored
-
         return stationary_distribution_factored(self, probs, tol=tol, max_iter=max_iter)[0]
 
     def sparse(self, a: int):

@@ -1,19 +1,18 @@
 """Stationary distributions on the factored operator (``irdrc.core.exact.factored``), fast for deep
 queues: power iteration over the queue lengths that hold mass, aggregation-disaggregation over the
-queue length, and GMRES.
+queue length, and GMRES. Every ``model`` here is a factored model
+(``irdrc.core.exact.factored.FactoredModel``, which calls in here): its ``push_rows`` and
+``num_configs`` are what these solvers use.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import torch
 
-from irdrc.core.exact.mdp import as_probs
-
-if TYPE_CHECKING:  # the factored model calls in here; type hints only
-    from irdrc.core.exact.factored import FactoredModel
+from irdrc.core.exact.mdp import ExactMDP, as_probs
 
 NEGLIGIBLE_MASS = 1e-30
 """Queue lengths holding less stationary mass than this (summed over the factors) are stepped by
@@ -29,7 +28,7 @@ IAD_MAX_ITER = 5000
 """``method="auto"``: aggregation-disaggregation rounds before plain power iteration takes over."""
 
 
-def _start_queue(model: FactoredModel, probs: torch.Tensor) -> int:
+def _start_queue(model: ExactMDP, probs: torch.Tensor) -> int:
     """Where the power iteration starts: the first queue length at which the policy's expected
     drift E[d′ − d] (averaged over the factor configurations as they occur) is ≤ 0 — where the
     queue settles — or D if it grows everywhere. A deep queue then need not be crossed step by
@@ -53,7 +52,7 @@ def _start_queue(model: FactoredModel, probs: torch.Tensor) -> int:
 
 
 def stationary_distribution_factored(
-    model: FactoredModel,
+    model: ExactMDP,
     policy: torch.Tensor,
     tol: float = 1e-13,
     max_iter: int = 1_000_000,
@@ -105,7 +104,7 @@ def stationary_distribution_factored(
     return mu, steps + calls + more
 
 
-def _initial(model: FactoredModel, probs: torch.Tensor, start: torch.Tensor | None):
+def _initial(model: ExactMDP, probs: torch.Tensor, start: torch.Tensor | None):
     """The iterate to start from: ``start``, or uniform over the factors where the queue settles."""
     D1, nf = probs.shape[:2]
     if start is not None:
@@ -128,7 +127,7 @@ def _advance(
 
 
 def _stationary_iad(
-    model: FactoredModel,
+    model: ExactMDP,
     probs: torch.Tensor,
     tol: float,
     max_iter: int,
@@ -222,7 +221,7 @@ def banded_stationary(src: Any, dst: Any, vals: Any, n: int) -> Any:
     return pi / pi.sum()
 
 
-def _stationary_gmres(model: FactoredModel, probs: torch.Tensor) -> tuple[torch.Tensor | None, int]:
+def _stationary_gmres(model: ExactMDP, probs: torch.Tensor) -> tuple[torch.Tensor | None, int]:
     import numpy as np
     from scipy.sparse.linalg import LinearOperator, gmres
 
@@ -255,7 +254,7 @@ def _stationary_gmres(model: FactoredModel, probs: torch.Tensor) -> tuple[torch.
 
 
 def _stationary_power(
-    model: FactoredModel,
+    model: ExactMDP,
     probs: torch.Tensor,
     tol: float,
     max_iter: int,

@@ -6,8 +6,8 @@ python recipes/online.py learner=safe algo.target_miss=0.1
 python recipes/online.py learner=qlearning_paper algo.episodes=600
 """
 
-from irdrc.experiments import app
 from irdrc.online import recipe
+from irdrc.runs import app
 
 if __name__ == "__main__":
     app.main(recipe)

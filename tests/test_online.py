@@ -228,8 +228,8 @@ def test_the_recipe_writes_the_ledger_everywhere(tmp_path, capsys):
     metrics.csv (a row per episode), summary.json and the printout; a checkpoint to resume from."""
     import csv
 
-    from irdrc.experiments import app
     from irdrc.online import recipe
+    from irdrc.runs import app
 
     args = ["learner=posterior", "algo.episodes=3", f"hydra.run.dir={tmp_path}", "logger=none"]
     assert app.execute(recipe, [*args, "progress=false"]) == 0
@@ -262,8 +262,8 @@ def test_the_recipe_writes_the_ledger_everywhere(tmp_path, capsys):
     ],
 )
 def test_the_recipe_refuses_before_any_work(tmp_path, capsys, args, message):
-    from irdrc.experiments import app
     from irdrc.online import recipe
+    from irdrc.runs import app
 
     run_dir = tmp_path / "run"
     code = app.execute(recipe, ["learner=posterior", *args, f"hydra.run.dir={run_dir}"])

@@ -9,8 +9,9 @@ real time, and the exact price of their learning.
 - the learners: ``posterior`` (posterior sampling on the form, planned on the exact core),
   ``dqn`` (DQN from TorchRL parts), ``qlearning`` (tabular), ``safe`` (misses kept under a target
   while it learns); ``learners`` builds one by name, ``configs`` holds their profiles;
-- ``recipe``: ``recipes/online.py``; ``bench``: ``recipes/bench_online.py``; ``figures``.
+- ``recipe``: ``recipes/online.py``; ``figures``: its curves against episodes (its benchmark is
+  ``irdrc.bench.online``).
 
-May import: ``irdrc.core``, ``irdrc.agents``, ``irdrc.experiments`` (the run machinery). Nothing
-from ``irdrc.paper``.
+May import: ``irdrc.core``, ``irdrc.agents``, ``irdrc.runs`` (the run machinery). Nothing of
+``irdrc.sweeps``, the other recipes, ``irdrc.bench`` or ``irdrc.paper``.
 """

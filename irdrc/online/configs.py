@@ -226,7 +226,6 @@ QLEARNING_PAPER = QLearningConfig(
     episodes=DEFAULT_EPISODES,
     alpha=0.01,
     alpha_schedule="constant",
-    epsilon_start=0.1,
     epsilon_end=0.1,
     name="qlearning_paper",
 )

@@ -16,7 +16,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 
 from irdrc.agents.base import RunRecord
-from irdrc.experiments.results import atomic_savefig
+from irdrc.runs.results import atomic_savefig
 
 COLORS = {
     "posterior": "tab:green",

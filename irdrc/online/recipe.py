@@ -15,9 +15,9 @@ from typing import Any
 
 from irdrc.core.checks import build
 from irdrc.core.params import Params
-from irdrc.experiments.compose import Composed
-from irdrc.experiments.sections import ONE_VEHICLE, Learning, Plot, check_eval_period, check_exact
 from irdrc.online.configs import LEARNERS, learner_config
+from irdrc.runs.compose import Composed
+from irdrc.runs.sections import ONE_VEHICLE, Learning, Plot, check_eval_period, check_exact
 
 NAME = "online"
 RESUMABLE = True
@@ -104,10 +104,10 @@ def run(cfg: Config, run) -> dict[str, Any]:
     """Learn on the stream, then finish the run directory as every learner's (``finish_learner``)
     with the ledger beside it."""
     from irdrc.core.exact import exact_scorer
-    from irdrc.experiments.report import LearnerRun, finish_learner
     from irdrc.online.figures import plot_run
     from irdrc.online.learners import make_learner
     from irdrc.online.loop import learn_on_stream
+    from irdrc.runs.report import LearnerRun, finish_learner
 
     run.threads(cfg.num_threads)
     run.make_logger(cfg.logger, cfg.algo.name)

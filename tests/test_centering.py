@@ -95,35 +95,6 @@ def test_centering_learns_the_long_horizon_optimum_at_p1_1_r4_50(seed):
     assert run.history[-1]["optimality_ratio"] >= 0.99
 
 
-def test_reward_scaling_fixes_the_first_batch_std_and_survives_a_checkpoint():
-    """``reward_std`` > 0: the loss sees (r − r̄)/scale with scale the first batch's standard
-    deviation over ``reward_std`` (fixed for the run: later batches move r̄, not the scale); a
-    checkpoint restores both. With ``reward_std`` 0 only r̄ is subtracted (DQN's earlier path)."""
-    import torch
-    from tensordict import TensorDict
-
-    from irdrc.agents.offpolicy import RewardCenter
-
-    first = torch.tensor([0.0, 4.0, 0.0, 4.0])  # mean 2, sample std 2.309…
-    center = RewardCenter(0.5, std=0.3)
-    center.update(first)
-    scale = float(first.std()) / 0.3
-    assert center.scale == pytest.approx(scale) and center.value == pytest.approx(2.0)
-    center.update(torch.tensor([100.0, 100.0]))  # moves r̄, never the scale
-    assert center.scale == pytest.approx(scale) and center.value > 2.0
-    td = TensorDict({("next", "reward"): torch.tensor([[10.0]])}, [1])
-    out = center.center(td)[("next", "reward")]
-    assert float(out) == pytest.approx((10.0 - center.value) / scale)
-    again = RewardCenter(0.5, std=0.3)
-    again.load(center.state())
-    assert (again.value, again.scale) == (center.value, center.scale)
-    plain = RewardCenter(0.5)
-    plain.update(first)
-    td = TensorDict({("next", "reward"): torch.tensor([[10.0]])}, [1])
-    assert float(plain.center(td)[("next", "reward")]) == pytest.approx(8.0)
-    assert plain.scale is None and "reward_scale" not in plain.state()
-
-
 def test_following_the_values_moves_the_center_by_one_minus_gamma_times_the_level():
     """``center_on=values``: values at a level L above zero mean rewards centred about (1 − γ)·L
     too low; r̄ moves by that much (nothing when centering is off or before the first batch)."""

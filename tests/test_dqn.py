@@ -17,7 +17,8 @@ from irdrc import DFRCEnv, Params
 from irdrc.agents.configs import DQNConfig, NetworkConfig
 from irdrc.agents.dqn import train
 from irdrc.agents.offpolicy import greedy_table, make_qnet
-from irdrc.experiments.tracking import MAX_NAME_BYTES, resolve_wandb_mode, run_name
+from irdrc.core.exact import exact_scorer
+from irdrc.runs.tracking import MAX_NAME_BYTES, resolve_wandb_mode, run_name
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = [
@@ -82,18 +83,6 @@ def test_qnet_sized_from_specs_and_greedy_table():
     assert table.shape == (6 * 32,) and set(table.unique().tolist()) <= {0, 1}
 
 
-@pytest.mark.parametrize(
-    ("key", "kept", "other", "tag"),
-    [("dueling", False, True, "dueling-v1"), ("n_steps", 1, 3, "dqn-variants-v1")],
-)
-def test_a_retired_key_is_accepted_at_its_value_and_refused_naming_its_tag(key, kept, other, tag):
-    """A command line or checkpoint from an earlier version may set a retired key: to what this
-    version runs, it is accepted; to anything else, refused, naming the tag that runs it."""
-    assert DQNConfig.from_sections({key: kept}) == DQNConfig()
-    with pytest.raises(ValueError, match=rf"algo\.{key}={other!r} no longer exists.*tagged {tag}"):
-        DQNConfig.from_sections({key: other})
-
-
 def test_polyak_update_is_torchrls_soft_update():
     """``PolyakUpdate`` (one foreach lerp over cached tensors) moves every target tensor exactly as
     TorchRL's ``SoftUpdate`` does, step after step, on two identical DQN losses whose online
@@ -138,12 +127,15 @@ def test_train_function_counts_and_history():
         updates_per_batch=2,
         network=NetworkConfig(hidden=(16, 16)),
     )
-    run = train(Params(), cfg, seed=0, eval_every_frames=160)
+    scorer = exact_scorer(Params())
+    run = train(Params(), cfg, seed=0, eval_every_frames=160, scorer=scorer)
     assert run.env_steps == 320 and run.greedy.shape == (1, 352) and run.state["frames"] == 320
     # learning starts at 64 frames: batches of 32 from frame 64 on → (320 − 32)/32 = 9 batches × 2
     assert run.updates == 18
     assert [e["env_steps"] for e in run.history] == [0, 160, 320]
-    assert all(-2 < e["optimality_ratio"] <= 1.0 + 1e-9 for e in run.history)
+    # every evaluation is the exact ratio of a greedy table; the last one the returned policy's
+    assert all(e["optimality_ratio"] <= 1.0 + 1e-9 for e in run.history)
+    assert run.history[-1]["optimality_ratio"] == scorer.ratio(run.greedy[0])
     # no 400-step episode ends within 320 steps of 8 envs
     assert run.episode_rewards == []
 
@@ -179,6 +171,7 @@ def test_training_episode_rewards_tracked_across_batches():
     assert tracker.total.tolist() == [4.0, 0.0]
 
 
+@pytest.mark.e2e
 def test_recipe_end_to_end_and_resume(tmp_path):
     first = run_dqn(tmp_path / "a", "reward.r4=50", "network=small")
     assert first.returncode == 0, first.stderr
@@ -232,6 +225,7 @@ def test_recipe_rejects_bad_config(tmp_path):
     assert bad.returncode != 0 and "algo.buffer_size=16" in bad.stderr
 
 
+@pytest.mark.e2e
 def test_wandb_offline_without_network_or_key(tmp_path):
     env = {k: v for k, v in os.environ.items() if not k.startswith("WANDB")}
     env["HOME"] = str(tmp_path)  # no ~/.netrc credentials
@@ -255,6 +249,7 @@ def test_run_names_fit_one_directory_and_keep_scenarios_apart():
     assert "/" not in run_name("custom[env.name=a/b]", "dqn", 0)
 
 
+@pytest.mark.e2e
 def test_a_scenario_of_many_overrides_is_logged(tmp_path):
     """The main job with the CSV logger on a scenario typed as 28 overrides (a file name too long
     for the logger's directory, before the name was shortened) runs and logs its evaluations."""
@@ -288,6 +283,7 @@ def test_tensorboard_logger_writes_the_evaluations(tmp_path):
     assert final == pytest.approx(summary["optimality_ratio"], rel=1e-6)
 
 
+@pytest.mark.e2e
 def test_plot_format_and_bands(tmp_path):
     """``plot.format=pdf`` writes ``learning_curve.pdf`` (a PDF); an unknown format is refused
     before any work, naming the choices."""

@@ -56,19 +56,27 @@ def test_new_items_get_max_priority_and_updates_by_index():
         rb.update_priority(torch.tensor([0]), torch.tensor([float("nan")]))
 
 
-def test_buffer_end_to_end_and_beta_annealing():
+def test_buffer_end_to_end_and_the_importance_exponent():
+    """Through TorchRL's buffer: a sample carries its indices (pointing at the data) and its
+    importance weights; priorities steer the draws; a β set on the sampler is the exponent of the
+    next draw's weights (β = 0: all 1; β = 1: the full correction, (N·P(i))⁻¹ normalised)."""
     rb, s = buffer(n=10)
     sample = rb.sample()
-    keys = set(sample.keys())
-    assert sample.shape == (64,) and {"priority_weight", "index"} <= keys
+    assert sample.shape == (64,) and {"priority_weight", "index"} <= set(sample.keys())
     assert torch.equal(sample["x"], sample["index"].float())  # the index points at the data
     # a zero-priority item is (almost) never drawn; a dominant one mostly is
-    rb.update_priority(torch.arange(10), torch.tensor([0.0] * 9 + [100.0]))
+    raw = torch.tensor([0.0] * 9 + [100.0])
+    rb.update_priority(torch.arange(10), raw)
     s.alpha = 1.0
     draws = torch.cat([rb.sample()["index"] for _ in range(20)])
     assert (draws == 9).double().mean() > 0.99
-    s.beta = 1.0
-    assert s.beta == 1.0
+    P = (raw.double() + 1e-8) / (raw.double() + 1e-8).sum()
+    for beta in (0.0, 1.0):
+        s.beta = beta
+        sample = rb.sample()
+        want = (10 * P[sample["index"]]) ** -beta / ((10 * P) ** -beta).max()
+        assert torch.allclose(sample["priority_weight"].double(), want, rtol=1e-5)
+    assert bool((sample["priority_weight"] < 1e-3).any()) or bool((sample["index"] == 9).all())
     with pytest.raises(ValueError):
         s.beta = -1
 
@@ -83,14 +91,25 @@ def test_state_dict_round_trip(tmp_path):
 
 
 def test_factory_choice():
+    """``prefer="torch"`` is always ours; ``auto`` is TorchRL's sampler exactly when its compiled
+    extension loads (here it does not: torch 2.13 against TorchRL's 2.14 build), else ours; asking
+    for TorchRL's where it cannot load fails."""
+    from irdrc.agents.replay import torchrl_segment_trees_available
+
     assert isinstance(
         make_prioritized_sampler(10, 0.6, 0.4, prefer="torch"), TorchPrioritizedSampler
     )
     s = make_prioritized_sampler(10, 0.6, 0.4)
-    assert type(s).__name__ in ("PrioritizedSampler", "TorchPrioritizedSampler")
+    expected = (
+        "PrioritizedSampler" if torchrl_segment_trees_available() else "TorchPrioritizedSampler"
+    )
+    assert type(s).__name__ == expected
+    assert math.isclose(s.beta, 0.4)
     with pytest.raises(ValueError):
         make_prioritized_sampler(10, 0.6, 0.4, prefer="gpu")
-    assert math.isclose(s.beta, 0.4)
+    if not torchrl_segment_trees_available():
+        with pytest.raises(RuntimeError, match="not available"):
+            make_prioritized_sampler(10, 0.6, 0.4, prefer="torchrl")
 
 
 def multinomial_draw(s, n, batch, seed):

@@ -9,7 +9,7 @@
   learner; ``marl``: the fleet's learners; ``qlearning``: vectorised tabular Q-learning;
 - ``replay``: prioritised sampling behind TorchRL's ``Sampler`` interface.
 
-May import: ``irdrc.core``, ``irdrc.fleet``, torch, tensordict, torchrl. Nothing from
-``irdrc.experiments`` or ``irdrc.paper``; no files, Hydra or loggers (a learner reports through
+May import: ``irdrc.core``, ``irdrc.fleet``, torch, tensordict, torchrl. Nothing from a
+layer above (``irdrc.runs`` and up); no files, Hydra or loggers (a learner reports through
 its hooks).
 """

@@ -2,7 +2,7 @@
 progress is one schema (``PROGRESS_FIELDS``), whatever the method.
 
 Learners know nothing of files or loggers: they report through ``Hooks`` and return their
-``RunRecord``; the run scaffold (``irdrc.experiments.scaffold``) turns that into a run directory
+``RunRecord``; the run scaffold (``irdrc.runs.scaffold``) turns that into a run directory
 the same way for every method.
 """
 
@@ -28,7 +28,7 @@ PROGRESS_FIELDS = (
 )
 """One exact evaluation of one learner's greedy policy: the columns of every ``metrics.csv``
 (``false_alarm_rate`` joins them in a scenario with radar false alarms:
-``irdrc.experiments.results.write_metrics_csv``).
+``irdrc.runs.results.write_metrics_csv``).
 ``env_steps`` and ``episodes`` count this learner's own interaction; metrics are exact stationary."""
 
 

@@ -1,11 +1,17 @@
-"""DQN from TorchRL parts, learning from many env rows at once — the main job's learner, top to
-bottom in TorchRL's component order: model → exploration → collector → buffer → loss → target →
-optimiser → logger (the caller's hooks) → loop.
+"""DQN with a reward table, from TorchRL parts, learning from many env rows at once — the main job's
+learner, top to bottom in TorchRL's component order: model → exploration → collector → buffer →
+loss → target → optimiser → logger (the caller's hooks) → loop.
 
-The parts are ``irdrc.agents.offpolicy``'s and the loop ``irdrc.agents.loop``'s, shared with the
-Lagrangian DQN and the fleet's learners; docs/DQN.md says why each default is what it is. Every
-evaluation scores the policy network's greedy table *exactly* (``scorer``): the exact model only
-scores, it never steers the learner.
+What happens to a replay sample is built here, as the replay's own transforms: each sampled reward
+is replaced by the mean of every reward collected at its (observation, action) (the reward table,
+``algo.reward_means``), then centred by the collected rewards' running average r̄
+(``algo.reward_centering``), which moves with the values the network gives the states it collects
+(``algo.center_on=values``) so that the values it fits stay near zero; the TD(0) target of double
+DQN is then r − r̄ + γ·Q_target(s′, argmax Q(s′, ·)), in l2, importance-weighted. ``algo=dqn_plain``
+is DQN without the table and without centering. The other parts are ``irdrc.agents.offpolicy``'s and
+the loop ``irdrc.agents.loop``'s, shared with the Lagrangian DQN and the fleet's learners;
+docs/DQN.md lists every departure from textbook DQN. Every evaluation scores the policy network's
+greedy table *exactly* (``scorer``): the exact model only scores, it never steers the learner.
 """
 
 from __future__ import annotations
@@ -18,10 +24,12 @@ from tensordict.nn import TensorDictSequential
 from torchrl.objectives import DQNLoss
 
 from irdrc.agents.base import Hooks, RunContext, RunRecord
-from irdrc.agents.configs import DQNConfig
+from irdrc.agents.configs.value import DQNConfig
 from irdrc.agents.loop import Learner, TrainingLoop, start_frames
 from irdrc.agents.offpolicy import (
+    CenteredRewards,
     PolyakUpdate,
+    RewardCenter,
     action_values,
     clip_and_step,
     greedy_table,
@@ -33,7 +41,7 @@ from irdrc.agents.offpolicy import (
     observation_top,
     policy_view,
 )
-from irdrc.agents.reward_means import RewardMeans
+from irdrc.agents.reward_table import RewardTable
 from irdrc.core.env import DFRCEnv
 from irdrc.core.params import Params
 
@@ -84,15 +92,33 @@ def train(
     if start >= cfg.total_frames:
         raise ValueError(f"nothing to resume: the checkpoint is at {start} ≥ algo.total_frames")
 
-    # 1. model: scaled observation → MLP → one Q-value per action, greedy action
+    # 1. model: scaled observation → MLP → one Q-value per action, greedy action; every pass
+    #    evaluates each distinct observation of its batch once (``DistinctRows``: the same values)
     qnet = make_qnet(env, cfg.network)
     # 2. exploration: an ε ladder over the env rows, random actions held for several steps
     exploration = make_exploration(env, cfg)
     # 3. collector: every row steps with the network and its own exploration
     collector = make_collector(env, TensorDictSequential(qnet, exploration), cfg, seed, start)
-    # 4. buffer: proportional prioritised replay of the whole run
-    buffer, sampler = make_buffer(cfg)
-    # 5. loss: TD(0) in l2, double DQN
+    # 4. buffer: proportional prioritised replay of the whole run; every sample's rewards, as it
+    #    is drawn, read from the reward table, then centred (the replay's transforms)
+    table = None
+    if cfg.reward_means:
+        table = RewardTable(observation_top(env), env.action_spec_unbatched.space.n)
+    center = RewardCenter(cfg.reward_centering)
+    transforms = [t for t in (table, CenteredRewards(center)) if t is not None]
+    buffer, sampler = make_buffer(cfg, transforms)
+
+    def collected(data: TensorDictBase) -> None:
+        """Each collected batch feeds r̄ and the table; r̄ moves by (1 − γ)·the batch's mean
+        greedy value, so the values the network fits stay near zero."""
+        center.update(data.get(("next", "reward")))
+        if table is not None:
+            table.add(data)
+        if cfg.center_on == "values":
+            level = data.get("action_value").max(-1).values.double().mean()
+            center.follow(float(level), cfg.gamma)
+
+    # 5. loss: TD(0) in l2, double DQN, importance-weighted by the prioritised sampler
     loss = DQNLoss(
         qnet,
         loss_function="l2",
@@ -118,15 +144,17 @@ def train(
         with policy_view(loss, cfg):
             return greedy_table(qnet, env)
 
-    # the targets' rewards: each sample's own, or the mean of every step at its (observation, action)
-    means = None
-    if cfg.reward_means:
-        means = RewardMeans(observation_top(env), env.action_spec_unbatched.space.n)
     run = RunContext(scorer, eval_every_frames, hooks, resume)
-    loop = TrainingLoop(
-        cfg, collector, buffer, sampler, optimizer, run, values_key="action_value", means=means
+    loop = TrainingLoop(cfg, collector, buffer, sampler, optimizer, run)
+    learner = Learner(
+        loss=loss,
+        update=update,
+        policy=policy,
+        collected=collected,
+        state=center.state,
+        load=center.load,
     )
-    record = loop.run(Learner(loss=loss, update=update, policy=policy))
+    record = loop.run(learner)
     with policy_view(loss, cfg):
         record.q = action_values(qnet, env)[None]
     return record

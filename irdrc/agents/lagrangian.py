@@ -39,7 +39,9 @@ from irdrc.agents.configs import LagrangianConfig
 from irdrc.agents.loop import Learner, TrainingLoop, start_frames
 from irdrc.agents.offpolicy import (
     STORED_KEYS,
+    CenteredRewards,
     PolyakUpdate,
+    RewardCenter,
     clip_and_step,
     greedy_table,
     make_buffer,
@@ -247,8 +249,10 @@ def train(
     heads, combined, actor = make_network(env, cfg)
     exploration = make_exploration(env, dq)
     collector = make_collector(env, TensorDictSequential(actor, exploration), dq, seed, start)
-    buffer, sampler = make_buffer(dq)
     objective_key = OBJECTIVE_KEYS[cfg.objective]
+    # the objective's signal, centred by its running average (``algo.reward_centering``; 0: off)
+    center = RewardCenter(dq.reward_centering)
+    buffer, sampler = make_buffer(dq, [CenteredRewards(center, ("next", objective_key))])
     loss = LagrangianDQNLoss(
         heads,
         combined.mu,
@@ -272,6 +276,9 @@ def train(
         with policy_view(loss, dq):
             return greedy_table(actor, env)
 
+    def collected(data: TensorDictBase) -> None:
+        center.update(data.get(("next", objective_key)))
+
     def after_batch(data: TensorDictBase, learned: bool) -> dict[str, Any]:
         scalars = multiplier.after_batch(data, learned)
         multiplier.trace.append({"env_steps": loop.frames, **scalars})
@@ -287,15 +294,15 @@ def train(
         optimizer,
         run,
         keys=tuple(dict.fromkeys((*STORED_KEYS, *signals))),
-        center_key=("next", objective_key),
     )
     learner = Learner(
         loss=loss,
         update=update,
         policy=policy,
+        collected=collected,
         after_batch=after_batch,
-        state=multiplier.state,
-        load=multiplier.load,
+        state=lambda: {**center.state(), **multiplier.state()},
+        load=lambda resume: (center.load(resume), multiplier.load(resume)),
     )
     record = loop.run(learner)
     record.info["mu_trace"] = multiplier.trace

@@ -1,10 +1,12 @@
 """The one training loop of every learner (DQN, the Lagrangian DQN, the fleet's learners, SAC, PPO):
 collect from many env rows at once, learn from each batch — off-policy, by storing it in replay and
-running the gradient updates that are due; on-policy, by handing it to the learner — and own what
-every run needs around that: the exact evaluations on a schedule, the stop asked for by a signal,
-the checkpoints, and resuming from one. A learner supplies only its parts: the update (or its
-learning from a batch), the policy an evaluation scores, and, where it has them, per-batch work and
-state of its own.
+running the gradient updates that are due on what the replay draws; on-policy, by handing it to the
+learner — and own what every run needs around that: the exact evaluations on a schedule, the stop
+asked for by a signal, the checkpoints, and resuming from one. A learner supplies only its parts:
+the update (or its learning from a batch), the policy an evaluation scores, and, where it has them,
+what it does with each collected batch (its reward table, its reward centre), after each batch, and
+state of its own. What happens to a sample before the update is the learner's replay's own
+transforms (``irdrc.agents.dqn``): the loop reads no learner's options.
 """
 
 from __future__ import annotations
@@ -22,9 +24,8 @@ from torchrl.collectors import Collector
 from torchrl.data import TensorDictReplayBuffer
 
 from irdrc.agents.base import RunContext, RunRecord, progress_record
-from irdrc.agents.configs import OffPolicyConfig
-from irdrc.agents.offpolicy import STORED_KEYS, EpisodeTracker, RewardCenter, anneal
-from irdrc.agents.reward_means import RewardMeans
+from irdrc.agents.configs.value import OffPolicyConfig
+from irdrc.agents.offpolicy import STORED_KEYS, EpisodeTracker, anneal
 
 
 @dataclass
@@ -33,12 +34,14 @@ class Learner:
 
     Attributes:
         loss: its loss module (networks and target networks: checkpointed).
-        update: one gradient update on a (centred) replay sample; returns the loss value (an
-            off-policy learner).
+        update: one gradient update on a replay sample; returns the loss value (an off-policy
+            learner).
         learn_batch: instead of ``update``, an on-policy learner's learning from each collected
-            (centred) batch itself; returns (gradient updates done, the last loss value). The loop
-            then keeps no replay.
+            batch itself; returns (gradient updates done, the last loss value). The loop then keeps
+            no replay.
         policy: the table an exact evaluation scores (a greedy table; the fleet's per vehicle).
+        collected: optional, each collected batch before it is stored (a reward table and a
+            reward centre are fed here).
         after_batch: optional, after each batch's updates: ``(batch, learned) -> scalars`` to
             report beside the loop's own (the Lagrangian DQN adapts its multiplier here).
         state, load: optional, the learner's own checkpoint entries, and their restore.
@@ -48,6 +51,7 @@ class Learner:
     update: Callable[[TensorDictBase], float] | None
     policy: Callable[[], torch.Tensor]
     learn_batch: Callable[[TensorDictBase], tuple[int, float]] | None = None
+    collected: Callable[[TensorDictBase], None] | None = None
     after_batch: Callable[[TensorDictBase, bool], dict[str, Any]] | None = None
     state: Callable[[], dict[str, Any]] | None = None
     load: Callable[[dict[str, Any]], None] | None = None
@@ -79,20 +83,14 @@ class TrainingLoop:
 
     Args:
         cfg: the machinery's hyperparameters (``num_envs``, ``total_frames``, ``batch_size``,
-            ``init_random_frames``, ``updates_per_batch``, ``reward_centering`` (and
-            ``reward_std`` where the learner has it), ``lr``, ``lr_end``,
-            ``prioritized``, ``name``).
+            ``init_random_frames``, ``updates_per_batch``, ``lr``, ``lr_end``, ``prioritized``,
+            ``name``).
         collector, buffer, sampler, optimizer: the learner's parts.
         run: the scorer of ``Learner.policy``'s tables, the evaluation period, the hooks and the
             checkpoint to go on from (``RunContext``).
         keys: what replay keeps of a transition.
-        center_key: the signal reward centering centres (``("next", "reward")``).
-        values_key: where a collected batch holds the network's values of its actions
-            (``"action_value"``), for ``cfg.center_on=values``; None: a learner without it.
         prepare: rewrites each collected batch before anything reads it (the fleet's value
             decomposition puts the team reward at the root there).
-        means: the mean reward of each (observation, action), fed every collected batch and read
-            by every replay sample in place of its own reward (``OffPolicyConfig.reward_means``).
     """
 
     def __init__(
@@ -105,20 +103,15 @@ class TrainingLoop:
         run: RunContext,
         *,
         keys: tuple = STORED_KEYS,
-        center_key: Any = ("next", "reward"),
-        values_key: Any = None,
         prepare: Callable[[TensorDictBase], TensorDictBase] | None = None,
-        means: RewardMeans | None = None,
     ) -> None:
         self.cfg, self.collector, self.buffer, self.sampler = cfg, collector, buffer, sampler
         self.optimizer, self.scorer, self.hooks = optimizer, run.scorer, run.hooks
         self.eval_every = int(run.eval_every_frames)
         self.resume = resume = run.resume
-        self.keys, self.center_key, self.prepare = keys, center_key, prepare
-        self.means = means
-        self.values_key = values_key if getattr(cfg, "center_on", "rewards") == "values" else None
+        self.keys, self.prepare = keys, prepare
+        self.collected: Callable[[TensorDictBase], None] | None = None
         self.record = RunRecord(method=cfg.name, greedy=torch.zeros(1, 1, dtype=torch.int64))
-        self.center = RewardCenter(cfg.reward_centering, getattr(cfg, "reward_std", 0.0))
         self.frames = start_frames(resume)
         self.updates = 0
         self.episodes = EpisodeTracker(cfg.num_envs, self.record)
@@ -154,51 +147,42 @@ class TrainingLoop:
             if self.prepare is not None:
                 data = self.prepare(data)
             self.episodes.add(data, self.frames)
-            self.center.update(data.get(self.center_key))
-            if self.means is not None:
-                self.means.add(data)
-            if self.values_key is not None:
-                level = data.get(self.values_key).max(-1).values.double().mean()
-                self.center.follow(float(level), self.cfg.gamma)
+            if self.collected is not None:
+                self.collected(data)
             if self.buffer is not None:
                 self.buffer.extend(data.select(*self.keys).reshape(-1))
             self.frames += data.numel()
-            anneal(self.cfg, self.optimizer, self.sampler, self.frames)
+            anneal(self.cfg, self.optimizer, self.frames)
             self.seconds["store"] += time.perf_counter() - t1
             yield data
 
     def learn(self, update: Callable[[TensorDictBase], float]) -> bool:
-        """``updates_per_batch`` gradient updates on centred replay samples, once replay holds
-        enough; returns whether it learned."""
+        """``updates_per_batch`` gradient updates on replay samples (as the replay's transforms
+        draw them), once replay holds enough; returns whether it learned."""
         if len(self.buffer) < self.learn_from:
             return False
         t0 = time.perf_counter()
         for _ in range(self.cfg.updates_per_batch):
-            sample = self.buffer.sample()
-            if self.means is not None:
-                sample = self.means.apply(sample)
-            sample = self.center.center(sample, self.center_key)
-            self.last_loss = update(sample)
+            self.last_loss = update(self.buffer.sample())
             self.updates += 1
         self.seconds["learn"] += time.perf_counter() - t0
         return True
 
     def learn_on_policy(self, learn_batch: Callable[[TensorDictBase], tuple[int, float]], data):
-        """An on-policy learner's learning from the (centred) batch ``data``."""
+        """An on-policy learner's learning from the collected batch ``data``."""
         t0 = time.perf_counter()
-        updates, self.last_loss = learn_batch(self.center.center(data, self.center_key))
+        updates, self.last_loss = learn_batch(data)
         self.updates += updates
         self.seconds["learn"] += time.perf_counter() - t0
         return True
 
     def scalars(self, **extra: Any) -> dict[str, Any]:
-        """What is reported after each batch: env steps, episodes, the last loss, PER's β (NaN
-        for uniform replay), the replay's size, and ``extra``."""
+        """What is reported after each batch: env steps, episodes, the last loss, the replay's
+        size, and ``extra``."""
         return {
             "env_steps": self.frames,
             "episodes": len(self.record.episode_rewards),
             "loss": self.last_loss,
-            "beta": getattr(self.sampler, "beta", math.nan),
             "buffer": 0 if self.buffer is None else len(self.buffer),
             **extra,
         }
@@ -223,8 +207,8 @@ class TrainingLoop:
         self.seconds["evaluate"] += time.perf_counter() - t0
 
     def state(self, learner: Learner) -> dict[str, Any]:
-        """The checkpoint: networks, optimiser, counters, history so far, the reward centre, and the
-        learner's own entries (not the replay, which a resumed run refills)."""
+        """The checkpoint: networks, optimiser, counters, history so far, and the learner's own
+        entries (its reward centre, …; not the replay, which a resumed run refills)."""
         return {
             "loss": learner.loss.state_dict(),
             "optimizer": self.optimizer.state_dict(),
@@ -233,7 +217,6 @@ class TrainingLoop:
             "wall_seconds": time.perf_counter() - self.t0,
             "history": list(self.record.history),
             "episode_rewards": list(self.record.episode_rewards),
-            **self.center.state(),
             **(learner.state() if learner.state is not None else {}),
         }
 
@@ -244,7 +227,6 @@ class TrainingLoop:
             return
         learner.loss.load_state_dict(resume["loss"])
         self.optimizer.load_state_dict(resume["optimizer"])
-        self.center.load(resume)
         self.updates = int(resume["updates"])
         self.record.history = list(resume.get("history", []))
         self.record.episode_rewards = list(resume.get("episode_rewards", []))
@@ -255,6 +237,7 @@ class TrainingLoop:
         """Train to ``total_frames`` (or until a stop is asked for), evaluating every
         ``eval_every_frames`` env steps and at the end, checkpointing when due; returns the record
         (its ``state`` the final checkpoint, ``greedy`` the final policy)."""
+        self.collected = learner.collected
         self.restore(learner)
         if self.resume is None:
             self.evaluate(learner)

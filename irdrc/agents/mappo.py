@@ -25,7 +25,7 @@ from irdrc.agents.base import RunContext, RunRecord
 from irdrc.agents.configs import FleetLearnerConfig
 from irdrc.agents.fleet_parts import AgentIndex, greedy_policy, observation_top
 from irdrc.agents.loop import Learner, TrainingLoop, start_frames
-from irdrc.agents.offpolicy import make_body, make_collector, make_optimizer
+from irdrc.agents.offpolicy import RewardCenter, make_body, make_collector, make_optimizer
 from irdrc.agents.ppo import learn_rollout
 from irdrc.fleet.env import GROUP, FleetEnv, critic_state_high
 from irdrc.fleet.model import FleetModel
@@ -128,26 +128,24 @@ def train_ppo(
     # 6. optimiser: one Adam over actor and critic, annealed by the loop
     optimizer = make_optimizer(loss, pc)
 
+    # each rollout's team rewards centred by their running average (``ppo.reward_centering``)
+    key = ("next", GROUP, "reward")
+    center = RewardCenter(pc.reward_centering)
+
     def learn_batch(data: TensorDictBase) -> tuple[int, float]:
+        data = center.center(data, key)
         with torch.no_grad():
             loss.value_estimator(data)
         return learn_rollout(loss, optimizer, pc, data)
 
-    loop = TrainingLoop(
-        pc,
-        collector,
-        None,
-        None,
-        optimizer,
-        run,
-        center_key=("next", GROUP, "reward"),
-        prepare=team_reward,
+    loop = TrainingLoop(pc, collector, None, None, optimizer, run, prepare=team_reward)
+    learner = Learner(
+        loss=loss,
+        update=None,
+        policy=lambda: greedy_policy(actor, env),
+        learn_batch=learn_batch,
+        collected=lambda data: center.update(data.get(key)),
+        state=center.state,
+        load=center.load,
     )
-    return loop.run(
-        Learner(
-            loss=loss,
-            update=None,
-            policy=lambda: greedy_policy(actor, env),
-            learn_batch=learn_batch,
-        )
-    )
+    return loop.run(learner)

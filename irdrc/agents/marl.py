@@ -38,8 +38,10 @@ from irdrc.agents.fleet_parts import AgentIndex, greedy_policy, observation_top
 from irdrc.agents.loop import Learner, TrainingLoop, start_frames
 from irdrc.agents.mappo import train_ppo
 from irdrc.agents.offpolicy import (
+    CenteredRewards,
     LadderExploration,
     PolyakUpdate,
+    RewardCenter,
     Scale,
     clip_and_step,
     eps_ladder,
@@ -245,7 +247,9 @@ def train_mixer(
         action_key=(GROUP, "action"),
     )
     collector = make_collector(env, TensorDictSequential(qnet, exploration), dq, seed, start)
-    buffer, sampler = make_buffer(dq)
+    # the team reward (at the root, ``team_reward``), centred by its running average
+    center = RewardCenter(dq.reward_centering)
+    buffer, sampler = make_buffer(dq, [CenteredRewards(center)])
     loss, target = make_loss(qnet, mixer, dq)
     optimizer = make_optimizer(loss, dq)
 
@@ -261,4 +265,12 @@ def train_mixer(
     loop = TrainingLoop(
         dq, collector, buffer, sampler, optimizer, run, keys=MIXER_KEYS, prepare=team_reward
     )
-    return loop.run(Learner(loss=loss, update=update, policy=policy))
+    learner = Learner(
+        loss=loss,
+        update=update,
+        policy=policy,
+        collected=lambda data: center.update(data.get(("next", "reward"))),
+        state=center.state,
+        load=center.load,
+    )
+    return loop.run(learner)

@@ -12,7 +12,7 @@ batches, a normalised network (LayerNorm, as PQN uses), and as many updates per 
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from typing import Any
 
 import torch
@@ -22,12 +22,13 @@ from torch import nn
 from torchrl.collectors import Collector
 from torchrl.data import TensorDictReplayBuffer
 from torchrl.data.replay_buffers.samplers import RandomSampler
+from torchrl.envs.transforms import Compose, Transform
 from torchrl.envs.utils import ExplorationType, exploration_type
 from torchrl.modules import MLP, QValueActor
 from torchrl.objectives import SoftUpdate
 
 from irdrc.agents.base import RunRecord
-from irdrc.agents.configs import NetworkConfig, OffPolicyConfig
+from irdrc.agents.configs.value import NetworkConfig, OffPolicyConfig
 from irdrc.agents.levels import DistinctRows
 from irdrc.agents.replay import PackedStorage, make_prioritized_sampler
 
@@ -223,16 +224,22 @@ def make_collector(
 # -- buffer, target, optimiser ---------------------------------------------------------------------
 
 
-def make_buffer(cfg: OffPolicyConfig) -> tuple[TensorDictReplayBuffer, Any]:
+def make_buffer(
+    cfg: OffPolicyConfig, transforms: Sequence[Transform] = ()
+) -> tuple[TensorDictReplayBuffer, Any]:
     """Replay: prioritised (``irdrc.agents.replay``: TorchRL's sampler where its extension loads,
     else ours) or uniform, ``batch_size`` per sample, each transition one row of a
-    ``PackedStorage``. Returns (buffer, sampler)."""
+    ``PackedStorage``; ``transforms`` rewrite every sample as it is drawn, in order (TorchRL replay
+    transforms: the reward table, the centering). Returns (buffer, sampler)."""
     if cfg.prioritized:
-        sampler = make_prioritized_sampler(cfg.buffer_size, cfg.alpha, cfg.beta_start)
+        sampler = make_prioritized_sampler(cfg.buffer_size, cfg.alpha, 1.0)
     else:
         sampler = RandomSampler()
     rb = TensorDictReplayBuffer(
-        storage=PackedStorage(cfg.buffer_size), sampler=sampler, batch_size=cfg.batch_size
+        storage=PackedStorage(cfg.buffer_size),
+        sampler=sampler,
+        batch_size=cfg.batch_size,
+        transform=Compose(*transforms) if transforms else None,
     )
     return rb, sampler
 
@@ -263,15 +270,11 @@ def make_optimizer(loss: nn.Module, cfg: OffPolicyConfig) -> torch.optim.Adam:
 class RewardCenter:
     """What the loss sees of the collected rewards: centred by their running average r̄
     (``OffPolicyConfig.reward_centering``: the first batch's mean, then an exponential average at
-    ``rate`` per env step) and, with ``std`` > 0 (``OffPolicyConfig.reward_std``), divided by a
-    scale fixed at the first batch — its standard deviation over ``std`` — so that a scenario's
-    reward weights, from 0.1 to 100, do not set the size of the values the network must fit (the
-    greedy policy is the same for any positive scale)."""
+    ``rate`` per env step; ``rate`` 0: off)."""
 
-    def __init__(self, rate: float, std: float = 0.0, value: float | None = None) -> None:
-        self.rate, self.std = float(rate), float(std)
+    def __init__(self, rate: float, value: float | None = None) -> None:
+        self.rate = float(rate)
         self.value = value
-        self.scale: float | None = None
 
     @property
     def on(self) -> bool:
@@ -280,8 +283,6 @@ class RewardCenter:
 
     def update(self, reward: torch.Tensor) -> None:
         """Fold in one collected batch of one-step rewards (any shape)."""
-        if self.std > 0 and self.scale is None:
-            self.scale = max(float(reward.double().std()), 1e-12) / self.std
         if not self.on:
             return
         mean = float(reward.double().mean())
@@ -306,37 +307,41 @@ class RewardCenter:
         return sample
 
     def centred(self, reward: torch.Tensor) -> torch.Tensor:
-        """``reward`` with r̄ subtracted and divided by the scale (where on; else itself)."""
+        """``reward`` with r̄ subtracted (where on; else itself)."""
         if self.on and self.value is not None:
             reward = reward - self.value
-        if self.scale is not None:
-            reward = reward / self.scale
         return reward
 
     def state(self) -> dict[str, float]:
-        """The checkpoint's entries: the average and the scale, where set."""
-        out = {}
-        if self.value is not None:
-            out["reward_center"] = self.value
-        if self.scale is not None:
-            out["reward_scale"] = self.scale
-        return out
+        """The checkpoint's entry: the average, where set."""
+        return {"reward_center": self.value} if self.value is not None else {}
 
     def load(self, state: dict[str, Any]) -> None:
-        """Restore ``state``'s entries (a checkpoint without them leaves them to the first batch)."""
+        """Restore ``state``'s entry (a checkpoint without it leaves r̄ to the first batch)."""
         if self.on and state.get("reward_center") is not None:
             self.value = float(state["reward_center"])
-        if self.std > 0 and state.get("reward_scale") is not None:
-            self.scale = float(state["reward_scale"])
 
 
-def anneal(cfg: OffPolicyConfig, optimizer: torch.optim.Optimizer, sampler: Any, frames: int):
-    """Learning rate (``lr`` → ``lr_end``) and PER's β (``beta_start`` → 1), linear in env steps."""
+class CenteredRewards(Transform):
+    """A replay buffer's transform: every sample's rewards under ``key`` centred by ``center``
+    (``RewardCenter.center``) as it is drawn; stored as collected."""
+
+    def __init__(self, center: RewardCenter, key: Any = ("next", "reward")) -> None:
+        super().__init__()
+        self.center, self.key = center, key
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        return self.center.center(tensordict, self.key)
+
+    def _inv_call(self, tensordict: TensorDictBase) -> TensorDictBase:
+        return tensordict
+
+
+def anneal(cfg: OffPolicyConfig, optimizer: torch.optim.Optimizer, frames: int) -> None:
+    """The learning rate, ``lr`` → ``lr_end`` linearly in env steps."""
     progress = min(1.0, frames / cfg.total_frames)
     for group in optimizer.param_groups:
         group["lr"] = cfg.lr + (cfg.lr_end - cfg.lr) * progress
-    if cfg.prioritized:
-        sampler.beta = cfg.beta_start + (1.0 - cfg.beta_start) * progress
 
 
 def clip_and_step(

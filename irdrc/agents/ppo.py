@@ -27,6 +27,7 @@ from irdrc.agents.base import Hooks, RunContext, RunRecord
 from irdrc.agents.configs.continuous import PPOConfig
 from irdrc.agents.loop import Learner, TrainingLoop
 from irdrc.agents.offpolicy import (
+    RewardCenter,
     clip_and_step,
     make_body,
     make_collector,
@@ -113,16 +114,25 @@ def train(
     # 6. optimiser: one Adam over actor and critic, annealed by the loop
     optimizer = make_optimizer(loss, cfg)
 
-    # 7. logger: the caller's hooks; 8. the loop, with what this learner supplies
+    # 7. logger: the caller's hooks; 8. the loop, with what this learner supplies: each rollout's
+    # rewards centred by their running average (``algo.reward_centering``), then GAE and the epochs
+    center = RewardCenter(cfg.reward_centering)
+
     def learn_batch(data: TensorDictBase) -> tuple[int, float]:
+        data = center.center(data)
         with torch.no_grad():
             advantage(data)
         return learn_rollout(loss, optimizer, cfg, data)
 
     run = RunContext(scorer, eval_every_frames, hooks, resume)
     loop = TrainingLoop(cfg, collector, None, None, optimizer, run)
-    return loop.run(
-        Learner(
-            loss=loss, update=None, policy=lambda: share_table(actor, env), learn_batch=learn_batch
-        )
+    learner = Learner(
+        loss=loss,
+        update=None,
+        policy=lambda: share_table(actor, env),
+        learn_batch=learn_batch,
+        collected=lambda data: center.update(data.get(("next", "reward"))),
+        state=center.state,
+        load=center.load,
     )
+    return loop.run(learner)

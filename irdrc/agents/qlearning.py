@@ -30,7 +30,6 @@ PAPER = QLearningConfig(
     episodes=2500,
     alpha=0.01,
     alpha_schedule="constant",
-    epsilon_start=0.1,
     epsilon_end=0.1,
     name="qlearning_paper",
 )

@@ -59,7 +59,7 @@ class TorchPrioritizedSampler(Sampler):
     Args:
         max_capacity: size of the storage it indexes.
         alpha: priority exponent α ≥ 0 (0 = uniform).
-        beta: importance-sampling exponent β ≥ 0; anneal it by setting ``sampler.beta``.
+        beta: importance-sampling exponent β ≥ 0 (``sampler.beta`` sets it between draws).
         eps: added to every raw priority so that none is zero.
     """
 

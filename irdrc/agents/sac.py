@@ -26,7 +26,9 @@ from irdrc.agents.base import Hooks, RunContext, RunRecord
 from irdrc.agents.configs.continuous import SACConfig
 from irdrc.agents.loop import Learner, TrainingLoop
 from irdrc.agents.offpolicy import (
+    CenteredRewards,
     PolyakUpdate,
+    RewardCenter,
     clip_and_step,
     make_body,
     make_buffer,
@@ -85,8 +87,10 @@ def train(
     explore = TensorDictModule(ladder, in_keys=["action"], out_keys=["action"])
     # 3. collector: every row steps with the actor and its own exploration
     collector = make_collector(env, TensorDictSequential(actor, explore), cfg, seed, start)
-    # 4. buffer: prioritised replay of the whole run
-    buffer, sampler = make_buffer(cfg)
+    # 4. buffer: prioritised replay of the whole run, every sample's rewards centred by their
+    #    running average (``algo.reward_centering``)
+    center = RewardCenter(cfg.reward_centering)
+    buffer, sampler = make_buffer(cfg, [CenteredRewards(center)])
     # 5. loss: SAC with two critics and a tuned temperature
     loss = SACLoss(
         actor,
@@ -121,4 +125,12 @@ def train(
         with loss.target_actor_network_params.to_module(actor):
             return share_table(actor, env)
 
-    return loop.run(Learner(loss=loss, update=update, policy=policy))
+    learner = Learner(
+        loss=loss,
+        update=update,
+        policy=policy,
+        collected=lambda data: center.update(data.get(("next", "reward"))),
+        state=center.state,
+        load=center.load,
+    )
+    return loop.run(learner)

@@ -25,7 +25,7 @@ class ShareConfig:
             (DQN's ladder): the critics see every share in every state the rows reach.
         buffer_size: replay capacity, transitions.
         prioritized: proportional prioritised replay (priority: the critics' TD error) with
-            exponent ``alpha``, importance exponent from ``beta_start`` to 1.
+            exponent ``alpha``, every sample weighted by its full importance correction (β = 1).
         gamma: discount γ.
         reward_centering: rate per env step of the average reward subtracted from sampled rewards
             (0: off); see ``OffPolicyConfig``.
@@ -46,7 +46,6 @@ class ShareConfig:
     buffer_size: int = 1_048_576
     prioritized: bool = True
     alpha: float = 0.6
-    beta_start: float = 1.0
     gamma: float = 0.99
     reward_centering: float = 1e-5
     batch_size: int = 1000
@@ -67,7 +66,6 @@ class ShareConfig:
         ("eps_min", 0, 1, {}),
         ("buffer_size", 1, 10**9, checks.INT),
         ("alpha", 0, 10, {}),
-        ("beta_start", 0, 1, {}),
         ("gamma", 0, 1, checks.OPEN_HI),
         ("reward_centering", 0, 1, checks.OPEN_HI),
         ("batch_size", 1, 10**7, checks.INT),

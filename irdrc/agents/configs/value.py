@@ -38,11 +38,10 @@ class NetworkConfig:
 
 
 LARGE = NetworkConfig(hidden=(256, 256))
-"""``network=large``: DQN's network since the fifteenth random report (docs/DQN.md)."""
+"""``network=large``: DQN's network (docs/DQN.md)."""
 
 DEFAULT_NETWORK = NetworkConfig()
-"""``network=default`` (64-64): DQN's network until the fifteenth random report; the Lagrangian DQN
-and the fleet's value learners keep it, where they were measured."""
+"""``network=default`` (64-64): the Lagrangian DQN's and the fleet's value learners' network."""
 
 
 @dataclass(frozen=True)
@@ -60,8 +59,8 @@ class OffPolicyConfig:
         eps_duration_max: 1 (ε-greedy), or the longest hold of a random action: an exploring row
             keeps its random action for n ≤ this steps, P(n) ∝ n^−2 (εz-greedy, Dabney et al. 2021).
         buffer_size: replay capacity, transitions.
-        prioritized: proportional prioritised replay with exponent ``alpha`` and importance
-            exponent annealed from ``beta_start`` to 1 over ``total_frames``.
+        prioritized: proportional prioritised replay with exponent ``alpha``, every sample
+            weighted by its full importance correction (β = 1).
         gamma: discount γ.
         double_dqn: the online network picks the next action (van Hasselt et al.).
         reward_centering: 0 (off), or the rate per env step of an exponential average r̄ of the
@@ -75,12 +74,8 @@ class OffPolicyConfig:
             earns where exploring is costly); ``rewards``: the collected rewards' average alone
             (the fleet's learners, DQN over levels).
         reward_means: each sampled reward replaced by the mean reward of every step collected at
-            its (observation, action) (``irdrc.agents.reward_means``): the target's expected
+            its (observation, action) (the reward table, ``irdrc.agents.reward_table``): the target's expected
             reward from all the run's data, without the one sample's noise (docs/DQN.md).
-        reward_std: 0 (off), or the standard deviation the sampled rewards are scaled to: they are
-            divided by the first collected batch's standard deviation over this (fixed for the
-            run), so the values the network fits have the same size whatever the scenario's reward
-            weights; the greedy policy is unchanged by the scale.
         batch_size: transitions per gradient update.
         updates_per_batch: gradient updates after each collection (the replay ratio is
             ``updates_per_batch · batch_size / frames_per_batch`` samples per env step).
@@ -104,13 +99,11 @@ class OffPolicyConfig:
     buffer_size: int = 1_048_576
     prioritized: bool = True
     alpha: float = 0.6
-    beta_start: float = 1.0
     gamma: float = 0.99
     double_dqn: bool = True
     reward_centering: float = 1e-5
     center_on: str = "values"
     reward_means: bool = True
-    reward_std: float = 0.0
     batch_size: int = 4000
     updates_per_batch: int = 2
     lr: float = 6e-3
@@ -138,9 +131,7 @@ class OffPolicyConfig:
         ("eps_max", 0, 1, {}),
         ("eps_min", 0, 1, {}),
         ("tau", 0, 1, {}),
-        ("beta_start", 0, 1, {}),
         ("reward_centering", 0, 1, checks.OPEN_HI),
-        ("reward_std", 0, 1e6, {}),
         ("alpha", 0, 10, {}),
     )
 
@@ -187,10 +178,9 @@ class OffPolicyConfig:
     @classmethod
     def from_sections(cls, algo: Any, network: Any = None, *, base: Any = None, **extra: Any):
         """From the ``algo`` mapping and the ``network`` mapping; unknown keys are refused, naming
-        the closest valid one (a retired key is accepted at the value this version implements:
-        ``RETIRED``). A key the mappings leave out takes ``base``'s value (a learner's own
+        the closest valid one. A key the mappings leave out takes ``base``'s value (a learner's own
         default, e.g. the Lagrangian's), or this class's default without one."""
-        data = retire(dict(algo))
+        data = dict(algo)
         if base is not None:
             data = {
                 **{f.name: getattr(base, f.name) for f in fields(cls) if f.name != "network"},
@@ -206,60 +196,6 @@ class OffPolicyConfig:
         else:
             net = built.network
         return _replace(built, network=net, **extra)
-
-
-THOUSAND_ROWS: dict[str, Any] = {
-    "num_envs": 1000,
-    "frames_per_batch": 2000,
-    "total_frames": 500_000,
-    "batch_size": 1000,
-    "updates_per_batch": 4,
-    "reward_means": False,
-    "network": DEFAULT_NETWORK,
-}
-"""DQN's default shape until the thirteenth random report (1 000 rows, 500 000 env steps, 1 000
-updates of 1 000 on the sampled rewards, the 64-64 network): the fleet's value learners keep it,
-where they were measured (so do ``algo/dqn_levels.yaml``, ``fleet.yaml`` and bench_dqn's
-``previous_default``)."""
-
-RETIRED = {
-    "n_steps": 1,
-    "loss_function": "l2",
-    "target_update": "soft",
-    "target_update_every_updates": None,
-    "sampler": None,
-    "distributional": False,
-    "atoms": None,
-    "support_span": None,
-    "select_every_frames": 0,
-    "select_after_frames": None,
-    "select_envs": None,
-    "select_steps": None,
-    "select_burn_in": None,
-    "select_z": None,
-    "dueling": False,
-}
-"""DQN keys this version no longer reads, with the one value it implements (None: any value, the
-key only tuned a variant that is gone). They did not win where they were measured (docs/DQN.md);
-the commit tagged ``dqn-variants-v1`` has them, or the one ``RETIRED_AT`` names."""
-
-RETIRED_AT = {"dueling": "dueling-v1"}
-"""The tag of the last commit that runs a retired key, where it is not ``dqn-variants-v1``."""
-
-
-def retire(algo: dict[str, Any]) -> dict[str, Any]:
-    """``algo`` without its retired keys (a checkpoint or a command line from an earlier version);
-    a retired key set to what this version no longer does is refused, naming the tag that has it."""
-    for key, implemented in RETIRED.items():
-        if key in algo:
-            value = algo.pop(key)
-            if implemented is not None and value != implemented:
-                tag = RETIRED_AT.get(key, "dqn-variants-v1")
-                raise ValueError(
-                    f"algo.{key}={value!r} no longer exists (it did not win: docs/DQN.md); this "
-                    f"version runs algo.{key}={implemented!r}; the commit tagged {tag} has the others"
-                )
-    return algo
 
 
 def _replace(obj: Any, **changes: Any) -> Any:

@@ -15,7 +15,7 @@ from irdrc.agents import dqn as dqn_module
 from irdrc.agents.configs import DQNConfig, LagrangianConfig
 from irdrc.agents.dqn import train
 from irdrc.agents.offpolicy import observation_top
-from irdrc.agents.reward_means import RewardMeans
+from irdrc.agents.reward_table import RewardTable
 from irdrc.core.env import DFRCEnv
 from irdrc.core.exact import build_model
 
@@ -36,14 +36,14 @@ def _batch(obs: list[list[int]], actions: list[int], rewards: list[float]) -> Te
 def test_every_observation_and_action_has_its_own_entry():
     env = DFRCEnv(Params(), batch_size=[2])
     obs = env.dynamics.obs  # every state's observation
-    means = RewardMeans(observation_top(env), 2)
+    means = RewardTable(observation_top(env), 2)
     index = torch.cat([means.index(obs, torch.full((len(obs),), a)) for a in (0, 1)])
     assert index.unique().numel() == 2 * len(obs)
     assert int(index.min()) >= 0 and int(index.max()) < means.sums.numel()
 
 
 def test_a_sample_reads_the_mean_of_every_collected_step_at_its_pair():
-    means = RewardMeans(torch.tensor([2.0, 1.0]), 2)
+    means = RewardTable(torch.tensor([2.0, 1.0]), 2)
     means.add(_batch([[1, 0], [1, 0], [1, 0], [2, 1]], [0, 0, 1, 0], [1.0, -49.0, 3.0, 7.0]))
     means.add(_batch([[1, 0]], [0], [0.5]))
     sample = _batch([[1, 0], [1, 0], [2, 1]], [0, 1, 0], [1.0, 1.0, 1.0])
@@ -62,7 +62,7 @@ def test_the_means_converge_to_the_exact_expected_rewards():
     torch.manual_seed(0)  # the rollout's random actions
     params = Params()
     env = DFRCEnv(params, batch_size=[1000], seed=3)
-    means = RewardMeans(observation_top(env), 2)
+    means = RewardTable(observation_top(env), 2)
     squares = torch.zeros_like(means.sums)
     data = env.rollout(200, break_when_any_done=False)
     means.add(data)
@@ -87,10 +87,10 @@ def test_the_means_converge_to_the_exact_expected_rewards():
 
 
 def test_dqn_learns_from_the_table_when_on_and_not_when_off(monkeypatch):
-    made: list[RewardMeans] = []
+    made: list[RewardTable] = []
     applied: list[int] = []
 
-    class Spy(RewardMeans):
+    class Spy(RewardTable):
         def __init__(self, *args, **kwargs):
             super().__init__(*args, **kwargs)
             made.append(self)
@@ -99,7 +99,7 @@ def test_dqn_learns_from_the_table_when_on_and_not_when_off(monkeypatch):
             applied.append(sample.numel())
             return super().apply(sample)
 
-    monkeypatch.setattr(dqn_module, "RewardMeans", Spy)
+    monkeypatch.setattr(dqn_module, "RewardTable", Spy)
     run = train(Params(), DQNConfig(**TINY, reward_means=True), seed=0, eval_every_frames=320)
     assert len(made) == 1 and float(made[0].counts.sum()) == TINY["total_frames"]
     assert len(applied) == run.state["updates"] and set(applied) == {TINY["batch_size"]}
@@ -108,7 +108,7 @@ def test_dqn_learns_from_the_table_when_on_and_not_when_off(monkeypatch):
 
 
 def test_the_key_is_checked_and_the_learners_that_cannot_use_it_refuse_it():
-    assert DQNConfig().reward_means is True  # the default since the thirteenth random report
+    assert DQNConfig().reward_means is True  # DQN with a reward table: the default
     assert load("dqn", "algo.reward_means=false").algo.reward_means is False
     assert load("dqn").algo == DQNConfig()
     assert load("dqn", "algo.reward_means=true").algo.reward_means is True

@@ -1,5 +1,6 @@
-"""The mean collected reward of every (observation, action): what a value learner's targets read in
-place of the one sampled reward (``OffPolicyConfig.reward_means``).
+"""The reward table: the mean collected reward of every (observation, action), which a value learner's
+targets read in place of the one sampled reward (``OffPolicyConfig.reward_means``), as a TorchRL
+replay transform.
 
 In an MDP the reward of a step is drawn given its state and action, so the mean of every reward
 collected at the same (observation, action) estimates the expected reward E[r | s, a] that the
@@ -19,6 +20,7 @@ from typing import Any
 
 import torch
 from tensordict import TensorDictBase
+from torchrl.envs.transforms import Transform
 
 from irdrc.agents.levels import mixed_radix
 
@@ -26,8 +28,10 @@ MAX_ENTRIES = 10**8
 """The largest table (observations × actions) accepted: 1.6 GB of float64 sums and counts."""
 
 
-class RewardMeans:
-    """Running sums and counts of the collected rewards per (observation, action).
+class RewardTable(Transform):
+    """Running sums and counts of the collected rewards per (observation, action) (``add``, fed
+    every collected batch), and, as a replay buffer's transform, every sample drawn with each
+    reward replaced by its (observation, action)'s mean (``apply``).
 
     Args:
         high: [n] the largest value of each observation entry (entries are integers in [0, high]).
@@ -38,6 +42,7 @@ class RewardMeans:
     def __init__(
         self, high: torch.Tensor, num_actions: int, reward_key: Any = ("next", "reward")
     ) -> None:
+        super().__init__()
         radix, codes = mixed_radix(high)
         size = codes * int(num_actions)
         if size > MAX_ENTRIES:
@@ -68,3 +73,11 @@ class RewardMeans:
         mean = self.sums[at] / self.counts[at].clamp(min=1.0)
         sample.set(self.reward_key, mean.to(reward.dtype).reshape(reward.shape))
         return sample
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """A replay sample as it is drawn: ``apply``."""
+        return self.apply(tensordict)
+
+    def _inv_call(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """A batch as it is written: stored as collected (``add`` is fed by the learner)."""
+        return tensordict

@@ -1,15 +1,19 @@
 """irdrc: the iRDRC radar/communication mode-selection model — simulator, exact optimum, learners.
 
-The package is five layers, each importing only the layers below it (``tests/test_layers.py``
-checks this):
+The package's layers, each importing only the layers below it (``tests/test_layers.py`` checks
+this):
 
 - ``irdrc.core``: the model and everything exact (params, env, the exact core ``core.exact``,
   the constrained LP, metrics, policies, Monte-Carlo evaluation, gym);
 - ``irdrc.fleet``: several vehicles (MODEL.md § C) on the exact core and the single-vehicle
   simulator;
 - ``irdrc.agents``: the learners, one loop;
-- ``irdrc.experiments``: configs to run directories (one module per recipe, one run scaffold,
-  sweeps, results files, tracking, the ``irdrc`` command);
+- ``irdrc.runs``: the run machinery every recipe uses (composing a command line, the run
+  directory, checkpoints, results files, tracking, the ``irdrc`` command);
+- ``irdrc.sweeps``: the sweep engine (grids of runs on Ray Tune or here);
+- ``irdrc.recipes`` and ``irdrc.online``: the recipes' modules; ``online`` is one vehicle on the
+  road, its learners and the price of their learning;
+- ``irdrc.bench``: the benchmarks;
 - ``irdrc.paper``: the paper's figures, claims, trade-off and the reproduction report.
 
 ``import irdrc`` registers the gymnasium id ``irdrc/DFRC-v0`` and imports nothing heavy: the

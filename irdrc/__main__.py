@@ -2,6 +2,6 @@
 
 import sys
 
-from irdrc.experiments.cli import main
+from irdrc.runs.cli import main
 
 sys.exit(main())

@@ -9,7 +9,8 @@ the sweep engine (Ray: start it in a loopback-only namespace where the network m
 see recipes/sweep.py), scored exactly against the LP optimum of its own cell.
 """
 
-from irdrc.experiments import app, bench_constrained
+from irdrc.bench import constrained
+from irdrc.runs import app
 
 if __name__ == "__main__":
-    app.main(bench_constrained)
+    app.main(constrained)

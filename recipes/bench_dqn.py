@@ -10,7 +10,8 @@ Each profile is ``recipes/dqn.py`` with its overrides, trained with ``irdrc.agen
 profiles alternate seed by seed, so their speeds are measured under the same load.
 """
 
-from irdrc.experiments import app, bench_dqn
+from irdrc.bench import dqn
+from irdrc.runs import app
 
 if __name__ == "__main__":
-    app.main(bench_dqn)
+    app.main(dqn)

@@ -5,7 +5,8 @@ python recipes/bench_env.py sizes=[1024,65536] threads=[1] repeats=3
 python recipes/bench_env.py modes=[numpy_single,gym] sizes=[]   # single-env speed only
 """
 
-from irdrc.experiments import app, bench_env
+from irdrc.bench import env
+from irdrc.runs import app
 
 if __name__ == "__main__":
-    app.main(bench_env)
+    app.main(env)

@@ -8,7 +8,8 @@ Part A: N = 2, every (share, channels) cell × learner × seed, scored exactly; 
 own-observation learners against the baselines by Monte-Carlo (docs/FLEET.md).
 """
 
-from irdrc.experiments import app, bench_fleet
+from irdrc.bench import fleet
+from irdrc.runs import app
 
 if __name__ == "__main__":
-    app.main(bench_fleet)
+    app.main(fleet)

@@ -6,8 +6,8 @@ tuning used.
     python recipes/bench_online.py resume=true hydra.run.dir=outputs/…   # run only what is missing
 """
 
-from irdrc.experiments import app
-from irdrc.online import bench
+from irdrc.bench import online
+from irdrc.runs import app
 
 if __name__ == "__main__":
-    app.main(bench)
+    app.main(online)

@@ -8,7 +8,8 @@ Each (scenario, seed) is one run of ``recipes/dqn.py`` through the sweep engine 
 loopback-only namespace where the network must stay local, see recipes/sweep.py).
 """
 
-from irdrc.experiments import app, bench_robust
+from irdrc.bench import robust
+from irdrc.runs import app
 
 if __name__ == "__main__":
-    app.main(bench_robust)
+    app.main(robust)

@@ -7,7 +7,8 @@ Each solve (value iteration to ``tol`` on the factored operator, then the exact 
 its policy) runs in a fresh process; the dense solver runs beside it where S × S fits.
 """
 
-from irdrc.experiments import app, bench_scale
+from irdrc.bench import scale
+from irdrc.runs import app
 
 if __name__ == "__main__":
-    app.main(bench_scale)
+    app.main(scale)

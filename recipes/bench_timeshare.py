@@ -9,7 +9,8 @@ Each (learner, scenario, seed) is one run of ``recipes/sac.py``, ``recipes/ppo.p
 namespace where the network must stay local, see recipes/sweep.py).
 """
 
-from irdrc.experiments import app, bench_timeshare
+from irdrc.bench import timeshare
+from irdrc.runs import app
 
 if __name__ == "__main__":
-    app.main(bench_timeshare)
+    app.main(timeshare)

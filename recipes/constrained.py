@@ -7,7 +7,8 @@ python recipes/constrained.py frontier=true                  # frontier vs the r
 python recipes/constrained.py learner=dqn_lagrangian target_miss=0.05 seed=3
 """
 
-from irdrc.experiments import app, constrained
+from irdrc.recipes.constrained import recipe
+from irdrc.runs import app
 
 if __name__ == "__main__":
-    app.main(constrained)
+    app.main(recipe)

@@ -7,7 +7,8 @@ python recipes/dqn.py logger=wandb logger.mode=offline
 python recipes/dqn.py resume=outputs/…/checkpoint.pt algo.total_frames=1000000
 """
 
-from irdrc.experiments import app, dqn
+from irdrc.recipes import dqn
+from irdrc.runs import app
 
 if __name__ == "__main__":
     app.main(dqn)

@@ -4,7 +4,8 @@ python recipes/evaluate.py checkpoint=outputs/DATE/TIME/checkpoint.pt env.p1.spe
 python recipes/evaluate.py policy=outputs/DATE/TIME/policy.csv env=ref_impl
 """
 
-from irdrc.experiments import app, evaluate
+from irdrc.recipes import evaluate
+from irdrc.runs import app
 
 if __name__ == "__main__":
     app.main(evaluate)

@@ -10,8 +10,8 @@ Training runs go through the sweep engine (Ray Tune by default); on machines wit
 network start it inside a loopback-only namespace: ``unshare -n sh -c 'ip link set lo up; …'``.
 """
 
-from irdrc.experiments import app
 from irdrc.paper import figure2
+from irdrc.runs import app
 
 if __name__ == "__main__":
     app.main(figure2)

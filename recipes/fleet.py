@@ -6,7 +6,8 @@ python recipes/fleet.py learner=qmix env.share=1.0 env.channels=2
 python recipes/fleet.py learner=idqn env.vehicles=4          # beyond the exact model: Monte-Carlo
 """
 
-from irdrc.experiments import app, fleet
+from irdrc.recipes.fleet import recipe
+from irdrc.runs import app
 
 if __name__ == "__main__":
-    app.main(fleet)
+    app.main(recipe)

@@ -5,7 +5,8 @@ python recipes/ppo.py env.p1.speed=1.0 seed=3
 python recipes/ppo.py env=multilevel algo.total_frames=4000000
 """
 
-from irdrc.experiments import app, ppo
+from irdrc.recipes.shares import ppo
+from irdrc.runs import app
 
 if __name__ == "__main__":
     app.main(ppo)

@@ -5,7 +5,8 @@ python recipes/qlearning.py algo=qlearning_paper          # the reference profil
 python recipes/qlearning.py num_learners=5 'batch_grid={env.p1.speed: [0.1,0.5,1.0]}'
 """
 
-from irdrc.experiments import app, qlearning
+from irdrc.recipes import qlearning
+from irdrc.runs import app
 
 if __name__ == "__main__":
     app.main(qlearning)

@@ -6,7 +6,8 @@ python recipes/solve.py env=large                  # S = 100 800, on the factore
 python recipes/solve.py env=fleet env.share=1.0    # two vehicles: the joint optimum
 """
 
-from irdrc.experiments import app, solve
+from irdrc.recipes import solve
+from irdrc.runs import app
 
 if __name__ == "__main__":
     app.main(solve)

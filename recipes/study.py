@@ -8,10 +8,11 @@ over seeds.
     python recipes/study.py "overrides.dqn=['algo.total_frames=50000']"
 
 Each learner runs its default profile, composed as ``recipes/<learner>.py env=<scenario>`` composes
-it; see ``irdrc.experiments.study``.
+it; see ``irdrc.recipes.study``.
 """
 
-from irdrc.experiments import app, study
+from irdrc.recipes import study
+from irdrc.runs import app
 
 if __name__ == "__main__":
     app.main(study)

@@ -5,7 +5,8 @@ python recipes/sweep.py method=constrained executor=local 'sweep.grid={target_mi
 python recipes/sweep.py resume=true hydra.run.dir=outputs/DATE/TIME   # finish an interrupted sweep
 """
 
-from irdrc.experiments import app, sweep
+from irdrc.recipes import sweep
+from irdrc.runs import app
 
 if __name__ == "__main__":
     app.main(sweep)

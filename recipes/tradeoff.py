@@ -7,8 +7,8 @@
 DQN runs (``dqn.r4``) go through the sweep engine like any sweep (Ray: see recipes/sweep.py).
 """
 
-from irdrc.experiments import app
 from irdrc.paper import tradeoff
+from irdrc.runs import app
 
 if __name__ == "__main__":
     app.main(tradeoff)

@@ -86,7 +86,7 @@ def recipe_module(name: str):
 def load(recipe: str, *overrides: str):
     """The typed config ``recipes/<recipe>.py`` runs with these overrides (composed once and checked,
     as the recipe does before any work)."""
-    from irdrc.experiments.app import prepare
+    from irdrc.runs.app import prepare
 
     return prepare(recipe_module(recipe), list(overrides)).config
 
@@ -94,7 +94,7 @@ def load(recipe: str, *overrides: str):
 def run_recipe(recipe: str, run_dir, *overrides: str) -> int:
     """Run ``recipes/<recipe>.py`` in this process with ``overrides``, writing to ``run_dir``;
     returns its exit status."""
-    from irdrc.experiments.app import execute
+    from irdrc.runs.app import execute
 
     return execute(recipe_module(recipe), [*overrides, f"hydra.run.dir={run_dir}"])
 

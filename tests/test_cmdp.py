@@ -158,7 +158,7 @@ def test_objective_tables(paper):
 
 
 def test_randomised_policy_csv_round_trip(paper, tmp_path):
-    from irdrc.experiments.tables import read_policy_csv, write_policy_csv
+    from irdrc.runs.tables import read_policy_csv, write_policy_csv
 
     sol = solve_cmdp(paper, 0.05)
     write_policy_csv(tmp_path / "policy.csv", sol.policy)

@@ -79,6 +79,7 @@ def test_bad_and_infeasible_targets_refused_before_work(tmp_path):
     assert not (tmp_path / "b").exists()
 
 
+@pytest.mark.e2e
 def test_learner_run_writes_its_exact_score_beside_the_lp(tmp_path):
     res = run(
         tmp_path,
@@ -128,6 +129,7 @@ def test_learner_refuses_what_it_cannot_learn_before_work(tmp_path):
     assert not (tmp_path / "c").exists()
 
 
+@pytest.mark.e2e
 def test_benchmark_table_from_local_runs(tmp_path):
     res = subprocess.run(
         [
@@ -200,7 +202,7 @@ def test_frontier_counts_every_solve_and_its_figure_names_the_targets(tmp_path, 
 
     from conftest import load
 
-    from irdrc.experiments import frontier
+    from irdrc.recipes.constrained import frontier
 
     seen = []
 
@@ -234,7 +236,7 @@ def test_a_degenerate_optimum_is_explained():
     paper's r4 = 5 there is no note."""
     from irdrc.core.exact import build_model, stationary_metrics, value_iteration
     from irdrc.core.params import Params
-    from irdrc.experiments.report import degenerate_note
+    from irdrc.runs.report import degenerate_note
 
     notes = []
     for r4 in (5, 50):

@@ -15,16 +15,15 @@ import pytest
 from conftest import TINY_DQN, load, recipe_module
 from omegaconf import OmegaConf
 
-from irdrc.experiments.compose import (
+from irdrc.paper.docs import block_names, shell_quote
+from irdrc.runs.compose import (
     CONF_DIR,
     OPTIONAL_KEYS,
     _flat_keys,
     compose,
     config_groups,
-    rename_overrides,
 )
-from irdrc.experiments.grid import override_key
-from irdrc.paper.docs import shell_quote
+from irdrc.runs.grid import override_key
 
 ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"
@@ -116,6 +115,7 @@ def readme_commands() -> list[tuple[str, list[str]]]:
     return commands(README.read_text())
 
 
+@pytest.mark.e2e
 @pytest.mark.parametrize(
     "recipe,args",
     readme_commands(),
@@ -141,6 +141,7 @@ def example_files(tmp_path_factory) -> dict[str, Path]:
     return {"checkpoint": ckpt, "resume": ckpt, "policy": out / "policy.csv"}
 
 
+@pytest.mark.e2e
 def test_readme_python_api_runs():
     """The README's Python example runs as printed (about 6 s: a 10⁶-state factored solve)."""
     code = README.read_text().split("```python\n", 1)[1].split("```", 1)[0]
@@ -168,20 +169,17 @@ def test_docs_commands_name_existing_recipes_and_keys(doc):
         module = recipe_module(recipe)
         args = [a for a in args if not a.startswith("-") and "=" in a]
         args = [a for a in args if not PLACEHOLDER.search(a)]
-        args, _ = rename_overrides(args, getattr(module, "RENAMED", {}), {})
         compose(module.NAME, [a for a in args if not override_key(a).startswith("hydra")])
 
 
 def every_key() -> set[str]:
     """Every dotted key any recipe's config has or any option of its groups sets, the groups, the
-    general model's optional keys, and the keys of earlier versions a recipe still answers (renamed,
-    removed or retired, each with its message)."""
-    from irdrc.agents.configs.value import RETIRED
-
-    keys = set(OPTIONAL_KEYS) | set(config_groups()) | {f"algo.{k}" for k in RETIRED}
+    general model's optional keys, and every ``algo.*`` key a recipe's learner reads
+    (``ALGO_KEYS``: a profile's file lists only those that act on its run)."""
+    keys = set(OPTIONAL_KEYS) | set(config_groups())
     for path in (ROOT / "recipes").glob("*.py"):
         module = recipe_module(path.stem)
-        keys |= set(getattr(module, "RENAMED", {})) | set(getattr(module, "REMOVED", {}))
+        keys |= {f"algo.{k}" for k in getattr(module, "ALGO_KEYS", ())}
     for path in CONF_DIR.glob("*.yaml"):
         keys |= _flat_keys(compose(path.stem, []).cfg)
     for path in CONF_DIR.glob("*/*.yaml"):
@@ -385,3 +383,69 @@ def test_every_python_name_docs_give_exists():
         if not resolve(m.group(1))
     ]
     assert not missing, missing
+
+
+PAGE_LIMITS = {"DQN.md": 250, "BENCHMARKS.md": 250}
+"""Lines a user page may hold (the rest: ``PAGE_LIMIT``); how defaults were chosen is in docs/lab."""
+PAGE_LIMIT = 420
+
+
+@pytest.mark.parametrize("doc", DOCS, ids=lambda p: p.name)
+def test_user_pages_stay_short(doc):
+    assert len(doc.read_text().splitlines()) <= PAGE_LIMITS.get(doc.name, PAGE_LIMIT)
+
+
+NAMED = ("profiles", "candidates", "learners", "paper_learners", "random_learners")
+"""Config keys that name a benchmark's rows (its profiles, candidates or learners)."""
+ROW_NAMES = ("profile", "candidate", "learner")
+"""The header of the column that names a table's rows by those keys."""
+
+
+def stale_rows(block: str) -> list[str]:
+    """The row names of a generated table that its command's config, composed today, no longer
+    has (a table made with profiles that are gone); [] when its rows are not named by the config."""
+    found = commands(block)
+    if not found:
+        return []
+    recipe, args = found[0]
+    module = recipe_module(recipe)
+    args = [a for a in args if "=" in a and not override_key(a).startswith("hydra")]
+    cfg = compose(module.NAME, args).cfg
+    names: set[str] = set()
+    for key in NAMED:
+        value = cfg.get(key, "absent")
+        if key == "candidates" and value is None:
+            value = {"dqn": []}  # bench_robust's default: the default profile alone
+        if isinstance(value, dict | list):
+            names |= set(value)
+    if not names:
+        return []
+    rows, column = [], None
+    for line in block.splitlines():
+        cells = [c.strip() for c in line.strip().strip("|").split("|")]
+        if not line.startswith("|"):
+            column = None  # a table ended
+        elif column is None:  # a table's header: the column naming its rows, if any
+            column = next((i for i, c in enumerate(cells) if c in ROW_NAMES), -1)
+        elif column >= 0 and not set(cells[0]) <= set("-: "):
+            rows.append(cells[column])
+    rows = [r for r in rows if r and not r.startswith("**")]  # aggregate rows
+    return sorted({r for r in rows if r not in names})
+
+
+def test_no_generated_table_names_a_profile_that_is_gone():
+    bad = []
+    for doc in DOCS:
+        text = doc.read_text()
+        for name in block_names(text):
+            body = text.split(f"<!-- generated:{name} -->")[1].split(f"<!-- /generated:{name} -->")[
+                0
+            ]
+            if stale := stale_rows(body):
+                bad.append(f"{doc.name} {name}: {stale}")
+    assert not bad, bad
+
+
+def test_the_stale_table_check_can_fail():
+    block = "```bash\npython recipes/bench_dqn.py\n```\n\n| profile | x |\n|---|---|\n| dqn | 1 |\n| previous_default | 2 |\n"
+    assert stale_rows(block) == ["previous_default"]

@@ -14,8 +14,8 @@ from pathlib import Path
 import pytest
 import torch
 
-from irdrc.experiments.results import FILE_MODE, atomic_write, atomic_write_text
-from irdrc.experiments.scaffold import resumed_config
+from irdrc.runs.results import FILE_MODE, atomic_write, atomic_write_text
+from irdrc.runs.scaffold import resumed_config
 
 ROOT = Path(__file__).resolve().parents[1]
 # 4 000 env steps, a checkpoint every 640 (about a second apart here)
@@ -119,7 +119,7 @@ def test_kill_9_during_a_checkpoint_write_keeps_the_previous_one(tmp_path):
     atomic_write_text(path, "the previous, good checkpoint")
     code = (
         "import os, signal, sys\n"
-        "from irdrc.experiments.results import atomic_write\n"
+        "from irdrc.runs.results import atomic_write\n"
         "def half(f):\n"
         "    f.write(b'x' * 100000); f.flush()\n"
         "    os.kill(os.getpid(), signal.SIGKILL)\n"
@@ -361,7 +361,7 @@ def test_threads_are_capped_by_the_cores_and_a_trials_cpus(monkeypatch):
     """``num_threads`` above the machine's cores runs on the cores (a recipe's default of 2 on a
     one-core machine), and a sweep trial given one CPU runs on one thread whatever its recipe says
     (SAC's default is 2: two such trials side by side would fight over the cores)."""
-    from irdrc.experiments.scaffold import Run
+    from irdrc.runs.scaffold import Run
 
     before = torch.get_num_threads()
     monkeypatch.setattr("os.cpu_count", lambda: 1)

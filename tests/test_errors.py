@@ -21,7 +21,8 @@ from tensordict import TensorDict
 import irdrc  # noqa: F401 - registers irdrc/DFRC-v0
 from irdrc.core.env import DFRCEnv
 from irdrc.core.params import Params
-from irdrc.experiments.trials import plan
+from irdrc.recipes import solve
+from irdrc.sweeps.trials import plan
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -47,7 +48,8 @@ def refused(recipe: str, *overrides: str) -> str:
         ("dqn", ["seed=abc"], "seed='abc'"),
         ("dqn", ["seed=-1"], "seed=-1"),
         ("dqn", ["num_threads=0"], "num_threads=0"),
-        ("solve", ["gamma=abc"], "optimum_gamma='abc'"),
+        ("solve", ["optimum_gamma=abc"], "optimum_gamma='abc'"),
+        ("solve", ["gamma=abc"], "did you mean optimum_gamma?"),
         ("qlearning", ["algo.alpha=abc"], "algo.alpha='abc'"),
         ("qlearning", ["num_learners=1000000"], "num_learners=1000000"),
         ("qlearning", ["batch_grid={}"], "batch_grid is empty"),
@@ -60,7 +62,7 @@ def refused(recipe: str, *overrides: str) -> str:
         ("qlearning", ["algo.init_q=nan"], "algo.init_q=nan"),
         ("qlearning", ["algo.epsilon_decay_episodes=2.5"], "algo.epsilon_decay_episodes=2.5"),
         ("qlearning", ["eval.every_frames=10000000"], "eval.every_frames=10000000"),
-        ("qlearning", ["algo.eval_every_episodes=5"], "use eval.every_frames"),
+        ("qlearning", ["algo.eval_every_episodes=5"], "did you mean algo.episodes?"),
         ("solve", ["env.stay_good.road=1", "env.stay_bad.road=1"], "env.stay_good.road=1"),
         ("solve", ["env.p1.speed=1.5"], "env.p1.speed=1.5"),
         ("dqn", ["network.hidden=[0]"], "network.hidden"),
@@ -71,7 +73,7 @@ def refused(recipe: str, *overrides: str) -> str:
         ("tradeoff", ["search.resolution=0.001"], "exact solves"),
         ("sweep", ["sweep.grid={}"], "sweep.grid is empty"),
         ("sweep", ["method=sarsa", "sweep.grid={seed: [0]}"], "method='sarsa'"),
-        ("dqn", ["compare.qlearning_paper=true"], "recipes/qlearning.py algo=qlearning_paper"),
+        ("dqn", ["algo=qlearning_paper"], "recipes/qlearning.py algo=qlearning_paper"),
     ],
 )
 def test_bad_input_is_refused_naming_the_key(recipe, overrides, named):
@@ -84,8 +86,17 @@ def test_cuda_without_a_device_is_refused():
 
 
 def test_long_horizon_is_cheap_not_refused():
-    # exact episodic metrics use repeated squaring: a horizon of 1e9 costs ~log2(1e9) products
-    load("solve", "env.horizon=1000000000", "eval.mc_episodes=0")
+    """A horizon of 10⁹ is accepted, and its exact episodic metrics cost ~log2(10⁹) matrix
+    products (repeated squaring): episodes that long average to the long-run metrics."""
+    from irdrc.core.exact import build_model, episodic_metrics, stationary_metrics
+
+    cfg = load("solve", "env.horizon=1000000000", "eval.mc_episodes=0")
+    assert cfg.model.env.horizon == 10**9
+    model = build_model(cfg.model)
+    long = episodic_metrics(model, "round_robin")
+    assert long.avg_reward == pytest.approx(
+        stationary_metrics(model, "round_robin").avg_reward, abs=1e-6
+    )
 
 
 def test_all_zero_rewards_warn():
@@ -96,7 +107,7 @@ def test_all_zero_rewards_warn():
 def test_sweep_values_are_validated_before_any_trial():
     """A bad value inside the grid (not only in the base) fails at planning, naming the point."""
     with pytest.raises(ValueError, match=r"env\.p1\.speed=1\.5.*env\.p1\.speed=1\.5 is outside"):
-        plan("solve", [{"env.p1.speed": 0.5}, {"env.p1.speed": 1.5}], [])
+        plan(solve, [{"env.p1.speed": 0.5}, {"env.p1.speed": 1.5}], [])
 
 
 @pytest.mark.parametrize(
@@ -171,10 +182,13 @@ def test_gym_env_refuses_anything_but_0_and_1(action):
 
 
 def test_gym_env_accepts_integer_scalars():
+    """Python ints, NumPy integers and 0-d arrays are actions: comm carries packets, radar none."""
     env = gymnasium.make("irdrc/DFRC-v0").unwrapped
     env.reset(seed=0)
     for a in (0, 1, np.int64(1), np.array(0)):
-        env.step(a)
+        obs, _, terminated, _, info = env.step(a)
+        assert env.observation_space.contains(obs) and not terminated
+        assert (info["capacity"] > 0) == (int(a) == 0)
 
 
 def test_gym_env_step_before_reset_is_refused():
@@ -192,7 +206,8 @@ def test_a_run_refused_after_its_directory_exists_leaves_none_and_logs_what_it_p
     printed in ``<recipe>.log``."""
     script = (
         "import types\n"
-        "from irdrc.experiments import app, solve\n"
+        "from irdrc.recipes import solve\n"
+        "from irdrc.runs import app\n"
         "def run(cfg, run):\n"
         "    print('working on it')\n"
         "    if cfg.seed == 1:\n"
@@ -233,8 +248,8 @@ def _run(*args: str, timeout: float = 120) -> subprocess.CompletedProcess:
 def test_a_second_run_into_a_directory_in_use_is_refused_naming_the_first(tmp_path):
     """A run holds its directory (``.lock``, with its process id): another run started there is
     refused with one line naming that process, exit 2, and writes nothing there."""
-    from irdrc.experiments.compose import compose
-    from irdrc.experiments.scaffold import Run
+    from irdrc.runs.compose import compose
+    from irdrc.runs.scaffold import Run
 
     out = tmp_path / "run"
     first = Run("solve", compose("solve", ["seed=1"]), out).open()

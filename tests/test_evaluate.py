@@ -32,6 +32,7 @@ def trained(tmp_path_factory) -> Path:
     return out
 
 
+@pytest.mark.e2e
 def test_a_network_on_its_own_scenario_scores_as_its_run_did(trained, tmp_path):
     """On the scenario it was trained on, the checkpoint's greedy policy is the run's final
     policy: the same table (policy.csv) and the same exact ratio; the episodic Monte-Carlo row
@@ -59,6 +60,7 @@ def test_a_network_on_its_own_scenario_scores_as_its_run_did(trained, tmp_path):
     assert "of this scenario's optimum" in r.stdout
 
 
+@pytest.mark.e2e
 def test_a_network_on_another_scenario_and_a_table_elsewhere(trained, tmp_path):
     """Transfer: the network on multilevel (S = 792) is scored against multilevel's own optimum;
     a policy.csv of the paper scenario is scored under other reward weights; a table of another

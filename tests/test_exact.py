@@ -286,7 +286,7 @@ def test_closest_decisions_are_the_smallest_margins_and_their_cost_is_exact():
     Q*(radar)| over queue lengths, and each row's ratio is the optimum with the other mode taken
     at that factor combination (every d), evaluated here independently."""
     from irdrc.core.exact import stationary_metrics, value_iteration
-    from irdrc.experiments.tables import closest_decisions
+    from irdrc.runs.tables import closest_decisions
 
     params = Params.from_overrides({"env.p1.speed": 1.0})
     model = build_model(params)

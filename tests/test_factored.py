@@ -60,6 +60,7 @@ def test_deep_queue_is_solved_without_the_dense_matrix():
         build_model(Params.from_overrides({"env.queue_capacity": DENSE_MAX_STATES // 32}))
 
 
+@pytest.mark.e2e
 def test_solve_recipe_switches_to_the_factored_operator(tmp_path):
     res = subprocess.run(
         [
@@ -180,7 +181,7 @@ def test_aggregation_where_the_queue_never_empties():
 
 def test_growth_exponent_of_the_scale_table():
     """``growth_exponents``: times that grow as S^1.5 fit k = 1.5; the last pair's k is its own."""
-    from irdrc.experiments.bench_scale import growth_exponents
+    from irdrc.bench.scale import growth_exponents
 
     rows = [
         {

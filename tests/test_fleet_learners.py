@@ -216,6 +216,7 @@ TINY = [
 ]
 
 
+@pytest.mark.e2e
 def test_fleet_recipe_files_and_tables(tmp_path):
     """``recipes/fleet.py`` (N = 2, exact): summary.json with the learner's per-vehicle and fleet
     metrics beside the optimum and the baselines, policy.csv (joint state → each vehicle's action
@@ -252,6 +253,7 @@ def test_fleet_recipe_files_and_tables(tmp_path):
     assert "warning: qmix ends at" in r.stdout and "learner=joint env.observe=full" in r.stdout
 
 
+@pytest.mark.e2e
 def test_fleet_recipe_beyond_the_exact_model(tmp_path):
     """N = 3 (2.7 M joint states): the learner and the baselines by Monte-Carlo, ratios to the best
     baseline, a confidence half-width per row."""
@@ -278,6 +280,7 @@ def test_fleet_recipe_beyond_the_exact_model(tmp_path):
     assert s["verdict"] in r.stdout and ("wins" in s["verdict"] or "neither" in s["verdict"])
 
 
+@pytest.mark.e2e
 @pytest.mark.parametrize("learner", ["mappo", "ippo"])
 def test_multiagent_ppo_runs_on_own_observations_scored_exactly(tmp_path, learner):
     """``learner=mappo|ippo``: TorchRL's MAPPOLoss / IPPOLoss on FleetEnv with the team reward,
@@ -391,6 +394,7 @@ def test_joint_learner_reaches_the_centralised_optimum(seed, two):
     assert rec.history[-1]["optimality_ratio"] >= 0.95, rec.history
 
 
+@pytest.mark.e2e
 def test_sweep_method_fleet(tmp_path):
     """``recipes/sweep.py method=fleet``: one fleet run per grid point (here two learners), each
     with its fleet summary; a bad fleet value in the grid is refused before any trial."""
@@ -421,6 +425,7 @@ def test_sweep_method_fleet(tmp_path):
     assert bad.returncode == 2 and "env.share" in bad.stderr
 
 
+@pytest.mark.e2e
 def test_bench_fleet_tables_search_and_figure(tmp_path):
     """``recipes/bench_fleet.py`` (a tiny grid on a D = 1 fleet, local executor): part A's table
     per cell with the exact baselines, the best decentralised policy found (at least the learner's
@@ -460,7 +465,7 @@ def test_bench_fleet_tables_search_and_figure(tmp_path):
     assert len(rows) == 1 + 2
     assert (out / "fleet_frontier.png").is_file()
     # the finished search is kept for a resumed run, and reused only for the same starts
-    from irdrc.experiments.fleet_best import _cached
+    from irdrc.bench.fleet_best import _cached
 
     saved = json.loads((out / "search" / "share0.5_channels1.json").read_text())
     key = saved["key"]
@@ -474,7 +479,7 @@ def test_the_searchs_chain_is_the_exact_model(two):
     decentralised tables, and a derivative the reward's slope along that entry's switch: the
     switch of the entry with the largest derivative is read against a small randomisation of it
     (the slope within 1e-3 of the derivative; the curvature over ε = 1e-4 is far smaller)."""
-    from irdrc.experiments.fleet_best import structured_starts
+    from irdrc.bench.fleet_best import structured_starts
     from irdrc.fleet.policies import joint_policy
     from irdrc.fleet.scorer import fleet_metrics
     from irdrc.fleet.search import Chain
@@ -511,7 +516,7 @@ def test_the_default_fleet_learner_is_within_0_99_of_the_best_decentralised_poli
     from conftest import load
 
     from irdrc.agents import marl
-    from irdrc.experiments.fleet_best import structured_starts
+    from irdrc.bench.fleet_best import structured_starts
     from irdrc.fleet.scorer import FleetScorer
     from irdrc.fleet.search import best_decentralised
 

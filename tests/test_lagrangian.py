@@ -160,6 +160,7 @@ def test_long_run_matches_the_exact_stationary_metrics(paper):
         long_run(Params(), torch.full((10,), 0.5))
 
 
+@pytest.mark.e2e
 def test_final_policy_lands_on_the_target_by_measurement(paper):
     """Heads whose path sends radar first where events are likeliest and the queue is shortest
     (Q_J gain 1, Q_C gain P(event)·(11 − d)): the measured search must end in a policy that

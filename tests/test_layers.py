@@ -8,7 +8,17 @@ from pathlib import Path
 import pytest
 
 PKG = Path(__file__).resolve().parents[1] / "irdrc"
-LAYERS = {"core": 0, "fleet": 1, "agents": 2, "experiments": 3, "online": 4, "paper": 5}
+LAYERS = {
+    "core": 0,
+    "fleet": 1,
+    "agents": 2,
+    "runs": 3,
+    "sweeps": 4,
+    "recipes": 5,
+    "online": 5,
+    "bench": 6,
+    "paper": 7,
+}
 """Each layer may import only the layers before it (and itself)."""
 
 
@@ -176,7 +186,7 @@ def test_a_run_composes_its_config_once_and_builds_it_once(tmp_path, monkeypatch
     from conftest import TINY_DQN, run_recipe
 
     from irdrc.agents import base
-    from irdrc.experiments import dqn
+    from irdrc.recipes import dqn
 
     counts = {"compose": 0, "load": 0, "checkpoint": 0}
 

@@ -129,6 +129,7 @@ def test_default_profile_reaches_98_percent():
     assert min(final) >= 0.98, final
 
 
+@pytest.mark.e2e
 def test_scenarios_trained_in_one_batch_learn_their_own_optimum():
     """Two scenarios with different optimal policies in one batch: each row learns its own.
 

@@ -48,7 +48,7 @@ def test_mixed_radix_codes_every_observation_once():
 
 @pytest.mark.parametrize("draw", [None, 1167, 3888, 4061])
 def test_distinct_rows_equal_the_plain_network_bit_for_bit(draw):
-    from irdrc.experiments.random_scenarios import draw_overrides
+    from irdrc.bench.random_scenarios import draw_overrides
 
     params = Params() if draw is None else Params.from_overrides(draw_overrides(draw))
     obs, plain, distinct = _nets(params)

@@ -117,7 +117,7 @@ def test_bench_timeshare_table_reads_ratios_against_the_optimum_over_rho(tmp_pat
     """A run's ratios are its avg_reward over the optimum over ρ (DQN over levels: its summary's
     ``continuum`` optimum, not its own G-level one), steps to 95 % / 99 % from metrics.csv, speed
     from its collecting and learning seconds; numbers made by hand."""
-    from irdrc.experiments.bench_timeshare import run_row, timeshare_table
+    from irdrc.bench.timeshare import run_row, timeshare_table
 
     runs = {}
     for learner, own, cont in (("sac", 1.0, None), ("dqn_levels", 0.99, 1.0)):

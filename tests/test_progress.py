@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-from irdrc.experiments.progress import RunProgress
-from irdrc.experiments.report import end_warning
+from irdrc.runs.progress import RunProgress
+from irdrc.runs.report import end_warning
 
 
 def _eval(steps: int, ratio: float) -> list[dict]:
@@ -64,7 +64,7 @@ def test_a_run_that_ends_badly_says_so_and_where_its_best_was():
 def test_a_run_below_the_threshold_is_told_the_override_to_try():
     """DQN's warning ends with the one override most likely to help; a run that ends well gets
     no line, advice or not."""
-    from irdrc.experiments.report import ADVICE
+    from irdrc.runs.report import ADVICE
 
     line = end_warning(_hist((0, 0.3), (50_000, 0.97)), ADVICE["dqn"])
     assert line.startswith("warning: the final greedy policy is 0.9700")
@@ -82,7 +82,7 @@ def test_every_profile_a_learner_recipe_runs_is_told_an_override_that_exists():
     import yaml
 
     from irdrc.agents.configs import DQNConfig, QLearningConfig
-    from irdrc.experiments.report import ADVICE
+    from irdrc.runs.report import ADVICE
 
     conf = Path(__file__).resolve().parents[1] / "recipes" / "conf" / "algo"
     profiles = (yaml.safe_load(f.read_text()) for f in conf.glob("*.yaml"))

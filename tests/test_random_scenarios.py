@@ -1,4 +1,4 @@
-"""The random scenario distribution (``irdrc.experiments.random_scenarios``): every draw is a valid
+"""The random scenario distribution (``irdrc.bench.random_scenarios``): every draw is a valid
 scenario a user can type, reproducible from its index, and the contested filter keeps exactly the
 draws where neither always-radar nor always-comm is within 0.9 of the optimum."""
 
@@ -7,15 +7,15 @@ from __future__ import annotations
 import pytest
 from conftest import load
 
-from irdrc.core.exact import build_model, stationary_metrics, value_iteration
-from irdrc.core.params import Params
-from irdrc.experiments.random_scenarios import (
+from irdrc.bench.random_scenarios import (
     CONTESTED,
     command_line,
     contested,
     contested_draws,
     draw_overrides,
 )
+from irdrc.core.exact import build_model, stationary_metrics, value_iteration
+from irdrc.core.params import Params
 
 
 def test_draws_are_reproducible_valid_and_cover_every_kind_of_key():

@@ -23,11 +23,12 @@ def run_recipe(name: str, *overrides: str, timeout: int = 300) -> subprocess.Com
     )
 
 
+@pytest.mark.e2e
 def test_demo_prints_metrics(tmp_path):
     out = run_recipe(
         "demo.py",
-        "num_envs=16",
-        "episodes=16",
+        "eval.mc_num_envs=16",
+        "eval.mc_episodes=16",
         "env=ref_impl",
         "reward.r4=50",
         f"hydra.run.dir={tmp_path}",
@@ -98,7 +99,7 @@ def _check_summary(path: Path, method: str) -> dict:
         s["table"]
     )
     assert {r["action"] for r in rows} <= {"0", "1"}
-    from irdrc.experiments.tables import read_policy_csv
+    from irdrc.runs.tables import read_policy_csv
 
     assert read_policy_csv(path / "policy.csv").tolist() == [int(r["action"]) for r in rows]
     return s
@@ -106,7 +107,11 @@ def _check_summary(path: Path, method: str) -> dict:
 
 def test_solve_recipe(tmp_path):
     out = run_recipe(
-        "solve.py", "mc_episodes=32", "num_envs=32", "env.p1.speed=1.0", f"hydra.run.dir={tmp_path}"
+        "solve.py",
+        "eval.mc_episodes=32",
+        "eval.mc_num_envs=32",
+        "env.p1.speed=1.0",
+        f"hydra.run.dir={tmp_path}",
     )
     assert out.returncode == 0, out.stderr
     assert "optimal (stationary)" in out.stdout and "round_robin (episodic)" in out.stdout
@@ -118,14 +123,15 @@ def test_solve_recipe(tmp_path):
     assert s["scenario"] == "paper[env.p1.speed=1.0]"
 
 
+@pytest.mark.e2e
 def test_qlearning_recipe(tmp_path):
     out = run_recipe(
         "qlearning.py",
         "algo.episodes=4",
         "eval.every_frames=800",
         "num_learners=2",
-        "mc_episodes=8",
-        "num_envs=8",
+        "eval.mc_episodes=8",
+        "eval.mc_num_envs=8",
         "progress=false",
         "seed=3",
         "reward.r4=50",
@@ -133,7 +139,7 @@ def test_qlearning_recipe(tmp_path):
     )
     assert out.returncode == 0, out.stderr
     # four episodes end far below the optimum: the last line says so and what to try
-    from irdrc.experiments.report import ADVICE
+    from irdrc.runs.report import ADVICE
 
     warning = [ln for ln in out.stdout.splitlines() if ln.startswith("warning:")]
     assert len(warning) == 1 and warning[0].endswith("; try " + ADVICE["qlearning"]), warning
@@ -165,6 +171,7 @@ def test_qlearning_recipe(tmp_path):
         assert abs(mc[key] - ex[key]) <= 4 * mc["ci95"][key] + 1e-9, (key, mc, ex)
 
 
+@pytest.mark.e2e
 @pytest.mark.parametrize(
     ("recipe", "tiny"),
     [
@@ -206,7 +213,7 @@ def test_qlearning_recipe_batch_grid(tmp_path):
         "qlearning.py",
         "algo.episodes=2",
         "num_learners=2",
-        "mc_episodes=0",
+        "eval.mc_episodes=0",
         "progress=false",
         "batch_grid={env.p1.speed: [0.1,1.0], reward.r4: [5,50]}",
         f"hydra.run.dir={tmp_path}",
@@ -251,7 +258,7 @@ def test_cli_lists_and_dispatches(tmp_path):
             "-m",
             "irdrc",
             "solve",
-            "mc_episodes=0",
+            "eval.mc_episodes=0",
             f"hydra.run.dir={tmp_path}",
         ],
         capture_output=True,
@@ -262,6 +269,7 @@ def test_cli_lists_and_dispatches(tmp_path):
     assert (tmp_path / "summary.json").is_file()
 
 
+@pytest.mark.e2e
 def test_bench_robust_recipe(tmp_path):
     tiny = "'algo.num_envs=8','algo.frames_per_batch=32','algo.total_frames=640','algo.init_random_frames=128','algo.batch_size=32'"
     out = run_recipe(

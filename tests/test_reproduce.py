@@ -16,10 +16,10 @@ import pytest
 
 from irdrc import Params
 from irdrc.core.metrics import first_reaching
-from irdrc.experiments.frontier import optimal_at
 from irdrc.paper import claims as cl
 from irdrc.paper.figures import band_rows, mean_ci, moving_average, t975
 from irdrc.paper.tradeoff import smallest_r4
+from irdrc.recipes.constrained.frontier import optimal_at
 
 ROOT = Path(__file__).resolve().parents[1]
 P = [0.1, 0.4, 0.7, 1.0]
@@ -331,8 +331,8 @@ def test_report_fills_every_generated_block(tiny_figure, tiny_tradeoff, tmp_path
 
 def test_learner_block_is_the_benchmark_table(tmp_path):
     """The report's learner block is the benchmark's own table file plus the total run time."""
-    from irdrc.experiments.results import write_rows_csv
     from irdrc.paper.report import learner_block
+    from irdrc.runs.results import write_rows_csv
 
     write_rows_csv(
         tmp_path / "bench_constrained.csv", [{"wall_seconds": 60.0}, {"wall_seconds": 120.0}]

@@ -1,4 +1,4 @@
-"""The default DQN on scenarios nobody tuned it for (``irdrc.experiments.random_scenarios``): the
+"""The default DQN on scenarios nobody tuned it for (``irdrc.bench.random_scenarios``): the
 slow tier trains it on a handful of contested random draws and holds each final greedy policy to
 0.99 of the exact optimum, and keeps the draw where it is known to fall short in view."""
 
@@ -10,21 +10,27 @@ import pytest
 import torch
 
 from irdrc.agents.configs import DQNConfig
-from irdrc.agents.configs.value import THOUSAND_ROWS
+from irdrc.agents.configs.value import DEFAULT_NETWORK
+from irdrc.bench.random_scenarios import contested_draws, draw_overrides
 from irdrc.core.exact import Scorer, build_model
 from irdrc.core.params import Params
-from irdrc.experiments.random_scenarios import contested_draws, draw_overrides
 
 FIRST_REPORT = 1000
 """The first draw of the first report (draws 1000–1295; ``REPORTING`` is where today's starts)."""
 SHORT = (4061, 1)
-"""The worst known shortfall of today's default (draw, seed): 0.9840 on draw 4061 at seed 1, one of
-the hard five; on the 23 hard runs of docs/DQN.md it misses two others, 7093 at seed 5 (0.9894) and
-6846 at seed 4 (0.9892). Before the two-step prioritised draw it missed 2106 at seed 4 (0.9816) and
-4061 at seed 0 (0.9870) in their place, and before the fifteenth random report the default (64-64,
-500 updates of 2 000) fell short on 7164 (0.6542 at seed 5), which today's holds (0.9958)."""
-PREVIOUS_DEFAULT = dataclasses.replace(DQNConfig(), **THOUSAND_ROWS)
-"""DQN's default until the thirteenth random report (``previous_default`` in bench_dqn.yaml)."""
+"""The worst known shortfall of the default (draw, seed): 0.9840 on draw 4061 at seed 1."""
+THOUSAND_ROWS = dataclasses.replace(
+    DQNConfig(),
+    num_envs=1000,
+    frames_per_batch=2000,
+    total_frames=500_000,
+    batch_size=1000,
+    updates_per_batch=4,
+    reward_means=False,
+    network=DEFAULT_NETWORK,
+)
+"""DQN on 1 000 rows for 500 000 env steps, 64-64, on the sampled rewards: the shape in which
+centering on the values was chosen."""
 CENTERING = 1261
 """A draw of the first report where centering on the collected rewards alone ends at 0.7824
 (seed 5; r3 = 60.7 against r1 = 1.23 and r4 = 0.373; radar where the optimum sends): exploring rows
@@ -92,9 +98,9 @@ def test_the_draw_where_the_default_falls_short():
 def test_centering_on_the_values_holds_where_centering_on_the_rewards_falls_short():
     """In the 1 000-row shape it was chosen in, ``algo.center_on=values`` (r̄ moved by (1 − γ)
     times the network's value level after every batch) ends at the optimum on draw 1261; with r̄
-    the collected rewards' average alone (``center_on=rewards``, the default until the fifth
-    report) it chooses radar where the optimum sends. Today's default holds there (with either
-    centering: the mean rewards over 8 000 rows hold on 1261 with r̄ on the rewards too)."""
+    the collected rewards' average alone (``center_on=rewards``) it chooses radar where the
+    optimum sends. The default holds there (with either centering: the reward table over 8 000 rows
+    holds on 1261 with r̄ on the rewards too)."""
     assert final_ratio(CENTERING, DQNConfig()) >= 0.99
-    assert final_ratio(CENTERING, PREVIOUS_DEFAULT) >= 0.99
-    assert final_ratio(CENTERING, dataclasses.replace(PREVIOUS_DEFAULT, center_on="rewards")) < 0.99
+    assert final_ratio(CENTERING, THOUSAND_ROWS) >= 0.99
+    assert final_ratio(CENTERING, dataclasses.replace(THOUSAND_ROWS, center_on="rewards")) < 0.99

@@ -131,6 +131,7 @@ def run(tmp_path: Path, *overrides: str) -> subprocess.CompletedProcess:
     )
 
 
+@pytest.mark.e2e
 def test_the_recipe_over_rho_prints_both_bounds_and_writes_the_shares(tmp_path):
     res = run(tmp_path, "env.actions=continuous", "env.queue_capacity=4", "target_miss=0.02")
     assert res.returncode == 0, res.stderr
@@ -173,6 +174,7 @@ def test_what_the_region_cannot_do_is_one_line(tmp_path, overrides, says):
     assert not (tmp_path / "x").exists()
 
 
+@pytest.mark.e2e
 def test_the_frontier_over_rho_writes_time_sharing_beside_the_binary_modes(tmp_path):
     res = run(
         tmp_path,
@@ -205,7 +207,7 @@ def test_a_multilevel_scenario_keeps_its_factors_across_action_spaces():
     (it was refused: its built factors were read back as a config)."""
     import dataclasses
 
-    from irdrc.experiments.share_region import binary_params
+    from irdrc.recipes.constrained.region import binary_params
 
     speed = {
         "levels": ["low", "medium", "high"],

@@ -1,4 +1,4 @@
-"""recipes/study.py (irdrc.experiments.study): every (scenario, learner, seed) scored exactly, the
+"""recipes/study.py (irdrc.recipes.study): every (scenario, learner, seed) scored exactly, the
 scoring time kept apart from training, bad studies refused before work."""
 
 from __future__ import annotations
@@ -12,16 +12,17 @@ from conftest import run_recipe, scenario
 
 from irdrc.core.exact import Scorer as ExactScorer
 from irdrc.core.exact import build_model
-from irdrc.experiments.study import Config, TimedScorer
+from irdrc.recipes.study import Config, TimedScorer
 
 SMALL = [
     "scenarios=[paper]",
     "seeds=[0,1]",
     "evals={default:2}",
-    "overrides={dqn:['algo.num_envs=8','algo.frames_per_batch=32','algo.total_frames=640'],"
+    "overrides={dqn:['algo.num_envs=8','algo.frames_per_batch=32','algo.total_frames=640','algo.batch_size=32'],"
+    "dqn_plain:['algo.num_envs=8','algo.frames_per_batch=32','algo.total_frames=640','algo.batch_size=32'],"
     "qlearning:['algo.episodes=2']}",
 ]
-"""A study of a few seconds: both learners, two seeds, the paper scenario, tiny budgets."""
+"""A study of a few seconds: the three learners, two seeds, the paper scenario, tiny budgets."""
 
 
 def test_study_rows_and_table(tmp_path):
@@ -30,14 +31,19 @@ def test_study_rows_and_table(tmp_path):
     assert [(r["learner"], r["seed"]) for r in rows] == [
         ("dqn", "0"),
         ("dqn", "1"),
+        ("dqn_plain", "0"),
+        ("dqn_plain", "1"),
         ("qlearning", "0"),
         ("qlearning", "1"),
     ]
     # Q-learning's seeds are learners of one batched run; DQN runs once per seed
     assert {r["run_seed"] for r in rows if r["learner"] == "qlearning"} == {"0"}
-    assert [r["learners_in_run"] for r in rows] == ["1", "1", "2", "2"]
+    assert [r["learners_in_run"] for r in rows] == ["1", "1", "1", "1", "2", "2"]
+    # plain DQN is DQN's run without the reward table and the centering: other numbers
+    dqn = [r["final_ratio"] for r in rows if r["learner"] == "dqn"]
+    assert dqn != [r["final_ratio"] for r in rows if r["learner"] == "dqn_plain"]
     for r in rows:
-        assert r["budget_env_steps"] == ("640" if r["learner"] == "dqn" else "800")
+        assert r["budget_env_steps"] == ("800" if r["learner"] == "qlearning" else "640")
         assert int(r["evaluations"]) == 3  # at 0, half-way, end
         assert float(r["train_seconds"]) >= 0 and float(r["scoring_seconds"]) >= 0
         assert float(r["best_ratio"]) >= float(r["final_ratio"])
@@ -48,7 +54,8 @@ def test_study_rows_and_table(tmp_path):
     # episodes cannot have left the all-comm start for every state, so it is below the optimum
     assert all(float(r["final_ratio"]) < 0.999 for r in rows if r["learner"] == "qlearning")
     table = (tmp_path / "study.md").read_text().splitlines()
-    assert len(table) == 2 + 2 + 2 and table[2].startswith("| paper (352) | dqn | 640 |")
+    assert len(table) == 2 + 3 + 2 and table[2].startswith("| paper (352) | dqn | 640 |")
+    assert table[3].startswith("| paper (352) | dqn_plain | 640 |")
     assert table[-1].startswith("Measured on ")  # where and when, once under the table
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert summary["scenarios"]["paper"]["solver"] == "DenseModel"
@@ -87,7 +94,7 @@ def test_the_learners_take_a_model_beyond_the_dense_limit(learner):
     151 GiB, and ``python recipes/study.py`` stopped at ``large``)."""
     from conftest import load
 
-    from irdrc.experiments.sections import fits_dense
+    from irdrc.runs.sections import fits_dense
 
     cfg = load(learner, "env=large")
     assert cfg.params.env.num_states == 100_800 and not fits_dense(cfg.params)

@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 from conftest import load
 
-from irdrc.experiments.grid import format_value, parse_grid, point_id, point_overrides, scenario_of
+from irdrc.runs.grid import format_value, parse_grid, point_id, point_overrides, scenario_of
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -227,6 +227,7 @@ def test_resume_without_a_directory_says_to_name_it(tmp_path):
     assert r.returncode == 2 and "hydra.run.dir" in r.stderr and "Traceback" not in r.stderr
 
 
+@pytest.mark.e2e
 def test_constrained_method_sweeps_targets(tmp_path):
     """method=constrained: one exact LP per grid point; a tighter target never sends more."""
     r = subprocess.run(
@@ -258,11 +259,12 @@ def test_constrained_method_sweeps_targets(tmp_path):
 
 
 def test_point_ids_separate_methods_and_bases():
-    from irdrc.experiments.trials import plan
+    from irdrc.recipes import qlearning, solve
+    from irdrc.sweeps.trials import plan
 
-    a = plan("solve", [{"seed": 0}], ["mc_episodes=0"])
-    b = plan("solve", [{"seed": 0}], ["mc_episodes=0", "reward.r4=50"])
-    c = plan("qlearning", [{"seed": 0}], ["mc_episodes=0"])
+    a = plan(solve, [{"seed": 0}], ["eval.mc_episodes=0"])
+    b = plan(solve, [{"seed": 0}], ["eval.mc_episodes=0", "reward.r4=50"])
+    c = plan(qlearning, [{"seed": 0}], ["eval.mc_episodes=0"])
     ids = {x[0]["point_id"] for x in (a, b, c)}
     assert len(ids) == 3 and all(i.startswith("seed=0__") for i in ids)
     assert b[0]["config"].model.reward.r4 == 50 and c[0]["config"].algo.name == "qlearning"
@@ -295,7 +297,7 @@ def _wait_for_done(tmp_path: Path, proc: subprocess.Popen, n: int, timeout: floa
     the summary, so a summary alone may still be a trial the driver has not marked done)."""
     import time
 
-    from irdrc.experiments.trials import read_status
+    from irdrc.sweeps.trials import read_status
 
     def done() -> int:
         trials = (tmp_path / "trials").glob("*/summary.json")
@@ -327,7 +329,7 @@ def test_driver_killed_mid_sweep_keeps_finished_trials_and_resume_runs_the_rest(
     _wait_for_done(tmp_path, proc, 1)
     os.killpg(proc.pid, signal.SIGKILL)
     proc.communicate(timeout=60)
-    from irdrc.experiments.trials import read_status
+    from irdrc.sweeps.trials import read_status
 
     # Done = a DONE status beside its summary. A trial killed between writing its summary and its
     # status (the other trial runs in parallel) is not done: resume reruns it.
@@ -367,7 +369,7 @@ def test_ctrl_c_leaves_a_valid_summary_with_incomplete_rows(tmp_path):
 
 
 def test_status_files_are_checked(tmp_path, capsys):
-    from irdrc.experiments.trials import read_status
+    from irdrc.sweeps.trials import read_status
 
     d = tmp_path / "p"
     d.mkdir()
@@ -383,7 +385,7 @@ def test_seed_statistics_per_point_and_banded_curves(tmp_path):
     """A grid over seeds: ``summary_by_point.csv`` has, per point without its seed, the mean and
     the 95 % t half-width over the DONE seeds (an ERROR seed left out); ``learning_curves.png``
     bands the curves read from each trial's metrics.csv. Numbers computed by hand."""
-    from irdrc.experiments.seeds import plot_seed_curves, write_seed_summary
+    from irdrc.sweeps.seeds import plot_seed_curves, write_seed_summary
 
     ratios = {
         ("5", "0"): 0.9,
@@ -421,7 +423,7 @@ def test_seed_statistics_per_point_and_banded_curves(tmp_path):
 
 def test_seed_curve_labels_leave_out_what_every_point_shares():
     """A benchmark's points differ by method and a few overrides; the legend names only those."""
-    from irdrc.experiments.seeds import series_labels
+    from irdrc.sweeps.seeds import series_labels
 
     points = [
         {"method": "sac", "base": "env.p1.speed=1.0 optimum_gamma=0.99"},

@@ -267,6 +267,7 @@ def run_recipe(*args: str) -> subprocess.CompletedProcess:
     )
 
 
+@pytest.mark.e2e
 def test_sac_runs_scored_exactly_and_writes_its_shares(tmp_path):
     out = tmp_path / "run"
     r = run_recipe("recipes/sac.py", *TINY_SAC, f"hydra.run.dir={out}")
@@ -309,6 +310,7 @@ def test_sac_reaches_the_continuum_optimum_and_fails_without_the_sensing_curve()
     assert scorer.ratio(blind.greedy[0]) < 0.95
 
 
+@pytest.mark.e2e
 def test_dqn_over_levels_scores_against_both_optima(tmp_path):
     """``recipes/dqn.py env.actions=levels``: G actions, scored against the G-level optimum, read
     against the optimum over ρ; policy.csv gives each state's level and share."""
@@ -344,7 +346,7 @@ def test_the_levels_profile_is_dqn_over_levels_longer_and_wider():
     alone; nothing else); a network chosen on the command line still wins."""
     from conftest import load
 
-    from irdrc.agents.configs.value import THOUSAND_ROWS, NetworkConfig
+    from irdrc.agents.configs.value import NetworkConfig
 
     levels, dqn = load("dqn", "algo=dqn_levels"), load("dqn")
     assert levels.params.env.actions == "levels" and levels.algo.total_frames == 1_000_000
@@ -353,7 +355,13 @@ def test_the_levels_profile_is_dqn_over_levels_longer_and_wider():
         dqn.algo,
         lr=3e-3,
         center_on="rewards",
-        **{**THOUSAND_ROWS, "total_frames": 1_000_000, "network": medium},
+        num_envs=1000,
+        frames_per_batch=2000,
+        total_frames=1_000_000,
+        batch_size=1000,
+        updates_per_batch=4,
+        reward_means=False,
+        network=medium,
     )
     for chosen, hidden in (("network=large", (256, 256)), ("network.hidden=[32,32]", (32, 32))):
         assert load("dqn", "algo=dqn_levels", chosen).algo.network.hidden == hidden

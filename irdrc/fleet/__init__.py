@@ -15,5 +15,5 @@
 - ``search``: local search for the best decentralised policy.
 
 May import: torch, tensordict, torchrl (env specs) and ``irdrc.core``. Nothing from
-``irdrc.agents``, ``irdrc.experiments`` or ``irdrc.paper``; nothing of Hydra, files or Ray.
+``irdrc.agents`` or any layer above it; nothing of Hydra, files or Ray.
 """

@@ -21,8 +21,8 @@ from pathlib import Path
 
 from omegaconf import OmegaConf
 
-from irdrc.experiments.grid import shell_quote
-from irdrc.experiments.results import atomic_write_text
+from irdrc.runs.grid import shell_quote
+from irdrc.runs.results import atomic_write_text
 
 TABLE_FILES_IGNORED = ("claims.md",)
 """``*.md`` files of a run directory that are not its benchmark table (Figure 2's claims go into

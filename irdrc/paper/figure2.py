@@ -2,7 +2,7 @@
 
 ``run`` plans every training run (DQN: one per seed and p^v_1; Q-learning: one vectorised
 batch per profile holding every seed and p^v_1), executes them with the sweep engine
-(``irdrc.experiments.trials``), adds the exact optimum and round-robin, and writes one CSV and one PNG
+(``irdrc.sweeps.trials``), adds the exact optimum and round-robin, and writes one CSV and one PNG
 per panel and the claims table. Every run is read the same way, whatever its method: its
 ``learners.csv`` (one row per learner, with its scenario), ``metrics.csv`` and
 ``episode_rewards.csv`` (one schema, rows tagged by learner).
@@ -16,17 +16,17 @@ from typing import Any
 
 from irdrc.core.checks import INT, build, check_choice, check_list, check_number, check_numbers
 from irdrc.core.params import Params
-from irdrc.experiments.compose import Composed
-from irdrc.experiments.frontier import optimal_at, ref_params
-from irdrc.experiments.grid import format_value, parse_grid
-from irdrc.experiments.results import atomic_write_text, write_rows_csv
-from irdrc.experiments.sections import EXECUTOR, ONE_VEHICLE, Executor, check_common
-from irdrc.experiments.trials import execute, plan
 from irdrc.paper import claims as cl
 from irdrc.paper.panels import Figure, exact_reference, panel_a, panels_bcd
+from irdrc.recipes import dqn, qlearning
+from irdrc.recipes.constrained.frontier import optimal_at, ref_params
+from irdrc.runs.compose import Composed
+from irdrc.runs.grid import format_value, parse_grid
+from irdrc.runs.results import atomic_write_text, write_rows_csv
+from irdrc.runs.sections import EXECUTOR, ONE_VEHICLE, Executor, check_common
+from irdrc.sweeps.trials import execute, plan
 
 NAME = "figure2"
-RENAMED = {"dqn_eval_every_frames": "eval.every_frames"}
 PANELS = ("a", "bcd")
 LEARNER_METHODS = ("dqn", "qlearning")
 
@@ -126,11 +126,11 @@ def plan_figure2(cfg: Config, scenario: list[str]) -> list[dict[str, Any]]:
             common.append(f"eval.every_frames={cfg.eval['every_frames']}")
         if spec.method == "dqn":
             points = parse_grid({"env.p1.speed": values, "seed": seeds})
-            runs = plan("dqn", points, common)
+            runs = plan(dqn, points, common)
         else:
             grid = "{env.p1.speed: " + format_value(values) + "}"
             base = [*common, f"num_learners={len(seeds)}", f"batch_grid={grid}"]
-            runs = plan("qlearning", [{"seed": seeds[0]}], base)
+            runs = plan(qlearning, [{"seed": seeds[0]}], base)
         for r in runs:
             r["learner"] = name
         planned.extend(runs)

@@ -13,8 +13,6 @@ from typing import Any
 from irdrc.core.exact import Scorer, build_model, episodic_metrics, stationary_metrics
 from irdrc.core.metrics import Metrics, first_reaching
 from irdrc.core.params import Params
-from irdrc.experiments.frontier import ref_params
-from irdrc.experiments.results import write_rows_csv
 from irdrc.paper import plots
 from irdrc.paper.figures import (
     band_rows,
@@ -24,6 +22,8 @@ from irdrc.paper.figures import (
     same_value,
     to_float,
 )
+from irdrc.recipes.constrained.frontier import ref_params
+from irdrc.runs.results import write_rows_csv
 
 
 @dataclass

@@ -12,7 +12,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 
-from irdrc.experiments.results import atomic_savefig
+from irdrc.runs.results import atomic_savefig
 
 STYLE = {
     "dqn": {"color": "tab:blue", "label": "DQN (ours)"},

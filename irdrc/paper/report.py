@@ -9,9 +9,9 @@ import shutil
 from pathlib import Path
 from typing import Any
 
-from irdrc.experiments.results import atomic_write_text, md_table
 from irdrc.paper.docs import replace_block
 from irdrc.paper.figures import read_csv, same_value
+from irdrc.runs.results import atomic_write_text, md_table
 
 FIGURES = ("panel_a.png", "panel_b.png", "panel_c.png", "panel_d.png")
 

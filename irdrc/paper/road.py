@@ -19,10 +19,10 @@ from pathlib import Path
 
 from irdrc.core.exact import exact_scorer, stationary_metrics
 from irdrc.core.params import Params
-from irdrc.experiments.results import atomic_write_text, measured_line
 from irdrc.online.figures import plot_learners
 from irdrc.paper.claims import Verdict, claim1, format_claims
 from irdrc.paper.docs import replace_block, run_command
+from irdrc.runs.results import atomic_write_text, measured_line
 
 BLOCK = "fig2a_one_vehicle"
 FIGURE = Path("docs/figures/fig2a_one_vehicle.png")

@@ -20,15 +20,16 @@ from typing import Any
 from irdrc.core.checks import build, check_bool, check_list, check_number, numbers
 from irdrc.core.metrics import Metrics
 from irdrc.core.params import Params
-from irdrc.experiments.compose import Composed
-from irdrc.experiments.frontier import optimal_at, ref_params
-from irdrc.experiments.grid import parse_grid
-from irdrc.experiments.progress import Ticker
-from irdrc.experiments.results import write_rows_csv
-from irdrc.experiments.sections import EXECUTOR, ONE_VEHICLE, Executor, check_common, seeds
-from irdrc.experiments.trials import execute, plan
 from irdrc.paper import plots
 from irdrc.paper.figures import mean_ci, same_value, to_float
+from irdrc.recipes import dqn
+from irdrc.recipes.constrained.frontier import optimal_at, ref_params
+from irdrc.runs.compose import Composed
+from irdrc.runs.grid import parse_grid
+from irdrc.runs.progress import Ticker
+from irdrc.runs.results import write_rows_csv
+from irdrc.runs.sections import EXECUTOR, ONE_VEHICLE, Executor, check_common, seeds
+from irdrc.sweeps.trials import execute, plan
 
 NAME = "tradeoff"
 SOLVES_LIMIT = 5_000
@@ -125,7 +126,7 @@ def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
         f"env.p1.speed={cfg.p1_speed[0]}",
     ]
     grid = parse_grid({"reward.r4": list(cfg.dqn.r4), "seed": list(cfg.dqn.seeds)})
-    return replace(cfg, planned=tuple(plan("dqn", grid, base)))
+    return replace(cfg, planned=tuple(plan(dqn, grid, base)))
 
 
 def smallest_r4(

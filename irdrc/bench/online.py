@@ -1,0 +1,346 @@
+"""``recipes/bench_online.py``: the learners on one stream over named scenarios × seeds no tuning used
+and random contested scenarios nobody tuned them for, each run scored by the ledger; the safe
+learner at each miss target beside the Lagrangian DQN's own training.
+
+    python recipes/bench_online.py                                    # the whole benchmark
+    python recipes/bench_online.py 'scenarios=[paper]' random_draws=0 'safe_targets=[]'
+    python recipes/bench_online.py 'learners=[posterior]' 'seeds=[10,11]'
+
+Per learner and scenario: the runs whose greedy policy reaches 0.99 of the optimum within
+``window`` episodes, episodes to 0.95 / 0.99, the share of later evaluations at or above 0.99, the
+regret and the expected missed events over the first ``window`` episodes beside the optimum's own
+(the floor), and the speed. Every run is a process of its own (``workers`` at a time); a run's
+result is kept in ``runs/`` as it finishes, and ``resume=true`` into the same directory runs only
+the rest.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from irdrc.bench.online_tables import lagrangian_row, learner_table, run_row, safe_table
+from irdrc.bench.random_scenarios import REPORTING, contested_draws
+from irdrc.core.checks import INT, build, check_bool, check_list, check_numbers, numbers
+from irdrc.online.configs import LEARNERS, PROFILES
+from irdrc.runs.compose import Composed, list_scenarios
+from irdrc.runs.sections import seeds
+
+NAME = "bench_online"
+
+
+def _names(key: str, value: Any, allowed: list[str], empty: bool = False) -> tuple[str, ...]:
+    out = check_list(key, value, empty=empty)
+    for name in out:
+        if name not in allowed:
+            raise ValueError(f"{key}: {name!r} must be one of {', '.join(allowed)}")
+    return out
+
+
+@dataclass(frozen=True)
+class Config:
+    """The benchmark's keys (``recipes/conf/bench_online.yaml``)."""
+
+    scenarios: tuple[str, ...] = ("paper", "multilevel", "imperfect_radar")
+    seeds: tuple[int, ...] = tuple(range(10, 20))
+    learners: tuple[str, ...] = ("posterior", "dqn", "qlearning", "qlearning_paper")
+    paper_learners: tuple[str, ...] = ("dqn_paper",)
+    paper_seeds: tuple[int, ...] = (10, 11, 12)
+    random_draws: int = 30
+    first_draw: int = REPORTING
+    random_seed: int = 10
+    random_learners: tuple[str, ...] = ("posterior", "dqn")
+    episodes: int = 200
+    window: int = 170
+    safe_targets: tuple[float, ...] = (0.05, 0.1)
+    safe_scenarios: tuple[str, ...] = ("paper", "multilevel", "persistent")
+    lagrangian_seeds: tuple[int, ...] = (10,)
+    workers: int = 2
+    resume: bool = False
+    optimum_gamma: float = 0.99
+
+    def __post_init__(self) -> None:
+        envs = list_scenarios()
+        learners = [n for n in LEARNERS if n != "safe"]
+        object.__setattr__(self, "scenarios", _names("scenarios", self.scenarios, envs, True))
+        object.__setattr__(self, "seeds", seeds("seeds", self.seeds))
+        object.__setattr__(self, "paper_seeds", seeds("paper_seeds", self.paper_seeds))
+        for key in ("learners", "paper_learners", "random_learners"):
+            object.__setattr__(self, key, _names(key, getattr(self, key), learners, True))
+        object.__setattr__(
+            self, "safe_scenarios", _names("safe_scenarios", self.safe_scenarios, envs, True)
+        )
+        targets = check_list(
+            "safe_targets", self.safe_targets, numbers(0, 1, open_lo=True, open_hi=True), empty=True
+        )
+        object.__setattr__(self, "safe_targets", targets)
+        check_numbers(
+            self,
+            "",
+            (
+                ("random_draws", 0, 10_000, INT),
+                ("first_draw", 0, 10**9, INT),
+                ("random_seed", 0, 2**32 - 1, INT),
+                ("episodes", 1, 10**6, INT),
+                ("window", 1, 10**6, INT),
+                ("workers", 1, 1024, INT),
+                ("optimum_gamma", 0, 1, {"open_hi": True}),
+            ),
+        )
+        object.__setattr__(
+            self,
+            "lagrangian_seeds",
+            check_list("lagrangian_seeds", self.lagrangian_seeds, empty=True),
+        )
+        check_bool("resume", self.resume)
+        if self.window > self.episodes:
+            raise ValueError(f"window={self.window} must be <= episodes={self.episodes}")
+
+
+def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
+    """The typed config, checked."""
+    return build(Config, composed.cfg)
+
+
+# -- the runs -----------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Job:
+    """One run: ``learner`` on ``scenario`` (a named scenario, or ``draw N``) with ``seed``;
+    ``target`` for the safe learner and the Lagrangian DQN."""
+
+    learner: str
+    scenario: str
+    seed: int
+    episodes: int
+    target: float | None = None
+    overrides: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def name(self) -> str:
+        """The run's file name in ``runs/``."""
+        tail = f"__m{self.target:g}" if self.target is not None else ""
+        return f"{self.learner}__{self.scenario.replace(' ', '')}__{self.seed}{tail}"
+
+
+def scenario_params(job: Job) -> Any:
+    """The job's ``Params``: a named scenario with the paper's reward, or a random draw's keys."""
+    from irdrc.core.params import Params
+
+    if job.overrides:
+        return Params.from_overrides(job.overrides)
+    from irdrc.runs.compose import compose
+
+    cfg = compose("solve", [f"env={job.scenario}"]).cfg
+    return Params.from_config({"env": cfg["env"], "reward": cfg["reward"]})
+
+
+def run_job(job: Job, gamma: float) -> dict[str, Any]:
+    """One run in this process: its history and wall time (a learner on one stream), or the
+    Lagrangian DQN's cumulative miss detection over its training."""
+    import torch
+
+    torch.set_num_threads(1)
+    params = scenario_params(job)
+    from irdrc.core.exact import exact_scorer
+
+    scorer = exact_scorer(params, gamma)
+    t0 = time.perf_counter()
+    if job.learner == "dqn_lagrangian":
+        from irdrc.agents import lagrangian
+        from irdrc.agents.base import Hooks
+        from irdrc.agents.configs import LagrangianConfig
+        from irdrc.agents.configs.lagrangian import SearchConfig
+
+        trace: list[dict[str, float]] = []
+        hooks = Hooks(on_batch=lambda info: trace.append(dict(info)))
+        # its training is what is read: the final policy's search after it is kept to one look
+        quick = SearchConfig(
+            measure_envs=2,
+            measure_steps=1,
+            measure_burn_in=0,
+            measure_max_blocks=1,
+            mix_steps=0,
+            confirm=False,
+        )
+        lagrangian.train(
+            params,
+            LagrangianConfig(target_miss=job.target, search=quick),
+            seed=job.seed,
+            scorer=scorer,
+            hooks=hooks,
+        )
+        points = [
+            {"env_steps": r["env_steps"], "cumulative_miss": r["cumulative_miss"]}
+            for r in trace
+            if not math.isnan(r["cumulative_miss"])
+        ]
+        return {"trace": points, "wall_seconds": time.perf_counter() - t0}
+    from irdrc.online.configs import learner_config
+    from irdrc.online.learners import make_learner
+    from irdrc.online.loop import learn_on_stream
+
+    algo = {"episodes": job.episodes, **({"target_miss": job.target} if job.target else {})}
+    cfg = learner_config(job.learner, algo)
+    greedy_scorer = None
+    if job.learner == "safe":
+        from irdrc.online.safe import ConstrainedScorer
+
+        greedy_scorer = ConstrainedScorer(scorer, job.target)
+    learner = make_learner(job.learner, cfg, params, job.seed)
+    record = learn_on_stream(
+        learner, params, scorer, episodes=job.episodes, seed=job.seed, greedy_scorer=greedy_scorer
+    )
+    return {
+        "history": record.history,
+        "wall_seconds": record.wall_seconds,
+        "seconds_learning": record.info["seconds_act_and_learn"]
+        + record.info["seconds_episode_end"],
+        "lp_throughput": greedy_scorer.lp.value if greedy_scorer is not None else None,
+    }
+
+
+def plan(cfg: Config, draws: list) -> list[Job]:
+    """Every run of the benchmark."""
+    jobs = []
+    for scenario in cfg.scenarios:
+        jobs += [Job(n, scenario, s, cfg.episodes) for n in cfg.learners for s in cfg.seeds]
+        if scenario == "paper":
+            jobs += [
+                Job(n, scenario, s, cfg.episodes)
+                for n in cfg.paper_learners
+                for s in cfg.paper_seeds
+            ]
+    for d in draws:
+        jobs += [
+            Job(n, f"draw {d.index}", cfg.random_seed, cfg.episodes, overrides=d.overrides)
+            for n in cfg.random_learners
+        ]
+    # the safe learner solves an LP every episode: its runs stop at the window
+    for target in cfg.safe_targets:
+        for scenario in cfg.safe_scenarios:
+            jobs += [Job("safe", scenario, s, cfg.window, target) for s in cfg.seeds]
+            jobs += [
+                Job("dqn_lagrangian", scenario, s, cfg.window, target) for s in cfg.lagrangian_seeds
+            ]
+    return jobs
+
+
+def execute(cfg: Config, jobs: list[Job], out: Path) -> dict[str, dict[str, Any]]:
+    """Run every job not in ``out/runs`` yet (all of them unless ``resume``), ``workers`` at a time
+    in processes of their own, keeping each result as it finishes; returns every job's result."""
+    import concurrent.futures as cf
+    import multiprocessing
+
+    from irdrc.runs.progress import Ticker
+    from irdrc.runs.results import atomic_write_text
+
+    runs = out / "runs"
+    runs.mkdir(parents=True, exist_ok=True)
+    results = {}
+    todo = []
+    for job in jobs:
+        path = runs / f"{job.name}.json"
+        if cfg.resume and path.is_file():
+            results[job.name] = json.loads(path.read_text())
+        else:
+            todo.append(job)
+    ticker = Ticker(len(todo), "bench_online", every_seconds=30)
+    ctx = multiprocessing.get_context("spawn")
+    with cf.ProcessPoolExecutor(cfg.workers, mp_context=ctx) as pool:
+        futures = {pool.submit(run_job, job, cfg.optimum_gamma): job for job in todo}
+        for fut in cf.as_completed(futures):
+            job = futures[fut]
+            result = fut.result()
+            atomic_write_text(runs / f"{job.name}.json", json.dumps(_clean(result)))
+            results[job.name] = result
+            ticker.tick()
+    return results
+
+
+def _clean(x: Any) -> Any:
+    """NaN as None (JSON)."""
+    if isinstance(x, float) and math.isnan(x):
+        return None
+    if isinstance(x, dict):
+        return {k: _clean(v) for k, v in x.items()}
+    if isinstance(x, list):
+        return [_clean(v) for v in x]
+    return x
+
+
+def run(cfg: Config, run) -> int:
+    """Every run, then ``bench_online.csv`` (a row per run), ``bench_online.md`` (the tables) and
+    ``bench_online.png`` (each named scenario's learners against episodes)."""
+    from irdrc.online.figures import plot_learners
+    from irdrc.runs.results import write_rows_csv, write_table_md
+
+    start = time.perf_counter()
+    draws = (
+        contested_draws(cfg.first_draw, cfg.random_draws, cfg.optimum_gamma)
+        if cfg.random_draws
+        else []
+    )
+    jobs = plan(cfg, draws)
+    print(f"bench_online: {len(jobs)} runs, {cfg.workers} at a time, into {run.dir}", flush=True)
+    results = execute(cfg, jobs, Path(run.dir))
+    rows, safe, lag = [], [], []
+    for job in jobs:
+        result = results[job.name]
+        if job.learner == "dqn_lagrangian":
+            lag.append(lagrangian_row(job, result, scenario_params(job).env.horizon))
+        elif job.learner == "safe":
+            safe.append(run_row(job, result, cfg.window))
+        else:
+            rows.append(run_row(job, result, cfg.window))
+    every = rows + safe + lag
+    fields = list(dict.fromkeys(k for r in every for k in r))
+    write_rows_csv(run.dir / "bench_online.csv", every, fields)
+    parts = []
+    if rows:
+        parts.append(learner_table(rows, cfg.window))
+        parts.append(
+            f"{len(cfg.seeds)} seeds per named scenario ({', '.join(map(str, cfg.seeds))}"
+            + (
+                f"; {', '.join(cfg.paper_learners)}: {', '.join(map(str, cfg.paper_seeds))}"
+                if cfg.paper_learners and "paper" in cfg.scenarios
+                else ""
+            )
+            + "); "
+            + (
+                f"{len(draws)} contested random draws ({draws[0].index}–{draws[-1].index}), seed "
+                f"{cfg.random_seed}; "
+                if draws
+                else ""
+            )
+            + f"{cfg.episodes} episodes per run; medians over runs, worst in brackets. Regret and "
+            "missed events are the exact ledger's (the behaviour policy of each episode)."
+        )
+    if safe:
+        parts.append(safe_table(safe, lag, cfg.window))
+    table = "\n\n".join(parts)
+    print("\n" + table)
+    write_table_md(run.dir / "bench_online.md", table, time.perf_counter() - start)
+    for scenario in cfg.scenarios:
+        histories = {
+            n: [
+                results[j.name]["history"]
+                for j in jobs
+                if j.learner == n and j.scenario == scenario
+            ]
+            for n in dict.fromkeys(
+                j.learner
+                for j in jobs
+                if j.scenario == scenario and j.learner in PROFILES and j.learner != "safe"
+            )
+        }
+        plot_learners(
+            histories, run.dir / f"bench_online_{scenario}.png", f"one stream, {scenario}"
+        )
+    run.finish(None)
+    return 0

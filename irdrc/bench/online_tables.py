@@ -1,0 +1,176 @@
+"""The tables of ``recipes/bench_online.py``: one row per run (convergence, the ledger at the
+window, the speed), then medians per learner and scenario, and the safe learner beside the
+Lagrangian DQN's training."""
+
+from __future__ import annotations
+
+import math
+import statistics
+from typing import TYPE_CHECKING, Any
+
+from irdrc.runs.results import md_table
+
+if TYPE_CHECKING:
+    from irdrc.bench.online import Job
+
+THRESHOLD = 0.99
+
+
+def run_row(job: Job, result: dict[str, Any], window: int) -> dict[str, Any]:
+    """One run's figures: convergence, the ledger at ``window`` episodes, the speed."""
+    from irdrc.online.recipe import convergence
+
+    hist = result["history"]
+    at = next((r for r in hist if r["episodes"] >= window), hist[-1])
+    conv = convergence(hist)
+    steps = hist[-1]["env_steps"]
+    row = {
+        "learner": job.learner,
+        "scenario": job.scenario,
+        "seed": job.seed,
+        "target_miss": job.target,
+        **conv,
+        "within_window": conv["episodes_to_99"] is not None and conv["episodes_to_99"] <= window,
+        "final_ratio": hist[-1]["optimality_ratio"],
+        "regret": at["regret"],
+        "expected_missed": at["expected_missed"],
+        "floor_missed": at["floor_missed"],
+        "realised_regret": at["realised_regret"],
+        "realised_missed": at["realised_missed"],
+        "steps_per_second": steps / result["seconds_learning"]
+        if result.get("seconds_learning")
+        else None,
+        "wall_seconds": result["wall_seconds"],
+    }
+    if job.learner == "safe":
+        cum = [
+            r["cumulative_miss_detection"]
+            for r in hist
+            if r.get("cumulative_miss_detection") is not None
+            and not _nan(r["cumulative_miss_detection"])
+        ]
+        row.update(
+            {
+                "worst_cumulative_miss": max(cum, default=0.0),
+                "violations": sum(c > job.target + 1e-12 for c in cum),
+                "expected_holds": all(
+                    r["expected_missed"] <= job.target * r["expected_events"] + 1e-9 for r in hist
+                ),
+                "lp_ratio": at.get("lp_ratio"),
+                "meets_target": bool(at.get("meets_target")),
+                "greedy_miss": at["miss_detection"],
+            }
+        )
+    return row
+
+
+def _nan(x: Any) -> bool:
+    return x is None or (isinstance(x, float) and math.isnan(x))
+
+
+def _med(values: list) -> str:
+    values = [v for v in values if v is not None]
+    return f"{statistics.median(values):.4g}" if values else "—"
+
+
+def learner_table(rows: list[dict[str, Any]], window: int) -> str:
+    """One row per (learner, scenario set): medians (worst) over its runs."""
+    body = []
+    groups: dict[tuple[str, str], list[dict[str, Any]]] = {}
+    for r in rows:
+        where = "random draws" if r["scenario"].startswith("draw") else r["scenario"]
+        groups.setdefault((r["learner"], where), []).append(r)
+    for (learner, where), mine in groups.items():
+        ep99 = [r["episodes_to_99"] for r in mine]
+        reached = [e for e in ep99 if e is not None]
+        later = [r["stay_99"] for r in mine if r["stay_99"] is not None]
+        body.append(
+            [
+                learner,
+                where,
+                f"{sum(r['within_window'] for r in mine)}/{len(mine)}",
+                _med(reached) + (f" ({max(reached)})" if reached else ""),
+                _med([r["episodes_to_95"] for r in mine]),
+                _med(later),
+                f"{_med([r['regret'] for r in mine])} ({max(r['regret'] for r in mine):.4g})",
+                f"{_med([r['expected_missed'] for r in mine])} ({max(r['expected_missed'] for r in mine):.4g})",
+                _med([r["floor_missed"] for r in mine]),
+                _med([r["steps_per_second"] for r in mine]),
+            ]
+        )
+    return md_table(
+        [
+            "learner",
+            "scenario",
+            f"≥ {THRESHOLD} within {window} episodes",
+            "episodes to 0.99, median (worst)",
+            "episodes to 0.95",
+            "later evaluations ≥ 0.99",
+            f"regret over {window} episodes, median (worst)",
+            f"missed events over {window} episodes, median (worst)",
+            "the optimum's (floor)",
+            "env steps/s of training",
+        ],
+        body,
+    )
+
+
+def safe_table(rows: list[dict[str, Any]], lag: list[dict[str, Any]], window: int) -> str:
+    """The safe learner per (target, scenario), with the Lagrangian DQN's training beside it."""
+    body = []
+    groups: dict[tuple[float, str], list[dict[str, Any]]] = {}
+    for r in rows:
+        groups.setdefault((r["target_miss"], r["scenario"]), []).append(r)
+    for (target, scenario), mine in groups.items():
+        theirs = [r for r in lag if r["target_miss"] == target and r["scenario"] == scenario]
+        ratios = [r["lp_ratio"] for r in mine if r["lp_ratio"] is not None]
+        body.append(
+            [
+                f"{target:g}",
+                scenario,
+                f"{sum(r['violations'] == 0 for r in mine)}/{len(mine)}",
+                f"{max(r['worst_cumulative_miss'] for r in mine):.4f}",
+                f"{sum(r['expected_holds'] for r in mine)}/{len(mine)}",
+                f"{_med(ratios)} ({min(ratios):.4f})" if ratios else "—",
+                f"{sum(r['meets_target'] for r in mine)}/{len(mine)}",
+                (
+                    f"{sum(r['violations'] == 0 for r in theirs)}/{len(theirs)}, worst "
+                    f"{max(r['worst_cumulative_miss'] for r in theirs):.4f}"
+                )
+                if theirs
+                else "—",
+            ]
+        )
+    return md_table(
+        [
+            "target_miss",
+            "scenario",
+            "runs within the target at every evaluation",
+            "worst cumulative miss detection",
+            "expected missed ≤ target × expected events, every evaluation",
+            f"greedy plan's packets / the LP's at {window} episodes, median (worst)",
+            "greedy plan's long-run miss ≤ target",
+            "Lagrangian DQN's training: runs within the target throughout",
+        ],
+        body,
+    )
+
+
+def lagrangian_row(job: Job, result: dict[str, Any], horizon: int) -> dict[str, Any]:
+    """The Lagrangian DQN's training: its cumulative miss detection (every row's steps) at the
+    first batch past each multiple of ``horizon`` env steps, as the safe learner's is read after
+    each episode: how often it was over the target."""
+    cum, mark = [], horizon
+    for p in result["trace"]:
+        if p["env_steps"] >= mark:
+            cum.append(p["cumulative_miss"])
+            mark = (p["env_steps"] // horizon + 1) * horizon
+    return {
+        "learner": job.learner,
+        "scenario": job.scenario,
+        "seed": job.seed,
+        "target_miss": job.target,
+        "worst_cumulative_miss": max(cum, default=0.0),
+        "violations": sum(c > job.target + 1e-12 for c in cum),
+        "points": len(cum),
+    }

@@ -1,0 +1,202 @@
+"""Scenarios a user might type, drawn at random (``recipes/bench_robust.py scenarios=random``):
+every model key of MODEL.md v1/§ B — queue size, arrival rate (or bursty arrivals), packets per
+channel level, every factor's chain and event probabilities, the event model, the radar reaction,
+reward weights from 0.1 to 100, three-level factors, an imperfect radar — kept to the *contested*
+ones: neither always-radar nor always-comm within ``CONTESTED`` of the exact optimum's long-run
+average reward (which must be positive, so that a ratio to it means something).
+
+Draw ``i`` is a pure function of ``i`` (``draw_overrides``): the benchmark's draws are reproducible
+and named by index. The learners' defaults were chosen on draws ``TUNING`` and are reported on draws
+from ``REPORTING`` up, which no choice looked at.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from irdrc.runs.grid import format_value
+
+CONTESTED = 0.9
+"""A draw is kept when both always-radar and always-comm earn less than this of the optimum."""
+
+TUNING = range(0, 8200)
+"""Draw indices the defaults may be chosen on: 0–999; 1000–1999 since the first report on draws
+1000–1295 (its shortfalls were screened when reward centering was made to follow the values),
+2000–2999 since the second, on draws 2000–2313 (its shortfalls were screened for the learning rate),
+3000–3399 since the third, on draws 3000–3322 (its shortfalls were screened for the dueling head),
+3400–3799 since the fourth, on draws 3400–3717 (where the dueling head was measured against the
+default: docs/DQN.md), 3800–4199 since the fifth, on draws 3800–4118 (its shortfalls were
+screened when centering on the values became the default), 4200–4599 since the sixth, on draws
+4200–4434 (its shortfalls were rerun with more env steps), 4600–4899 since the seventh, on draws
+4600–4867 (where fewer updates per env step over more env steps was measured against the default),
+4900–5199 since the eighth, on draws 4900–5192 (where a quarter of the updates per env step over
+four times the env steps was), 5200–5499 since the ninth, on draws 5200–5459 (the same comparison
+again), 5500–5899 since the tenth, on draws 5500–5825 (where four times the env steps from four
+times the rows was), 5900–6299 since the eleventh, on draws 5900–6173 (the same rows with half
+as many updates of twice the transitions), 6300–6699 since the twelfth, on draws 6300–6633
+(where the mean reward of each observation and action over eight times the env steps was),
+6700–6999 since the thirteenth, on draws 6700–6994 (the same with half as many updates of twice
+the transitions; its shortfall was rerun over seeds), 7000–7399 since the fourteenth, on draws
+7000–7323 (where a slower target was; its shortfalls were rerun with other changes, and were part
+of the screen that chose the network and batch of the default since the fifteenth), 7400–7799
+since the fifteenth, on draws 7400–7721 (where that network and batch were), and 7800–8199 since
+the sixteenth, on draws 7800–8098 (where that default was measured against the one before it)."""
+
+REPORTING = 8200
+"""The first draw index of the reported benchmark (``first_draw``): none of them was looked at
+before it reported."""
+
+OPTIONAL = ("env.factors", "env.bursty", "env.detection_prob", "env.false_alarm_prob", "reward.r5")
+"""Keys absent from the base scenario (a command line adds them with ``+``)."""
+
+
+def _sig(x: float, digits: int = 3) -> float:
+    """``x`` to ``digits`` significant digits: numbers a user would type."""
+    return 0.0 if x == 0 else float(f"{x:.{digits}g}")
+
+
+def _log_uniform(rng: np.random.Generator, lo: float, hi: float) -> float:
+    return _sig(math.exp(rng.uniform(math.log(lo), math.log(hi))))
+
+
+def _three_levels(rng: np.random.Generator, top: float) -> dict[str, Any]:
+    """A random three-level factor: a sticky chain, event probabilities rising with the level."""
+    rows = []
+    for i in range(3):
+        w = rng.uniform(0.0, 1.0, 3)
+        w[i] += rng.uniform(1.0, 6.0)
+        row = [_sig(x) for x in w / w.sum()]
+        row[i] = round(1.0 - sum(x for j, x in enumerate(row) if j != i), 12)
+        rows.append(row)
+    events = sorted(_log_uniform(rng, 1e-4, top) for _ in range(3))
+    return {"levels": ["low", "medium", "high"], "transition": rows, "event": events}
+
+
+def draw_overrides(index: int) -> dict[str, Any]:
+    """Draw ``index``: model keys as on the command line (dotted) → values."""
+    if not isinstance(index, int) or index < 0:
+        raise ValueError(f"a draw index is a whole number ≥ 0; got {index!r}")
+    rng = np.random.default_rng([0x1DC, index])
+    out: dict[str, Any] = {"env.queue_capacity": round(_log_uniform(rng, 2, 20))}
+    if rng.random() < 0.2:
+        out["env.arrival_rate"] = None
+        x, y = _sig(rng.uniform(0.02, 0.3)), _sig(rng.uniform(0.05, 0.5))
+        out["env.bursty"] = {
+            "rates": sorted([_sig(rng.uniform(0.1, 1.0)), _sig(rng.uniform(1.0, 4.0))]),
+            "transition": [[round(1 - x, 12), x], [y, round(1 - y, 12)]],
+        }
+    else:
+        out["env.arrival_rate"] = _sig(rng.uniform(0.2, 3.0))
+    good = int(rng.integers(1, 9))
+    out["env.packets_good"], out["env.packets_bad"] = good, int(rng.integers(0, good + 1))
+    factors = {}
+    for name, top in (("speed", 0.5), ("object", 0.3)):
+        if rng.random() < 0.25:
+            factors[name] = _three_levels(rng, top)
+    for name in ("road", "weather", "speed", "object"):
+        if name in factors:
+            continue
+        p0 = _log_uniform(rng, 1e-4, 2e-2)
+        out[f"env.p0.{name}"], out[f"env.p1.{name}"] = p0, _log_uniform(rng, p0, 0.5)
+    for name in ("channel", "road", "weather", "speed", "object"):
+        if name in factors:
+            continue
+        out[f"env.stay_good.{name}"] = _sig(rng.uniform(0.5, 0.99))
+        out[f"env.stay_bad.{name}"] = _sig(rng.uniform(0.05, 0.95))
+    if factors:
+        out["env.factors"] = factors
+    out["env.event_model"] = str(rng.choice(["noisy_or", "sum"]))
+    out["env.radar_reaction"] = bool(rng.random() < 0.8)
+    out["env.reaction_clear"] = _sig(rng.uniform(0.3, 1.0))
+    r1 = _log_uniform(rng, 0.1, 100)
+    out["reward.r1"], out["reward.r2"] = r1, _sig(r1 * rng.uniform(0.05, 1.0))
+    out["reward.r3"], out["reward.r4"] = _log_uniform(rng, 0.1, 100), _log_uniform(rng, 0.1, 100)
+    if rng.random() < 0.25:
+        out["env.detection_prob"] = _sig(rng.uniform(0.7, 0.99))
+        out["env.false_alarm_prob"] = _sig(rng.uniform(0.0, 0.1))
+        out["reward.r5"] = _log_uniform(rng, 0.1, 100)
+    return out
+
+
+def command_line(overrides: dict[str, Any]) -> list[str]:
+    """The overrides as a command line types them (``+`` before keys the base config lacks)."""
+    out = []
+    for key, value in overrides.items():
+        plus = "+" if key.startswith(OPTIONAL) else ""
+        if isinstance(value, dict):
+            for sub, v in _flatten(value, key).items():
+                out.append(f"{plus}{sub}={format_value(v)}")
+        else:
+            out.append(f"{plus}{key}={format_value(value)}")
+    return out
+
+
+def _flatten(value: dict[str, Any], prefix: str) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for k, v in value.items():
+        if isinstance(v, dict):
+            out.update(_flatten(v, f"{prefix}.{k}"))
+        else:
+            out[f"{prefix}.{k}"] = v
+    return out
+
+
+@dataclass(frozen=True)
+class Draw:
+    """One kept draw: its index, overrides, and what made it contested.
+
+    Attributes:
+        index: the draw's index.
+        overrides: ``draw_overrides(index)``.
+        optimum: the exact optimum's long-run average reward per step.
+        always_radar, always_comm: the baselines' long-run average rewards, over the optimum's.
+        states: S.
+    """
+
+    index: int
+    overrides: dict[str, Any]
+    optimum: float
+    always_radar: float
+    always_comm: float
+    states: int
+
+
+def contested(index: int, gamma: float = 0.99) -> Draw | None:
+    """Draw ``index`` with its exact optimum and baselines, or None when it is not contested (or
+    its optimum earns ≤ 0 per step)."""
+    from irdrc.core.exact import build_model, stationary_metrics, value_iteration
+    from irdrc.core.params import Params
+
+    overrides = draw_overrides(index)
+    params = Params.from_overrides(overrides)
+    model = build_model(params)
+    best = stationary_metrics(model, value_iteration(model, gamma=gamma).policy).avg_reward
+    if best <= 0:
+        return None
+    radar, comm = (
+        stationary_metrics(model, p).avg_reward / best for p in ("always_radar", "always_comm")
+    )
+    if max(radar, comm) >= CONTESTED:
+        return None
+    return Draw(index, overrides, best, radar, comm, params.env.num_states)
+
+
+def contested_draws(
+    first: int, count: int, gamma: float = 0.99, progress: Callable[[int, int], None] | None = None
+) -> list[Draw]:
+    """The first ``count`` contested draws from index ``first`` up; ``progress(kept, tried)``
+    after each draw."""
+    out, index = [], first
+    while len(out) < count:
+        draw = contested(index, gamma)
+        if draw is not None:
+            out.append(draw)
+        index += 1
+        if progress is not None:
+            progress(len(out), index - first)
+    return out

@@ -1,0 +1,207 @@
+"""``recipes/bench_timeshare.py``: every learner of the radar share (MODEL.md § D) over scenarios ×
+seeds no tuning used, through the sweep engine, each run scored exactly against the optimum over
+ρ ∈ [0, 1] — SAC and PPO on the continuum, DQN over G levels (also against its own G-level
+optimum) — how many runs hold, how soon, and how fast they train.
+
+    python recipes/bench_timeshare.py                                 # 3 learners × 5 scenarios × 5 seeds
+    python recipes/bench_timeshare.py 'learners=[sac]' 'seeds=[5]'
+    python recipes/bench_timeshare.py executor=local 'scenarios={p0.1: [env.p1.speed=0.1]}'
+"""
+
+from __future__ import annotations
+
+import json
+import statistics
+import time
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+from irdrc.core.checks import build, check_choice, check_list
+from irdrc.runs.compose import Composed
+from irdrc.runs.grid import candidate_overrides, parse_grid
+from irdrc.runs.results import md_table
+from irdrc.runs.sections import EXECUTOR, Executor, check_common, seeds
+
+NAME = "bench_timeshare"
+
+LEARNERS = {
+    "sac": ("sac", []),
+    "ppo": ("ppo", []),
+    "dqn_levels": ("dqn", ["algo=dqn_levels", "env.actions=levels", "eval.mc_episodes=0"]),
+}
+"""Each learner's recipe and the overrides that make it a learner of shares."""
+
+SCENARIOS = {
+    "paper p1=0.1": ["env.p1.speed=0.1"],
+    "paper p1=0.5": ["env.p1.speed=0.5"],
+    "paper p1=1.0": ["env.p1.speed=1.0"],
+    "multilevel": ["env=multilevel"],
+    "imperfect_radar": ["env=imperfect_radar", "reward=imperfect_radar"],
+}
+"""The default scenarios (``scenarios``): the paper at three p^v_1, and two extensions."""
+
+THRESHOLDS = (0.95, 0.99)
+"""Where the table reports env steps and seconds to (of the optimum over ρ)."""
+
+
+@dataclass(frozen=True)
+class Config:
+    """The benchmark's keys (``recipes/conf/bench_timeshare.yaml``); ``planned``: every run, checked
+    (``irdrc.sweeps.trials.plan``), and ``owner``: each run's (learner, scenario)."""
+
+    learners: tuple[str, ...] = tuple(LEARNERS)
+    scenarios: dict | None = None
+    seeds: tuple[int, ...] = (5, 6, 7, 8, 9)
+    overrides: tuple[str, ...] = ()
+    threshold: float = 0.99
+    optimum_gamma: float = 0.99
+    csv: str = "bench_timeshare.csv"
+    executor: Executor = field(default_factory=Executor, metadata=EXECUTOR)
+    planned: tuple = field(default=(), metadata={"keys": ()})
+    owner: dict = field(default_factory=dict, metadata={"keys": ()})
+
+    def __post_init__(self) -> None:
+        check_common(self)
+        item = lambda key, v: check_choice(key, v, tuple(LEARNERS))  # noqa: E731
+        object.__setattr__(self, "learners", check_list("learners", self.learners, item))
+        object.__setattr__(self, "seeds", seeds("seeds", self.seeds))
+        object.__setattr__(self, "overrides", check_list("overrides", self.overrides, empty=True))
+
+    @property
+    def scenario_overrides(self) -> dict[str, list[str]]:
+        """Scenario name → its overrides (``SCENARIOS`` when ``scenarios`` is unset)."""
+        return candidate_overrides(self.scenarios or SCENARIOS, "scenarios")
+
+
+def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
+    """The typed config; every run composed and checked before any trial."""
+    from irdrc.recipes import dqn
+    from irdrc.recipes.shares import ppo, sac
+    from irdrc.sweeps.trials import plan
+
+    cfg = build(Config, composed.cfg)
+    base = [*cfg.overrides, f"optimum_gamma={cfg.optimum_gamma}", "checkpoint.every_frames=0"]
+    planned, owner = [], {}
+    for learner in cfg.learners:
+        method, extra = LEARNERS[learner]
+        module = {"sac": sac, "ppo": ppo, "dqn": dqn}[method]
+        for scenario, scen in cfg.scenario_overrides.items():
+            for p in plan(module, parse_grid({"seed": list(cfg.seeds)}), [*scen, *extra, *base]):
+                planned.append(p)
+                owner[p["point_id"]] = (learner, scenario)
+    return replace(cfg, planned=tuple(planned), owner=owner)
+
+
+def run(cfg: Config, run) -> int:
+    """Every (learner, scenario, seed) as one run; writes ``bench_timeshare.csv`` (a row per run)
+    and ``bench_timeshare.md`` (the table)."""
+    from irdrc.runs.results import read_csv_rows, write_rows_csv, write_table_md
+    from irdrc.sweeps.trials import execute
+
+    start = time.perf_counter()
+    out, planned = run.dir, list(cfg.planned)
+    code = execute(cfg.executor, planned, out, run.recipe)
+    rows = []
+    for p in planned:
+        tdir = Path(out) / "trials" / p["point_id"]
+        if (tdir / "summary.json").is_file():
+            learner, scenario = cfg.owner[p["point_id"]]
+            hist = read_csv_rows(tdir / "metrics.csv")
+            rows.append(run_row(learner, scenario, p["point"]["seed"], tdir, hist, cfg.threshold))
+    write_rows_csv(out / cfg.csv, rows)
+    table = timeshare_table(rows, cfg.learners, list(cfg.scenario_overrides), cfg.threshold)
+    print("\n" + table)
+    write_table_md(out / "bench_timeshare.md", table, time.perf_counter() - start)
+    run.finish(None)
+    return code
+
+
+def run_row(
+    learner: str, scenario: str, seed: int, tdir: Path, hist: list[dict], th: float
+) -> dict[str, Any]:
+    """One run: its final ratio to the optimum over ρ (and, over levels, to its own optimum), env
+    steps and seconds to each of ``THRESHOLDS`` of the optimum over ρ, and its training speed (env
+    steps per second of collecting and learning, the exact evaluations left out)."""
+    s = json.loads((tdir / "summary.json").read_text())
+    continuum = s.get("continuum", {}).get("optimal_avg_reward", s["optimal"]["avg_reward"])
+    ratios = [float(r["avg_reward"]) / continuum for r in hist]
+
+    def first(at: str, level: float) -> Any:
+        i = next((i for i, r in enumerate(ratios) if r >= level), None)
+        return None if i is None else float(hist[i][at])
+
+    training = sum(s.get(f"seconds_{k}", 0.0) for k in ("collect", "store", "learn"))
+    row = {
+        "learner": learner,
+        "scenario": scenario,
+        "seed": int(seed),
+        "final_ratio": s["metrics"]["avg_reward"] / continuum,
+        "own_ratio": s["optimality_ratio"],
+        "holds": s["metrics"]["avg_reward"] / continuum >= th,
+        "env_steps": int(s["env_steps"]),
+        "wall_seconds": float(s["wall_seconds"]),
+        "env_steps_per_s": int(s["env_steps"]) / training if training > 0 else None,
+    }
+    for level in THRESHOLDS:
+        row[f"env_steps_to_{level:g}"] = first("env_steps", level)
+        row[f"seconds_to_{level:g}"] = first("wall_seconds", level)
+    return row
+
+
+def timeshare_table(
+    rows: list[dict[str, Any]], learners: list[str], scenarios: list[str], th: float
+) -> str:
+    """The benchmark as Markdown: one row per (learner, scenario), medians over its seeds (steps
+    and seconds to a threshold over the runs that reached it)."""
+
+    def med(values: list, fmt: str = ",.0f") -> str:
+        values = [v for v in values if v is not None]
+        return format(statistics.median(values), fmt).replace(",", " ") if values else "—"
+
+    body = []
+    for learner in learners:
+        for scenario in scenarios:
+            mine = [r for r in rows if r["learner"] == learner and r["scenario"] == scenario]
+            if not mine:
+                continue
+            mine.sort(key=lambda r: r["seed"])
+            cells = [
+                learner,
+                scenario,
+                f"{sum(r['holds'] for r in mine)}/{len(mine)}",
+                ", ".join(f"{r['final_ratio']:.4f}" for r in mine),
+                f"{min(r['final_ratio'] for r in mine):.4f}",
+            ]
+            if learner == "dqn_levels":
+                own = sum(r["own_ratio"] >= th for r in mine)
+                cells.append(f"{own}/{len(mine)} (worst {min(r['own_ratio'] for r in mine):.4f})")
+            else:
+                cells.append("—")
+            for level in THRESHOLDS:
+                reached = [r[f"env_steps_to_{level:g}"] for r in mine]
+                cells.append(
+                    f"{med(reached)} ({med([r[f'seconds_to_{level:g}'] for r in mine], '.0f')} s)"
+                    f" {sum(x is not None for x in reached)}/{len(mine)}"
+                )
+            cells.append(med([r["env_steps_per_s"] for r in mine]))
+            cells.append(med([r["wall_seconds"] for r in mine], ".0f"))
+            body.append(cells)
+    seeds = sorted({r["seed"] for r in rows})
+    header = [
+        "learner",
+        "scenario",
+        f"runs ≥ {th:g} of the optimum over ρ",
+        f"final ratio per seed {', '.join(map(str, seeds))}",
+        "worst",
+        f"≥ {th:g} of its own G-level optimum",
+        *(f"median env steps (s) to {t:.0%}, runs reaching it" for t in THRESHOLDS),
+        "env steps/s of training (median)",
+        "median s per run",
+    ]
+    return (
+        md_table(header, body)
+        + "\n\nRatios are exact long-run average rewards over the optimum over ρ ∈ [0, 1] of the "
+        "same scenario (DQN over levels: its 5-level optimum is below it). Env steps/s count "
+        "collecting and learning, not the exact evaluations."
+    )

@@ -1,0 +1,77 @@
+"""``recipes/demo.py``: the paper's baselines rolled out on a batch of envs, MODEL.md's metrics of
+each, by Monte-Carlo.
+
+    python recipes/demo.py                       # paper scenario
+    python recipes/demo.py env=ref_impl reward.r4=50 eval.mc_num_envs=4096
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+from irdrc.core.checks import build, check_choice, check_list
+from irdrc.core.params import Params
+from irdrc.runs.compose import Composed
+from irdrc.runs.sections import ONE_VEHICLE, Eval, check_common
+
+NAME = "demo"
+POLICIES = ("round_robin", "always_radar", "always_comm", "random")
+"""The baselines a demo may roll out (``irdrc.core.policies``)."""
+
+
+@dataclass(frozen=True)
+class Config:
+    """The demo's keys (``recipes/conf/demo.yaml``)."""
+
+    params: Params = field(default=None, metadata=ONE_VEHICLE)
+    eval: Eval = field(default_factory=Eval)
+    policies: tuple[str, ...] = POLICIES
+    seed: int = 0
+    device: str = "cpu"
+
+    def __post_init__(self) -> None:
+        check_common(self)
+        item = lambda key, p: check_choice(key, p, POLICIES)  # noqa: E731
+        object.__setattr__(self, "policies", check_list("policies", self.policies, item))
+        if not self.eval.mc_episodes or not self.eval.mc_num_envs:
+            raise ValueError("eval.mc_num_envs and eval.mc_episodes must be >= 1")
+
+
+def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
+    """The typed config, checked (and the cost of the rollouts)."""
+    cfg = build(Config, composed.cfg)
+    cfg.eval.check_cost(cfg.params)
+    return cfg
+
+
+def run(cfg: Config, run) -> int:
+    """Evaluate each policy of ``cfg.policies`` and print the side-by-side table."""
+    from irdrc.core import policies
+    from irdrc.core.env import DFRCEnv
+    from irdrc.core.evaluate import evaluate
+    from irdrc.core.metrics import format_table
+
+    run.threads(1)
+    params = cfg.params
+    made = {
+        "round_robin": policies.round_robin,
+        "always_radar": policies.always_radar,
+        "always_comm": policies.always_comm,
+        "random": lambda: policies.uniform_random(seed=cfg.seed),
+    }
+    rows, errs = {}, {}
+    t0 = time.perf_counter()
+    for i, name in enumerate(cfg.policies):
+        env = DFRCEnv(
+            params, batch_size=[cfg.eval.mc_num_envs], device=cfg.device, seed=cfg.seed + i
+        )
+        ev = evaluate(made[name]().to(env.device), env, episodes=cfg.eval.mc_episodes)
+        rows[name], errs[name] = ev.metrics, ev.ci95
+    steps = ev.steps * len(cfg.policies)
+    print(f"scenario={run.scenario} p1.speed={params.env.p1.speed} r4={params.reward.r4}")
+    print(f"{ev.episodes} episodes of {params.env.horizon} steps per policy (± = 95 % CI)\n")
+    print(format_table(rows, errors=errs))
+    print(f"\n{steps} env steps in {time.perf_counter() - t0:.1f} s")
+    return 0

@@ -1,0 +1,203 @@
+"""``recipes/evaluate.py``: a saved policy on any scenario — a run's network
+(``checkpoint=…/checkpoint.pt``) or a single-vehicle run's table (``policy=…/policy.csv``,
+randomised ones included).
+
+The policy is scored exactly on the scenario the command line composes (long run, and episodic on
+models small enough for the dense matrices), by Monte-Carlo episodes on its simulator, and against
+that scenario's own optimum and round-robin: transfer and robustness checks in one command. A
+network is evaluated on the observations of the new scenario's states, scaled as in its training.
+
+    python recipes/evaluate.py checkpoint=outputs/DATE/TIME/checkpoint.pt env.p1.speed=1.0
+    python recipes/evaluate.py policy=outputs/DATE/TIME/policy.csv env=ref_impl
+"""
+
+from __future__ import annotations
+
+import time
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from irdrc.core.checks import build
+from irdrc.core.params import Params
+from irdrc.runs.compose import Composed
+from irdrc.runs.sections import ONE_VEHICLE, Eval, check_common
+
+NAME = "evaluate"
+
+
+@dataclass(frozen=True)
+class Config:
+    """The evaluation's keys (``recipes/conf/evaluate.yaml``): exactly one of ``checkpoint`` and
+    ``policy``."""
+
+    params: Params = field(default=None, metadata=ONE_VEHICLE)
+    checkpoint: str | None = None
+    policy: str | None = None
+    eval: Eval = field(default_factory=Eval)
+    optimum_gamma: float = 0.99
+    seed: int = 0
+    num_threads: int = 1
+
+    def __post_init__(self) -> None:
+        check_common(self)
+        given = [k for k in ("checkpoint", "policy") if getattr(self, k)]
+        if len(given) != 1:
+            raise ValueError(
+                "evaluate needs exactly one of checkpoint=…/checkpoint.pt (a run's network) or "
+                f"policy=…/policy.csv (a single-vehicle run's table); got "
+                f"{' and '.join(given) or 'neither'}"
+            )
+
+
+def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
+    """The typed config, checked; the policy's file read and fitted to the scenario."""
+    cfg = build(Config, composed.cfg)
+    cfg.eval.check_cost(cfg.params)
+    load_source(cfg)  # exactly one readable checkpoint / policy that fits the scenario
+    return cfg
+
+
+def network_table(path: Path, params: Params) -> tuple[Any, str]:
+    """The greedy table, on the states of ``params``, of the DQN network saved at ``path``, and a
+    description of it (method, training scenario's key values that differ, env steps).
+
+    Raises:
+        ValueError: an unreadable checkpoint, or a scenario whose observations have another shape
+            than the training scenario's.
+    """
+    from torchrl.objectives import DQNLoss
+
+    from irdrc.agents.base import load_checkpoint
+    from irdrc.agents.configs import DQNConfig
+    from irdrc.agents.offpolicy import greedy_table, make_qnet, policy_view
+    from irdrc.core.env import DFRCEnv
+
+    state = load_checkpoint(path, key="checkpoint")
+    saved = state["config"]
+    if "env" not in saved or "vehicles" in saved.get("env", {}) or "target_miss" in saved:
+        raise ValueError(
+            f"checkpoint={path}: not a DQN run's checkpoint (recipes/dqn.py); evaluate reads a "
+            "single-vehicle DQN network"
+        )
+    cfg = DQNConfig.from_sections(saved["algo"], saved["network"])
+    trained = Params.from_config(saved)
+    train_env = DFRCEnv(trained, batch_size=[1])
+    target_env = DFRCEnv(params, batch_size=[1])
+    shape, want = target_env.dynamics.obs.shape[-1], train_env.dynamics.obs.shape[-1]
+    if shape != want:
+        raise ValueError(
+            f"checkpoint={path}: its network reads {want} observation entries, this scenario has "
+            f"{shape} (bursty arrivals add the traffic phase): evaluate it on a scenario of the "
+            "same kind"
+        )
+    qnet = make_qnet(train_env, cfg.network)
+    with warnings.catch_warnings():  # no target updater: this loss only holds the networks
+        warnings.filterwarnings("ignore", message="No target network updater")
+        loss = DQNLoss(qnet, delay_value=True, action_space=train_env.action_spec_unbatched)
+        loss.make_value_estimator(gamma=cfg.gamma)
+        loss.load_state_dict(state["loss"])
+        with policy_view(loss, cfg):
+            table = greedy_table(qnet, target_env)
+    return table, f"{cfg.name} trained {int(state['frames'])} env steps ({path})"
+
+
+def load_source(cfg: Config) -> tuple[Any, str, str]:
+    """The policy to evaluate on the scenario: ([S] actions or [S, 2] probabilities, its
+    description, its row name), from ``checkpoint=`` or ``policy=``.
+
+    Raises:
+        ValueError: an unreadable file, or one that does not fit the scenario (another number of
+            states, another observation shape, a fleet's joint policy).
+    """
+    params = cfg.params
+    if cfg.checkpoint:
+        path = Path(str(cfg.checkpoint)).expanduser()
+        if not path.is_file():  # before torch loads
+            raise ValueError(f"checkpoint={path}: no such checkpoint file")
+        table, source = network_table(path, params)
+        return table, source, "network"
+    path = Path(str(cfg.policy)).expanduser()
+    if not path.is_file():
+        raise ValueError(f"policy={path}: no such file")
+    header = path.open().readline()
+    if "action1" in header:
+        raise ValueError(
+            f"policy={path}: a fleet run's policy.csv (one joint action per joint state); evaluate "
+            "scores single-vehicle policies — a fleet's are scored by recipes/fleet.py and "
+            "recipes/solve.py env=fleet"
+        )
+    from irdrc.runs.tables import read_policy_csv
+
+    policy = read_policy_csv(path, num_states=params.env.num_states, probabilities=True)
+    if bool(((policy[:, 1] == 0) | (policy[:, 1] == 1)).all()):
+        return policy[:, 1].long(), f"policy table {path}", "policy"
+    return policy, f"randomised policy table {path}", "policy"
+
+
+def run(cfg: Config, run) -> dict[str, Any]:
+    """Score the policy of ``checkpoint=`` or ``policy=`` on the composed scenario; write
+    summary.json and policy.csv (the policy on this scenario's states), print the table."""
+    from irdrc.core.env import DFRCEnv
+    from irdrc.core.evaluate import evaluate
+    from irdrc.core.exact import DenseModel, episodic_metrics, exact_scorer, stationary_metrics
+    from irdrc.core.metrics import format_table
+    from irdrc.core.policies import table_policy
+    from irdrc.runs.report import table_dict
+    from irdrc.runs.results import summary_dict
+    from irdrc.runs.tables import policy_differences, write_policy_csv
+
+    run.threads(cfg.num_threads)
+    params = cfg.params
+    t0 = time.perf_counter()
+    scorer = exact_scorer(params, cfg.optimum_gamma)
+    model = scorer.model
+    S = params.env.num_states
+    policy, source, name = load_source(cfg)
+    dense = isinstance(model, DenseModel)
+    if policy.ndim == 2 and not dense:
+        raise ValueError(f"{source}: randomised tables are scored on dense models only (S = {S})")
+    learned = scorer.metrics(policy) if policy.ndim == 1 else stationary_metrics(model, policy)
+    opt = scorer.optimal_metrics
+    rows = {f"{name} (exact, long run)": learned}
+    errs: dict[str, dict[str, float]] = {}
+    if dense:
+        rows[f"{name} (exact, episodic)"] = episodic_metrics(model, policy)
+    if cfg.eval.mc_episodes:
+        env = DFRCEnv(params, batch_size=[int(cfg.eval.mc_num_envs)], seed=cfg.seed)
+        ev = evaluate(table_policy(policy, seed=cfg.seed), env, episodes=int(cfg.eval.mc_episodes))
+        label = f"{name} (Monte-Carlo, episodic)"
+        rows[label], errs[label] = ev.metrics, ev.ci95
+    rows["optimal (exact, long run)"] = opt
+    if dense:
+        rows["optimal (exact, episodic)"] = episodic_metrics(model, scorer.optimal.policy)
+        rows["round_robin (exact, long run)"] = stationary_metrics(model, "round_robin")
+    ratio = learned.avg_reward / opt.avg_reward
+    wall = time.perf_counter() - t0
+    print(f"scenario={run.scenario} (S = {S}): {source}\n")
+    print(format_table(rows, errors=errs))
+    print(
+        "long run: the policy's stationary average; episodic: episodes of "
+        f"{params.env.horizon} steps from a uniform reset, as the Monte-Carlo row samples"
+    )
+    print(f"\n{name}: {ratio:.4f} of this scenario's optimum (average reward, exact)")
+    if policy.ndim == 1 and dense:
+        print(policy_differences(model, policy, scorer.optimal.policy))
+    write_policy_csv(run.dir / "policy.csv", policy, params.env.factor_levels)
+    summary = summary_dict(
+        method="evaluate",
+        scenario=run.scenario,
+        seed=cfg.seed,
+        env_steps=0,
+        wall_seconds=wall,
+        metrics=learned,
+        optimal=opt,
+        source=source,
+        states_differing_from_optimum=(
+            int((policy != scorer.optimal.policy).sum()) if policy.ndim == 1 else None
+        ),
+        table=table_dict(rows, errs),
+    )
+    run.finish(summary)
+    return summary

@@ -1,0 +1,43 @@
+"""``recipes/ppo.py`` — PPO from TorchRL parts on the radar share of each step (MODEL.md § D),
+scored exactly against the optimum over the continuum during and after training.
+
+    python recipes/ppo.py                                   # the paper scenario, κ = 3
+    python recipes/ppo.py env.p1.speed=1.0 seed=3
+    python recipes/ppo.py env=multilevel algo.total_frames=4000000
+    python recipes/ppo.py resume=outputs/…/checkpoint.pt
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+from irdrc.agents.configs.continuous import PPOConfig
+from irdrc.recipes.shares.learning import load_as, run_learner
+from irdrc.runs.compose import Composed
+from irdrc.runs.sections import OneVehicleLearning, algo_field
+
+NAME = "ppo"
+SWEEP_DEFAULTS = ("progress=false", "logger=none")
+"""What a sweep gives every trial of this recipe before its own overrides (which may change it)."""
+RESUMABLE = True
+
+
+@dataclass(frozen=True)
+class Config(OneVehicleLearning):
+    """The PPO recipe's keys (``recipes/conf/ppo.yaml``)."""
+
+    algo: PPOConfig = algo_field(PPOConfig)
+
+
+def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
+    """The typed config, checked: a continuous action space the exact solve reaches, the
+    evaluation period, what a resumed run has left."""
+    return load_as(Config, composed, resume)
+
+
+def run(cfg: Config, run) -> dict[str, Any]:
+    """Train PPO and finish the run (``run_learner``)."""
+    from irdrc.agents import ppo
+
+    return run_learner(cfg, run, ppo.train)

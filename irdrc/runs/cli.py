@@ -1,0 +1,44 @@
+"""``irdrc`` command: ``irdrc RECIPE [overrides…]`` runs ``recipes/RECIPE.py``; ``irdrc`` lists the
+recipes, each with the first line of what it does."""
+
+from __future__ import annotations
+
+import ast
+import subprocess
+import sys
+
+from irdrc.runs.compose import ROOT, list_scenarios
+
+
+def recipes() -> dict[str, str]:
+    """The runnable recipes, each with the first line of its docstring."""
+    out = {}
+    for path in sorted((ROOT / "recipes").glob("*.py")):
+        if path.stem.startswith("_"):
+            continue
+        doc = ast.get_docstring(ast.parse(path.read_text())) or ""
+        out[path.stem] = doc.strip().splitlines()[0] if doc.strip() else ""
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of the console script."""
+    args = sys.argv[1:] if argv is None else argv
+    known = recipes()
+    if not args or args[0] in ("-h", "--help", "list"):
+        print("usage: irdrc RECIPE [overrides ...]   e.g. irdrc solve env.p1.speed=1.0")
+        print("       irdrc RECIPE --help            what it does, with examples\n")
+        width = max(map(len, known))
+        for name, what in known.items():
+            print(f"  {name:<{width}}  {what}")
+        print(f"\nscenarios: {', '.join(list_scenarios())}  (env=NAME)")
+        return 0
+    name = args[0].replace("-", "_")
+    if name not in known:
+        print(f"irdrc: unknown recipe {args[0]!r}; recipes: {', '.join(known)}", file=sys.stderr)
+        return 2
+    return subprocess.call([sys.executable, str(ROOT / "recipes" / f"{name}.py"), *args[1:]])
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,325 @@
+"""A recipe's config, composed once: Hydra's config groups (``recipes/conf``, scenarios in
+``envs/``) and its override grammar, one compose per run, turned into plain containers at once.
+
+A scenario file holds the ``env`` keys of MODEL.md. It may start with ``defaults: [other]`` to take
+another scenario's values first and override some of them (``ref_impl.yaml`` does).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from irdrc.core.checks import closest
+from irdrc.runs.grid import is_scenario_key, override_key
+
+ROOT = Path(__file__).resolve().parents[2]
+ENVS_DIR = ROOT / "envs"
+CONF_DIR = ROOT / "recipes" / "conf"
+
+OPTIONAL_KEYS = (
+    "env.factors",
+    "env.bursty",
+    "env.detection_prob",
+    "env.false_alarm_prob",
+    "env.actions",
+    "env.levels",
+    "env.sensing",
+    "env.dwell_gain",
+    "reward.r5",
+)
+"""Optional keys of the general model (MODEL.md § B, § D): absent from v1 scenarios, so an override of
+one adds it (Hydra's ``++``); ``Params`` validates them."""
+
+
+def list_scenarios(envs_dir: Path = ENVS_DIR) -> list[str]:
+    """Names of the scenarios in ``envs/``."""
+    return sorted(p.stem for p in envs_dir.glob("*.yaml"))
+
+
+def config_groups() -> list[str]:
+    """Config groups a command line may choose (``env=…``, ``algo=…``, …)."""
+    return sorted(["env", *(p.name for p in CONF_DIR.iterdir() if p.is_dir())])
+
+
+def group_options(group: str) -> list[str]:
+    """The options of a config group."""
+    if group == "env":
+        return list_scenarios()
+    return sorted(p.stem for p in (CONF_DIR / group).glob("*.yaml"))
+
+
+def load_scenario(name: str, envs_dir: Path = ENVS_DIR, _seen: tuple[str, ...] = ()):
+    """The ``env`` config of scenario ``name`` (an OmegaConf node), its ``defaults`` resolved.
+
+    Raises:
+        ValueError: unknown scenario, or a cycle in ``defaults``.
+    """
+    from omegaconf import OmegaConf
+
+    path = envs_dir / f"{name}.yaml"
+    if not path.is_file():
+        raise ValueError(
+            f"env={name!r} is not a scenario; available: {', '.join(list_scenarios(envs_dir))}"
+        )
+    if name in _seen:
+        raise ValueError(f"scenario defaults form a cycle: {' -> '.join((*_seen, name))}")
+    node = OmegaConf.load(path)
+    bases = node.pop("defaults", [])
+    merged = OmegaConf.create()
+    for base in bases:
+        if base != "_self_":
+            merged = OmegaConf.merge(merged, load_scenario(str(base), envs_dir, (*_seen, name)))
+    return OmegaConf.merge(merged, node)
+
+
+_REGISTERED: set[str] = set()
+
+
+def register_scenarios(envs_dir: Path = ENVS_DIR) -> None:
+    """Put every scenario into Hydra's ConfigStore as the config group ``env`` (once a process)."""
+    from hydra.core.config_store import ConfigStore
+
+    if str(envs_dir) in _REGISTERED:
+        return
+    cs = ConfigStore.instance()
+    for name in list_scenarios(envs_dir):
+        cs.store(group="env", name=name, node=load_scenario(name, envs_dir))
+    _REGISTERED.add(str(envs_dir))
+
+
+@dataclass(frozen=True)
+class Composed:
+    """One composed config: ``cfg`` (plain containers, resolved), the group ``choices``, the
+    command line's ``task`` overrides, the run directory Hydra's ``hydra.run.dir`` names."""
+
+    name: str
+    cfg: dict[str, Any]
+    choices: dict[str, str]
+    task: list[str]
+    run_dir: str
+
+    @property
+    def scenario(self) -> str:
+        """The scenario as runs name it: the ``env`` choice, plus any ``env.*`` / ``reward.*``
+        overrides in brackets (``paper[env.p1.speed=0.5,reward.r4=50]``)."""
+        name = self.choices.get("env") or "custom"
+        extra = [o.removeprefix("++") for o in self.task if is_scenario_key(o)]
+        return f"{name}[{','.join(extra)}]" if extra else name
+
+    @property
+    def scenario_overrides(self) -> list[str]:
+        """The scenario as overrides: the ``env`` and ``reward`` choices and the ``env.*`` /
+        ``reward.*`` overrides (what a recipe passes on to the runs it plans)."""
+        out = [f"{g}={self.choices[g]}" for g in ("env", "reward") if self.choices.get(g)]
+        return out + [o for o in self.task if is_scenario_key(o)]
+
+    @property
+    def explicit(self) -> frozenset[str]:
+        """The keys the command line set (groups included)."""
+        return frozenset(override_key(o) for o in self.task)
+
+
+def _primary(config_name: str) -> dict[str, Any]:
+    """The recipe's own YAML file, unmerged (no compose): which of its keys hold mappings."""
+    from omegaconf import OmegaConf
+
+    path = CONF_DIR / f"{config_name}.yaml"
+    node = OmegaConf.to_container(OmegaConf.load(path), resolve=False) if path.is_file() else {}
+    return node if isinstance(node, dict) else {}
+
+
+def _select(node: Any, key: str) -> Any:
+    for part in key.split("."):
+        if not isinstance(node, dict) or part not in node:
+            return None
+        node = node[part]
+    return node
+
+
+def prepare_overrides(config_name: str, overrides: list[str]) -> list[str]:
+    """The command line as Hydra takes it: ``key={…}`` for a key whose default is a mapping
+    (``profiles={…}``) replaces it (``~key`` then ``+key=…``, not a merge), an optional key of
+    the general model is added where the scenario lacks it (``++``), and so is a key of a section
+    the recipe leaves open (``algo: {}`` in ``online.yaml``: its keys are the chosen learner's,
+    checked by the recipe)."""
+    primary, out = _primary(config_name), []
+    for o in overrides:
+        key = override_key(o)
+        section = _select(primary, key.split(".")[0]) if "." in key else None
+        if "={" in o and o[0] not in "+~" and isinstance(_select(primary, key), dict):
+            out += [f"~{key}", f"+{o}"]
+        elif (o[0] not in "+~" and "=" in o and key.startswith(OPTIONAL_KEYS)) or (
+            o[0] not in "+~" and "=" in o and section == {}
+        ):
+            out.append(f"++{o}")
+        else:
+            out.append(o)
+    return out
+
+
+def _initialised():
+    """Hydra initialised on ``recipes/conf`` for one compose (global state restored after)."""
+    from hydra import initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    class _Scope:
+        def __enter__(self):
+            gh = GlobalHydra.instance()
+            self.saved = gh.hydra if gh.is_initialized() else None
+            gh.clear()
+            self.ctx = initialize_config_dir(config_dir=str(CONF_DIR), version_base=None)
+            self.ctx.__enter__()
+
+        def __exit__(self, *exc):
+            self.ctx.__exit__(*exc)
+            gh = GlobalHydra.instance()
+            gh.clear()
+            if self.saved is not None:
+                gh.initialize(self.saved)
+
+    return _Scope()
+
+
+def compose(config_name: str, overrides: list[str] | tuple = ()) -> Composed:
+    """Compose ``recipes/conf/<config_name>.yaml`` with command-line ``overrides`` — once — into
+    plain containers. ``hydra.*`` overrides set the run's own settings (``hydra.run.dir``).
+
+    Raises:
+        ValueError: an unknown key (naming the closest valid one), an unknown group option, or an
+            override Hydra cannot parse — one line each.
+    """
+    from hydra import compose as hydra_compose
+    from omegaconf import OmegaConf, open_dict
+
+    register_scenarios()
+    args = prepare_overrides(config_name, [str(o) for o in overrides])
+    _check_choices(config_name, args)
+    try:
+        with _initialised():
+            cfg = hydra_compose(config_name=config_name, overrides=args, return_hydra_config=True)
+    except Exception as err:  # Hydra's own errors: one line each
+        raise ValueError(_explain(config_name, args, err)) from None
+    hydra = cfg.hydra
+    choices = {k: str(v) for k, v in hydra.runtime.choices.items() if not k.startswith("hydra")}
+    task = [str(o) for o in hydra.overrides.task if not override_key(str(o)).startswith("hydra")]
+    run_dir = str(hydra.run.dir)
+    with open_dict(cfg):
+        del cfg["hydra"]
+    plain = OmegaConf.to_container(cfg, resolve=True)
+    return Composed(config_name, plain, choices, task, run_dir)
+
+
+def _groups_of(config_name: str) -> set[str]:
+    """The config groups a recipe's defaults list chooses from."""
+    out = set()
+    for entry in _primary(config_name).get("defaults", []):
+        if isinstance(entry, dict):
+            out |= {str(k).split("/")[-1].split("@")[0] for k in entry}
+    return out
+
+
+def _check_choices(config_name: str, args: list[str]) -> None:
+    """An unknown option of a config group, named with the options; a group the recipe has no
+    choice of, naming the recipes that do."""
+    groups = config_groups()
+    mine = _groups_of(config_name)
+    for o in args:
+        key = override_key(o)
+        if "=" in o and o[0] not in "+~" and key in groups:
+            value = o.split("=", 1)[1]
+            if mine and key not in mine:
+                users = sorted(p.stem for p in CONF_DIR.glob("*.yaml") if key in _groups_of(p.stem))
+                raise ValueError(
+                    f"{config_name} has no {key}: {key}= is for "
+                    + ", ".join(f"python recipes/{u}.py" for u in users)
+                )
+            if value not in group_options(key):
+                options = ", ".join(group_options(key))
+                raise ValueError(f"{key}={value!r} is not a choice of {key}: {options}")
+
+
+def _explain(config_name: str, args: list[str], err: Exception) -> str:
+    """Hydra's error as one line; an unknown key with the closest valid key."""
+    import re
+
+    found = re.search(r"Could not override '([^']+)'", str(err))
+    if found:
+        bad = next((a for a in args if override_key(a) == found.group(1)), "")
+        return unknown_key(config_name, found.group(1), _known_keys(config_name, args, bad))
+    text = str(err).strip().splitlines()[0] if str(err).strip() else ""
+    return f"{type(err).__name__}: {text}"
+
+
+def unknown_key(config_name: str, key: str, known: set[str]) -> str:
+    """The one line that refuses an unknown ``key``, with the closest of the ``known`` keys."""
+    near = closest(key, known, cutoff=0.5)
+    hint = f"; did you mean {near}?" if near else ""
+    return f"unknown key {key!r} in {config_name}{hint} ({config_name}.yaml has no such key)"
+
+
+def _known_keys(config_name: str, args: list[str], bad: str = "") -> set[str]:
+    """Every dotted key of the recipe's config composed without the bad override (an error's
+    hint only: this second compose runs only on the way to a refusal)."""
+    from hydra import compose as hydra_compose
+    from omegaconf import OmegaConf
+
+    rest = [a for a in args if a != bad and not override_key(a).startswith("hydra")]
+    try:
+        with _initialised():
+            cfg = hydra_compose(config_name=config_name, overrides=rest)
+    except Exception:
+        return set()
+    return _flat_keys(OmegaConf.to_container(cfg, resolve=False)) | set(config_groups())
+
+
+def _flat_keys(node: Any, prefix: str = "") -> set[str]:
+    out = set()
+    if isinstance(node, dict):
+        for k, v in node.items():
+            out.add(f"{prefix}{k}")
+            out |= _flat_keys(v, f"{prefix}{k}.")
+    return out
+
+
+def stored_overrides(args: list[str]) -> tuple[list[str], list[str]]:
+    """With ``resume=true hydra.run.dir=DIR``, the command line completed by the overrides the run
+    in DIR was started with (its ``.hydra/overrides.yaml``; what the command line sets wins), so a
+    sweep, a figure or a benchmark goes on with its own grid; and the overrides taken from there."""
+    from omegaconf import OmegaConf
+
+    values = {override_key(a): a.split("=", 1)[1] for a in args if "=" in a}
+    run_dir = values.get("hydra.run.dir")
+    if str(values.get("resume", "")).lower() != "true" or not run_dir:
+        return args, []
+    record = Path(run_dir.strip("'\"")).expanduser() / ".hydra" / "overrides.yaml"
+    if not record.is_file():
+        return args, []
+    taken = [
+        str(o)
+        for o in OmegaConf.load(record)
+        if override_key(str(o)) not in values and not override_key(str(o)).startswith("hydra")
+    ]
+    return [*taken, *args], taken
+
+
+def with_profile_keys(args: list[str], keys: Any) -> list[str]:
+    """``args`` with every ``algo.K=…`` whose K is one of ``keys`` (a recipe's ``ALGO_KEYS``: every
+    key its learner reads) added where the chosen profile's file leaves it out (``++``): a profile
+    lists the keys that act in its run, and the others keep their defaults until a command line
+    sets them."""
+    keys = set(keys or ())
+    out = []
+    for a in args:
+        key = override_key(a)
+        if a[0] not in "+~" and "=" in a and key.startswith("algo.") and key[5:] in keys:
+            a = f"++{a}"
+        out.append(a)
+    return out
+
+
+def compose_recipe(module: Any, args: list[str]) -> Composed:
+    """``module``'s config (a recipe module: its ``NAME`` and ``ALGO_KEYS``) composed with ``args``,
+    a profile's omitted keys taking the command line's values (``with_profile_keys``)."""
+    return compose(module.NAME, with_profile_keys(args, getattr(module, "ALGO_KEYS", ())))

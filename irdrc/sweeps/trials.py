@@ -1,0 +1,229 @@
+"""The trials engine every recipe of many runs uses (``recipes/sweep.py``, figure2, tradeoff, the
+benchmarks): a grid of config overrides, each point one run of a recipe module, on Ray Tune or one
+after another here.
+
+The driver composes and checks every grid point's config itself (so workers need the ``irdrc``
+package only, not the recipes' YAML files) before any trial starts, runs the points as trials,
+and receives each trial's ``summary.json`` and run files through Tune's reporting. Per-point
+results are kept under ``<out>/trials/<point id>/``; ``resume`` reruns only points that are not
+DONE; ``summary.csv`` joins the results against the expected grid, so a missing trial shows up as a
+row.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import csv
+import io
+import json
+import tempfile
+import time
+import traceback
+from pathlib import Path
+from types import ModuleType
+from typing import Any
+
+from irdrc.runs.compose import compose_recipe
+from irdrc.runs.grid import (
+    format_value,
+    point_id,
+    point_overrides,
+    shell_quote,
+)
+from irdrc.runs.results import atomic_write_text
+from irdrc.runs.sections import Executor
+from irdrc.sweeps.point import (
+    STATUSES,
+    last_line,
+    progress_line,
+    read_status,
+    record,
+    run_point,
+)
+from irdrc.sweeps.seeds import plot_seed_curves, write_seed_summary
+
+
+def _matches(point_ov: list[str], fail_on: list[str]) -> bool:
+    return bool(fail_on) and set(fail_on) <= set(point_ov)
+
+
+def plan(
+    module: ModuleType, points: list[dict[str, Any]], base: list[str], fail_on: list[str] = ()
+) -> list[dict[str, Any]]:
+    """Compose and check every point's config for the recipe ``module`` on the driver (a bad key or
+    value, in the base or in any grid value, fails here, naming the point, before Ray starts or
+    any trial runs). A recipe's ``SWEEP_DEFAULTS`` (e.g. no progress bar, no logger) come before
+    ``base``.
+
+    Returns one record per point: ``point_id``, ``point``, ``overrides``, ``method`` (the recipe's
+    name), ``module`` (its path, which a worker imports), ``base``, the ``composed`` config and the
+    recipe's typed ``config``, ``scenario`` and ``fail``. Plans of several recipes may be
+    concatenated and executed together.
+    """
+    method, base = module.NAME, [str(o) for o in base]
+    defaults = list(getattr(module, "SWEEP_DEFAULTS", ()))
+    planned = []
+    for point in points:
+        ov = point_overrides(point)
+        try:
+            composed = compose_recipe(module, [*defaults, *base, *ov])
+            config = module.load(composed)
+        except Exception as err:
+            where = " ".join([*base, *ov]) or "(no overrides)"
+            raise ValueError(f"grid point {where}: {str(err).strip().splitlines()[0]}") from err
+        planned.append(
+            {
+                "point_id": point_id(point, method, base),
+                "point": point,
+                "overrides": ov,
+                "method": method,
+                "module": module.__name__,
+                "base": base,
+                "composed": composed,
+                "config": config,
+                "scenario": composed.scenario,
+                "fail": _matches(ov, [str(o) for o in fail_on]),
+            }
+        )
+    return planned
+
+
+def execute(cfg: Executor, planned: list[dict[str, Any]], out: Path, recipe: str = "sweep") -> int:
+    """Run the planned points (``plan``) with the executor options ``cfg``; write ``summary.csv``.
+    Results land in ``<out>/trials/<point id>/``; an interrupted run's go-on command names
+    ``recipe``.
+
+    Returns:
+        0 if every point is DONE, 1 otherwise (130 when interrupted).
+    """
+    executor = cfg.executor
+    ids = [p["point_id"] for p in planned]
+    if len(set(ids)) != len(ids):
+        raise ValueError("two planned points share an id (the same method, base and overrides)")
+    out = Path(out).resolve()
+    trials_dir = out / "trials"
+    todo = [
+        p
+        for p in planned
+        if not (
+            cfg.resume and (read_status(trials_dir / p["point_id"]) or {}).get("status") == "DONE"
+        )
+    ]
+    total = len(planned)
+    methods = ", ".join(sorted({p["method"] for p in planned}))
+    print(
+        f"sweep: method={methods}, {total} grid points, {len(todo)} to run"
+        + (" (resume)" if cfg.resume else ""),
+        flush=True,
+    )
+    interrupted = False
+    try:
+        if todo and executor == "ray":
+            from irdrc.sweeps.tune_runner import run_tune
+
+            run_tune(cfg, out, todo, total - len(todo), total, trials_dir)
+        elif todo:
+            _run_local(todo, total - len(todo), total, trials_dir)
+    except KeyboardInterrupt:
+        interrupted = True
+        print(
+            "\nsweep: interrupted; finished points are kept, the ones that were running are "
+            f"INCOMPLETE in summary.csv; go on with: {go_on_command(out, recipe)}",
+            flush=True,
+        )
+    finally:
+        # Whatever happened, summary.csv lists every planned point: DONE, ERROR or INCOMPLETE.
+        code = write_summary_csv(out / "summary.csv", planned, trials_dir)
+    # A grid over seeds: mean ± 95 % interval per point, and the learning curves with bands.
+    by_point = write_seed_summary(out / "summary.csv", out)
+    curves = plot_seed_curves(out / "summary.csv", trials_dir, out)
+    if by_point is not None:
+        print(f"wrote {by_point}" + (f" and {curves}" if curves else ""), flush=True)
+    return 130 if interrupted else code
+
+
+def go_on_command(out: Path, recipe: str = "sweep") -> str:
+    """The command that goes on with the interrupted run in ``out``: its recipe with
+    ``resume=true`` and the directory (the run's stored overrides come back on their own)."""
+    return f"python recipes/{recipe}.py resume=true hydra.run.dir={shell_quote(str(out))}"
+
+
+def _run_local(todo: list[dict], already: int, total: int, trials_dir: Path) -> None:
+    """Run the points one after another in this process (no Ray): same files, same statuses."""
+    import torch
+
+    torch.set_num_threads(1)
+    t0 = time.perf_counter()
+    for i, p in enumerate(todo):
+        tdir = trials_dir / p["point_id"]
+        tdir.mkdir(parents=True, exist_ok=True)
+        # The run's own printout goes to the trial's log, as a Ray trial's does.
+        with (
+            (tdir / "run.log").open("w") as log,
+            contextlib.redirect_stdout(log),
+            tempfile.TemporaryDirectory(prefix="irdrc-trial-") as tmp,
+        ):
+            try:
+                result, error = run_point(p, Path(tmp) / "run"), None
+            except KeyboardInterrupt:
+                raise
+            except Exception as exc:  # a crashed point is an ERROR row, as under Ray
+                result, error = None, f"{type(exc).__name__}: {exc}"
+                print(traceback.format_exc())
+        record(tdir, p, result, error)
+        tail = f"ERROR: {last_line(error)}" if error else "DONE" + result.get("progress", "")
+        progress_line(already + i + 1, total, already, t0, p, tail)
+
+
+def write_summary_csv(path: Path, planned: list[dict], trials_dir: Path) -> int:
+    """``summary.csv``: one row per expected grid point (overrides, status, final metrics).
+
+    Returns 0 if every point is DONE, else 1.
+    """
+    keys = list(dict.fromkeys(k for p in planned for k in p["point"]))
+    # Plans of several methods or bases (e.g. a figure's) name them in two leading columns.
+    mixed = len({(p["method"], tuple(p.get("base", ()))) for p in planned}) > 1
+    lead = ["method", "base"] if mixed else []
+    rows, metric_names = [], []
+    for p in planned:
+        tdir = trials_dir / p["point_id"]
+        st = read_status(tdir) or {"status": "INCOMPLETE"}
+        row: dict[str, Any] = (
+            {"method": p["method"], "base": " ".join(p.get("base", ()))} if mixed else {}
+        )
+        row.update({k: format_value(p["point"][k]) for k in keys if k in p["point"]})
+        row["status"] = st["status"]
+        row["point_id"] = p["point_id"]
+        if st["status"] == "DONE" and (tdir / "summary.json").is_file():
+            s = json.loads((tdir / "summary.json").read_text())
+            row["optimality_ratio"] = s.get("optimality_ratio")
+            row["env_steps"] = s.get("env_steps")
+            row["wall_seconds"] = s.get("wall_seconds")
+            for k, v in (s.get("metrics") or {}).items():
+                row[k] = v
+                if k not in metric_names:
+                    metric_names.append(k)
+        rows.append(row)
+    fields = [
+        *lead,
+        *keys,
+        "status",
+        "point_id",
+        "optimality_ratio",
+        "env_steps",
+        "wall_seconds",
+        *metric_names,
+    ]
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=fields, restval="")
+    w.writeheader()
+    w.writerows(rows)
+    atomic_write_text(path, buf.getvalue())
+    counts = {s: sum(r["status"] == s for r in rows) for s in STATUSES}
+    print(
+        f"\n{len(rows)} grid points: "
+        + ", ".join(f"{n} {s}" for s, n in counts.items())
+        + f"; wrote {path}",
+        flush=True,
+    )
+    return 0 if counts["DONE"] == len(rows) else 1

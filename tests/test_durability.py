@@ -15,7 +15,7 @@ import pytest
 import torch
 
 from irdrc.runs.results import FILE_MODE, atomic_write, atomic_write_text
-from irdrc.runs.scaffold import resumed_config
+from irdrc.runs.resume import resumed_config
 
 ROOT = Path(__file__).resolve().parents[1]
 # 4 000 env steps, a checkpoint every 640 (about a second apart here)

@@ -8,6 +8,8 @@ the same way for every method.
 
 from __future__ import annotations
 
+import hashlib
+import io
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -192,6 +194,11 @@ CHECKPOINT_KEYS = ("frames", "updates", "wall_seconds", "history", "config")
 """What every learner's checkpoint holds (its ``RunRecord.state`` and the run's ``config``)."""
 
 
+DIGEST_SUFFIX = ".sha256"
+"""Beside ``checkpoint.pt``, ``checkpoint.sha256``: the SHA-256 of the checkpoint its run wrote
+(while a new one replaces it, the previous one's too)."""
+
+
 def load_checkpoint(path: Path | str, key: str = "resume") -> dict[str, Any]:
     """Load a learner's checkpoint (``RunRecord.state`` plus the run's ``config``).
 
@@ -202,8 +209,15 @@ def load_checkpoint(path: Path | str, key: str = "resume") -> dict[str, Any]:
     path = Path(path)
     if not path.is_file():
         raise ValueError(f"{key}={path}: no such checkpoint file")
+    data = path.read_bytes()
+    digests = path.with_suffix(DIGEST_SUFFIX)
+    if digests.is_file() and hashlib.sha256(data).hexdigest() not in digests.read_text().split():
+        raise ValueError(
+            f"{key}={path}: the file differs from the one its run wrote (its SHA-256 is not in "
+            f"{digests.name}): it was damaged or changed since; nothing was read or written"
+        )
     try:
-        state = torch.load(path, map_location="cpu", weights_only=True)
+        state = torch.load(io.BytesIO(data), map_location="cpu", weights_only=True)
     except Exception as err:  # truncated or corrupt: EOFError, RuntimeError, UnpicklingError …
         raise ValueError(
             f"{key}={path}: not a readable checkpoint ({type(err).__name__}); it may be truncated "

@@ -89,8 +89,6 @@ def train(
 
         scorer = exact_scorer(params)
     start = start_frames(resume)
-    if start >= cfg.total_frames:
-        raise ValueError(f"nothing to resume: the checkpoint is at {start} ≥ algo.total_frames")
 
     # 1. model: scaled observation → MLP → one Q-value per action, greedy action; every pass
     #    evaluates each distinct observation of its batch once (``DistinctRows``: the same values)

@@ -136,6 +136,8 @@ class TrainingLoop:
 
     def batches(self) -> Iterator[TensorDictBase]:
         """Each collected batch [rows, steps], after it is stored in replay and counted."""
+        if self.frames >= self.cfg.total_frames:  # a complete training resumed to finish its files
+            return
         batches = iter(self.collector)
         while True:
             t0 = time.perf_counter()

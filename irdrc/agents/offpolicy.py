@@ -210,7 +210,7 @@ def make_collector(
         env,
         policy,
         frames_per_batch=cfg.frames_per_batch,
-        total_frames=cfg.total_frames - start,
+        total_frames=max(cfg.total_frames - start, cfg.frames_per_batch),  # none left: never run
         init_random_frames=cfg.init_random_frames,
         device=env.device,
         auto_register_policy_transforms=False,

@@ -105,6 +105,4 @@ def share_run(
 
         scorer = ContinuumScorer(params)
     start = start_frames(resume)
-    if start >= cfg.total_frames:
-        raise ValueError(f"nothing to resume: the checkpoint is at {start} ≥ algo.total_frames")
     return env, scorer, start

@@ -4,7 +4,7 @@ by Monte-Carlo at the end, beside the optimum and the baselines.
     python recipes/dqn.py                                   # our profile, paper scenario
     python recipes/dqn.py reward.r4=50 network=large env=ref_impl
     python recipes/dqn.py algo=dqn_paper                    # the reference profile (1 M steps)
-    python recipes/dqn.py resume=outputs/…/checkpoint.pt algo.total_frames=1000000
+    python recipes/dqn.py resume=outputs/…/checkpoint.pt algo.total_frames=8000000
 """
 
 from __future__ import annotations
@@ -15,6 +15,7 @@ from typing import Any
 from irdrc.agents.configs import DQNConfig
 from irdrc.core.checks import build
 from irdrc.runs.compose import Composed
+from irdrc.runs.resume import nothing_left
 from irdrc.runs.sections import (
     OneVehicleLearning,
     algo_field,
@@ -59,7 +60,9 @@ def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
     cfg.eval.check_cost(cfg.params)
     explicit = "eval.every_frames" in composed.explicit
     check_eval_period(cfg.eval.every_frames, cfg.algo.total_frames, explicit)
-    if resume is not None and int(resume["frames"]) >= cfg.algo.total_frames:
+    if resume is not None and nothing_left(
+        cfg.resume, int(resume["frames"]), cfg.algo.total_frames
+    ):
         raise ValueError(
             f"resume={cfg.resume} is at {resume['frames']} env steps, algo.total_frames="
             f"{cfg.algo.total_frames}: nothing left to train; raise algo.total_frames to train it "
@@ -71,14 +74,14 @@ def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
 def run(cfg: Config, run) -> dict[str, Any]:
     """Train, evaluate, finish the run directory (``irdrc.runs.report``)."""
     from irdrc.agents import dqn
-    from irdrc.core.exact import Scorer, build_model
+    from irdrc.core.exact import exact_scorer
     from irdrc.core.exact.continuum import continuum_optimum
     from irdrc.runs.report import LearnerRun, finish_learner
     from irdrc.runs.tracking import log_scalars
 
     run.threads(cfg.num_threads)
     logger = run.make_logger(cfg.logger, cfg.algo.name)
-    scorer = Scorer(build_model(cfg.params), cfg.optimum_gamma)
+    scorer = exact_scorer(cfg.params, cfg.optimum_gamma)  # dense, or factored beyond its reach
     record = run.train(cfg, dqn.train, scorer)
     best = continuum_optimum(cfg.params, cfg.optimum_gamma)  # with G levels, else None
     final = record.history[-1]["optimality_ratio"]  # the final policy's, exact

@@ -5,8 +5,10 @@
 - ``app``: what every recipe does around its run (composed once, checked before any work, one-line
   errors); ``cli``: the ``irdrc`` command;
 - ``sections``: the config sections recipes share (scenario, eval, logger, checkpoint, executor …);
-- ``scaffold``: the run directory (lock, log, config files), threads, logger, progress, signals,
-  checkpoints and the finishing of a run; ``progress``; ``tracking``: W&B / CSV / TensorBoard;
+- ``scaffold``: the run directory (lock, log, config files), threads, logger, progress,
+  checkpoints (with their digest) and the finishing of a run; ``signals``: SIGINT/SIGTERM in any
+  phase; ``resume``: a resumed run's configuration and what it refuses; ``progress``;
+  ``tracking``: W&B / CSV / TensorBoard;
 - ``report``: how a single-vehicle learner's run finishes (files, table, last lines); ``tables``
   (``policy.csv``), ``curves`` (the learning curve), ``results`` (atomic files, summaries).
 

@@ -65,10 +65,23 @@ def prepare(module: ModuleType, args: list[str]) -> Prepared:
     resume = None
     if getattr(module, "RESUMABLE", False) and isinstance(composed.cfg.get("resume"), str):
         from irdrc.agents.base import load_checkpoint
-        from irdrc.runs.scaffold import resumed_config
+        from irdrc.runs.resume import checkpoint_recipe, edited_config, resumed_config
+        from irdrc.runs.scaffold import python_command, quoted
 
         path = Path(composed.cfg["resume"]).expanduser()
         resume = load_checkpoint(path)
+        wrote = checkpoint_recipe(path, resume)
+        if wrote is not None and wrote != module.NAME:
+            raise ValueError(
+                f"resume={path} is a checkpoint of recipes/{wrote}.py; go on with it with: "
+                f"{python_command()} recipes/{wrote}.py resume={quoted(path)}"
+            )
+        if edited := edited_config(path, resume["config"]):
+            raise ValueError(
+                f"{path.parent / 'config.yaml'} was edited after its run wrote it "
+                f"({'; '.join(edited)}); a resumed run keeps its checkpoint's configuration: "
+                "restore the file, and set what a resumed run may change on the command line"
+            )
         merged = resumed_config(path, resume["config"], composed.cfg, composed.explicit)
         composed = replace(composed, cfg=merged)
     try:
@@ -104,7 +117,8 @@ def _help(module: ModuleType) -> None:
 
 def execute(module: ModuleType, args: list[str]) -> int:
     """Run ``module``'s recipe with the command line ``args``; returns the exit status."""
-    from irdrc.runs.scaffold import Run, RunInterrupted
+    from irdrc.runs.scaffold import Run, resume_hint
+    from irdrc.runs.signals import RunInterrupted, Signalled
 
     if args and args[0] in ("-h", "--help"):
         _help(module)
@@ -137,6 +151,12 @@ def execute(module: ModuleType, args: list[str]) -> int:
         run.log_line(f"error: {err}")
         refused = True
         return fail(str(err))
+    except Signalled as sig:
+        message = f"stopped by {sig}; what the run wrote is in {run.dir}" + resume_hint(
+            module.NAME, run.dir
+        )
+        run.log_line(f"error: {message}")
+        return fail(message, 128 + sig.signum)
     except KeyboardInterrupt:
         run.log_line("error: interrupted (Ctrl-C)")
         return fail(f"interrupted (Ctrl-C); what the run wrote is in {run.dir}", 130)

@@ -10,6 +10,7 @@ ends below the optimum.
 
 from __future__ import annotations
 
+import dataclasses
 import statistics
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -27,6 +28,7 @@ from irdrc.runs.grid import is_scenario_key, point_overrides
 from irdrc.runs.results import clean_number, summary_dict, write_metrics_csv, write_rows_csv
 from irdrc.runs.scaffold import Run
 from irdrc.runs.sections import Eval
+from irdrc.runs.signals import Signalled
 from irdrc.runs.tables import policy_differences, write_policy_csv
 
 
@@ -66,8 +68,8 @@ class LearnerRun:
 
     def __post_init__(self) -> None:
         self.labels = [point_overrides(point) for point in self.points]
-        if self.advice is None:
-            self.advice = ADVICE.get(self.name)
+        if self.advice is None and self.name in ADVICE:  # fitted to this run
+            self.advice = ADVICE[self.name].format(twice=2 * int(self.record.env_steps))
 
     @property
     def final_policy(self):
@@ -90,7 +92,14 @@ def finish_learner(run: Run, lr: LearnerRun) -> dict[str, Any]:
     greedy = record.greedy[0].cpu()
     curve = run.dir / f"learning_curve.{lr.plot_format}"
     (lr.plot or plot_learning_curve)(record, curve, title=f"{lr.name} on {run.scenario}")
-    rows, errs = final_rows(lr, lr.final_policy)
+    try:
+        rows, errs = final_rows(lr, lr.final_policy)
+    except Signalled as sig:  # the Monte-Carlo evaluation cut short: the files without it
+        print(
+            f"\n{sig}: the Monte-Carlo evaluation is left out; writing the run's files", flush=True
+        )
+        no_mc = dataclasses.replace(lr, eval=dataclasses.replace(lr.eval, mc_episodes=0))
+        rows, errs = final_rows(no_mc, lr.final_policy)
     summary = summary_dict(
         method=lr.name,
         scenario=run.scenario,
@@ -286,12 +295,12 @@ END_SLACK = 0.01
 
 
 ADVICE = {
-    "dqn": "algo.total_frames=8000000 (twice the env steps and about twice a run's wall time: "
+    "dqn": "algo.total_frames={twice} (twice this run's env steps and about twice its wall time: "
     "it held on all 3 random-scenario runs where the default is known to fall short; docs/DQN.md)",
     "dqn_plain": "algo=dqn (DQN with a reward table, the default: docs/DQN.md)",
     "dqn_paper": "algo=dqn (our profile, the default: 120 of 120 runs ≥ 0.99 on the named grid, "
     "about 18 s each here; docs/DQN.md)",
-    "dqn_levels": "algo.total_frames=2000000 (twice the profile's env steps: on env=imperfect_radar "
+    "dqn_levels": "algo.total_frames={twice} (twice this run's env steps: on env=imperfect_radar "
     "seeds 6 and 8, at 0.9802 and 0.9742 of the G-level optimum after 10⁶, ended at 0.9958 and "
     "0.9938, network=large at 0.9934 and 0.9973; docs/TIMESHARING.md)",
     "qlearning": "algo.episodes=2400 (four times the default's 600 episodes and wall time: on "

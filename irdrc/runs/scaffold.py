@@ -10,14 +10,13 @@ finishing of the directory (``summary.json`` and the line naming every file writ
 from __future__ import annotations
 
 import contextlib
-import copy
 import fcntl
+import hashlib
 import io
 import os
 import shutil
 import signal
 import sys
-import threading
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -25,67 +24,10 @@ from typing import Any
 from irdrc.runs.compose import Composed
 from irdrc.runs.results import atomic_write, atomic_write_text, write_summary
 from irdrc.runs.sections import Logger
+from irdrc.runs.signals import RunInterrupted, RunSignals, StopFlag, stop_on_signals
 
 BOOKKEEPING = (".hydra", ".lock", "config.yaml")
 """What the scaffold itself keeps in a run directory (besides the log)."""
-
-RESUME_MAY_DIFFER = (
-    "algo.total_frames",
-    "algo.episodes",
-    "eval.",
-    "logger.",
-    "progress",
-    "resume",
-    "device",
-    "num_threads",
-    "checkpoint.",
-    "plot.",
-    "hydra.",
-)
-"""Config keys a resumed run may change (where and how long it runs, not what it learns)."""
-
-
-class RunInterrupted(Exception):
-    """A run stopped by SIGINT/SIGTERM after saving what it had; the message says how to go on,
-    ``code`` is the exit status (128 + the signal's number)."""
-
-    def __init__(self, message: str, code: int = 130) -> None:
-        super().__init__(message)
-        self.code = code
-
-
-class StopFlag:
-    """Set by SIGINT/SIGTERM while a run trains: the learner stops after its current batch.
-    A second SIGINT interrupts at once (``KeyboardInterrupt``)."""
-
-    def __init__(self) -> None:
-        self.signal: int | None = None
-
-    def __call__(self) -> bool:
-        return self.signal is not None
-
-    def _handle(self, signum, frame) -> None:
-        if self.signal is not None and signum == signal.SIGINT:
-            raise KeyboardInterrupt
-        self.signal = signum
-        name = signal.Signals(signum).name
-        print(f"\n{name}: stopping after this batch and saving (again to stop at once)", flush=True)
-
-
-@contextlib.contextmanager
-def stop_on_signals() -> Iterator[StopFlag]:
-    """Within the block, SIGINT and SIGTERM set the yielded flag instead of killing the process
-    (only in the main thread; elsewhere the flag is never set)."""
-    flag = StopFlag()
-    if threading.current_thread() is not threading.main_thread():
-        yield flag
-        return
-    previous = {s: signal.signal(s, flag._handle) for s in (signal.SIGINT, signal.SIGTERM)}
-    try:
-        yield flag
-    finally:
-        for s, handler in previous.items():
-            signal.signal(s, handler)
 
 
 class _Tee:
@@ -106,64 +48,29 @@ class _Tee:
         return getattr(self.stream, name)
 
 
-def _flatten(node: Any, prefix: str = "") -> dict[str, Any]:
-    if isinstance(node, dict):
-        out: dict[str, Any] = {}
-        for k, v in node.items():
-            out.update(_flatten(v, f"{prefix}{k}."))
-        return out
-    return {prefix[:-1]: node}
-
-
-def _covered(key: str, explicit: frozenset[str]) -> bool:
-    return any(key == e or key.startswith(e + ".") for e in explicit)
-
-
-def resumed_config(
-    path: Path, saved: dict[str, Any], current: dict[str, Any], explicit: frozenset[str]
-) -> dict[str, Any]:
-    """The configuration of a run resumed from the checkpoint at ``path``: the checkpoint's own
-    (``saved``), except what the command line set on purpose (``explicit``, groups included),
-    which ``current`` gives — so ``resume=PATH`` alone goes on exactly as the run started, and
-    ``algo.total_frames=…`` extends it. A section this version no longer has (a checkpoint of an
-    earlier version) is dropped.
-
-    Raises:
-        ValueError: naming every key the command line set to another value that a resumed run may
-            not change (what it learns; ``RESUME_MAY_DIFFER``).
-    """
-    explicit = frozenset(k for k in explicit if not k.startswith("hydra"))
-    old, new = _flatten(saved), _flatten(current)
-    clash = []
-    for key in sorted(explicit):
-        if key.startswith(RESUME_MAY_DIFFER):
-            continue
-        for k in sorted(set(old) | set(new)):
-            if _covered(k, frozenset([key])) and old.get(k, "<absent>") != new.get(k, "<absent>"):
-                clash.append(f"{k}: {old.get(k, '<absent>')} → {new.get(k, '<absent>')}")
-    if clash:
-        raise ValueError(
-            f"resume={path} was trained with another configuration; these keys differ "
-            f"(checkpoint → this run): {'; '.join(clash)}. A resumed run keeps the checkpoint's "
-            "configuration: leave them out"
-        )
-    out = copy.deepcopy(current)
-    for key, value in old.items():
-        gone = key.split(".")[0] not in current
-        if not gone and not _covered(key, explicit) and key not in ("resume", "progress", "device"):
-            node = out
-            *parents, last = key.split(".")
-            for part in parents:
-                node = node.setdefault(part, {})
-            node[last] = value
-    return out
-
-
 def quoted(path: Path) -> str:
     """A path as a command-line value (quoted when it holds more than plain characters)."""
     text = str(path)
     plain = all(c.isalnum() or c in "_-./" for c in text)
     return text if plain else "'" + text.replace("'", "'\\''") + "'"
+
+
+def python_command() -> str:
+    """The python that runs this process, as a user types it: relative to the working directory
+    when it lies below it (``.venv/bin/python``), else its full path."""
+    exe = Path(sys.executable)
+    try:
+        return str(exe.relative_to(Path.cwd()))
+    except ValueError:
+        return str(exe)
+
+
+def resume_hint(recipe: str, directory: Path) -> str:
+    """How to go on from the checkpoint in ``directory`` ('' when there is none)."""
+    path = directory / "checkpoint.pt"
+    if not path.is_file():
+        return ""
+    return f"; go on with: {python_command()} recipes/{recipe}.py resume={quoted(path)}"
 
 
 def quiet_libraries() -> None:
@@ -197,6 +104,8 @@ class Run:
         self._log = None
         self._stdout = None
         self._created: list[Path] = []
+        self.signals = RunSignals()
+        self._had: set[str] = set()
 
     # -- the directory --------------------------------------------------------------------------
 
@@ -214,6 +123,7 @@ class Run:
             ValueError: the directory cannot be created, or another run holds it.
         """
         fresh = [p for p in (self.dir, *self.dir.parents) if not p.exists()]
+        self._had = {p.name for p in self.dir.iterdir()} if self.dir.is_dir() else set()
         try:
             self.dir.mkdir(parents=True, exist_ok=True)
             self._lock = open(self.dir / ".lock", "a+")  # noqa: SIM115 - held for the run's life
@@ -243,6 +153,7 @@ class Run:
         self._stdout = sys.stdout
         sys.stdout = _Tee(self._stdout, self._log)
         quiet_libraries()
+        self.signals.install()
         return self
 
     def _record(self) -> None:
@@ -270,6 +181,7 @@ class Run:
     def close(self, refused: bool = False) -> None:
         """Stop the log and release the lock; a refused run leaves no trace: what the scaffold
         created goes (a directory that held something before is left as it was, but for the log)."""
+        self.signals.restore()
         if self._stdout is not None:
             sys.stdout = self._stdout
             self._stdout = None
@@ -282,7 +194,7 @@ class Run:
             self._lock.close()
             self._lock = None
         if refused and self.dir.is_dir():
-            mine = {*BOOKKEEPING, f"{self.recipe}.log"}
+            mine = {*BOOKKEEPING, f"{self.recipe}.log"} | ({"logs"} - self._had)  # the logger's
             if not {p.name for p in self.dir.iterdir()} - mine:
                 for name in mine:
                     path = self.dir / name
@@ -377,7 +289,7 @@ class Run:
         episodes so far beside it (written first: once the checkpoint exists, they do too)."""
         import torch
 
-        from irdrc.agents.base import EPISODE_FIELDS
+        from irdrc.agents.base import DIGEST_SUFFIX, EPISODE_FIELDS
         from irdrc.runs.results import write_metrics_csv, write_rows_csv
 
         write_metrics_csv(self.dir / "metrics.csv", state.get("history", []))
@@ -385,10 +297,20 @@ class Run:
             self.dir / "episode_rewards.csv", state.get("episode_rewards", []), EPISODE_FIELDS
         )
         buf = io.BytesIO()
-        full = {"scenario": self.scenario, **state, "config": self.composed.cfg}
+        full = {
+            "scenario": self.scenario,
+            **state,
+            "config": self.composed.cfg,
+            "recipe": self.recipe,
+        }
         torch.save(full, buf)
         data = buf.getvalue()
+        digest = hashlib.sha256(data).hexdigest()
+        side = (self.dir / "checkpoint.pt").with_suffix(DIGEST_SUFFIX)
+        previous = side.read_text().split()[:1] if side.is_file() else []
+        atomic_write_text(side, "\n".join([digest, *previous]) + "\n")  # both, while it changes
         atomic_write(self.dir / "checkpoint.pt", lambda f: f.write(data))
+        atomic_write_text(side, digest + "\n")
 
     def finish(
         self,
@@ -414,10 +336,17 @@ class Run:
             if p.name not in skip and not p.name.startswith(".")
         )
         print(f"\nwrote {', '.join(files)} to {self.dir}", flush=True)
+        if interrupted_at is None and self.signals.signum is not None:
+            signum = self.signals.signum
+            raise RunInterrupted(
+                f"stopped by {signal.Signals(signum).name} after training: every file is written "
+                f"in {self.dir}, without what the signal cut short",
+                code=128 + int(signum),
+            )
         if interrupted_at is not None:
             signum = (self.stop.signal if self.stop else None) or signal.SIGINT
             how = (
-                f"go on with: python recipes/{self.recipe}.py resume="
+                f"go on with: {python_command()} recipes/{self.recipe}.py resume="
                 f"{quoted(self.dir / 'checkpoint.pt')} (it goes on in the same directory with the "
                 "same configuration)"
             )

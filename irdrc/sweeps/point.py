@@ -44,7 +44,8 @@ RESULT_FILES = ("metrics.csv", "policy.csv", "learners.csv", "episode_rewards.cs
 def run_point(point: dict[str, Any], out: Path) -> dict[str, Any]:
     """Run one planned point into ``out`` (its recipe's run function, in a run scaffold of its
     own); return what a trial reports (summary and run files)."""
-    from irdrc.runs.scaffold import Run, RunInterrupted
+    from irdrc.runs.scaffold import Run
+    from irdrc.runs.signals import RunInterrupted
 
     if point.get("fail"):
         raise RuntimeError(f"injected failure (sweep.fail_on) in {point['point_id']}")

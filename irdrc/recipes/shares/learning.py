@@ -8,6 +8,7 @@ from typing import Any
 
 from irdrc.core.checks import build
 from irdrc.runs.compose import Composed
+from irdrc.runs.resume import nothing_left
 from irdrc.runs.sections import check_eval_period
 
 
@@ -24,7 +25,9 @@ def load_as(config: type, composed: Composed, resume: dict[str, Any] | None) -> 
     check_shares_fit(cfg.params)
     explicit = "eval.every_frames" in composed.explicit
     check_eval_period(cfg.eval.every_frames, cfg.algo.total_frames, explicit)
-    if resume is not None and int(resume["frames"]) >= cfg.algo.total_frames:
+    if resume is not None and nothing_left(
+        cfg.resume, int(resume["frames"]), cfg.algo.total_frames
+    ):
         raise ValueError(
             f"resume={cfg.resume} is at {resume['frames']} env steps, algo.total_frames="
             f"{cfg.algo.total_frames}: nothing left to train; raise algo.total_frames"

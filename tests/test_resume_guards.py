@@ -1,0 +1,85 @@
+"""What a resume refuses before anything is read into a run or written: a checkpoint changed since
+its run wrote it (its digest), a ``config.yaml`` edited since, a checkpoint of another recipe; and
+a refused run leaves no directory behind, the logger's included."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from irdrc.recipes import dqn
+from irdrc.recipes.shares import sac
+from irdrc.runs.app import prepare
+from irdrc.runs.compose import compose_recipe
+from irdrc.runs.scaffold import Run
+from irdrc.runs.sections import Logger
+
+
+def write_checkpoint(directory: Path, module=dqn, args=()) -> Path:
+    """A run directory as ``module``'s recipe leaves it: config files and a checkpoint."""
+    run = Run(module.NAME, compose_recipe(module, list(args)), directory).open()
+    try:
+        run.checkpoint({"frames": 64, "updates": 1, "wall_seconds": 0.1, "history": []})
+    finally:
+        run.close()
+    return directory / "checkpoint.pt"
+
+
+def files(directory: Path) -> dict[str, bytes]:
+    return {p.name: p.read_bytes() for p in directory.iterdir() if p.is_file()}
+
+
+def test_a_checkpoint_changed_since_its_run_wrote_it_is_refused_before_anything(tmp_path):
+    path = write_checkpoint(tmp_path / "run")
+    data = bytearray(path.read_bytes())
+    data[len(data) // 2] ^= 0xFF  # one byte inside, the zip still readable
+    path.write_bytes(bytes(data))
+    before = files(path.parent)
+    with pytest.raises(ValueError, match="differs from the one its run wrote"):
+        prepare(dqn, [f"resume={path}"])
+    assert files(path.parent) == before
+    # the untouched checkpoint passes its check
+    good = write_checkpoint(tmp_path / "good")
+    prepare(dqn, [f"resume={good}", "algo.total_frames=32000"])
+
+
+def test_the_digest_accepts_the_previous_checkpoint_while_a_new_one_replaces_it(tmp_path):
+    path = write_checkpoint(tmp_path / "run")
+    first = path.read_bytes()
+    run = Run("dqn", compose_recipe(dqn, []), tmp_path / "run").open()
+    try:
+        run.checkpoint({"frames": 128, "updates": 2, "wall_seconds": 0.2, "history": []})
+    finally:
+        run.close()
+    assert path.read_bytes() != first
+    assert len(path.with_suffix(".sha256").read_text().split()) == 1  # the new one's alone
+
+
+def test_an_edited_config_yaml_is_refused_naming_the_key(tmp_path):
+    path = write_checkpoint(tmp_path / "run")
+    config = path.parent / "config.yaml"
+    config.write_text(config.read_text().replace("r4: 5.0", "r4: 50.0"))
+    with pytest.raises(
+        ValueError, match=r"edited after its run wrote it \(reward\.r4: 5\.0 → 50\.0\)"
+    ):
+        prepare(dqn, [f"resume={path}", "algo.total_frames=32000"])
+    assert "r4: 50.0" in config.read_text()  # left as the user wrote it
+
+
+def test_a_checkpoint_of_another_recipe_names_it_and_the_command(tmp_path):
+    path = write_checkpoint(tmp_path / "run", sac, ["env.actions=continuous"])
+    with pytest.raises(
+        ValueError,
+        match=r"is a checkpoint of recipes/sac\.py; go on with it with: .*recipes/sac\.py resume=",
+    ):
+        prepare(dqn, [f"resume={path}"])
+
+
+def test_a_refused_run_leaves_no_directory_the_logger_included(tmp_path):
+    out = tmp_path / "a" / "run"
+    run = Run("dqn", compose_recipe(dqn, []), out).open()
+    run.make_logger(Logger(backend="csv"), "dqn")
+    assert (out / "logs").exists()
+    run.close(refused=True)
+    assert not (tmp_path / "a").exists()

@@ -83,3 +83,21 @@ def test_a_refused_run_leaves_no_directory_the_logger_included(tmp_path):
     assert (out / "logs").exists()
     run.close(refused=True)
     assert not (tmp_path / "a").exists()
+
+
+def test_checkpoints_are_paced_by_env_steps_or_wall_time_whichever_first():
+    import time
+
+    from irdrc.agents.base import Hooks
+
+    def hooks(**kw) -> Hooks:
+        return Hooks(on_checkpoint=lambda state: None, **kw)
+
+    by_time = hooks(checkpoint_every_frames=10**9, checkpoint_every_seconds=0.05)
+    assert not by_time.checkpoint_due(0, 100)
+    time.sleep(0.06)
+    assert by_time.checkpoint_due(100, 200)  # the time is up, far from the step mark
+    assert not by_time.checkpoint_due(200, 300)  # … and it counts again from there
+    by_steps = hooks(checkpoint_every_frames=100, checkpoint_every_seconds=3600)
+    assert not by_steps.checkpoint_due(0, 99) and by_steps.checkpoint_due(99, 100)
+    assert not hooks().checkpoint_due(0, 10**9)  # neither: at the end only

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import hashlib
 import io
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -47,8 +48,9 @@ class Hooks:
         on_batch: after each batch of interaction, with ``env_steps`` and the learner's training
             scalars (e.g. ``epsilon``, ``loss``), logged as ``train/<name>``.
         on_start: once the learner is built, with facts about it (e.g. the replay sampler).
-        on_checkpoint: with the resumable state, every ``checkpoint_every_frames`` env steps
-            (learners that checkpoint; 0: never during the run).
+        on_checkpoint: with the resumable state, every ``checkpoint_every_frames`` env steps or
+            ``checkpoint_every_seconds`` of wall time, whichever comes first (learners that
+            checkpoint; 0 and 0: never during the run).
         should_stop: polled after each batch; True makes the learner stop there, evaluate, and
             return its record with ``interrupted`` set (and ``state`` to resume from).
     """
@@ -59,6 +61,8 @@ class Hooks:
     on_checkpoint: Callable[[dict[str, Any]], None] | None = None
     checkpoint_every_frames: int = 0
     should_stop: Callable[[], bool] | None = None
+    checkpoint_every_seconds: float = 0.0
+    _last_checkpoint: float = field(default_factory=time.monotonic, repr=False)
 
     def start(self, info: dict[str, Any]) -> None:
         """Call ``on_start`` (what the learner built, before the first step) if set."""
@@ -66,9 +70,16 @@ class Hooks:
             self.on_start(info)
 
     def checkpoint_due(self, before: int, after: int) -> bool:
-        """Whether a multiple of ``checkpoint_every_frames`` lies in (before, after]."""
-        every = self.checkpoint_every_frames
-        return bool(every) and self.on_checkpoint is not None and after // every > before // every
+        """Whether a multiple of ``checkpoint_every_frames`` lies in (before, after], or
+        ``checkpoint_every_seconds`` have passed since the last checkpoint (or the start)."""
+        if self.on_checkpoint is None:
+            return False
+        every, seconds = self.checkpoint_every_frames, self.checkpoint_every_seconds
+        due = bool(every) and after // every > before // every
+        due = due or (seconds > 0 and time.monotonic() - self._last_checkpoint >= seconds)
+        if due:
+            self._last_checkpoint = time.monotonic()
+        return due
 
     def stop_requested(self) -> bool:
         """Whether the caller asked the learner to stop after this batch (e.g. on SIGTERM)."""

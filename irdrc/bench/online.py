@@ -47,9 +47,9 @@ class Config:
 
     scenarios: tuple[str, ...] = ("paper", "multilevel", "imperfect_radar")
     seeds: tuple[int, ...] = tuple(range(10, 20))
-    learners: tuple[str, ...] = ("posterior", "dqn", "qlearning", "qlearning_paper")
-    paper_learners: tuple[str, ...] = ("dqn_paper",)
-    paper_seeds: tuple[int, ...] = (10, 11, 12)
+    learners: tuple[str, ...] = ("posterior", "dqn")
+    paper_learners: tuple[str, ...] = ("qlearning", "qlearning_paper")
+    paper_seeds: tuple[int, ...] = tuple(range(10, 20))
     random_draws: int = 30
     first_draw: int = REPORTING
     random_seed: int = 10

@@ -108,8 +108,7 @@ def run(cfg: Config, run) -> dict[str, Any]:
     scenarios = cfg.scenarios
     scorers = [Scorer(build_model(p), cfg.optimum_gamma) for p in scenarios]
     total = cfg.algo.episodes * cfg.params.env.horizon
-    every = cfg.checkpoint.every_frames
-    with run.training(total, cfg.algo.name, checkpoint_every=every) as hooks:
+    with run.training(total, cfg.algo.name, checkpoint=cfg.checkpoint) as hooks:
         record = qlearning.train(
             scenarios,
             cfg.algo,

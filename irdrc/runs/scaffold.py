@@ -239,8 +239,9 @@ class Run:
         """A single-vehicle learner's ``train`` (``irdrc.agents.dqn.train``, ``sac.train``) on its
         recipe's ``cfg`` (``sections.OneVehicleLearning``), inside ``training``: progress,
         checkpoints and the stop, resumed from this run's checkpoint; returns its record."""
-        every = cfg.checkpoint.every_frames
-        with self.training(cfg.algo.total_frames, cfg.algo.name, checkpoint_every=every) as hooks:
+        with self.training(
+            cfg.algo.total_frames, cfg.algo.name, checkpoint=cfg.checkpoint
+        ) as hooks:
             return train(
                 cfg.params,
                 cfg.algo,
@@ -254,11 +255,12 @@ class Run:
 
     @contextlib.contextmanager
     def training(
-        self, total: int, label: str, *, checkpoint_every: int = 0, unit: str = "env steps"
+        self, total: int, label: str, *, checkpoint: Any = None, unit: str = "env steps"
     ) -> Iterator[Any]:
         """The hooks a learner reports through while it trains: progress (a bar in a terminal,
-        plain lines in a log) and the logger, a checkpoint every ``checkpoint_every`` env steps,
-        and a stop after the current batch on SIGINT/SIGTERM."""
+        plain lines in a log) and the logger, a checkpoint as ``checkpoint`` (a
+        ``sections.Checkpoint``; None: at the end only) paces it, and a stop after the current
+        batch on SIGINT/SIGTERM."""
         from irdrc.agents.base import Hooks
         from irdrc.runs.progress import RunProgress
 
@@ -279,7 +281,8 @@ class Run:
                 on_batch=progress.on_batch,
                 on_start=progress.on_start,
                 on_checkpoint=self.checkpoint,
-                checkpoint_every_frames=int(checkpoint_every),
+                checkpoint_every_frames=int(checkpoint.every_frames) if checkpoint else 0,
+                checkpoint_every_seconds=float(checkpoint.every_seconds) if checkpoint else 0.0,
                 should_stop=stop,
             )
             progress.close()

@@ -189,13 +189,19 @@ class Plot:
 
 @dataclass(frozen=True)
 class Checkpoint:
-    """``checkpoint.every_frames``: write ``checkpoint.pt`` every this many env steps (0: only at the
-    end and on SIGINT/SIGTERM)."""
+    """``checkpoint.every_frames``: write ``checkpoint.pt`` every this many env steps, or every
+    ``every_seconds`` of wall time, whichever comes first (0 and 0: only at the end and on
+    SIGINT/SIGTERM)."""
 
     every_frames: int = 0
+    every_seconds: float = 60.0
 
     def __post_init__(self) -> None:
-        checks.check_numbers(self, "checkpoint.", (("every_frames", 0, 10**12, checks.INT),))
+        checks.check_numbers(
+            self,
+            "checkpoint.",
+            (("every_frames", 0, 10**12, checks.INT), ("every_seconds", 0, 10**7, {})),
+        )
 
 
 @dataclass(frozen=True)

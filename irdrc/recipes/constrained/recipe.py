@@ -313,8 +313,7 @@ def run_learned(cfg: Config, run) -> dict[str, Any]:
     )
     logger = run.make_logger(cfg.logger, config.name)
     scorer = Scorer(model, gamma=cfg.optimum_gamma)
-    every = cfg.checkpoint.every_frames
-    with run.training(config.dqn.total_frames, config.name, checkpoint_every=every) as hooks:
+    with run.training(config.dqn.total_frames, config.name, checkpoint=cfg.checkpoint) as hooks:
         on_eval = hooks.on_eval
         hooks.on_eval = lambda entries: on_eval(objective_ratio(entries, sol))
         record = lagrangian.train(

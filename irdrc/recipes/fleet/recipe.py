@@ -151,8 +151,7 @@ def run(cfg: Config, run) -> dict[str, Any]:
     )
     name = cfg.learner.learner
     logger = run.make_logger(cfg.logger, f"fleet_{name}")
-    every = cfg.checkpoint.every_frames
-    with run.training(cfg.total, name, checkpoint_every=every, unit=UNIT) as hooks:
+    with run.training(cfg.total, name, checkpoint=cfg.checkpoint, unit=UNIT) as hooks:
         record = marl.train(
             model,
             cfg.learner,

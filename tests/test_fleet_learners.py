@@ -530,3 +530,28 @@ def test_the_default_fleet_learner_is_within_0_99_of_the_best_decentralised_poli
     starts = [("learner", tables)] + [s for s in structured_starts(two) if "random" not in s[0]]
     best = best_decentralised(two, starts, certify=False)
     assert learned >= 0.99 * best.reward, (learned, best.reward, best.runs)
+
+
+def test_a_starved_vehicle_is_named_in_words_and_a_win_over_a_baseline_is_no_verdict():
+    from types import SimpleNamespace
+
+    from irdrc.recipes.fleet.recipe import verdict
+    from irdrc.recipes.fleet.report import starvation
+
+    def row(vehicle, throughput, drop):
+        return {"vehicle": vehicle, "throughput": throughput, "drop_rate": drop}
+
+    per = [row(1, 0.8, 0.01), row(2, 0.7, 0.02), row(3, 0.0, 0.999), row(4, 0.0, 0.999)]
+    line = starvation("qmix", [*per, row("fleet", 1.5, 0.5)])
+    assert line is not None and "vehicles 3, 4 of 4 never send" in line
+    assert "vehicle 3: throughput 0.0000, drop rate 0.999" in line
+    assert starvation("qmix", [*per[:2], row("fleet", 1.5, 0.01)]) is None
+
+    def measured(reward):
+        return SimpleNamespace(fleet=SimpleNamespace(avg_reward=reward), ci95=0.001)
+
+    text = verdict(
+        "qmix", {"qmix (Monte-Carlo)": measured(1.0), "rule (Monte-Carlo)": measured(0.7)}, "rule"
+    )
+    assert "earns 0.3000 more than the best baseline" in text
+    assert "no verdict on the optimum" in text and "wins" not in text

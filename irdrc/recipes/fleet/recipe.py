@@ -194,6 +194,7 @@ def finish_fleet(cfg: Config, run, model, observe: str, record, scorer, single) 
         format_rows,
         reference_policies,
         single_tables,
+        starvation,
         write_joint_policy_csv,
     )
     from irdrc.runs.curves import plot_learning_curve
@@ -227,7 +228,11 @@ def finish_fleet(cfg: Config, run, model, observe: str, record, scorer, single) 
         extra = {"monte_carlo": {**mc_keys(cfg), "ci95": errors}}
         write_rows_csv(run.dir / "policy.csv", single_tables(model, greedy))
     print(f"\n{name}: {record.env_steps} {UNIT}, {record.wall_seconds:.0f} s\n")
-    print(format_rows(rows, scorer.optimal_metrics.avg_reward))
+    reference = "the centralised optimum" if model.exact else f"{scorer.reference} (Monte-Carlo)"
+    print(format_rows(rows, scorer.optimal_metrics.avg_reward, reference))
+    if line := starvation(name, rows[next(iter(rows))]):
+        extra["starvation"] = line
+        print("\n" + line)
     if errors:
         print(
             "\nMonte-Carlo 95 % half-widths of the fleet reward: "
@@ -269,8 +274,12 @@ def verdict(name: str, measured: dict[str, Any], best: str) -> str:
         f"{name} earns {a:.4f} ± {mine.ci95:.4f} per fleet step, the best baseline ({best}) "
         f"{b:.4f} ± {theirs.ci95:.4f} (Monte-Carlo, 95 %): "
     )
+    note = (
+        " (no optimum is known beyond the exact model: a win over the best baseline is no verdict "
+        "on the optimum)"
+    )
     if a - b > half:
-        return head + f"{name} wins by {a - b:.4f}"
+        return head + f"{name} earns {a - b:.4f} more than the best baseline" + note
     if b - a > half:
         return head + (
             f"the baseline wins by {b - a:.4f}; a longer run (algo.total_frames, or ppo."

@@ -56,9 +56,11 @@ def describe(spec: FleetSpec, observe: str, model: FleetModel) -> str:
     )
 
 
-def format_rows(rows: dict[str, list[dict]], reference: float) -> str:
+def format_rows(
+    rows: dict[str, list[dict]], reference: float, reference_name: str = "reference"
+) -> str:
     """The per-vehicle table: one line per vehicle and one for the fleet with its ratio to
-    ``reference``."""
+    ``reference`` (named ``reference_name``)."""
     head = f"{'policy':<34} {'vehicle':>7} " + " ".join(f"{c:>14}" for c in PRINTED)
     lines = [head, "-" * len(head)]
     for name, per in rows.items():
@@ -67,7 +69,8 @@ def format_rows(rows: dict[str, list[dict]], reference: float) -> str:
             label = name if row["vehicle"] == 1 else ""
             lines.append(f"{label:<34} {row['vehicle']!s:>7} {cells}")
         lines.append(
-            f"{'':<34} {'':>7} fleet reward / reference: {per[-1]['avg_reward'] / reference:.4f}"
+            f"{'':<34} {'':>7} fleet reward / {reference_name}: "
+            f"{per[-1]['avg_reward'] / reference:.4f}"
         )
     undefined = any(_cell(r.get(c)) == "—" for per in rows.values() for r in per for c in PRINTED)
     notes = [FLEET_ROW] + (
@@ -79,6 +82,29 @@ def format_rows(rows: dict[str, list[dict]], reference: float) -> str:
 def _cell(x: float) -> str:
     """A table cell: 4 decimals, or — where the metric is undefined."""
     return "—" if x is None or (isinstance(x, float) and math.isnan(x)) else f"{x:.4f}"
+
+
+STARVED_THROUGHPUT = 1e-3
+"""A vehicle whose throughput (packets per step) is below this never sends: starved."""
+
+
+def starvation(name: str, per: list[dict]) -> str | None:
+    """One line naming the vehicles of ``per`` (each vehicle's row, then the fleet's) that never
+    send, with their throughput and drop rate; None when every vehicle sends."""
+    starved = [r for r in per[:-1] if float(r["throughput"]) < STARVED_THROUGHPUT]
+    if not starved:
+        return None
+    who = ", ".join(str(r["vehicle"]) for r in starved)
+    numbers = "; ".join(
+        f"vehicle {r['vehicle']}: throughput {float(r['throughput']):.4f}, drop rate "
+        f"{float(r['drop_rate']):.3f}"
+        for r in starved
+    )
+    return (
+        f"starvation: under {name}, vehicle{'s' if len(starved) > 1 else ''} {who} of "
+        f"{len(per) - 1} never send{'' if len(starved) > 1 else 's'} ({numbers}); the fleet's "
+        "reward is earned by the others"
+    )
 
 
 def clean_rows(rows: list[dict]) -> list[dict]:

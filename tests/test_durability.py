@@ -139,9 +139,18 @@ def test_a_failed_write_keeps_the_previous_file_and_leaves_no_temp(tmp_path):
         f.write(b"partial")
         raise OSError(28, "No space left on device")
 
-    with pytest.raises(OSError, match=r"cannot write .*metrics\.csv: No space left on device"):
+    with pytest.raises(
+        OSError,
+        match=r"cannot write .*metrics\.csv: No space left on device \(its previous content is intact\)",
+    ):
         atomic_write(path, full)
     assert path.read_text() == "old" and [p.name for p in tmp_path.iterdir()] == ["metrics.csv"]
+    # a file that did not exist is not said to be intact
+    with pytest.raises(
+        OSError, match=r"new\.csv: No space left on device \(nothing was written there\)"
+    ):
+        atomic_write(tmp_path / "new.csv", full)
+    assert not (tmp_path / "new.csv").exists()
 
 
 def test_files_follow_the_umask(tmp_path):

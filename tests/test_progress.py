@@ -59,6 +59,11 @@ def test_a_run_that_ends_badly_says_so_and_where_its_best_was():
     assert drift is None
     many = end_warning(_hist((0, 0.5), (10, 1.0)) + _hist((0, 0.5), (10, 0.5), learner=1))
     assert many.startswith("warning: 1 of 2 learners end badly") and "learner 1:" in many
+    # twenty learners below: one short line each for five, then a count
+    twenty = end_warning(sum((_hist((0, 0.5), (10, 0.5), learner=i) for i in range(20)), []))
+    lines = twenty.splitlines()
+    assert len(lines) == 7 and max(map(len, lines)) < 120, lines
+    assert lines[-1] == "  … and 15 more (learners.csv, metrics.csv)"
 
 
 def test_a_run_below_the_threshold_is_told_the_override_to_try():
@@ -97,3 +102,13 @@ def test_every_profile_a_learner_recipe_runs_is_told_an_override_that_exists():
         else:
             config = QLearningConfig if name.startswith("qlearning") else DQNConfig
             assert key.startswith("algo.") and key[5:] in {f.name for f in fields(config)}, override
+
+
+def test_a_resumed_run_starts_from_its_last_evaluation(capsys):
+    from irdrc.runs.progress import RunProgress
+
+    p = RunProgress(1000, True, None, "ppo")
+    p.resumed(_hist((0, 0.3), (400, 0.97)))
+    p.on_batch({"env_steps": 500})
+    p.close()
+    assert "ratio 0.9700 at 400" in capsys.readouterr().out

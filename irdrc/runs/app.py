@@ -148,9 +148,12 @@ def execute(module: ModuleType, args: list[str]) -> int:
     except (ValueError, OSError) as err:
         if full:
             raise
-        run.log_line(f"error: {err}")
+        message = str(err)
+        if isinstance(err, OSError):  # a full disk, a lost mount: the checkpoint, if any, goes on
+            message += resume_hint(module.NAME, run.dir)
+        run.log_line(f"error: {message}")
         refused = True
-        return fail(str(err))
+        return fail(message)
     except Signalled as sig:
         message = f"stopped by {sig}; what the run wrote is in {run.dir}" + resume_hint(
             module.NAME, run.dir

@@ -74,6 +74,12 @@ class RunProgress:
         self.pending: int | None = None  # env step of a plain line waiting for its evaluation
         self.ratio_steps: int | None = None  # env step of the latest evaluation
 
+    def resumed(self, history: list[dict[str, Any]]) -> None:
+        """A resumed run's lines start from its last evaluation (learner 0's), not from none."""
+        mine = [r for r in history if int(r.get("learner", 0)) == 0]
+        if mine:
+            self.ratio, self.ratio_steps = mine[-1]["optimality_ratio"], mine[-1]["env_steps"]
+
     def on_start(self, info: dict[str, Any]) -> None:
         for key, value in info.items():
             print(f"{key.replace('_', ' ')}: {value}", flush=True)

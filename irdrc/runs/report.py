@@ -170,6 +170,11 @@ def _batch_grid(lr: LearnerRun) -> dict[str, Any]:
     }
 
 
+def _steps(value: Any) -> str:
+    """Env steps to a threshold, or "never" (None: no evaluation reached it)."""
+    return "never" if value is None else str(value)
+
+
 def print_learner(
     run: Run,
     lr: LearnerRun,
@@ -208,15 +213,17 @@ def print_learner(
     if record.num_learners > 1:
         print("\nlearner  final ratio  env steps to 95 %  to 99 %")
         for row in learners:
-            print(
-                f"{row['learner']:>7}  {row['final_ratio']:>11.4f}  {row['env_steps_to_95']!s:>17}  "
-                f"{row['env_steps_to_99']!s:>7}"
-            )
+            to95, to99 = (_steps(row[f"env_steps_to_{th}"]) for th in ("95", "99"))
+            print(f"{row['learner']:>7}  {row['final_ratio']:>11.4f}  {to95:>17}  {to99:>7}")
         for th in ("95", "99"):
             got = [r[f"env_steps_to_{th}"] for r in learners]
             hit = sorted(g for g in got if g is not None)
-            med = statistics.median(hit) if len(hit) == len(got) else None
-            print(f"to {th} %: {len(hit)}/{len(got)} learners; median env steps {med}")
+            med = (
+                f"median env steps {statistics.median(hit):g}"
+                if len(hit) == len(got)
+                else "no median: not every learner reached it"
+            )
+            print(f"to {th} %: {len(hit)}/{len(got)} learners; {med}")
     final, first99 = learners[0]["final_ratio"], learners[0]["env_steps_to_99"]
     reached = (
         f"first ≥ 99 % at {first99} env steps"
@@ -290,6 +297,9 @@ def degenerate_note(optimal: Metrics) -> str | None:
 END_THRESHOLD = 0.99
 """A run whose final greedy policy is below this share of the optimum ends with a warning."""
 
+WARNING_LEARNERS = 5
+"""A warning about many learners names this many, one per line, and counts the rest."""
+
 END_SLACK = 0.01
 """… as does one whose final policy is more than this below its own best evaluation."""
 
@@ -344,5 +354,9 @@ def end_warning(history: list[dict[str, Any]], advice: str | None = None) -> str
     tail = f"; try {advice}" if advice else ""
     if len(runs) == 1:
         return f"warning: the final greedy policy is {bad[0][1]} (metrics.csv){tail}"
-    each = "; ".join(f"learner {i}: {text}" for i, text in bad)
-    return f"warning: {len(bad)} of {len(runs)} learners end badly — {each} (metrics.csv){tail}"
+    shown = [f"  learner {i}: {text}" for i, text in bad[:WARNING_LEARNERS]]
+    if len(bad) > WARNING_LEARNERS:
+        shown.append(f"  … and {len(bad) - WARNING_LEARNERS} more (learners.csv, metrics.csv)")
+    return "\n".join(
+        [f"warning: {len(bad)} of {len(runs)} learners end badly (metrics.csv){tail}", *shown]
+    )

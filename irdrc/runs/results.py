@@ -42,6 +42,7 @@ def atomic_write(path: Path, write: Callable[[BinaryIO], None]) -> None:
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
+    existed = path.exists()
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
         with os.fdopen(fd, "wb") as f:
@@ -55,9 +56,8 @@ def atomic_write(path: Path, write: Callable[[BinaryIO], None]) -> None:
             os.unlink(tmp)
         if isinstance(err, OSError) and not isinstance(err, FileNotFoundError):
             reason = err.strerror or str(err)
-            raise OSError(
-                err.errno, f"cannot write {path}: {reason} (its previous content is intact)"
-            ) from err
+            kept = "its previous content is intact" if existed else "nothing was written there"
+            raise OSError(err.errno, f"cannot write {path}: {reason} ({kept})") from err
         raise
 
 

@@ -274,6 +274,8 @@ class Run:
             )
         enabled = bool(self.composed.cfg.get("progress", True))
         progress = RunProgress(total, enabled, self.logger, label, unit)
+        if self.resume_state is not None:
+            progress.resumed(self.resume_state.get("history", []))
         with stop_on_signals() as stop:
             self.stop = stop
             yield Hooks(

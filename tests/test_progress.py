@@ -60,7 +60,7 @@ def test_a_run_that_ends_badly_says_so_and_where_its_best_was():
     many = end_warning(_hist((0, 0.5), (10, 1.0)) + _hist((0, 0.5), (10, 0.5), learner=1))
     assert many.startswith("warning: 1 of 2 learners end badly") and "learner 1:" in many
     # twenty learners below: one short line each for five, then a count
-    twenty = end_warning(sum((_hist((0, 0.5), (10, 0.5), learner=i) for i in range(20)), []))
+    twenty = end_warning([r for i in range(20) for r in _hist((0, 0.5), (10, 0.5), learner=i)])
     lines = twenty.splitlines()
     assert len(lines) == 7 and max(map(len, lines)) < 120, lines
     assert lines[-1] == "  … and 15 more (learners.csv, metrics.csv)"

@@ -116,3 +116,27 @@ def test_a_wrong_file_is_refused_naming_the_key_and_what_it_needs(tmp_path):
     for r in (missing, wrong, joint):
         assert len(r.stderr.splitlines()) == 1 and "Traceback" not in r.stderr
     assert not any((tmp_path / d).exists() for d in "mwf")
+
+
+def test_a_radar_share_policy_is_scored_exactly_and_by_monte_carlo(tmp_path):
+    """A ``rho`` table (``recipes/sac.py``'s policy.csv) against the optimum over ρ: the
+    optimum's own shares score 1 exactly, and the Monte-Carlo row plays the shares."""
+    from irdrc.core.exact.continuum import ContinuumScorer
+    from irdrc.core.params import Params
+    from irdrc.recipes import evaluate
+    from irdrc.runs.app import execute
+    from irdrc.runs.tables import write_policy_csv
+
+    params = Params.from_overrides({"env.actions": "continuous"})
+    rho = ContinuumScorer(params).optimal.rho.double()
+    write_policy_csv(tmp_path / "policy.csv", rho, params.env.factor_levels, shares=())
+    out = tmp_path / "run"
+    args = [f"policy={tmp_path / 'policy.csv'}", "eval.mc_episodes=32", "eval.mc_num_envs=32"]
+    assert execute(evaluate, [*args, f"hydra.run.dir={out}"]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["metrics"]["avg_reward"] == pytest.approx(summary["optimal"]["avg_reward"])
+    mc = summary["table"]["policy (Monte-Carlo, episodic)"]
+    # the shares are played, not rounded to comm/radar: the radar fraction is the policy's
+    assert mc["radar_fraction"] == pytest.approx(summary["metrics"]["radar_fraction"], abs=0.02)
+    binary = summary["table"]["optimal binary (exact, long run)"]["avg_reward"]
+    assert summary["metrics"]["avg_reward"] > binary

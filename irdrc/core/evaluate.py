@@ -104,16 +104,15 @@ def evaluate(policy, env: DFRCEnv, episodes: int | None = None) -> Evaluation:
     keys = _KEYS
     per_episode = {k: [] for k in keys}
     shares = env.params.env.shares  # the radar share of each action (binary: 0, 1)
-    if shares is None:
-        raise ValueError("evaluate plays discrete actions; a continuous policy is scored exactly")
-    share = torch.tensor(shares, dtype=torch.float64, device=env.device)
+    share = None if shares is None else torch.tensor(shares, dtype=torch.float64, device=env.device)
     for _ in range(rounds):
         sums = {k: torch.zeros(n, dtype=torch.float64, device=env.device) for k in keys}
         td: TensorDictBase = env.reset()
         for _ in range(horizon):
             td = policy(td)
             sums["queue"] += td["observation"][..., 0].reshape(-1)
-            radar = share[td["action"].reshape(-1).long()]
+            action = td["action"].reshape(-1)
+            radar = action.double() if share is None else share[action.long()]  # ρ itself
             sums["radar"] += radar
             td = env.step(td)
             nxt = td["next"]

@@ -52,6 +52,24 @@ class _Table(nn.Module):
         return self.actions[state]
 
 
+class _ShareTable(nn.Module):
+    def __init__(self, rho: torch.Tensor) -> None:
+        super().__init__()
+        self.register_buffer("rho", torch.as_tensor(rho, dtype=torch.float32).clone())
+
+    def forward(self, state: torch.Tensor) -> torch.Tensor:
+        return self.rho[state].unsqueeze(-1)
+
+
+def share_table_policy(rho: torch.Tensor) -> TensorDictModule:
+    """Policy from a radar share per state index: ``rho`` [S] in [0, 1], the action of an env
+    with ``env.actions=continuous`` (MODEL.md § D)."""
+    rho = torch.as_tensor(rho)
+    if rho.ndim != 1 or bool(((rho < 0) | (rho > 1)).any()):
+        raise ValueError("a radar-share policy is a 1-D table of shares in [0, 1], one per state")
+    return TensorDictModule(_ShareTable(rho), in_keys=["state"], out_keys=["action"])
+
+
 class _RandomTable(nn.Module):
     def __init__(self, p_radar: torch.Tensor, seed: int | None) -> None:
         super().__init__()

@@ -128,8 +128,11 @@ def load_source(cfg: Config) -> tuple[Any, str, str]:
             "scores single-vehicle policies — a fleet's are scored by recipes/fleet.py and "
             "recipes/solve.py env=fleet"
         )
-    from irdrc.runs.tables import read_policy_csv
+    from irdrc.runs.tables import read_policy_csv, read_share_csv
 
+    if "rho" in header.strip().split(","):
+        rho = read_share_csv(path, params.env.num_states)
+        return rho, f"radar-share policy table {path}", "rho"
     policy = read_policy_csv(path, num_states=params.env.num_states, probabilities=True)
     if bool(((policy[:, 1] == 0) | (policy[:, 1] == 1)).all()):
         return policy[:, 1].long(), f"policy table {path}", "policy"
@@ -151,10 +154,12 @@ def run(cfg: Config, run) -> dict[str, Any]:
     run.threads(cfg.num_threads)
     params = cfg.params
     t0 = time.perf_counter()
+    policy, source, name = load_source(cfg)
+    if name == "rho":
+        return score_shares(cfg, run, policy, source, t0)
     scorer = exact_scorer(params, cfg.optimum_gamma)
     model = scorer.model
     S = params.env.num_states
-    policy, source, name = load_source(cfg)
     dense = isinstance(model, DenseModel)
     if policy.ndim == 2 and not dense:
         raise ValueError(f"{source}: randomised tables are scored on dense models only (S = {S})")
@@ -197,6 +202,58 @@ def run(cfg: Config, run) -> dict[str, Any]:
         states_differing_from_optimum=(
             int((policy != scorer.optimal.policy).sum()) if policy.ndim == 1 else None
         ),
+        table=table_dict(rows, errs),
+    )
+    run.finish(summary)
+    return summary
+
+
+def score_shares(cfg: Config, run, rho: Any, source: str, t0: float) -> dict[str, Any]:
+    """A radar-share policy (``rho`` [S], MODEL.md § D) scored exactly against the optimum over
+    ρ ∈ [0, 1] and the binary optimum, and by Monte-Carlo on ``env.actions=continuous``."""
+    from irdrc.core.env import DFRCEnv
+    from irdrc.core.evaluate import evaluate
+    from irdrc.core.exact import exact_scorer
+    from irdrc.core.exact.continuum import ContinuumScorer
+    from irdrc.core.metrics import format_table
+    from irdrc.core.policies import share_table_policy
+    from irdrc.runs.report import table_dict
+    from irdrc.runs.results import summary_dict
+    from irdrc.runs.tables import write_policy_csv
+
+    binary = cfg.params.with_overrides({"env.actions": "binary"})
+    continuous = cfg.params.with_overrides({"env.actions": "continuous"})
+    scorer = ContinuumScorer(continuous, cfg.optimum_gamma)
+    learned, opt = scorer.metrics(rho), scorer.optimal_metrics
+    rows = {"policy (exact, long run)": learned}
+    errs: dict[str, dict[str, float]] = {}
+    if cfg.eval.mc_episodes:
+        env = DFRCEnv(continuous, batch_size=[int(cfg.eval.mc_num_envs)], seed=cfg.seed)
+        ev = evaluate(share_table_policy(rho), env, episodes=int(cfg.eval.mc_episodes))
+        label = "policy (Monte-Carlo, episodic)"
+        rows[label], errs[label] = ev.metrics, ev.ci95
+    rows["optimal over ρ (exact, long run)"] = opt
+    rows["optimal binary (exact, long run)"] = exact_scorer(
+        binary, cfg.optimum_gamma
+    ).optimal_metrics
+    ratio = learned.avg_reward / opt.avg_reward
+    S = cfg.params.env.num_states
+    print(f"scenario={run.scenario} (S = {S}): {source}\n")
+    print(format_table(rows, errors=errs))
+    print(
+        f"\npolicy: {ratio:.4f} of this scenario's optimum over ρ ∈ [0, 1] (average reward, exact)"
+    )
+    write_policy_csv(run.dir / "policy.csv", rho, cfg.params.env.factor_levels, shares=())
+    summary = summary_dict(
+        method="evaluate",
+        scenario=run.scenario,
+        seed=cfg.seed,
+        env_steps=0,
+        wall_seconds=time.perf_counter() - t0,
+        metrics=learned,
+        optimal=opt,
+        source=source,
+        reference="optimum over ρ ∈ [0, 1] (exact)",
         table=table_dict(rows, errs),
     )
     run.finish(summary)

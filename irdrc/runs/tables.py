@@ -113,6 +113,31 @@ def _prob(p: float) -> str:
     return "0" if p == 0 else "1" if p == 1 else repr(p)
 
 
+def read_share_csv(path: Path, num_states: int) -> torch.Tensor:
+    """The [S] radar shares of a deterministic ρ policy's ``policy.csv`` (``recipes/sac.py``,
+    ``ppo.py``: a ``rho`` column).
+
+    Raises:
+        ValueError: naming the file: unreadable, another number of rows, a share outside [0, 1],
+            or a randomised ρ policy (``p_alt`` > 0: scored by ``recipes/constrained.py``).
+    """
+    with Path(path).open() as f:
+        rows = list(csv.DictReader(f))
+    if len(rows) != num_states:
+        raise ValueError(f"{path}: {len(rows)} rows, the scenario has S = {num_states} states")
+    if any(float(r.get("p_alt") or 0) > 0 for r in rows):
+        raise ValueError(
+            f"{path}: a randomised ρ policy (p_alt > 0); recipes/constrained.py scores its own"
+        )
+    try:
+        rho = torch.tensor([float(r["rho"]) for r in rows], dtype=torch.float64)
+    except (KeyError, ValueError, TypeError) as err:
+        raise ValueError(f"{path}: its rho column is not numbers ({err})") from None
+    if bool(((rho < 0) | (rho > 1)).any()):
+        raise ValueError(f"{path}: a radar share outside [0, 1]")
+    return rho
+
+
 def read_policy_csv(
     path: Path, num_states: int | None = None, probabilities: bool = False
 ) -> torch.Tensor:
@@ -131,8 +156,8 @@ def read_policy_csv(
         raise ValueError(f"{path}: not a readable file ({err.strerror or err})") from err
     if "rho" in header:
         raise ValueError(
-            f"{path}: a time-sharing policy (a radar share rho per state, MODEL.md § D); this "
-            "reads comm/radar tables (env.actions=binary)"
+            f"{path}: a time-sharing policy (a radar share rho per state, MODEL.md § D): "
+            "read_share_csv reads it"
         )
     if "action" not in header:
         raise ValueError(

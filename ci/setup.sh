@@ -24,12 +24,16 @@ if [ -x .venv/bin/python ] && [ -f "$stamp" ]; then
 fi
 # Install what is asked for and what was there before (switching never uninstalls).
 extras=$(printf '%s\n' $want $have | sort -u | paste -sd, -)
-echo "[setup] preparing .venv (extras: $extras)" >&2
-[ -x .venv/bin/python ] || "$PY" -m venv .venv
+start=$SECONDS
+say() { echo "[setup] $* ($((SECONDS - start)) s)" >&2; }
+say "preparing .venv (extras: $extras): three steps, about 90 s the first time"
+[ -x .venv/bin/python ] || { "$PY" -m venv .venv; say "1/3 virtual environment created in .venv"; }
 pip() { .venv/bin/python -m pip --disable-pip-version-check -q "$@" 2>&1 | grep -v "^WARNING: Location" || true; }
+say "2/3 installing torch 2.13.0 (the CPU wheel here)"
 pip install -c ci/constraints.txt "torch==2.13.0"
+say "3/3 installing irdrc with its extras [$extras] (torchrl, tensordict, hydra, …)"
 pip install -c ci/constraints.txt -e ".[$extras]"
 .venv/bin/python -c "import torch, torchrl, irdrc; assert torch.__version__.startswith('2.13.0'), torch.__version__" \
   || { echo "[setup] failed: torch 2.13.0 / torchrl / irdrc do not import" >&2; exit 1; }
 echo "$hash $extras" > "$stamp"
-echo "[setup] done" >&2
+say "done"

@@ -4,6 +4,7 @@ log file), and the run's scalar logging hooks."""
 from __future__ import annotations
 
 import math
+import os
 import sys
 import time
 from typing import Any
@@ -52,6 +53,17 @@ class Heartbeat:
         if now - self.last >= self.every:
             self.last = now
             print(f"[{self.label}] {text}, {now - self.start:.0f} s", flush=True)
+
+
+def busy() -> str:
+    """``, machine busy: …`` when more processes want the CPUs than there are (the 1-minute load
+    average above the cores), which slows a run; '' otherwise."""
+    cores = os.cpu_count() or 1
+    try:
+        load = os.getloadavg()[0]
+    except OSError:
+        return ""
+    return f", machine busy: load {load:.1f} on {cores} cores" if load > cores + 0.5 else ""
 
 
 class RunProgress:
@@ -109,7 +121,7 @@ class RunProgress:
         at = f" at {self.ratio_steps}" if self.ratio_steps not in (None, steps) else ""
         print(
             f"[{self.label}] {steps}/{self.total} {self.unit} ({steps / self.total:.0%}), "
-            f"ratio {self.ratio:.4f}{at}, {elapsed:.0f} s, ETA {eta:.0f} s",
+            f"ratio {self.ratio:.4f}{at}, {elapsed:.0f} s, ETA {eta:.0f} s{busy()}",
             flush=True,
         )
 

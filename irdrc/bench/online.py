@@ -50,7 +50,7 @@ class Config:
     learners: tuple[str, ...] = ("posterior", "dqn")
     paper_learners: tuple[str, ...] = ("qlearning", "qlearning_paper")
     paper_seeds: tuple[int, ...] = tuple(range(10, 20))
-    random_draws: int = 30
+    random_draws: int = 10
     first_draw: int = REPORTING
     random_seed: int = 10
     random_learners: tuple[str, ...] = ("posterior", "dqn")
@@ -58,6 +58,7 @@ class Config:
     window: int = 170
     safe_targets: tuple[float, ...] = (0.05, 0.1)
     safe_scenarios: tuple[str, ...] = ("paper", "multilevel", "persistent")
+    safe_seeds: tuple[int, ...] = tuple(range(10, 15))
     lagrangian_seeds: tuple[int, ...] = (10,)
     workers: int = 2
     resume: bool = False
@@ -69,6 +70,7 @@ class Config:
         object.__setattr__(self, "scenarios", _names("scenarios", self.scenarios, envs, True))
         object.__setattr__(self, "seeds", seeds("seeds", self.seeds))
         object.__setattr__(self, "paper_seeds", seeds("paper_seeds", self.paper_seeds))
+        object.__setattr__(self, "safe_seeds", seeds("safe_seeds", self.safe_seeds))
         for key in ("learners", "paper_learners", "random_learners"):
             object.__setattr__(self, key, _names(key, getattr(self, key), learners, True))
         object.__setattr__(
@@ -224,7 +226,7 @@ def plan(cfg: Config, draws: list) -> list[Job]:
     # the safe learner solves an LP every episode: its runs stop at the window
     for target in cfg.safe_targets:
         for scenario in cfg.safe_scenarios:
-            jobs += [Job("safe", scenario, s, cfg.window, target) for s in cfg.seeds]
+            jobs += [Job("safe", scenario, s, cfg.window, target) for s in cfg.safe_seeds]
             jobs += [
                 Job("dqn_lagrangian", scenario, s, cfg.window, target) for s in cfg.lagrangian_seeds
             ]

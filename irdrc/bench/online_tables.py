@@ -6,17 +6,14 @@ from __future__ import annotations
 
 import math
 import statistics
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from irdrc.runs.results import md_table
-
-if TYPE_CHECKING:
-    from irdrc.bench.online import Job
 
 THRESHOLD = 0.99
 
 
-def run_row(job: Job, result: dict[str, Any], window: int) -> dict[str, Any]:
+def run_row(job: Any, result: dict[str, Any], window: int) -> dict[str, Any]:
     """One run's figures: convergence, the ledger at ``window`` episodes, the speed."""
     from irdrc.online.recipe import convergence
 
@@ -156,7 +153,7 @@ def safe_table(rows: list[dict[str, Any]], lag: list[dict[str, Any]], window: in
     )
 
 
-def lagrangian_row(job: Job, result: dict[str, Any], horizon: int) -> dict[str, Any]:
+def lagrangian_row(job: Any, result: dict[str, Any], horizon: int) -> dict[str, Any]:
     """The Lagrangian DQN's training: its cumulative miss detection (every row's steps) at the
     first batch past each multiple of ``horizon`` env steps, as the safe learner's is read after
     each episode: how often it was over the target."""

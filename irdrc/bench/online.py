@@ -58,7 +58,7 @@ class Config:
     window: int = 170
     safe_targets: tuple[float, ...] = (0.05, 0.1)
     safe_scenarios: tuple[str, ...] = ("paper", "multilevel", "persistent")
-    safe_seeds: tuple[int, ...] = tuple(range(10, 15))
+    safe_seeds: tuple[int, ...] = (10, 11, 12)
     lagrangian_seeds: tuple[int, ...] = (10,)
     workers: int = 2
     resume: bool = False

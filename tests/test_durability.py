@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import json
+import os
 import shlex
 import signal
 import subprocess
@@ -81,7 +82,9 @@ def test_sigterm_saves_and_resume_continues_without_lost_or_duplicated_rows(tmp_
     # goes on in the same directory
     printed = stderr.split("go on with: ", 1)[1].split(" (", 1)[0]
     args = shlex.split(printed)
-    assert args[:2] == ["python", "recipes/dqn.py"]
+    # the python that ran the run (the venv's, relative to here), then the recipe
+    assert Path(args[0]).name.startswith("python") and args[1] == "recipes/dqn.py"
+    assert args[0] == os.path.relpath(sys.executable, ROOT) or args[0] == sys.executable
     r = subprocess.run(
         [sys.executable, *args[1:]], capture_output=True, text=True, timeout=300, cwd=ROOT
     )

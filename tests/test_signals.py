@@ -52,8 +52,15 @@ def signal_during_final_evaluation(run_dir: Path, signum: int) -> subprocess.Com
 
 
 def resume(run_dir: Path) -> subprocess.CompletedProcess:
+    # a resumed run may change its evaluation: a short one here, not the minute-long original
     return subprocess.run(
-        [sys.executable, "recipes/dqn.py", f"resume={run_dir / 'checkpoint.pt'}"],
+        [
+            sys.executable,
+            "recipes/dqn.py",
+            f"resume={run_dir / 'checkpoint.pt'}",
+            "eval.mc_episodes=8",
+            "eval.mc_num_envs=8",
+        ],
         cwd=ROOT,
         capture_output=True,
         text=True,

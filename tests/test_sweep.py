@@ -137,7 +137,7 @@ def test_dqn_grid_2x2(tmp_path):
 @needs_ray_netns
 def test_crash_marks_error_and_resume_reruns_only_it(tmp_path):
     grid = "sweep.grid={reward.r4: [5,50], seed: [0,1]}"
-    base = "sweep.base=['mc_episodes=0']"
+    base = "sweep.base=['eval.mc_episodes=0']"
     r = sweep(tmp_path, "method=solve", grid, base, "sweep.fail_on=['seed=1','reward.r4=50']")
     assert r.returncode != 0
     status = {(t["reward.r4"], t["seed"]): t["status"] for t in rows(tmp_path / "summary.csv")}
@@ -162,7 +162,7 @@ def test_crash_marks_error_and_resume_reruns_only_it(tmp_path):
 def test_local_executor_crash_resume_and_mixed_plans(tmp_path):
     """executor=local: same files and statuses as under Ray, without Ray (so no namespace)."""
     grid = "sweep.grid={reward.r4: [5,50]}"
-    base = "sweep.base=['mc_episodes=0']"
+    base = "sweep.base=['eval.mc_episodes=0']"
 
     def run(*extra):
         return subprocess.run(

@@ -265,6 +265,7 @@ def test_a_scenario_of_many_overrides_is_logged(tmp_path):
     assert scalars, list((tmp_path / "run").rglob("*"))[:20]
 
 
+@pytest.mark.e2e
 def test_tensorboard_logger_writes_the_evaluations(tmp_path):
     """``logger=tensorboard``: TorchRL's TensorboardLogger writes an event file whose scalars
     hold the run's exact evaluations (read back with TensorBoard's own reader)."""
@@ -325,6 +326,7 @@ def test_default_profile_holds_on_unseen_seeds(scenario):
     assert all(f >= 0.99 for f in finals.values()), finals
 
 
+@pytest.mark.e2e
 def test_output_for_a_log_file_has_no_bar_frames(tmp_path):
     """With stdout not a terminal, progress is a few plain lines, and the replay line comes first."""
     r = run_dqn(tmp_path, "progress=true")

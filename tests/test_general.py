@@ -342,6 +342,7 @@ def test_factor_levels_follow_their_own_matrices():
 ROOT = __import__("pathlib").Path(__file__).resolve().parents[1]
 
 
+@pytest.mark.e2e
 @pytest.mark.parametrize(
     ("args", "states"),
     [

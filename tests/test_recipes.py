@@ -105,6 +105,7 @@ def _check_summary(path: Path, method: str) -> dict:
     return s
 
 
+@pytest.mark.e2e
 def test_solve_recipe(tmp_path):
     out = run_recipe(
         "solve.py",
@@ -321,6 +322,7 @@ def test_bench_robust_recipe(tmp_path):
     assert bad.returncode == 2 and "candidates.a" in bad.stderr
 
 
+@pytest.mark.e2e
 def test_bench_dqn_recipe_measures_speed(tmp_path):
     tiny = "'algo.num_envs=8','algo.frames_per_batch=32','algo.init_random_frames=64','algo.batch_size=16'"
     out = run_recipe(

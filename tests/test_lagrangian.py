@@ -330,6 +330,21 @@ def test_mix_lands_within_the_tolerance_of_the_target(paper, monkeypatch):
     assert len(search.visits) - before < cfg.mix_steps
 
 
+def test_a_search_that_sees_no_event_keeps_the_safest_table(paper, monkeypatch):
+    """Measurements too short to see an event (miss detection NaN) show no table meeting the
+    target: from a multiplier past the path's last break the search keeps the safest table and its
+    final policy is that table, never a NaN mixture (it once indexed past the path's breaks)."""
+    q = _path_heads(paper)
+    breaks, tables = greedy_path(q)
+    cfg = LagrangianConfig(target_miss=0.05).search
+    search = policy_search.FinalPolicySearch(q, Params(), breaks[-1] * 10, 0.05, "sent", cfg, 0)
+    monkeypatch.setattr(search, "rates", lambda p_radar, fresh=False: (math.nan, 0.0))
+    lo, hi, _, mu = search.path_search()
+    assert lo is None and mu is None and torch.equal(hi, tables[-1].double())
+    p, state, mixed = search.mix((tables[-2].double(), tables[-1].double()), False)
+    assert torch.equal(p, tables[-1].double()) and not mixed and state is not None
+
+
 def test_long_run_sums_per_state_and_action(paper):
     """``by_state`` leaves the random numbers, and so the metrics, as they were, and its sums
     agree with the model: the last block's visits are the radar fraction's steps, every step run

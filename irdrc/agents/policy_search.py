@@ -195,8 +195,13 @@ class FinalPolicySearch:
         return pooled(self.visits[key], self.pool[fresh], self.signal)
 
     def miss(self, p_radar: torch.Tensor, fresh: bool = False) -> float:
-        """Measured miss detection of a policy."""
+        """Measured miss detection of a policy (NaN when its measurement saw no event)."""
         return self.rates(p_radar, fresh)[0]
+
+    def meets(self, miss: float) -> bool:
+        """Whether a measured miss detection shows the target met: at or below it (a measurement
+        that saw no event, NaN, shows nothing and does not)."""
+        return miss <= self.target
 
     def bracket(
         self, lo: int, hi: int, fresh: bool, miss_of: Callable[[int, bool], float] | None = None
@@ -205,7 +210,7 @@ class FinalPolicySearch:
         miss_of = miss_of or (lambda k, f: self.miss(self.table(k), f))
         while hi - lo > 1:
             mid = (lo + hi) // 2
-            if miss_of(mid, fresh) > self.target:
+            if not self.meets(miss_of(mid, fresh)):
                 lo = mid
             else:
                 hi = mid
@@ -223,17 +228,17 @@ class FinalPolicySearch:
         μ·``search_span`` and then the safest end. A bisection finds the neighbours; with
         ``confirm`` the one kept is measured again on fresh numbers, and while that is above the
         target the search climbs the path (doubling its steps, then bisecting) on them."""
-        cfg, target, mu = self.cfg, self.target, self.mu
+        cfg, mu = self.cfg, self.mu
         k0 = path_index(self.breaks, mu)
         lo: int | None
-        if self.miss(self.table(k0)) <= target:
+        if self.meets(self.miss(self.table(k0))):
             lo, hi, m = None, k0, mu
             while hi > 0 and m > mu * SEARCH_FLOOR:
                 m /= cfg.search_span
                 k = path_index(self.breaks, m)
                 if k == hi:
                     continue
-                if self.miss(self.table(k)) > target:
+                if not self.meets(self.miss(self.table(k))):
                     lo = k
                     break
                 if self.rates(self.table(k))[1] <= self.rates(self.table(hi))[1]:
@@ -241,20 +246,20 @@ class FinalPolicySearch:
                 hi = k
         else:
             lo, hi = k0, path_index(self.breaks, mu * cfg.search_span)
-            if self.miss(self.table(hi)) > target:
+            if not self.meets(self.miss(self.table(hi))):
                 hi = self.last  # beyond the range: the safest tables of the path
-                if hi == lo or self.miss(self.table(hi)) > target:
+                if hi == lo or not self.meets(self.miss(self.table(hi))):
                     return None, self.table(hi), cfg.confirm, None
         if lo is not None:
             lo, hi = self.bracket(lo, hi, fresh=False)
         fresh = cfg.confirm
-        if fresh and self.miss(self.table(hi), fresh) > target:
+        if fresh and not self.meets(self.miss(self.table(hi), fresh)):
             # Kept because its measurement fell at or below the target, which noise alone can
             # do: climb the path on fresh numbers until a table meets it.
             step, lo = 1, hi
             while True:
                 k = min(hi + step, self.last)
-                if self.miss(self.table(k), fresh) <= target:
+                if self.meets(self.miss(self.table(k), fresh)):
                     lo, hi = self.bracket(lo, k, fresh)
                     break
                 if k == self.last:
@@ -270,12 +275,14 @@ class FinalPolicySearch:
         t_lo, t_hi = pair
         m_hi, j_hi = self.rates(t_hi, fresh)
         if t_lo is None:
-            return j_hi if m_hi <= self.target else -math.inf
+            return j_hi if self.meets(m_hi) else -math.inf
         m_lo, j_lo = self.rates(t_lo, fresh)
-        if m_hi > self.target:
+        if not self.meets(m_hi):
             return -math.inf
-        if m_lo <= self.target:
+        if self.meets(m_lo):
             return max(j_lo, j_hi)
+        if math.isnan(m_lo):  # the riskier table's measurement saw no event: nothing to interpolate
+            return j_hi
         w = (m_lo - self.target) / (m_lo - m_hi)  # the weight of t_hi that lands on the target
         return (1 - w) * j_lo + w * j_hi
 
@@ -296,9 +303,9 @@ class FinalPolicySearch:
             return t
 
         m = len(order)
-        if self.miss(ranked(0), fresh) <= self.target:
+        if self.meets(self.miss(ranked(0), fresh)):
             return (None, ranked(0)), m, m
-        if self.miss(ranked(m), fresh) > self.target:
+        if not self.meets(self.miss(ranked(m), fresh)):
             return (None, ranked(m)), 0, m
         lo, hi = self.bracket(0, m, fresh, miss_of=lambda k, f: self.miss(ranked(k), f))
         return (ranked(lo), ranked(hi)), m - hi, m
@@ -320,8 +327,9 @@ class FinalPolicySearch:
             p[s] = w * a_hi + (1 - w) * a_lo
             return p
 
-        def excess(z: float) -> float:
-            return self.miss(mixed(z), fresh) - self.target
+        def excess(z: float) -> float:  # a measurement that saw no event counts as above the target
+            m = self.miss(mixed(z), fresh)
+            return math.inf if math.isnan(m) else m - self.target
 
         span = math.log(max(2.0, self.cfg.measure_steps / MIXING_STEPS_PER_BLOCK))
         z_lo, z_hi = -span, span

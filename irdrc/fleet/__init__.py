@@ -12,8 +12,18 @@
 - ``env``: ``FleetEnv``, the fleet as a batched TorchRL multi-agent env (group ``"agents"``);
 - ``views``: its single-agent views (a row per vehicle; a row per fleet over the joint actions);
 - ``evaluate``: Monte-Carlo metrics and baselines at any N;
-- ``search``: local search for the best decentralised policy.
+- ``search``: local search for the best decentralised policy;
+- ``parallel``: the fleet as a PettingZoo ``ParallelEnv`` (``irdrc.fleet.parallel_env``).
 
-May import: torch, tensordict, torchrl (env specs) and ``irdrc.core``. Nothing from
+May import: torch, tensordict, torchrl (env specs), gymnasium and pettingzoo (spaces, ``parallel``)
+and ``irdrc.core``. Nothing from
 ``irdrc.agents`` or any layer above it; nothing of Hydra, files or Ray.
 """
+
+
+def parallel_env(*args, **kwargs):
+    """The fleet as a PettingZoo ``ParallelEnv`` (``irdrc.fleet.parallel.parallel_env``; imports
+    PettingZoo only when called)."""
+    from irdrc.fleet.parallel import parallel_env as make
+
+    return make(*args, **kwargs)

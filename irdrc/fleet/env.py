@@ -256,10 +256,8 @@ class FleetEnv(EnvBase):
         return reward
 
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDict:
-        B, m = self.batch_size[0], self.model
-        rw = torch.randint(0, m.RW, (B, 1), generator=self.rng)
-        x = torch.randint(0, m.X, (B, self.n_agents), generator=self.rng)
-        states = m.index[rw.expand(B, self.n_agents), x]  # uniform over the joint states
+        B = self.batch_size[0]
+        states = self.sim.start(B, self.rng)  # uniform over the joint states
         return self._out(states, torch.zeros(B, dtype=torch.int64))
 
     def _step(self, tensordict: TensorDictBase) -> TensorDict:

@@ -67,6 +67,14 @@ class FleetDynamics:
         self.r5 = torch.tensor([float(p.reward.r5) for p in per], dtype=torch.float64)
         self.vehicle = torch.arange(model.N)
 
+    def start(self, rows: int, gen: torch.Generator) -> torch.Tensor:
+        """[rows, N] single-vehicle states of ``rows`` fleets drawn uniformly over the joint states
+        (road and weather first, then each vehicle's own components)."""
+        m, N = self.model, self.model.N
+        rw = torch.randint(0, m.RW, (rows, 1), generator=gen)
+        x = torch.randint(0, m.X, (rows, N), generator=gen)
+        return m.index[rw.expand(rows, N), x]
+
     def fleet_index(self, states: torch.Tensor) -> torch.Tensor:
         """[n] joint state indices of the exact model from [n, N] single-vehicle states."""
         m = self.model

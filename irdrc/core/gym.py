@@ -20,6 +20,7 @@ section, as on the command line): ``env={"p1": {"speed": 0.5}}, reward={"r4": 50
 from __future__ import annotations
 
 import random
+from collections.abc import Callable
 from typing import Any
 
 import gymnasium
@@ -172,6 +173,53 @@ class DFRCGymEnv(gymnasium.Env):
             info["phase"] = phase
         truncated = self._steps >= self._horizon
         return self._obs[self._state].copy(), reward, False, truncated, info
+
+    def policy_table(self, predict: Callable[[np.ndarray], Any]) -> torch.Tensor:
+        """The table a policy acts by: ``predict`` maps a batch of observations [S, W] (every
+        state's, in state order) to a batch of actions — e.g. a Stable-Baselines3 model's
+        ``lambda obs: model.predict(obs, deterministic=True)[0]``. Returns [S] actions 0 / 1
+        (``binary``) or [S] radar shares (``levels``: level / (G − 1); ``continuous``: ρ).
+
+        Raises:
+            ValueError: another number of actions, or an action outside the action space.
+        """
+        obs = self.dynamics.obs.numpy().astype(np.float32)
+        out = np.asarray(predict(obs))
+        S, actions = obs.shape[0], self.params.env.actions
+        if out.size != S:
+            raise ValueError(
+                f"predict returned {out.size} actions for the {S} states' observations"
+            )
+        out = out.reshape(S)
+        if actions == "binary":
+            return checked_actions(torch.as_tensor(out).long())
+        return checked_shares(self.params.env, torch.as_tensor(out, dtype=torch.float64))
+
+    def score(self, predict: Callable[[np.ndarray], Any], gamma: float = 0.99) -> dict[str, float]:
+        """A policy's exact long-run metrics against this scenario's optimum (binary: the optimum
+        at discount ``gamma``; radar shares: the optimum over ρ ∈ [0, 1]), as the recipes score
+        their learners: ``ratio`` (average reward over the optimum's), ``avg_reward``,
+        ``optimum``, ``throughput``, ``miss_detection``, ``radar_fraction``. ``predict`` is as
+        ``policy_table`` takes it."""
+        from irdrc.core.exact import exact_scorer
+        from irdrc.core.exact.continuum import ContinuumScorer
+
+        table = self.policy_table(predict)
+        if self.params.env.actions == "binary":
+            scorer: Any = exact_scorer(self.params, gamma)
+        else:
+            scorer = ContinuumScorer(
+                self.params.with_overrides({"env.actions": "continuous"}), gamma
+            )
+        m, best = scorer.metrics(table), scorer.optimal_metrics
+        return {
+            "ratio": m.avg_reward / best.avg_reward,
+            "avg_reward": m.avg_reward,
+            "optimum": best.avg_reward,
+            "throughput": m.throughput,
+            "miss_detection": m.miss_detection,
+            "radar_fraction": m.radar_fraction,
+        }
 
     def _step_shares(self, rho: torch.Tensor) -> tuple[np.ndarray, float, bool, bool, dict]:
         """One time-sharing step (MODEL.md § D) through ``step_shares``."""

@@ -1,0 +1,154 @@
+"""Third-party trainers on our envs, scored exactly: a policy's table from the gym env and the
+fleet's PettingZoo view (``score``, ``policy_table``); in the e2e tier, Stable-Baselines3's DQN and
+SAC through ``examples/sb3_train.py`` with ``recipes/evaluate.py`` reading their tables, and MAPPO
+through TorchRL's ``PettingZooWrapper`` (``examples/fleet_mappo_pettingzoo.py``)."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import gymnasium
+import numpy as np
+import pytest
+import torch
+
+import irdrc  # noqa: F401 - registers irdrc/DFRC-v0
+from irdrc.core.exact import exact_scorer
+from irdrc.core.exact.continuum import ContinuumScorer
+from irdrc.core.params import Params
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_gym_score_is_the_exact_scorers():
+    """``score`` of a predict function equals the exact scorer on the table it acts by: the
+    optimum's own actions score 1, always-radar its exact ratio; radar shares are scored against the
+    optimum over ρ (the optimum's ρ scores 1); a wrong number of actions or an action outside the
+    space is refused."""
+    env = gymnasium.make("irdrc/DFRC-v0").unwrapped
+    scorer = exact_scorer(env.params)
+    best = scorer.optimal.policy
+    assert env.score(lambda obs: best.numpy())["ratio"] == pytest.approx(1.0, abs=1e-12)
+    radar = env.score(lambda obs: np.ones(len(obs), dtype=np.int64))
+    assert radar["ratio"] == pytest.approx(scorer.ratio(torch.ones_like(best)), abs=1e-12)
+    assert radar["radar_fraction"] == pytest.approx(1.0)
+    assert torch.equal(
+        env.policy_table(lambda obs: (obs[:, 0] > 0).astype(int)),
+        env.dynamics.obs[:, 0].gt(0).long(),
+    )
+    with pytest.raises(ValueError, match="actions for the"):
+        env.score(lambda obs: np.ones(3))
+    with pytest.raises(ValueError, match="action"):
+        env.score(lambda obs: np.full(len(obs), 2))
+    cont = gymnasium.make("irdrc/DFRC-v0", **{"env.actions": "continuous"}).unwrapped
+    rho = ContinuumScorer(Params.from_overrides({"env.actions": "continuous"})).optimal.rho
+    assert cont.score(lambda obs: rho.numpy()[:, None])["ratio"] == pytest.approx(1.0, abs=1e-9)
+    with pytest.raises(ValueError, match=r"\[0, 1\]|share"):
+        cont.score(lambda obs: np.full((len(obs), 1), 1.5))
+
+
+def test_fleet_score_is_the_fleet_scorers():
+    """The fleet's ``score`` equals ``FleetScorer`` on the table the policy acts by: every vehicle
+    on its single-vehicle optimum (``own``), and the centralised optimum's joint actions shown
+    through ``full`` observations (ratio 1)."""
+    from irdrc.fleet import parallel_env
+    from irdrc.fleet.policies import single_optima
+    from irdrc.fleet.scorer import FleetScorer
+
+    env = parallel_env(seed=0)
+    scorer = FleetScorer(env.model)
+    single = single_optima(env.model)[0]
+    obs_table = env.sim.dyn.obs
+
+    def copies(obs):  # each vehicle looks its observation up in the single optimum
+        rows = [
+            int((obs_table == torch.as_tensor(o)).all(1).nonzero()[0]) for o in obs["vehicle_1"]
+        ]
+        return {a: single[rows].numpy() for a in env.possible_agents}
+
+    assert env.score(copies)["ratio"] == pytest.approx(scorer.ratio(single), abs=1e-12)
+    full = parallel_env(**{"env.observe": "full"}, seed=0)
+    joint = scorer.optimal.policy
+    got = full.score(
+        lambda obs: {a: (joint.numpy() >> i) & 1 for i, a in enumerate(full.possible_agents)}
+    )
+    assert got["ratio"] == pytest.approx(1.0, abs=1e-12)
+    with pytest.raises(ValueError, match="actions per agent"):
+        env.score(lambda obs: {a: np.zeros(3) for a in env.possible_agents})
+
+
+def _run(args: list[str], cwd: Path) -> str:
+    done = subprocess.run(
+        [sys.executable, *args], cwd=cwd, capture_output=True, text=True, timeout=900
+    )
+    assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-2000:]
+    return done.stdout
+
+
+@pytest.mark.e2e
+@pytest.mark.parametrize(
+    ("algo", "steps", "scenario"), [("dqn", 3000, []), ("sac", 1200, ["env.actions=continuous"])]
+)
+def test_sb3_trains_and_evaluate_scores_its_table(algo, steps, scenario, tmp_path):
+    """SB3's DQN (binary) and SAC (radar share) train on ``irdrc/DFRC-v0`` for a short budget (the
+    plumbing, not SB3's tuning: no learning threshold); ``recipes/evaluate.py policy=…`` reads the
+    written table and finds the same exact ratio as ``score``."""
+    out = tmp_path / algo
+    printed = _run(
+        ["examples/sb3_train.py", "--algo", algo, "--steps", str(steps), "--out", str(out)], ROOT
+    )
+    assert f"SB3 {algo}:" in printed
+    score = json.loads((out / "score.json").read_text())
+    _run(
+        [
+            "recipes/evaluate.py",
+            f"policy={out / 'policy.csv'}",
+            *scenario,
+            "eval.mc_episodes=0",
+            f"hydra.run.dir={tmp_path / 'eval'}",
+        ],
+        ROOT,
+    )
+    summary = json.loads((tmp_path / "eval" / "summary.json").read_text())
+    assert summary["optimality_ratio"] == pytest.approx(score["ratio"], abs=1e-9)
+
+
+@pytest.mark.e2e
+def test_mappo_through_torchrl_pettingzoo_wrapper_is_scored_exactly(tmp_path):
+    """TorchRL's ``PettingZooWrapper`` over ``parallel_env`` trains MAPPO (a short run); the greedy
+    table it writes, rescored here by ``FleetScorer``, gives the ratio it printed."""
+    from irdrc.fleet import parallel_env
+    from irdrc.fleet.scorer import FleetScorer
+
+    out = tmp_path / "mappo.json"
+    printed = _run(
+        [
+            "examples/fleet_mappo_pettingzoo.py",
+            "--frames",
+            "3000",
+            "--out",
+            str(out),
+            "env.share=0.5",
+        ],
+        ROOT,
+    )
+    assert "rollout 3:" in printed and "exact ratio" in printed
+    result = json.loads(out.read_text())
+    model = parallel_env(**{"env.share": 0.5}).model
+    ratio = FleetScorer(model).ratio(torch.tensor(result["table"]))
+    assert ratio == pytest.approx(result["ratio"], abs=1e-9)
+    assert len(result["table"]) == 2 * model.single.num_states
+
+
+@pytest.mark.e2e
+def test_readme_sb3_lines_run():
+    """The README's Stable-Baselines3 lines run as printed (with a budget of 500 steps) and print
+    the exact score."""
+    readme = (ROOT / "README.md").read_text()
+    block = readme.split("### Other libraries", 1)[1].split("```python\n", 1)[1].split("```")[0]
+    assert "stable_baselines3" in block and ".learn(50_000)" in block
+    printed = _run(["-c", block.replace(".learn(50_000)", ".learn(500)")], ROOT)
+    assert "'ratio':" in printed

@@ -71,3 +71,37 @@ def test_bench_robust_plans_one_run_per_draw_and_seed():
     assert first == Params.from_overrides(draw_overrides(draws[0]))
     grid = load("bench_robust", "executor=local", "p1_speed=[0.1]", "r4=[5]")
     assert grid.seeds == tuple(range(5, 25)) and len(grid.planned) == 20
+
+
+def test_time_sharing_draws_keep_exactly_where_sharing_gains_two_percent():
+    """Time-sharing draws add the sensing curve, κ and the levels to every model key, reproducibly;
+    up to the second kept draw a kept draw's optimum over ρ earns ≥ 1.02 × a positive binary optimum and a
+    dropped one does not (recomputed here from both exact solvers); the planned run composes into
+    the draw's scenario with SAC's continuous actions."""
+    from irdrc.bench.random_scenarios import SHARE_GAIN, share_draws, share_overrides
+    from irdrc.core.exact import exact_scorer
+    from irdrc.core.exact.continuum import ContinuumScorer
+
+    assert share_overrides(3) == share_overrides(3) and share_overrides(3) != share_overrides(4)
+    draws = [share_overrides(i) for i in range(60)]
+    assert {d["env.sensing"] for d in draws} == {"dwell", "linear"}
+    assert {d["env.levels"] for d in draws} == {3, 5, 9}
+    kept = {d.index: d for d in share_draws(0, 2)}
+    for i in range(max(kept) + 1):
+        o = share_overrides(i)
+        binary = exact_scorer(Params.from_overrides(o)).optimal_metrics.avg_reward
+        cont = Params.from_overrides({**o, "env.actions": "continuous"})
+        best = ContinuumScorer(cont).optimal_metrics.avg_reward
+        assert (i in kept) == (binary > 0 and best >= SHARE_GAIN * binary), i
+        if i in kept:
+            assert kept[i].optimum == pytest.approx(best) and kept[i].binary == pytest.approx(
+                binary
+            )
+    cfg = load("bench_timeshare", "scenarios=random", "draws=1", "learners=[sac]", "executor=local")
+    assert cfg.seeds == (5,) and len(cfg.planned) == 1
+    first = min(kept)
+    assert list(cfg.scenario_overrides) == [f"draw {first}"]
+    want = Params.from_overrides({**share_overrides(first), "env.actions": "continuous"})
+    assert cfg.planned[0]["config"].params == want
+    with pytest.raises(ValueError, match="random or a mapping"):
+        load("bench_timeshare", "scenarios=grid", "executor=local")

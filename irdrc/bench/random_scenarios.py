@@ -1,4 +1,5 @@
-"""Scenarios a user might type, drawn at random (``recipes/bench_robust.py scenarios=random``):
+"""Scenarios a user might type, drawn at random (``recipes/bench_robust.py scenarios=random``, and
+with the radar share's keys ``recipes/bench_timeshare.py scenarios=random``):
 every model key of MODEL.md v1/§ B — queue size, arrival rate (or bursty arrivals), packets per
 channel level, every factor's chain and event probabilities, the event model, the radar reaction,
 reward weights from 0.1 to 100, three-level factors, an imperfect radar — kept to the *contested*
@@ -194,6 +195,69 @@ def contested_draws(
     out, index = [], first
     while len(out) < count:
         draw = contested(index, gamma)
+        if draw is not None:
+            out.append(draw)
+        index += 1
+        if progress is not None:
+            progress(len(out), index - first)
+    return out
+
+
+SHARE_GAIN = 1.02
+"""A time-sharing draw is kept when the optimum over ρ ∈ [0, 1] earns at least this many times the
+binary optimum: where sharing each step's time matters."""
+
+
+def share_overrides(index: int) -> dict[str, Any]:
+    """Time-sharing draw ``index`` (``recipes/bench_timeshare.py scenarios=random``): every model key
+    of ``draw_overrides(index)``, then the sensing curve, its κ and the number of levels."""
+    out = draw_overrides(index)
+    rng = np.random.default_rng([0x75A, index])
+    out["env.sensing"] = str(rng.choice(["dwell", "linear"]))
+    out["env.dwell_gain"] = _log_uniform(rng, 0.5, 10.0)
+    out["env.levels"] = int(rng.choice([3, 5, 9]))
+    return out
+
+
+@dataclass(frozen=True)
+class ShareDraw:
+    """One kept time-sharing draw: its index, overrides, the optimum over ρ and the binary optimum
+    (long-run average rewards per step), and S."""
+
+    index: int
+    overrides: dict[str, Any]
+    optimum: float
+    binary: float
+    states: int
+
+
+def share_draw(index: int, gamma: float = 0.99) -> ShareDraw | None:
+    """Time-sharing draw ``index`` with both optima, or None when the binary optimum earns ≤ 0 per
+    step or the optimum over ρ earns less than ``SHARE_GAIN`` times it."""
+    from irdrc.core.exact import exact_scorer
+    from irdrc.core.exact.continuum import ContinuumScorer
+    from irdrc.core.params import Params
+
+    overrides = share_overrides(index)
+    params = Params.from_overrides(overrides)
+    binary = exact_scorer(params, gamma).optimal_metrics.avg_reward
+    if binary <= 0:
+        return None
+    cont = Params.from_overrides({**overrides, "env.actions": "continuous"})
+    best = ContinuumScorer(cont, gamma).optimal_metrics.avg_reward
+    if best < SHARE_GAIN * binary:
+        return None
+    return ShareDraw(index, overrides, best, binary, params.env.num_states)
+
+
+def share_draws(
+    first: int, count: int, gamma: float = 0.99, progress: Callable[[int, int], None] | None = None
+) -> list[ShareDraw]:
+    """The first ``count`` kept time-sharing draws from index ``first`` up; ``progress(kept,
+    tried)`` after each draw."""
+    out, index = [], first
+    while len(out) < count:
+        draw = share_draw(index, gamma)
         if draw is not None:
             out.append(draw)
         index += 1

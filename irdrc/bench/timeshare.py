@@ -6,18 +6,25 @@ optimum) — how many runs hold, how soon, and how fast they train.
     python recipes/bench_timeshare.py                                 # 3 learners × 5 scenarios × 5 seeds
     python recipes/bench_timeshare.py 'learners=[sac]' 'seeds=[5]'
     python recipes/bench_timeshare.py executor=local 'scenarios={p0.1: [env.p1.speed=0.1]}'
+    python recipes/bench_timeshare.py scenarios=random 'learners=[sac]'   # 50 random draws × seed 5
+
+With ``scenarios=random`` the scenarios are time-sharing draws of every model key, κ, the sensing
+curve and the levels, kept where the optimum over ρ earns ≥ 1.02 × the binary optimum
+(``irdrc.bench.random_scenarios.share_draws``).
 """
 
 from __future__ import annotations
 
 import json
 import statistics
+import sys
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
-from irdrc.core.checks import build, check_choice, check_list
+from irdrc.bench.random_scenarios import command_line
+from irdrc.core.checks import INT, build, check_choice, check_list, check_numbers
 from irdrc.runs.compose import Composed
 from irdrc.runs.grid import candidate_overrides, parse_grid
 from irdrc.runs.results import md_table
@@ -52,7 +59,9 @@ class Config:
 
     learners: tuple[str, ...] = tuple(LEARNERS)
     scenarios: dict | None = None
-    seeds: tuple[int, ...] = (5, 6, 7, 8, 9)
+    seeds: tuple[int, ...] | None = None
+    draws: int = 50
+    first_draw: int = 0
     overrides: tuple[str, ...] = ()
     threshold: float = 0.99
     optimum_gamma: float = 0.99
@@ -60,17 +69,32 @@ class Config:
     executor: Executor = field(default_factory=Executor, metadata=EXECUTOR)
     planned: tuple = field(default=(), metadata={"keys": ()})
     owner: dict = field(default_factory=dict, metadata={"keys": ()})
+    drawn: dict = field(default_factory=dict, metadata={"keys": ()})
 
     def __post_init__(self) -> None:
         check_common(self)
         item = lambda key, v: check_choice(key, v, tuple(LEARNERS))  # noqa: E731
         object.__setattr__(self, "learners", check_list("learners", self.learners, item))
-        object.__setattr__(self, "seeds", seeds("seeds", self.seeds))
+        default = (5,) if self.random else (5, 6, 7, 8, 9)
+        object.__setattr__(self, "seeds", seeds("seeds", self.seeds or default))
         object.__setattr__(self, "overrides", check_list("overrides", self.overrides, empty=True))
+        check_numbers(self, "", (("draws", 1, 100_000, INT), ("first_draw", 0, 10**9, INT)))
+        if isinstance(self.scenarios, str) and not self.random:
+            raise ValueError(
+                f"scenarios={self.scenarios}: give random or a mapping {{name: [overrides]}}"
+            )
+
+    @property
+    def random(self) -> bool:
+        """Whether the scenarios are random time-sharing draws (``scenarios=random``)."""
+        return self.scenarios == "random"
 
     @property
     def scenario_overrides(self) -> dict[str, list[str]]:
-        """Scenario name → its overrides (``SCENARIOS`` when ``scenarios`` is unset)."""
+        """Scenario name → its overrides (``SCENARIOS`` when ``scenarios`` is unset; the draws
+        found by ``load`` with ``scenarios=random``)."""
+        if self.random:
+            return dict(self.drawn)
         return candidate_overrides(self.scenarios or SCENARIOS, "scenarios")
 
 
@@ -81,6 +105,9 @@ def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
     from irdrc.sweeps.trials import plan
 
     cfg = build(Config, composed.cfg)
+    if cfg.random:  # each draw a pure function of its index: a resumed run finds the same ones
+        drawn = {f"draw {d.index}": command_line(d.overrides) for d in random_draws(cfg)}
+        cfg = replace(cfg, drawn=drawn)
     base = [*cfg.overrides, f"optimum_gamma={cfg.optimum_gamma}", "checkpoint.every_frames=0"]
     planned, owner = [], {}
     for learner in cfg.learners:
@@ -91,6 +118,17 @@ def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
                 planned.append(p)
                 owner[p["point_id"]] = (learner, scenario)
     return replace(cfg, planned=tuple(planned), owner=owner)
+
+
+def random_draws(cfg: Config) -> list:
+    """The ``draws`` kept time-sharing draws from ``first_draw`` up, with a line as they are found."""
+    from irdrc.bench.random_scenarios import share_draws
+
+    def say(kept: int, tried: int) -> None:
+        if kept == cfg.draws or tried % 50 == 0:
+            print(f"random scenarios: {kept}/{cfg.draws} kept of {tried} drawn", file=sys.stderr)
+
+    return share_draws(cfg.first_draw, cfg.draws, cfg.optimum_gamma, say)
 
 
 def run(cfg: Config, run) -> int:
@@ -111,10 +149,37 @@ def run(cfg: Config, run) -> int:
             rows.append(run_row(learner, scenario, p["point"]["seed"], tdir, hist, cfg.threshold))
     write_rows_csv(out / cfg.csv, rows)
     table = timeshare_table(rows, cfg.learners, list(cfg.scenario_overrides), cfg.threshold)
+    if cfg.random:
+        table = random_summary(rows, cfg) + "\n\n" + table
     print("\n" + table)
     write_table_md(out / "bench_timeshare.md", table, time.perf_counter() - start)
     run.finish(None)
     return code
+
+
+def random_summary(rows: list[dict[str, Any]], cfg: Config) -> str:
+    """Per learner over the random draws: runs at or above the threshold, the worst run, and the
+    median env steps to it."""
+    th, lines = cfg.threshold, []
+    for learner in cfg.learners:
+        mine = [r for r in rows if r["learner"] == learner]
+        if not mine:
+            continue
+        worst = min(mine, key=lambda r: r["final_ratio"])
+        reached = [r[f"env_steps_to_{th:g}"] for r in mine if r.get(f"env_steps_to_{th:g}")]
+        median = f"{statistics.median(reached):,.0f}".replace(",", " ") if reached else "—"
+        lines.append(
+            f"- **{learner}**: {sum(r['holds'] for r in mine)} of {len(mine)} runs ≥ {th:g} of the "
+            f"optimum over ρ; worst {worst['final_ratio']:.4f} ({worst['scenario']}, seed "
+            f"{worst['seed']}); median env steps to {th:g}: {median}"
+        )
+    first, last = cfg.first_draw, max(int(k.split()[-1]) for k in cfg.drawn)
+    return (
+        f"{len(cfg.drawn)} random time-sharing scenarios (draws {first}–{last} of "
+        "`irdrc.bench.random_scenarios.share_draws`: every model key, κ, the sensing curve and the "
+        "levels, kept where the optimum over ρ earns ≥ 1.02 × the binary optimum) × seeds "
+        f"{', '.join(map(str, cfg.seeds))}:\n\n" + "\n".join(lines)
+    )
 
 
 def run_row(

@@ -140,3 +140,43 @@ def test_a_radar_share_policy_is_scored_exactly_and_by_monte_carlo(tmp_path):
     assert mc["radar_fraction"] == pytest.approx(summary["metrics"]["radar_fraction"], abs=0.02)
     binary = summary["table"]["optimal binary (exact, long run)"]["avg_reward"]
     assert summary["metrics"]["avg_reward"] > binary
+
+
+@pytest.mark.e2e
+@pytest.mark.parametrize("recipe", ["sac", "ppo"])
+def test_a_radar_share_network_is_scored_as_its_run_did(recipe, tmp_path):
+    """A SAC or PPO checkpoint: on its own scenario its shares are the run's final shares
+    (policy.csv) with the same exact ratio to the optimum over ρ; on another scenario they are
+    scored against that scenario's optimum over ρ."""
+    from test_ppo import TINY_PPO
+    from test_timeshare import TINY_SAC
+
+    tiny = TINY_SAC if recipe == "sac" else TINY_PPO
+    trained = tmp_path / "trained"
+    r = run(f"{recipe}.py", *tiny, "logger=none", f"hydra.run.dir={trained}")
+    assert r.returncode == 0, r.stderr[-2000:]
+    out = tmp_path / "e"
+    r = run(
+        "evaluate.py",
+        f"checkpoint={trained / 'checkpoint.pt'}",
+        "env.actions=continuous",
+        "eval.mc_episodes=16",
+        "eval.mc_num_envs=16",
+        f"hydra.run.dir={out}",
+    )
+    assert r.returncode == 0, r.stderr[-2000:]
+    mine = json.loads((trained / "summary.json").read_text())
+    s = json.loads((out / "summary.json").read_text())
+    assert s["metrics"]["avg_reward"] == pytest.approx(mine["metrics"]["avg_reward"], abs=1e-9)
+    assert (out / "policy.csv").read_text() == (trained / "policy.csv").read_text()
+    assert s["source"].startswith(f"{recipe} radar shares trained 2000 env steps")
+    assert "policy (Monte-Carlo, episodic)" in s["table"]
+    other = run(
+        "evaluate.py",
+        f"checkpoint={trained / 'checkpoint.pt'}",
+        "env.p1.speed=1.0",
+        "eval.mc_episodes=0",
+        f"hydra.run.dir={tmp_path / 'o'}",
+    )
+    assert other.returncode == 0, other.stderr[-2000:]
+    assert "of this scenario's optimum over ρ" in other.stdout

@@ -55,6 +55,33 @@ def make_actor(env: DFRCEnv, cfg: PPOConfig) -> ProbabilisticActor:
     )
 
 
+def make_critic(env: DFRCEnv, cfg: PPOConfig) -> ValueOperator:
+    """V(observation): the scaled observation → an MLP → one value."""
+    return ValueOperator(make_body(observation_top(env), cfg.network, 1), in_keys=["observation"])
+
+
+def make_loss(actor: ProbabilisticActor, critic: ValueOperator, cfg: PPOConfig) -> ClipPPOLoss:
+    """The clipped surrogate, the critic's regression and the entropy bonus."""
+    return ClipPPOLoss(
+        actor,
+        critic,
+        clip_epsilon=cfg.clip_epsilon,
+        entropy_coeff=cfg.entropy_coeff,
+        critic_coeff=cfg.critic_coeff,
+        loss_critic_type="l2",
+        normalize_advantage=True,
+    )
+
+
+def saved_shares(loss_state: dict[str, Any], cfg: PPOConfig, trained: Params, params: Params):
+    """The shares [S] of a checkpoint's actor (``loss_state``, trained on ``trained`` with
+    ``cfg``) on the states of ``params``: its networks rebuilt and loaded."""
+    train_env = DFRCEnv(trained, batch_size=[1])
+    actor = make_actor(train_env, cfg)
+    make_loss(actor, make_critic(train_env, cfg), cfg).load_state_dict(loss_state)
+    return share_table(actor, DFRCEnv(params, batch_size=[1]))
+
+
 def learn_rollout(
     loss: Any, optimizer: torch.optim.Optimizer, cfg: Any, data: TensorDictBase
 ) -> tuple[int, float]:
@@ -96,21 +123,13 @@ def train(
 
     # 1. model: the actor (Beta on [0, 1]) and a critic V(observation)
     actor = make_actor(env, cfg)
-    critic = ValueOperator(make_body(observation_top(env), cfg.network, 1), in_keys=["observation"])
+    critic = make_critic(env, cfg)
     # 2. exploration: the actor's own sampling; 3. collector: one rollout per batch
     collector = make_collector(env, actor, cfg, seed, start)
     # 4. advantage: GAE over each rollout (a time limit bootstraps, it does not terminate)
     advantage = GAE(gamma=cfg.gamma, lmbda=cfg.gae_lambda, value_network=critic, average_gae=False)
     # 5. loss: the clipped surrogate, the critic's regression and the entropy bonus
-    loss = ClipPPOLoss(
-        actor,
-        critic,
-        clip_epsilon=cfg.clip_epsilon,
-        entropy_coeff=cfg.entropy_coeff,
-        critic_coeff=cfg.critic_coeff,
-        loss_critic_type="l2",
-        normalize_advantage=True,
-    )
+    loss = make_loss(actor, critic, cfg)
     # 6. optimiser: one Adam over actor and critic, annealed by the loop
     optimizer = make_optimizer(loss, cfg)
 

@@ -55,6 +55,46 @@ def make_actor(env: DFRCEnv, cfg: SACConfig) -> ProbabilisticActor:
     )
 
 
+def make_critic(env: DFRCEnv, cfg: SACConfig) -> ValueOperator:
+    """Q(observation, ρ): the scaled observation and the share → an MLP → one value."""
+    return ValueOperator(
+        Critic(observation_top(env), cfg.network), in_keys=["observation", "action"]
+    )
+
+
+def make_loss(actor: ProbabilisticActor, critic: ValueOperator, cfg: SACConfig) -> SACLoss:
+    """SAC with two critics, target networks of both critics and the actor, a tuned temperature."""
+    loss = SACLoss(
+        actor,
+        critic,
+        num_qvalue_nets=2,
+        loss_function="l2",
+        delay_qvalue=True,
+        delay_actor=True,
+        alpha_init=cfg.temperature_init,
+        target_entropy=cfg.target_entropy,
+    )
+    loss.make_value_estimator(gamma=cfg.gamma)
+    return loss
+
+
+def policy_shares(loss: SACLoss, actor: ProbabilisticActor, env: DFRCEnv) -> torch.Tensor:
+    """The policy's share in every state [S]: the Polyak-averaged actor's (one noisy update moves
+    it little), deterministic."""
+    with loss.target_actor_network_params.to_module(actor):
+        return share_table(actor, env)
+
+
+def saved_shares(loss_state: dict[str, Any], cfg: SACConfig, trained: Params, params: Params):
+    """The shares [S] of a checkpoint's policy (``loss_state``, trained on ``trained`` with
+    ``cfg``) on the states of ``params``: its networks rebuilt and loaded."""
+    train_env = DFRCEnv(trained, batch_size=[1])
+    actor = make_actor(train_env, cfg)
+    loss = make_loss(actor, make_critic(train_env, cfg), cfg)
+    loss.load_state_dict(loss_state)
+    return policy_shares(loss, actor, DFRCEnv(params, batch_size=[1]))
+
+
 def train(
     params: Params,
     cfg: SACConfig | None = None,
@@ -79,9 +119,7 @@ def train(
 
     # 1. model: the actor (TanhNormal on [0, 1]) and a critic Q(observation, ρ)
     actor = make_actor(env, cfg)
-    critic = ValueOperator(
-        Critic(observation_top(env), cfg.network), in_keys=["observation", "action"]
-    )
+    critic = make_critic(env, cfg)
     # 2. exploration: the actor samples its own shares, and an ε ladder over the rows
     ladder = ShareLadder(cfg.num_envs, cfg.eps_max, cfg.eps_min)
     explore = TensorDictModule(ladder, in_keys=["action"], out_keys=["action"])
@@ -92,17 +130,7 @@ def train(
     center = RewardCenter(cfg.reward_centering)
     buffer, sampler = make_buffer(cfg, [CenteredRewards(center)])
     # 5. loss: SAC with two critics and a tuned temperature
-    loss = SACLoss(
-        actor,
-        critic,
-        num_qvalue_nets=2,
-        loss_function="l2",
-        delay_qvalue=True,
-        delay_actor=True,
-        alpha_init=cfg.temperature_init,
-        target_entropy=cfg.target_entropy,
-    )
-    loss.make_value_estimator(gamma=cfg.gamma)
+    loss = make_loss(actor, critic, cfg)
     # 6. target: Polyak averaging of the critics and the actor after every update
     target = PolyakUpdate(loss, tau=cfg.tau)
     # 7. optimiser: one Adam over actor, critics and temperature, annealed by the loop
@@ -121,9 +149,8 @@ def train(
     run = RunContext(scorer, eval_every_frames, hooks, resume)
     loop = TrainingLoop(cfg, collector, buffer, sampler, optimizer, run)
 
-    def policy() -> torch.Tensor:  # the Polyak-averaged actor: one noisy update moves it little
-        with loss.target_actor_network_params.to_module(actor):
-            return share_table(actor, env)
+    def policy() -> torch.Tensor:
+        return policy_shares(loss, actor, env)
 
     learner = Learner(
         loss=loss,

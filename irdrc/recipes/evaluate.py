@@ -59,39 +59,72 @@ def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
     return cfg
 
 
-def network_table(path: Path, params: Params) -> tuple[Any, str]:
-    """The greedy table, on the states of ``params``, of the DQN network saved at ``path``, and a
-    description of it (method, training scenario's key values that differ, env steps).
+def network_table(path: Path, params: Params) -> tuple[Any, str, str]:
+    """The policy, on the states of ``params``, of the network saved at ``path`` — a DQN run's
+    greedy table, or a SAC or PPO run's radar shares —, a description of it (method, env steps),
+    and its row name (``network`` or ``rho``).
 
     Raises:
-        ValueError: an unreadable checkpoint, or a scenario whose observations have another shape
-            than the training scenario's.
+        ValueError: an unreadable checkpoint, one of a recipe evaluate does not read, or a
+            scenario whose observations have another shape than the training scenario's.
     """
-    from torchrl.objectives import DQNLoss
-
     from irdrc.agents.base import load_checkpoint
-    from irdrc.agents.configs import DQNConfig
-    from irdrc.agents.offpolicy import greedy_table, make_qnet, policy_view
-    from irdrc.core.env import DFRCEnv
+    from irdrc.runs.resume import checkpoint_recipe
 
     state = load_checkpoint(path, key="checkpoint")
     saved = state["config"]
+    recipe = checkpoint_recipe(path, state)
     if "env" not in saved or "vehicles" in saved.get("env", {}) or "target_miss" in saved:
+        recipe = None
+    if recipe not in ("dqn", "sac", "ppo"):
         raise ValueError(
-            f"checkpoint={path}: not a DQN run's checkpoint (recipes/dqn.py); evaluate reads a "
-            "single-vehicle DQN network"
+            f"checkpoint={path}: not a checkpoint of recipes/dqn.py, sac.py or ppo.py (this one: "
+            f"{recipe or 'another recipe'}); evaluate reads a single-vehicle network"
         )
-    cfg = DQNConfig.from_sections(saved["algo"], saved["network"])
     trained = Params.from_config(saved)
-    train_env = DFRCEnv(trained, batch_size=[1])
-    target_env = DFRCEnv(params, batch_size=[1])
-    shape, want = target_env.dynamics.obs.shape[-1], train_env.dynamics.obs.shape[-1]
+    check_observations(path, trained, params)
+    steps = f"trained {int(state['frames'])} env steps ({path})"
+    if recipe in ("sac", "ppo"):
+        from irdrc.agents import ppo, sac
+        from irdrc.agents.configs.continuous import PPOConfig, SACConfig
+
+        learner, config = (sac, SACConfig) if recipe == "sac" else (ppo, PPOConfig)
+        cfg = config.from_sections(saved["algo"], saved["network"])
+        rho = learner.saved_shares(state["loss"], cfg, trained, params)
+        return rho, f"{recipe} radar shares {steps}", "rho"
+    table, name = dqn_table(state, saved, trained, params)
+    return table, f"{name} {steps}", "network"
+
+
+def check_observations(path: Path, trained: Params, params: Params) -> None:
+    """A network trained on ``trained`` reads the observations of ``params``: the same width.
+
+    Raises:
+        ValueError: another number of observation entries (bursty arrivals add the phase).
+    """
+    from irdrc.core.dynamics import observation_high
+
+    want, shape = observation_high(trained).shape[0], observation_high(params).shape[0]
     if shape != want:
         raise ValueError(
             f"checkpoint={path}: its network reads {want} observation entries, this scenario has "
             f"{shape} (bursty arrivals add the traffic phase): evaluate it on a scenario of the "
             "same kind"
         )
+
+
+def dqn_table(
+    state: dict[str, Any], saved: dict, trained: Params, params: Params
+) -> tuple[Any, str]:
+    """A DQN checkpoint's greedy table on the states of ``params``, and its profile's name."""
+    from torchrl.objectives import DQNLoss
+
+    from irdrc.agents.configs import DQNConfig
+    from irdrc.agents.offpolicy import greedy_table, make_qnet, policy_view
+    from irdrc.core.env import DFRCEnv
+
+    cfg = DQNConfig.from_sections(saved["algo"], saved["network"])
+    train_env = DFRCEnv(trained, batch_size=[1])
     qnet = make_qnet(train_env, cfg.network)
     with warnings.catch_warnings():  # no target updater: this loss only holds the networks
         warnings.filterwarnings("ignore", message="No target network updater")
@@ -99,8 +132,7 @@ def network_table(path: Path, params: Params) -> tuple[Any, str]:
         loss.make_value_estimator(gamma=cfg.gamma)
         loss.load_state_dict(state["loss"])
         with policy_view(loss, cfg):
-            table = greedy_table(qnet, target_env)
-    return table, f"{cfg.name} trained {int(state['frames'])} env steps ({path})"
+            return greedy_table(qnet, DFRCEnv(params, batch_size=[1])), cfg.name
 
 
 def load_source(cfg: Config) -> tuple[Any, str, str]:
@@ -116,8 +148,7 @@ def load_source(cfg: Config) -> tuple[Any, str, str]:
         path = Path(str(cfg.checkpoint)).expanduser()
         if not path.is_file():  # before torch loads
             raise ValueError(f"checkpoint={path}: no such checkpoint file")
-        table, source = network_table(path, params)
-        return table, source, "network"
+        return network_table(path, params)
     path = Path(str(cfg.policy)).expanduser()
     if not path.is_file():
         raise ValueError(f"policy={path}: no such file")

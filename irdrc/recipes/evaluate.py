@@ -1,4 +1,4 @@
-"""``recipes/evaluate.py``: a saved policy on any scenario — a run's network
+"""``recipes/evaluate.py``: a saved policy on any scenario — a DQN, SAC or PPO run's network
 (``checkpoint=…/checkpoint.pt``) or a single-vehicle run's table (``policy=…/policy.csv``,
 randomised ones included).
 

@@ -7,6 +7,7 @@ a few go through the command line to check that the answer is one line, exit sta
 from __future__ import annotations
 
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -333,3 +334,36 @@ def test_ctrl_c_in_a_long_solve_is_one_line(tmp_path):
         stderr.strip().startswith("error: stopped by SIGINT; what the run wrote is in ")
         and len(stderr.splitlines()) == 1
     )
+
+
+def test_env_rows_are_bounded_by_this_machines_memory(monkeypatch):
+    """``algo.num_envs`` is refused where the estimated memory of its rows, collections and replay
+    exceeds what the machine has available, naming the estimate and a number of rows that fits
+    (which the estimate then accepts); nothing is refused where the memory is unknown."""
+    from irdrc.runs import sections
+
+    monkeypatch.setattr(sections, "available_memory", lambda: 4 * 2**30)
+    load("dqn")  # the main job: 8 000 rows
+    load("sac")
+    big = ("algo.num_envs=10000000", "algo.frames_per_batch=10000000", "algo.total_frames=40000000")
+    with pytest.raises(
+        ValueError, match=r"GiB of memory, this machine has 4\.0 GiB available"
+    ) as err:
+        load("dqn", *big)
+    rows = int(re.search(r"algo\.num_envs ≤ ([\d ]+)", str(err.value)).group(1).replace(" ", ""))
+    assert 100_000 < rows < 10_000_000
+    load(
+        "dqn",
+        f"algo.num_envs={rows}",
+        f"algo.frames_per_batch={rows}",
+        "algo.total_frames=40000000",
+    )
+    with pytest.raises(ValueError, match="GiB of memory"):
+        load(
+            "sac",
+            "algo.num_envs=5000000",
+            "algo.frames_per_batch=5000000",
+            "algo.total_frames=40000000",
+        )
+    monkeypatch.setattr(sections, "available_memory", lambda: None)
+    load("dqn", *big)

@@ -21,6 +21,7 @@ from irdrc.runs.sections import (
     algo_field,
     check_eval_period,
     check_exact,
+    check_memory,
 )
 
 NAME = "dqn"
@@ -58,6 +59,7 @@ def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
             )
         check_shares_fit(cfg.params)
     cfg.eval.check_cost(cfg.params)
+    check_memory(cfg.algo)
     explicit = "eval.every_frames" in composed.explicit
     check_eval_period(cfg.eval.every_frames, cfg.algo.total_frames, explicit)
     if resume is not None and nothing_left(

@@ -107,6 +107,52 @@ def check_exact(params: Params) -> None:
         )
 
 
+TRAINING_BYTES = (5.4e8, 260, 620, 95)
+"""A one-vehicle learner's peak memory in bytes: a fixed part (imports, the exact model of the paper
+scenario), then per env row, per env step of a collection and per replay slot — fitted to the peak
+resident memory of ``recipes/dqn.py`` runs of 250 000 and 1 000 000 rows, collections of one and
+two steps a row, and replays of 2 and 4 million (2026-11-28)."""
+
+
+def available_memory() -> int | None:
+    """The memory this machine has available, in bytes (``MemAvailable``; None where unknown)."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return None
+
+
+def check_memory(algo: Any) -> None:
+    """Refuse a learner whose env rows, collections and replay (``algo.num_envs``,
+    ``frames_per_batch``, ``buffer_size``) would not fit this machine's available memory, with
+    the estimate and the largest ``num_envs`` that fits (``TRAINING_BYTES``)."""
+    have = available_memory()
+    if have is None:
+        return
+    base, per_row, per_step, per_slot = TRAINING_BYTES
+    rows, steps = int(algo.num_envs), int(algo.frames_per_batch)
+    slots = int(getattr(algo, "buffer_size", 0) or 0)
+    need = base + per_row * rows + per_step * steps + per_slot * slots
+    if need <= have:
+        return
+    per_rows = steps / rows  # a collection's steps per row, kept
+    room = (have - base - per_slot * slots) / (per_row + per_step * per_rows)
+    fits = (
+        f"use algo.num_envs ≤ {int(room):,}".replace(",", " ")
+        if room >= 1
+        else "lower algo.buffer_size"
+    )
+    raise ValueError(
+        f"algo.num_envs={rows}, algo.frames_per_batch={steps}, algo.buffer_size={slots}: about "
+        f"{need / 2**30:.1f} GiB of memory, this machine has {have / 2**30:.1f} GiB available; {fits}"
+        " (with frames_per_batch a multiple of it)"
+    )
+
+
 def check_device(device: Any) -> str:
     """``device`` if torch can use it here (``cpu``, or ``cuda[:n]`` with a CUDA device)."""
     if device == "cpu":

@@ -9,7 +9,7 @@ from typing import Any
 from irdrc.core.checks import build
 from irdrc.runs.compose import Composed
 from irdrc.runs.resume import nothing_left
-from irdrc.runs.sections import check_eval_period
+from irdrc.runs.sections import check_eval_period, check_memory
 
 
 def load_as(config: type, composed: Composed, resume: dict[str, Any] | None) -> Any:
@@ -23,6 +23,7 @@ def load_as(config: type, composed: Composed, resume: dict[str, Any] | None) -> 
             "(env.actions=continuous); a discrete action space is DQN's (recipes/dqn.py)"
         )
     check_shares_fit(cfg.params)
+    check_memory(cfg.algo)
     explicit = "eval.every_frames" in composed.explicit
     check_eval_period(cfg.eval.every_frames, cfg.algo.total_frames, explicit)
     if resume is not None and nothing_left(

@@ -322,53 +322,16 @@ class RewardCenter:
             self.value = float(state["reward_center"])
 
 
-class RewardScale:
-    """The running root mean square of the centred rewards (``center``'s deviations): the first
-    batch's, then an exponential average of the mean square at ``rate`` per env step."""
-
-    def __init__(self, rate: float, center: RewardCenter, value: float | None = None) -> None:
-        self.rate, self.center, self.value = float(rate), center, value
-
-    def update(self, reward: torch.Tensor) -> None:
-        """Fold in one collected batch of one-step rewards (after ``center``'s update)."""
-        square = float((self.center.centred(reward.double()) ** 2).mean())
-        if self.value is None:
-            self.value = square
-        else:
-            self.value += (1.0 - (1.0 - self.rate) ** reward.numel()) * (square - self.value)
-
-    def scaled(self, reward: torch.Tensor) -> torch.Tensor:
-        """``reward`` divided by the running root mean square (itself before the first batch)."""
-        if self.value is None or self.value <= 0:
-            return reward
-        return reward / self.value**0.5
-
-    def state(self) -> dict[str, float]:
-        """The checkpoint's entry: the mean square, where set."""
-        return {"reward_square": self.value} if self.value is not None else {}
-
-    def load(self, state: dict[str, Any]) -> None:
-        """Restore ``state``'s entry."""
-        if state.get("reward_square") is not None:
-            self.value = float(state["reward_square"])
-
-
 class CenteredRewards(Transform):
     """A replay buffer's transform: every sample's rewards under ``key`` centred by ``center``
-    (``RewardCenter.center``), and divided by ``scale`` where given, as it is drawn; stored as
-    collected."""
+    (``RewardCenter.center``) as it is drawn; stored as collected."""
 
-    def __init__(
-        self, center: RewardCenter, key: Any = ("next", "reward"), scale: RewardScale | None = None
-    ) -> None:
+    def __init__(self, center: RewardCenter, key: Any = ("next", "reward")) -> None:
         super().__init__()
-        self.center, self.key, self.scale = center, key, scale
+        self.center, self.key = center, key
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        out = self.center.center(tensordict, self.key)
-        if self.scale is not None:
-            out.set(self.key, self.scale.scaled(out.get(self.key)))
-        return out
+        return self.center.center(tensordict, self.key)
 
     def _inv_call(self, tensordict: TensorDictBase) -> TensorDictBase:
         return tensordict

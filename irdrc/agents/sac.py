@@ -29,7 +29,6 @@ from irdrc.agents.offpolicy import (
     CenteredRewards,
     PolyakUpdate,
     RewardCenter,
-    RewardScale,
     clip_and_step,
     make_body,
     make_buffer,
@@ -129,8 +128,7 @@ def train(
     # 4. buffer: prioritised replay of the whole run, every sample's rewards centred by their
     #    running average (``algo.reward_centering``)
     center = RewardCenter(cfg.reward_centering)
-    scale = RewardScale(cfg.reward_centering, center) if cfg.reward_scaling else None
-    buffer, sampler = make_buffer(cfg, [CenteredRewards(center, scale=scale)])
+    buffer, sampler = make_buffer(cfg, [CenteredRewards(center)])
     # 5. loss: SAC with two critics and a tuned temperature
     loss = make_loss(actor, critic, cfg)
     # 6. target: Polyak averaging of the critics and the actor after every update
@@ -154,22 +152,12 @@ def train(
     def policy() -> torch.Tensor:
         return policy_shares(loss, actor, env)
 
-    def collected(data: TensorDictBase) -> None:
-        center.update(data.get(("next", "reward")))
-        if scale is not None:
-            scale.update(data.get(("next", "reward")))
-
-    def load(state: dict[str, Any]) -> None:
-        center.load(state)
-        if scale is not None:
-            scale.load(state)
-
     learner = Learner(
         loss=loss,
         update=update,
         policy=policy,
-        collected=collected,
-        state=lambda: {**center.state(), **(scale.state() if scale else {})},
-        load=load,
+        collected=lambda data: center.update(data.get(("next", "reward"))),
+        state=center.state,
+        load=center.load,
     )
     return loop.run(learner)

@@ -101,9 +101,6 @@ class SACConfig(ShareConfig):
         target_entropy: the entropy the temperature is tuned towards, nats (TorchRL's "auto" is
             −1 for one action dimension, a spread of a third of [0, 1]; −5 keeps the actor's
             sampling within about 0.01 of its share).
-        reward_scaling: sampled rewards, once centred, are divided by the running root mean
-            square of the centred rewards (at ``reward_centering``'s rate), so the temperature
-            and the critics' scale are the same whatever the reward weights.
 
     Half the machinery's updates, each on twice its batch (the same replay ratio): SAC's update
     costs mostly its fixed overhead at these sizes (a run: 96 s before, about 55 s with 2 threads;
@@ -116,12 +113,10 @@ class SACConfig(ShareConfig):
     updates_per_batch: int = 4
     temperature_init: float = 0.1
     target_entropy: float = -5.0
-    reward_scaling: bool = False
     name: str = field(default="sac", compare=False)
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        checks.check_bool("algo.reward_scaling", self.reward_scaling)
         checks.check_numbers(
             self,
             "algo.",

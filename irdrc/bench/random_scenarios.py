@@ -192,9 +192,20 @@ def contested_draws(
 ) -> list[Draw]:
     """The first ``count`` contested draws from index ``first`` up; ``progress(kept, tried)``
     after each draw."""
+    return kept_draws(lambda i: contested(i, gamma), first, count, progress)
+
+
+def kept_draws(
+    keep: Callable[[int], Any],
+    first: int,
+    count: int,
+    progress: Callable[[int, int], None] | None = None,
+) -> list:
+    """The first ``count`` draws from index ``first`` up that ``keep`` returns (not None);
+    ``progress(kept, tried)`` after each draw."""
     out, index = [], first
     while len(out) < count:
-        draw = contested(index, gamma)
+        draw = keep(index)
         if draw is not None:
             out.append(draw)
         index += 1
@@ -255,12 +266,4 @@ def share_draws(
 ) -> list[ShareDraw]:
     """The first ``count`` kept time-sharing draws from index ``first`` up; ``progress(kept,
     tried)`` after each draw."""
-    out, index = [], first
-    while len(out) < count:
-        draw = share_draw(index, gamma)
-        if draw is not None:
-            out.append(draw)
-        index += 1
-        if progress is not None:
-            progress(len(out), index - first)
-    return out
+    return kept_draws(lambda i: share_draw(i, gamma), first, count, progress)

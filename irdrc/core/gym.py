@@ -203,6 +203,7 @@ class DFRCGymEnv(gymnasium.Env):
         ``policy_table`` takes it."""
         from irdrc.core.exact import exact_scorer
         from irdrc.core.exact.continuum import ContinuumScorer
+        from irdrc.core.exact.scorer import score_summary
 
         table = self.policy_table(predict)
         if self.params.env.actions == "binary":
@@ -211,15 +212,7 @@ class DFRCGymEnv(gymnasium.Env):
             scorer = ContinuumScorer(
                 self.params.with_overrides({"env.actions": "continuous"}), gamma
             )
-        m, best = scorer.metrics(table), scorer.optimal_metrics
-        return {
-            "ratio": m.avg_reward / best.avg_reward,
-            "avg_reward": m.avg_reward,
-            "optimum": best.avg_reward,
-            "throughput": m.throughput,
-            "miss_detection": m.miss_detection,
-            "radar_fraction": m.radar_fraction,
-        }
+        return score_summary(scorer, table)
 
     def _step_shares(self, rho: torch.Tensor) -> tuple[np.ndarray, float, bool, bool, dict]:
         """One time-sharing step (MODEL.md § D) through ``step_shares``."""

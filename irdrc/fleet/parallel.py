@@ -238,21 +238,14 @@ class FleetParallelEnv(ParallelEnv):
         the optimum at discount ``gamma``), as the fleet recipe scores its learners: ``ratio``
         (average reward over the optimum's), ``avg_reward``, ``optimum``, ``throughput``,
         ``miss_detection``, ``radar_fraction``. ``policy`` is as ``policy_table`` takes it."""
+        from irdrc.core.exact.scorer import score_summary
         from irdrc.fleet.scorer import FleetScorer
 
         if gamma not in self._scorers:
             self._scorers[gamma] = FleetScorer(self.model, gamma=gamma)
         scorer = self._scorers[gamma]
         table = self.policy_table(policy)
-        m, best = scorer.metrics(table), scorer.optimal_metrics
-        return {
-            "ratio": m.avg_reward / best.avg_reward,
-            "avg_reward": m.avg_reward,
-            "optimum": best.avg_reward,
-            "throughput": m.throughput,
-            "miss_detection": m.miss_detection,
-            "radar_fraction": m.radar_fraction,
-        }
+        return score_summary(scorer, table)
 
 
 def parallel_env(

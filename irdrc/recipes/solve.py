@@ -23,6 +23,7 @@ from irdrc.runs.sections import (
     DENSE_LIMIT_BYTES,
     ONE_OR_FLEET,
     Eval,
+    available_memory,
     check_common,
     fits_dense,
 )
@@ -293,18 +294,6 @@ def estimate(params: Params, model: Any) -> tuple[float, float]:
     return per * SWEEPS_GUESS, BYTES_PER_STATE * float(model.num_states)
 
 
-def available_bytes() -> float:
-    """Memory this machine has free (``MemAvailable``), or infinity where it cannot say."""
-    try:
-        with open("/proc/meminfo") as f:
-            for line in f:
-                if line.startswith("MemAvailable:"):
-                    return float(line.split()[1]) * 1024
-    except OSError:
-        pass
-    return math.inf
-
-
 def solve_factored(cfg: Config, run) -> dict[str, Any]:
     """Value iteration (McQueen's bounds, ``tol``) and exact long-run metrics on the factored
     operator, beside always-comm, always-radar and random; refused past this machine's memory or
@@ -331,7 +320,7 @@ def solve_factored(cfg: Config, run) -> dict[str, Any]:
         f"~{duration(seconds)} and ~{size(need)} (two sweeps timed)",
         flush=True,
     )
-    free = available_bytes()
+    free = available_memory() or math.inf  # unknown: no bound
     if need > 0.8 * free:
         raise ValueError(
             f"env.queue_capacity={params.env.queue_capacity}: S = {S:,} states would need "

@@ -82,3 +82,19 @@ def exact_scorer(params: Params, gamma: float = DEFAULT_OPTIMUM_GAMMA) -> Scorer
     from irdrc.core.exact.dense import fits_dense
 
     return Scorer(exact_model(params), gamma, tol=1e-9 if fits_dense(params) else 1e-6)
+
+
+def score_summary(scorer: Any, table: torch.Tensor) -> dict[str, float]:
+    """A policy table's exact long-run figures against ``scorer``'s optimum (any scorer with
+    ``metrics`` and ``optimal_metrics``: ``Scorer``, the fleet's, the continuum's): ``ratio``
+    (average reward over the optimum's), ``avg_reward``, ``optimum``, ``throughput``,
+    ``miss_detection``, ``radar_fraction``."""
+    m, best = scorer.metrics(table), scorer.optimal_metrics
+    return {
+        "ratio": m.avg_reward / best.avg_reward,
+        "avg_reward": m.avg_reward,
+        "optimum": best.avg_reward,
+        "throughput": m.throughput,
+        "miss_detection": m.miss_detection,
+        "radar_fraction": m.radar_fraction,
+    }

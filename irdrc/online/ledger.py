@@ -13,8 +13,9 @@ behaviour policy π_k:
 - the realised counts (rewards, events, events missed, packets sent and dropped) and the realised
   regret g*·n − Σ rewards: noisy, model-free, a check on the exact figures.
 
-A period is one episode; a learner that changes its policy within one is scored with the policy it
-had at the period's start. Every learner's run reports the same ``Ledger``: it reads only the
+A period is one episode, or a part of one where the learner announces a change of its behaviour
+policy (posterior sampling draws a new model whenever its data doubles); a change it does not
+announce (a gradient step of DQN) is scored with the policy of the period's start. Every learner's run reports the same ``Ledger``: it reads only the
 behaviour policy the learner exposes.
 """
 

@@ -2,14 +2,16 @@
 
 Episodes of the paper's length follow one another on one ``VehicleStream``. At each step the learner
 acts on the state and sees what the step produced; at each episode's end it does its end-of-episode
-work, the ``Ledger`` adds the period (the behaviour policy the learner had at the episode's start and
-what the stream recorded), and, every ``eval_every_frames`` env steps, the greedy policy is scored
+work, the ``Ledger`` adds the episode's periods (each with the behaviour policy in force and what the
+stream recorded in it: one period per episode, or more where the learner announces within-episode
+changes of its behaviour, ``StreamLearner.switches``), and, every ``eval_every_frames`` env steps, the greedy policy is scored
 exactly. Checkpoints fall between episodes: the learner's whole state (its replay included), the
 stream's generator and the ledger, so a resumed run goes on exactly as the uninterrupted one would.
 """
 
 from __future__ import annotations
 
+import itertools
 import time
 from typing import Any
 
@@ -34,6 +36,17 @@ class StreamLearner:
 
     def begin_episode(self, episode: int) -> None:
         """Before the episode's first step (0-based ``episode``)."""
+
+    def switches(self, episode: int, horizon: int) -> tuple[int, ...]:
+        """Steps ``0 < t < horizon`` of the episode after which the behaviour policy changes
+        (``switch`` is called there); the ledger scores each period between them with the policy
+        in force. A change it does not announce (a gradient step) is scored with the policy of the
+        period's start."""
+        return ()
+
+    def switch(self, steps: int) -> None:
+        """At each announced step: change the behaviour policy (``steps`` the stream's steps so
+        far)."""
 
     def act(self, state: int) -> int:
         """The behaviour's action in ``state`` (exploration included)."""
@@ -115,7 +128,7 @@ def learn_on_stream(
     ledger = Ledger(scorer)
     record = RunRecord(method=learner.name, greedy=torch.zeros(1, 1, dtype=torch.int64))
     optimum = greedy_scorer.optimal_metrics.avg_reward
-    seconds = {"act_and_learn": 0.0, "episode_end": 0.0, "evaluate": 0.0}
+    seconds = {"episode_start": 0.0, "act_and_learn": 0.0, "episode_end": 0.0, "evaluate": 0.0}
     start = 0
     t0 = time.perf_counter()
     if resume is not None:
@@ -171,29 +184,41 @@ def learn_on_stream(
     next_eval = (start * T // every + 1) * every
     act, observe = learner.act, learner.observe
     for episode in range(start, episodes):
+        b0 = time.perf_counter()
         learner.begin_episode(episode)
         behaviour = learner.behaviour()
+        cuts = [*learner.switches(episode, T), T]
+        if any(not 0 < c < d for c, d in itertools.pairwise(cuts)):
+            raise ValueError(f"{learner.name}: switches {cuts[:-1]} must rise within (0, {T})")
         a0 = time.perf_counter()
         s = stream.reset()
-        tally = Tally(steps=T)
-        for _ in range(T):
-            a = act(s)
-            out = stream.step(a)
-            observe(s, a, out)
-            tally.reward += out.reward
-            tally.events += out.event
-            tally.missed += out.missed
-            tally.sent += out.sent
-            tally.dropped += out.dropped
-            s = out.state
+        total, t = Tally(), 0
+        for cut in cuts:
+            tally = Tally(steps=cut - t)
+            for _ in range(cut - t):
+                a = act(s)
+                out = stream.step(a)
+                observe(s, a, out)
+                tally.reward += out.reward
+                tally.events += out.event
+                tally.missed += out.missed
+                tally.sent += out.sent
+                tally.dropped += out.dropped
+                s = out.state
+            ledger.add(behaviour, tally)
+            total += tally
+            t = cut
+            if cut < T:
+                learner.switch(episode * T + cut)
+                behaviour = learner.behaviour()
         a1 = time.perf_counter()
         scalars = learner.end_episode(episode)
+        seconds["episode_start"] += a0 - b0
         seconds["act_and_learn"] += a1 - a0
         seconds["episode_end"] += time.perf_counter() - a1
         done = episode + 1
-        ledger.add(behaviour, tally)
         record.episode_rewards.append(
-            {"learner": 0, "episode": done, "env_steps": done * T, "reward": tally.reward}
+            {"learner": 0, "episode": done, "env_steps": done * T, "reward": total.reward}
         )
         hooks.batch({"env_steps": done * T, "episodes": done, **scalars})
         stop = hooks.stop_requested()

@@ -167,12 +167,13 @@ def run(cfg: Config, run) -> dict[str, Any]:
 
 def print_ledger(row: dict[str, Any], summary: dict[str, Any], cfg: Config) -> None:
     """The price of learning, in a few lines."""
-    conv = (
-        f"first ≥ 0.99 after {summary['episodes_to_99']} episodes, ≥ 0.99 at "
-        f"{summary['stay_99']:.0%} of the evaluations after"
-        if summary["episodes_to_99"] is not None
-        else "never ≥ 0.99"
-    )
+    first, stay = summary["episodes_to_99"], summary["stay_99"]
+    if first is None:
+        conv = "never ≥ 0.99"
+    elif stay is None:
+        conv = f"first ≥ 0.99 after {first} episodes (the last evaluation)"
+    else:
+        conv = f"first ≥ 0.99 after {first} episodes, ≥ 0.99 at {stay:.0%} of the evaluations after"
     print(
         f"\nthe price of learning over {summary['episodes']} episodes (exact, from the behaviour "
         f"policy of each episode; realised on the stream in brackets):\n"

@@ -12,7 +12,8 @@ Two parts:
   first comm step after (1 − m*)/m* detected events (19 at m* = 0.05). A radar that misses events
   (P_d < 1) can break it in radar mode, which no choice of mode prevents: the budget then holds
   only as far as the radar's own misses allow.
-- **The plan.** Before every episode it solves the LP for the most packets at miss target m* on
+- **The plan.** Before the first episode and whenever its data has doubled since the last plan
+  (before episodes 1, 2, 4, 8, …) it solves the LP for the most packets at miss target m* on
   the posterior-mean model of what it has counted (``irdrc.online.form``: told the model's form,
   not its numbers); an infeasible plan is radar everywhere. It acts by the plan wherever the budget
   allows. A level of the channel whose capacity has not shown yet is planned as carrying every
@@ -67,6 +68,7 @@ class SafeLearner(StreamLearner):
         self.comm = [0.0] * self.num_states  # P(comm | s) of the plan
         self.updates = 0
         self.forced = 0  # radar steps the budget imposed on the plan
+        self.planned_at = -1  # the stream's steps at the last plan
 
     @property
     def slack(self) -> float:
@@ -94,6 +96,10 @@ class SafeLearner(StreamLearner):
         return lp.policy
 
     def begin_episode(self, episode: int) -> None:
+        steps = self.counts.steps
+        if self.planned_at >= 0 and steps < 2 * max(self.planned_at, 1):
+            return
+        self.planned_at = steps
         self.plan = self._solve()
         self.comm = self.plan[:, 0].tolist()
         self.updates += 1
@@ -132,6 +138,7 @@ class SafeLearner(StreamLearner):
             "plan": self.plan,
             "updates": self.updates,
             "forced": self.forced,
+            "planned_at": self.planned_at,
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -141,6 +148,7 @@ class SafeLearner(StreamLearner):
         self.plan = state["plan"]
         self.comm = self.plan[:, 0].tolist()
         self.updates, self.forced = int(state["updates"]), int(state["forced"])
+        self.planned_at = int(state["planned_at"])
 
 
 class ConstrainedScorer:

@@ -185,37 +185,44 @@ def banded_stationary(src: Any, dst: Any, vals: Any, n: int) -> Any:
     every state is transient (mass 0). The back substitution rescales as it grows, so nothing
     overflows."""
     import numpy as np
+    from numpy.lib.stride_tricks import as_strided
 
     off = dst - src
     bl, bu = max(1, -int(off.min())), max(1, int(off.max()))
     pad = bu  # rows above state 0, so that every block update has its full shape
-    B = np.zeros((n + pad, bl + bu + 1))  # B[pad + i, j − i + bl] = P[i, j]
-    np.add.at(B, (src + pad, off + bl), vals)
+    W = bl + bu + 1
+    # B[pad + i, j − i + bl] = P[i, j], repeats summed in their order
+    B = np.bincount((src + pad) * W + off + bl, vals, (n + pad) * W).reshape(n + pad, W)
     B[pad + np.arange(n), bl] = 0.0  # staying put does not enter GTH
-    a, b = np.arange(bu), np.arange(bl)
-    block = (b[None, :] - bl) - (a[:, None] - bu) + bl  # column of P[k − bu + a, k − bl + b]
-    col_k = bu - a + bl  # column of P[k − bu + a, k]
+    # strided views of B, one entry per state k (no copy, no fancy indexing in the loop):
+    flat, item = B.reshape(-1), B.itemsize
+    # blocks[k][a, b] = P[k − bu + a, k − bl + b], the entries eliminating k updates
+    blocks = as_strided(flat[bu:], (n, bu, bl), (W * item, (W - 1) * item, item), writeable=True)
+    ups = as_strided(flat[bu + bl :], (n, bu), (W * item, (W - 1) * item))  # P[k − bu + a, k]
+    downs = B[pad:, :bl]  # downs[k][b] = P[k, k − bl + b]
     s = np.zeros(n)
+    w, outer = np.empty(bl), np.empty((bu, bl))
     base = 0
     for k in range(n - 1, 0, -1):
-        down = B[pad + k, :bl].copy()  # P[k, k − bl + b]
+        down = downs[k]
         if k < bl:
+            down = down.copy()
             down[: bl - k] = 0.0
-        total = down.sum()
+        total = np.add.reduce(down)
         if total <= 0.0:
             base = k
             break
         s[k] = total
-        rows = pad + k - bu + a
-        up = B[rows, col_k]
-        if up.any():
-            B[rows[:, None], block] += np.outer(up, down / total)
+        np.divide(down, total, out=w)
+        np.multiply(ups[k][:, None], w, out=outer)
+        block = blocks[k]
+        np.add(block, outer, out=block)
+    up_all = np.ascontiguousarray(ups)
     pi = np.zeros(n)
     pi[base] = 1.0
     for k in range(base + 1, n):
         lo = k - bu
-        up = B[pad + lo + a, col_k][max(0, base - lo) :]
-        pi[k] = float(pi[max(lo, base) : k] @ up) / s[k]
+        pi[k] = float(pi[max(lo, base) : k] @ up_all[k][max(0, base - lo) :]) / s[k]
         if pi[k] > 1e150:
             pi[base : k + 1] *= 1e-150
     return pi / pi.sum()

@@ -269,6 +269,23 @@ def test_the_safe_learner_plans_again_whenever_its_data_doubles(scorer):
     assert solved == [0, 400, 800, 1600, 3200] and learner.updates == 5
 
 
+def test_the_safe_learner_plans_on_a_mixed_noisy_or_chain(scorer):
+    """Its plan after 33 episodes at m* = 0.05 (seed 1) sends 0.899 of the LP's packets when
+    measured; planning on the posterior mean of the sampler's cold start (the mutation: no sweeps
+    before a plan) overstates the events and sends 0.828."""
+    cfg = configs.learner_config("safe", {"episodes": 33, "target_miss": 0.05})
+    grader = ConstrainedScorer(scorer, 0.05)
+
+    def ratio(mutate: bool) -> float:
+        learner = make_learner("safe", cfg, PAPER, 1)
+        if mutate:
+            learner.counts.advance = lambda rng, sweeps: None
+        rec = learn_on_stream(learner, PAPER, scorer, episodes=33, greedy_scorer=grader)
+        return rec.history[-1]["lp_ratio"]
+
+    assert ratio(False) > 0.86 > ratio(True)
+
+
 def test_learner_keys_are_checked_against_the_chosen_learner():
     with pytest.raises(ValueError, match=r"algo.batch_sze \(did you mean algo.batch_size\?\)"):
         configs.learner_config("dqn", {"batch_sze": 3})

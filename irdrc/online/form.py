@@ -207,6 +207,15 @@ class FormCounts:
     GIBBS_MEAN_DRAWS = 20
     """Draws averaged for the noisy-or posterior mean (from a copy of the sampler's state)."""
 
+    def advance(self, rng: np.random.Generator, sweeps: int) -> None:
+        """Run the noisy-or sampler ``sweeps`` sweeps on, so that the posterior mean, drawn from
+        where it stands, starts from a chain that has mixed (a learner that never draws from the
+        posterior calls it before it asks for the mean; nothing to do without noisy-or)."""
+        if self.noisy_or:
+            k, n = np.asarray(self.event_k, float), np.asarray(self.event_n, float)
+            for _ in range(sweeps):
+                self.fire = self._gibbs(self.fire, k, n, rng)
+
     def event_probabilities(self, rng: np.random.Generator | None = None) -> np.ndarray:
         """[combinations] each combination's event probability: a posterior draw (``rng``), or
         the posterior mean."""

@@ -15,7 +15,8 @@ Two parts:
 - **The plan.** Before the first episode and whenever its data has doubled since the last plan
   (before episodes 1, 2, 4, 8, …) it solves the LP for the most packets at miss target m* on
   the posterior-mean model of what it has counted (``irdrc.online.form``: told the model's form,
-  not its numbers); an infeasible plan is radar everywhere. It acts by the plan wherever the budget
+  not its numbers), the noisy-or sampler run ``GIBBS_SWEEPS`` sweeps on before it (the mean is
+  drawn from where it stands); an infeasible plan is radar everywhere. It acts by the plan wherever the budget
   allows. A level of the channel whose capacity has not shown yet is planned as carrying every
   packet (optimism), so the plan tries it. Its greedy policy, the one it would deploy, is the plan.
 
@@ -29,6 +30,7 @@ from __future__ import annotations
 import random
 from typing import Any
 
+import numpy as np
 import torch
 
 from irdrc.core.cmdp import (
@@ -46,6 +48,10 @@ from irdrc.online.form import FormCounts
 from irdrc.online.loop import StreamLearner
 from irdrc.online.qlearning import tuple_state
 
+GIBBS_SWEEPS = 200
+"""Sweeps of the noisy-or sampler before each plan (``FormCounts.advance``): from its cold start the
+posterior mean overstates the event probabilities, and the plan sends less than the data allow."""
+
 
 class SafeLearner(StreamLearner):
     """A miss budget and a pessimistic LP plan (see the module docstring).
@@ -61,6 +67,7 @@ class SafeLearner(StreamLearner):
         self.counts = FormCounts(params, cfg.prior_count)
         self.num_states = params.env.num_states
         self.rng = random.Random(seed)
+        self.gibbs = np.random.default_rng(seed)
         self.events = 0
         self.missed = 0
         self.radar = torch.ones(self.num_states, dtype=torch.int64)
@@ -100,6 +107,7 @@ class SafeLearner(StreamLearner):
         if self.planned_at >= 0 and steps < 2 * max(self.planned_at, 1):
             return
         self.planned_at = steps
+        self.counts.advance(self.gibbs, GIBBS_SWEEPS)
         self.plan = self._solve()
         self.comm = self.plan[:, 0].tolist()
         self.updates += 1
@@ -139,6 +147,7 @@ class SafeLearner(StreamLearner):
             "updates": self.updates,
             "forced": self.forced,
             "planned_at": self.planned_at,
+            "gibbs": self.gibbs.bit_generator.state,
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -149,6 +158,7 @@ class SafeLearner(StreamLearner):
         self.comm = self.plan[:, 0].tolist()
         self.updates, self.forced = int(state["updates"]), int(state["forced"])
         self.planned_at = int(state["planned_at"])
+        self.gibbs.bit_generator.state = state["gibbs"]
 
 
 class ConstrainedScorer:

@@ -1,0 +1,74 @@
+"""``recipes/bench_online.py``'s tables (``irdrc.bench.online_tables``) on hand-made runs."""
+
+from __future__ import annotations
+
+from irdrc.bench.online import Job
+from irdrc.bench.online_tables import lagrangian_row, learner_table, run_row, safe_table
+
+
+def history(ratios: list[float], regret_step: float = 10.0, cum: float = 0.04) -> list[dict]:
+    return [
+        {
+            "episodes": e,
+            "env_steps": 400 * e,
+            "optimality_ratio": r,
+            "regret": regret_step * e,
+            "expected_missed": 2.0 * e,
+            "expected_events": 100.0 * e,
+            "floor_missed": 1.0 * e,
+            "realised_regret": regret_step * e,
+            "realised_missed": 2.0 * e,
+            "cumulative_miss_detection": cum if e else None,
+            "lp_ratio": 0.9,
+            "meets_target": 1.0,
+            "miss_detection": 0.045,
+        }
+        for e, r in enumerate(ratios)
+    ]
+
+
+def test_a_run_row_reads_convergence_and_the_ledger_at_the_window():
+    """0.99 first at episode 2; 2 of the 3 later evaluations stay there; the ledger is read at the
+    window (episode 3), not at the run's end."""
+    hist = history([0.5, 0.96, 0.995, 0.98, 0.991, 0.999])
+    row = run_row(Job("dqn", "paper", 10, 5), {"history": hist, "wall_seconds": 1.0}, 3)
+    assert (row["episodes_to_95"], row["episodes_to_99"]) == (1, 2)
+    assert row["stay_99"] == 2 / 3 and row["within_window"]
+    assert row["regret"] == 30.0 and row["expected_missed"] == 6.0
+
+
+def test_the_learner_table_pools_random_draws_and_reports_medians_and_worst():
+    runs = [
+        run_row(
+            Job("posterior", f"draw {i}", 10, 4), {"history": history(r, s), "wall_seconds": 1}, 3
+        )
+        for i, (r, s) in enumerate([([0.5, 0.995, 1, 1], 10.0), ([0.5, 0.9, 0.9, 0.9], 30.0)])
+    ]
+    table = learner_table(runs, 3)
+    assert "| posterior | random draws | 1/2 | 1 (1) |" in table
+    assert "| 60 (90) |" in table  # regret at episode 3: 30 and 90, median 60, worst 90
+
+
+def test_the_lagrangian_row_counts_evaluations_over_the_target_and_its_end():
+    """Read at the first batch past each 400 env steps: 0.5 and 0.2 are over 0.1, 0.08 is not."""
+    trace = [
+        {"env_steps": 100, "cumulative_miss": 1.0},  # before the first episode's end: not read
+        {"env_steps": 400, "cumulative_miss": 0.5},
+        {"env_steps": 500, "cumulative_miss": 0.4},
+        {"env_steps": 800, "cumulative_miss": 0.2},
+        {"env_steps": 1200, "cumulative_miss": 0.08},
+    ]
+    row = lagrangian_row(Job("dqn_lagrangian", "paper", 10, 3, 0.1), {"trace": trace}, 400)
+    assert row["violations"] == 2 and row["points"] == 3
+    assert row["worst_cumulative_miss"] == 0.5 and row["final_cumulative_miss"] == 0.08
+
+
+def test_the_safe_table_puts_the_lagrangian_training_beside_the_safe_learner():
+    job = Job("safe", "paper", 10, 3, 0.05)
+    within = run_row(job, {"history": history([0, 0.5, 0.9, 0.95]), "wall_seconds": 1}, 3)
+    over = run_row(job, {"history": history([0, 0.5, 0.9, 0.95], cum=0.06), "wall_seconds": 1}, 3)
+    trace = [{"env_steps": 400, "cumulative_miss": 0.3}, {"env_steps": 800, "cumulative_miss": 0.2}]
+    lag = [lagrangian_row(Job("dqn_lagrangian", "paper", 10, 3, 0.05), {"trace": trace}, 400)]
+    table = safe_table([within, over], lag, 3)
+    assert "| 0.05 | paper | 1/2 | 0.0600 |" in table
+    assert "0/1, worst 0.3000, at the end 0.2 |" in table

@@ -127,6 +127,25 @@ def test_posterior_sampling_draws_again_whenever_its_data_doubles():
     assert [learner.switches(e, 400) for e in (1, 2, 3, 5)] == [(112,), (224,), (), (48,)]
 
 
+def test_a_gain_never_shown_is_planned_as_the_largest_reward_seen():
+    """Radar steps only: no comm reward has shown, so each level's is planned as the largest
+    |reward| seen (a detection's r4·(b + 1) or a miss); planned as 0 (the mutation), a learner
+    that stopped its coin early would never try comm where it pays."""
+    from irdrc.core.stream import VehicleStream
+    from irdrc.online.form import FormCounts
+
+    counts, stream = FormCounts(PAPER, 1.0), VehicleStream(PAPER, 0)
+    s = stream.reset()
+    for _ in range(400):
+        out = stream.step(1)
+        counts.observe(s, 1, out)
+        s = out.state
+    est = counts.estimate()
+    assert counts.top_reward > 0 and counts.comm_reward == [None, None]
+    assert est.comm_reward.tolist() == [counts.top_reward] * 2
+    assert est.miss_penalty == 0.0 and est.packets.min() > 0
+
+
 def test_switches_that_do_not_rise_within_the_episode_are_refused(scorer):
     learner = Switching(scorer.optimal.policy)
     learner.switches = lambda episode, horizon: (100, 50)

@@ -21,8 +21,10 @@ arrivals, detections and false alarms, and it reads the numbers that a step show
 reward, the penalty, the detection reward, a channel level's packets once a step is limited by
 them). ``estimate`` gives the posterior mean or one posterior sample of every number, and
 ``tables`` the model's per-configuration tables (``irdrc.core.tables.ModelTables``), which the exact
-core plans on (``irdrc.core.exact.factored_model``). A number never shown is planned with 0 (a
-reward) or as everything the queue could send (a channel level's packets: optimism).
+core plans on (``irdrc.core.exact.factored_model``). A number never shown is planned
+optimistically: a gain (a channel level's comm reward, the detection reward) as the largest reward
+the stream has shown, a cost (the miss penalty, the false-alarm cost) as 0, a channel level's
+packets as everything the queue could send.
 """
 
 from __future__ import annotations
@@ -111,6 +113,7 @@ class FormCounts:
         self.miss_penalty: float | None = None
         self.detect_reward: float | None = None
         self.alarm_cost: float | None = None
+        self.top_reward = 0.0  # the largest |reward| shown so far
         self.detected, self.radar_events = 0, 0
         self.alarms, self.quiet_radar = 0, 0
         # noisy-or: each combination's levels per event factor, and the sampler's state
@@ -142,6 +145,7 @@ class FormCounts:
         self.arrivals_n[ph] += 1
         if step.arrivals > self.arrivals_top:
             self.arrivals_top = step.arrivals
+        self.top_reward = max(self.top_reward, abs(step.reward))
         if action == 0:
             if step.sent < d + step.arrivals:  # the link was full: its capacity shows
                 self.packets_known[c] = step.sent
@@ -188,15 +192,20 @@ class FormCounts:
         # the most packets seen arriving at once
         top = self.D + max(self.arrivals_top, 1)
         packets = [known if known is not None else top for known in self.packets_known]
+        # a gain never shown (a level's comm reward, the detection reward) may be as large as
+        # the largest reward seen (optimism, so that the plan tries it); a cost never shown, 0
+        gain = self.top_reward
+        comm = [x if x is not None else gain for x in self.comm_reward]
+        detect = self.detect_reward if self.detect_reward is not None else gain
         return Estimate(
             chains={name: rows(self.chain[name]) for name in self.CHAINS},
             speed_object=torch.stack([rows(self.speed_object[a]) for a in (0, 1)]),
             event=torch.from_numpy(event),
             rate=torch.from_numpy(np.asarray(rate, dtype=np.float64)),
             packets=torch.tensor(packets, dtype=torch.float64),
-            comm_reward=torch.tensor([x or 0.0 for x in self.comm_reward], dtype=torch.float64),
+            comm_reward=torch.tensor(comm, dtype=torch.float64),
             miss_penalty=self.miss_penalty or 0.0,
-            detect_reward=self.detect_reward or 0.0,
+            detect_reward=detect,
             alarm_cost=self.alarm_cost or 0.0,
             detection=float(beta(np.float64(self.detected), np.float64(self.radar_events))),
             false_alarm=float(beta(np.float64(self.alarms), np.float64(self.quiet_radar))),
@@ -337,6 +346,7 @@ class FormCounts:
             "radar_events",
             "alarms",
             "quiet_radar",
+            "top_reward",
             "fire",
         )
         out = {k: getattr(self, k) for k in keep}

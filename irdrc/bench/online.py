@@ -223,7 +223,7 @@ def plan(cfg: Config, draws: list) -> list[Job]:
             Job(n, f"draw {d.index}", cfg.random_seed, cfg.episodes, overrides=d.overrides)
             for n in cfg.random_learners
         ]
-    # the safe learner solves an LP every episode: its runs stop at the window
+    # the safe learner's runs stop at the window (its figures are read there)
     for target in cfg.safe_targets:
         for scenario in cfg.safe_scenarios:
             jobs += [Job("safe", scenario, s, cfg.window, target) for s in cfg.safe_seeds]

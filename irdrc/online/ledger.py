@@ -15,8 +15,8 @@ behaviour policy π_k:
 
 A period is one episode, or a part of one where the learner announces a change of its behaviour
 policy (posterior sampling draws a new model whenever its data doubles); a change it does not
-announce (a gradient step of DQN) is scored with the policy of the period's start. Every learner's run reports the same ``Ledger``: it reads only the
-behaviour policy the learner exposes.
+announce (a gradient step of DQN) is scored with the policy of the period's start. Every learner's
+run reports the same ``Ledger``: it reads only the behaviour policy the learner exposes.
 """
 
 from __future__ import annotations

@@ -2,11 +2,12 @@
 
 Episodes of the paper's length follow one another on one ``VehicleStream``. At each step the learner
 acts on the state and sees what the step produced; at each episode's end it does its end-of-episode
-work, the ``Ledger`` adds the episode's periods (each with the behaviour policy in force and what the
-stream recorded in it: one period per episode, or more where the learner announces within-episode
-changes of its behaviour, ``StreamLearner.switches``), and, every ``eval_every_frames`` env steps, the greedy policy is scored
-exactly. Checkpoints fall between episodes: the learner's whole state (its replay included), the
-stream's generator and the ledger, so a resumed run goes on exactly as the uninterrupted one would.
+work, the ``Ledger`` adds the episode's periods (each with the behaviour policy in force and what
+the stream recorded in it: one period per episode, or more where the learner announces
+within-episode changes of its behaviour, ``StreamLearner.switches``), and, every
+``eval_every_frames`` env steps, the greedy policy is scored exactly. Checkpoints fall between
+episodes: the learner's whole state (its replay included), the stream's generator and the ledger, so
+a resumed run goes on exactly as the uninterrupted one would.
 """
 
 from __future__ import annotations

@@ -1,15 +1,16 @@
 """Posterior sampling on the model's form (``learner=posterior``; MODEL.md § E): the structure-aware
 learner that the model-free ones are read against.
 
-It is told the model's form and nothing else (``irdrc.online.form``). Its first episode, before any
-data, picks each mode with probability 1/2 (every reward, the detection and the links show
-themselves). Before every later episode, and whenever the stream's
-length doubles (after 1, 2, 4, …, 256 steps in the first episode, 512 in the second, …), it draws
-one model from the posterior of every number its counts allow (Dirichlet rows for the chains, Beta
-for the event, detection and false-alarm probabilities, Gamma for the arrival rates) and acts by
-that model's optimal policy until the next draw, planned exactly on the factored operator with
-value iteration at the optimum's discount (posterior sampling for reinforcement learning, Osband,
-Russo and Van Roy 2013, with the doubling draws of Ouyang et al. 2017's dynamic episodes). Its greedy policy, the one it would deploy, is the plan of the posterior mean.
+It is told the model's form and nothing else (``irdrc.online.form``), and plans every number it
+has not seen yet optimistically. Its first step, before any data, picks each mode with probability
+1/2. Before every later episode, and whenever the stream's length doubles (after 1, 2, 4, …, 256
+steps in the first episode, 512 in the second, …), it draws one model from the posterior of every
+number its counts allow (Dirichlet rows for the chains, Beta for the event, detection and
+false-alarm probabilities, Gamma for the arrival rates) and acts by that model's optimal policy
+until the next draw, planned exactly on the factored operator with value iteration at the
+optimum's discount (posterior sampling for reinforcement learning, Osband, Russo and Van Roy 2013,
+with the doubling draws of Ouyang et al. 2017's dynamic episodes). Its greedy policy, the one it
+would deploy, is the plan of the posterior mean.
 """
 
 from __future__ import annotations
@@ -53,18 +54,21 @@ class PosteriorSampling(StreamLearner):
         model = self.counts.model(est)
         return value_iteration(model, gamma=self.cfg.gamma, tol=self.cfg.tol).policy
 
+    def _draw(self) -> None:
+        """A new plan: the optimum of one model drawn from the posterior."""
+        self.plan = self._solve(self.counts.estimate(self.rng)).tolist()
+        self.updates += 1
+
     def begin_episode(self, episode: int) -> None:
         if self.counts.steps:
-            self.plan = self._solve(self.counts.estimate(self.rng)).tolist()
-            self.updates += 1
+            self._draw()
 
     def switches(self, episode: int, horizon: int) -> tuple[int, ...]:
         lo, hi = episode * horizon, (episode + 1) * horizon
         return tuple(2**k - lo for k in range(hi.bit_length()) if lo < 2**k < hi)
 
     def switch(self, steps: int) -> None:
-        self.plan = self._solve(self.counts.estimate(self.rng)).tolist()
-        self.updates += 1
+        self._draw()
 
     def act(self, state: int) -> int:
         if self.plan is None:

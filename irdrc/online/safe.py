@@ -13,10 +13,10 @@ Two parts:
   (P_d < 1) can break it in radar mode, which no choice of mode prevents: the budget then holds
   only as far as the radar's own misses allow.
 - **The plan.** Before the first episode and whenever its data has doubled since the last plan
-  (before episodes 1, 2, 4, 8, …) it solves the LP for the most packets at miss target m* on
-  the posterior-mean model of what it has counted (``irdrc.online.form``: told the model's form,
-  not its numbers), the noisy-or sampler run ``GIBBS_SWEEPS`` sweeps on before it (the mean is
-  drawn from where it stands); an infeasible plan is radar everywhere. It acts by the plan wherever the budget
+  (before episodes 1, 2, 4, 8, …) it solves the LP for the most packets at miss target m* on the
+  posterior-mean model of what it has counted (``irdrc.online.form``: told the model's form, not its
+  numbers), the noisy-or sampler run ``GIBBS_SWEEPS`` sweeps on before it (the mean is drawn from
+  where it stands); an infeasible plan is radar everywhere. It acts by the plan wherever the budget
   allows. A level of the channel whose capacity has not shown yet is planned as carrying every
   packet (optimism), so the plan tries it. Its greedy policy, the one it would deploy, is the plan.
 

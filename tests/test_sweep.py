@@ -431,3 +431,28 @@ def test_seed_curve_labels_leave_out_what_every_point_shares():
     ]
     assert series_labels(points) == ["method=sac", "method=dqn, env.actions=levels"]
     assert series_labels([{"reward.r4": "5"}]) == ["all"]
+
+
+def test_points_that_differ_in_their_seed_alone_are_composed_as_fresh_ones():
+    """A plan composes runs that differ only in ``seed=`` once and copies the seed in: each copy
+    equals a fresh composition (config, choices, task), in the seed's place among the overrides;
+    a seed that is not a plain integer, or given twice, is composed afresh."""
+    from irdrc.recipes import dqn
+    from irdrc.recipes.fleet import recipe as fleet
+    from irdrc.runs.compose import SeededCompose, compose_recipe
+
+    for module, base in (
+        (dqn, ["env=multilevel", "algo.lr=0.001"]),
+        (fleet, ["learner=vdn", "env.vehicles=2"]),
+    ):
+        shared = SeededCompose(module)
+        for seed in (3, 0, 12, -1):
+            for args in ([*base, f"seed={seed}"], [f"seed={seed}", *base]):
+                got, fresh = shared(args), compose_recipe(module, args)
+                assert (got.cfg, got.choices, got.task) == (fresh.cfg, fresh.choices, fresh.task)
+                assert got.cfg["seed"] == seed and got.cfg is not fresh.cfg
+        assert len(shared._shared) == 2  # one composition per order of the overrides
+    shared = SeededCompose(dqn)
+    assert shared(["seed=0x10"]).cfg == compose_recipe(dqn, ["seed=0x10"]).cfg
+    assert shared(["seed=1", "seed=2"]).cfg["seed"] == 2
+    assert not shared._shared

@@ -7,6 +7,9 @@ another scenario's values first and override some of them (``ref_impl.yaml`` doe
 
 from __future__ import annotations
 
+import copy
+import dataclasses
+import re
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -323,3 +326,29 @@ def compose_recipe(module: Any, args: list[str]) -> Composed:
     """``module``'s config (a recipe module: its ``NAME`` and ``ALGO_KEYS``) composed with ``args``,
     a profile's omitted keys taking the command line's values (``with_profile_keys``)."""
     return compose(module.NAME, with_profile_keys(args, getattr(module, "ALGO_KEYS", ())))
+
+
+class SeededCompose:
+    """``compose_recipe`` for many runs of one recipe (a sweep's points): runs whose overrides differ
+    only in an integer ``seed=`` share one Hydra composition, and each gets a copy with its own
+    seed — the same ``Composed`` a fresh composition gives (Hydra reads ``seed=7`` as the integer
+    7; no config value refers to the seed). Composing takes about a quarter of a second, and a
+    benchmark plans hundreds of runs: ``bench_fleet``'s plan took 51 s, and takes 20."""
+
+    def __init__(self, module: Any):
+        self.module = module
+        self._shared: dict[tuple[str, ...], Composed] = {}
+
+    def __call__(self, args: list[str]) -> Composed:
+        at = [i for i, a in enumerate(args) if override_key(a) == "seed"]
+        if len(at) != 1 or not re.fullmatch(r"seed=-?\d+", args[at[0]]):
+            return compose_recipe(self.module, args)
+        i = at[0]
+        key = (*args[:i], "seed=*", *args[i + 1 :])
+        if key not in self._shared:
+            self._shared[key] = compose_recipe(self.module, args)
+        shared, seed = self._shared[key], int(args[i].split("=", 1)[1])
+        cfg = copy.deepcopy(shared.cfg)
+        cfg["seed"] = seed
+        task = [f"seed={seed}" if override_key(t) == "seed" else t for t in shared.task]
+        return dataclasses.replace(shared, cfg=cfg, task=task)

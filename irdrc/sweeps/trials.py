@@ -23,7 +23,7 @@ from pathlib import Path
 from types import ModuleType
 from typing import Any
 
-from irdrc.runs.compose import compose_recipe
+from irdrc.runs.compose import SeededCompose
 from irdrc.runs.grid import (
     format_value,
     point_id,
@@ -62,11 +62,11 @@ def plan(
     """
     method, base = module.NAME, [str(o) for o in base]
     defaults = list(getattr(module, "SWEEP_DEFAULTS", ()))
-    planned = []
+    planned, compose = [], SeededCompose(module)
     for point in points:
         ov = point_overrides(point)
         try:
-            composed = compose_recipe(module, [*defaults, *base, *ov])
+            composed = compose([*defaults, *base, *ov])
             config = module.load(composed)
         except Exception as err:
             where = " ".join([*base, *ov]) or "(no overrides)"

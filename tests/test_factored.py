@@ -162,6 +162,26 @@ def test_auto_hands_a_slow_chain_to_aggregation(monkeypatch):
             assert steps > 5  # the power steps did not converge alone
 
 
+def test_auto_hands_over_as_soon_as_the_power_steps_show_they_are_slow():
+    """``auto`` on a slow chain (large at D = 69, S = 10 080) stops the power steps once their change
+    decays too slowly to converge in ``AUTO_POWER_STEPS`` (300 of them made 397 steps in all, 156
+    now) and ends where aggregation alone does; on a fast chain (the paper's) it is the power
+    iteration, bit for bit."""
+    import irdrc.core.exact.stationary as fmod
+
+    fac = build_factored(scenario("env=large", "env.queue_capacity=69"))
+    policy = value_iteration(fac).policy
+    mu, steps = fmod.stationary_distribution_factored(fac, policy)
+    iad, _ = fmod.stationary_distribution_factored(fac, policy, method="iad")
+    assert steps < 200
+    assert float((mu - iad).abs().sum()) < 1e-11
+    paper = build_factored(scenario("env=paper", "env.queue_capacity=99"))
+    policy = value_iteration(paper).policy
+    auto, steps = fmod.stationary_distribution_factored(paper, policy)
+    power, power_steps = fmod.stationary_distribution_factored(paper, policy, method="power")
+    assert steps == power_steps < fmod.AUTO_POWER_STEPS and torch.equal(auto, power)
+
+
 def test_aggregation_where_the_queue_never_empties():
     """Radar always on large's dynamics: the queue fills and stays full, so short queues are
     transient. The aggregated solve fixes the scale at the queue length holding the most mass (a

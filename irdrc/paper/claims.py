@@ -182,7 +182,7 @@ def claim1(
     c1c = "1c. DQN needs fewer episodes than Q-learning (paper: ~170 vs ~280) to approach it"
     for d, q in pairs:
         ed, eq = episodes_to_95.get(d), episodes_to_95.get(q)
-        measured = f"to 95 % of the optimum: {d} {_ep(ed)}, {q} {_ep(eq)} episodes"
+        measured = f"episodes to 95 % of the optimum: {d} {_ep(ed)}, {q} {_ep(eq)}"
         if ed is None:
             verdict = FAILS
         elif eq is None:
@@ -219,7 +219,7 @@ def check_claims(n: FigureNumbers) -> list[Verdict]:
 
 
 def _ep(x: float | None) -> str:
-    return "never" if x is None else f"{x:g}"
+    return "not within the run" if x is None else f"{x:g}"
 
 
 def format_claims(verdicts: Sequence[Verdict]) -> str:

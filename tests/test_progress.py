@@ -122,3 +122,20 @@ def test_a_busy_machine_is_named_in_the_progress_line(monkeypatch):
     assert progress.busy() == ", machine busy: load 4.2 on 2 cores"
     monkeypatch.setattr(progress.os, "getloadavg", lambda: (1.9, 1.0, 1.0))
     assert progress.busy() == ""
+
+
+def test_the_advice_to_train_longer_is_twice_the_runs_own_env_steps():
+    """A run of 10⁷ env steps is not told to train 8 × 10⁶ (fewer than it ran): the advice is
+    fitted to the run that gets it."""
+    from types import SimpleNamespace
+
+    from irdrc.runs.report import LearnerRun
+
+    def advice(name: str, env_steps: int) -> str:
+        record = SimpleNamespace(env_steps=env_steps)
+        return LearnerRun(name, record, [], [], [{}], 1, None, 0).advice
+
+    assert advice("dqn", 10_000_000).startswith("algo.total_frames=20000000 ")
+    assert advice("dqn", 4_000_000).startswith("algo.total_frames=8000000 ")
+    assert advice("dqn_levels", 1_000_000).startswith("algo.total_frames=2000000 ")
+    assert advice("qlearning", 10**6).startswith("algo.episodes=2400")

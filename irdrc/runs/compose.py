@@ -333,7 +333,7 @@ class SeededCompose:
     only in an integer ``seed=`` share one Hydra composition, and each gets a copy with its own
     seed — the same ``Composed`` a fresh composition gives (Hydra reads ``seed=7`` as the integer
     7; no config value refers to the seed). Composing takes about a quarter of a second, and a
-    benchmark plans hundreds of runs: ``bench_fleet``'s plan took 51 s, and takes 20."""
+    benchmark plans hundreds of runs."""
 
     def __init__(self, module: Any):
         self.module = module
@@ -351,4 +351,4 @@ class SeededCompose:
         cfg = copy.deepcopy(shared.cfg)
         cfg["seed"] = seed
         task = [f"seed={seed}" if override_key(t) == "seed" else t for t in shared.task]
-        return dataclasses.replace(shared, cfg=cfg, task=task)
+        return dataclasses.replace(shared, cfg=cfg, choices=dict(shared.choices), task=task)

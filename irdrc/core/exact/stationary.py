@@ -29,8 +29,7 @@ then)."""
 SLOW_CHECK = 10
 """``method="auto"``: every this many power steps (from twice as many on), the L1 change's decay over
 the last ones predicts the steps still needed; when they would not fit in ``AUTO_POWER_STEPS``,
-aggregation takes over at once (the power steps before it hardly shorten it: on ``large`` at 10⁵,
-132 rounds after 10 power steps, 137 after 300)."""
+aggregation takes over at once (power steps before it hardly shorten it)."""
 IAD_MAX_ITER = 5000
 """``method="auto"``: aggregation-disaggregation rounds before plain power iteration takes over."""
 

@@ -26,27 +26,8 @@ CONTESTED = 0.9
 """A draw is kept when both always-radar and always-comm earn less than this of the optimum."""
 
 TUNING = range(0, 8200)
-"""Draw indices the defaults may be chosen on: 0–999; 1000–1999 since the first report on draws
-1000–1295 (its shortfalls were screened when reward centering was made to follow the values),
-2000–2999 since the second, on draws 2000–2313 (its shortfalls were screened for the learning rate),
-3000–3399 since the third, on draws 3000–3322 (its shortfalls were screened for the dueling head),
-3400–3799 since the fourth, on draws 3400–3717 (where the dueling head was measured against the
-default: docs/DQN.md), 3800–4199 since the fifth, on draws 3800–4118 (its shortfalls were
-screened when centering on the values became the default), 4200–4599 since the sixth, on draws
-4200–4434 (its shortfalls were rerun with more env steps), 4600–4899 since the seventh, on draws
-4600–4867 (where fewer updates per env step over more env steps was measured against the default),
-4900–5199 since the eighth, on draws 4900–5192 (where a quarter of the updates per env step over
-four times the env steps was), 5200–5499 since the ninth, on draws 5200–5459 (the same comparison
-again), 5500–5899 since the tenth, on draws 5500–5825 (where four times the env steps from four
-times the rows was), 5900–6299 since the eleventh, on draws 5900–6173 (the same rows with half
-as many updates of twice the transitions), 6300–6699 since the twelfth, on draws 6300–6633
-(where the mean reward of each observation and action over eight times the env steps was),
-6700–6999 since the thirteenth, on draws 6700–6994 (the same with half as many updates of twice
-the transitions; its shortfall was rerun over seeds), 7000–7399 since the fourteenth, on draws
-7000–7323 (where a slower target was; its shortfalls were rerun with other changes, and were part
-of the screen that chose the network and batch of the default since the fifteenth), 7400–7799
-since the fifteenth, on draws 7400–7721 (where that network and batch were), and 7800–8199 since
-the sixteenth, on draws 7800–8098 (where that default was measured against the one before it)."""
+"""Draw indices the defaults may be chosen on: every draw below ``REPORTING`` has been looked at
+while a default was chosen or measured (docs/lab/ says which draws served which choice)."""
 
 REPORTING = 8200
 """The first draw index of the reported benchmark (``first_draw``): none of them was looked at

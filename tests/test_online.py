@@ -226,6 +226,80 @@ def test_a_resumed_run_is_the_uninterrupted_run(scorer, name):
     assert resumed.episode_rewards == whole.episode_rewards
 
 
+@pytest.mark.parametrize("double", [True, False])
+def test_the_one_stream_dqn_loss_is_the_td_mean_square_of_its_sample(double):
+    """``StreamDQN.td_loss`` sums per (state, action) before the backward pass; its value and its
+    gradient are the plain mean over the sample of (Q(s, a) − y)², y = r − r̄ + γ·Q_target(s′, a′),
+    a′ the online network's choice (double DQN) or the target's own (``algo.double_dqn=false``).
+    The sample repeats pairs, as replay samples do."""
+    from irdrc.online.dqn import StreamDQN
+
+    cfg = configs.learner_config("dqn", {"double_dqn": double})
+    learner = StreamDQN(cfg, PAPER, seed=3)
+    with torch.no_grad():  # a target that differs from the online network
+        for p in learner.target.parameters():
+            p.add_(0.3 * torch.randn_like(p))
+    learner.center.value = 0.37
+    g = torch.Generator().manual_seed(0)
+    S = PAPER.env.num_states
+    sample = torch.stack(
+        [
+            torch.randint(0, 40, (500,), generator=g).double(),  # few states: repeated pairs
+            torch.randint(0, 2, (500,), generator=g).double(),
+            torch.randn(500, generator=g, dtype=torch.float64) * 10,
+            torch.randint(0, S, (500,), generator=g).double(),
+        ],
+        1,
+    )
+    loss = learner.td_loss(sample)
+    grads = torch.autograd.grad(loss, list(learner.qnet.parameters()))
+
+    s, a, s2 = sample[:, 0].long(), sample[:, 1].long(), sample[:, 3].long()
+    q = learner.qnet(learner.obs)
+    with torch.no_grad():
+        q_target = learner.target(learner.obs)
+        pick = (q if double else q_target)[s2].argmax(-1, keepdim=True)
+        y = sample[:, 2].float() - 0.37 + cfg.gamma * q_target[s2].gather(1, pick).squeeze(1)
+    plain = ((q[s, a] - y) ** 2).mean()
+    expected = torch.autograd.grad(plain, list(learner.qnet.parameters()))
+    # float32 sums of 500 squares of order 100: agreement to a few parts in 10^5
+    assert float(loss.detach()) == pytest.approx(float(plain.detach()), rel=1e-4)
+    for got, want in zip(grads, expected, strict=True):
+        torch.testing.assert_close(got, want, rtol=1e-3, atol=1e-5)
+
+
+def dqn_first_99(seed: int, stop_after: int, **algo) -> int | None:
+    """The episode at which the default one-stream DQN's greedy policy first reaches 0.99 of the
+    optimum on the paper scenario, its run of the default 300 episodes (the learning rate anneals
+    over them) stopped after ``stop_after``; None if it did not."""
+    scorer = exact_scorer(PAPER)
+    cfg = configs.learner_config("dqn", algo)
+    done = []
+    hooks = Hooks(
+        on_batch=lambda info: done.append(info["episodes"]),
+        should_stop=lambda: bool(done) and done[-1] >= stop_after,
+    )
+    rec = learn_on_stream(
+        make_learner("dqn", cfg, PAPER, seed),
+        PAPER,
+        scorer,
+        episodes=cfg.episodes,
+        seed=seed,
+        hooks=hooks,
+    )
+    return next((r["episodes"] for r in rec.history if r["optimality_ratio"] >= 0.99), None)
+
+
+@pytest.mark.slow
+def test_the_one_stream_dqn_reaches_the_optimum_in_tens_of_episodes():
+    """Seeds 12, 14 and 15 (3, 9 and 9 episodes to 0.99 when measured, as in the benchmark's
+    200-episode runs): each ≥ 0.99 of the optimum within 40 episodes. The same run with a learning
+    rate of 1e-7 (a DQN that cannot move off its initial network) does not reach it: the bar is
+    not met by the initial policy."""
+    assert all(dqn_first_99(seed, 40) is not None for seed in (12, 14, 15))
+    assert dqn_first_99(12, 40, lr=1e-7, lr_end=1e-7) is None
+
+
 def test_posterior_sampling_reaches_the_optimum_in_a_few_episodes(scorer):
     """Told the model's form, it is ≥ 0.99 of the optimum within 10 episodes on the paper scenario
     (2 on this seed when measured) and its regret levels off: episodes 11–20 cost less than a fifth

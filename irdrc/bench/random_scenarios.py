@@ -25,13 +25,13 @@ from irdrc.runs.grid import format_value
 CONTESTED = 0.9
 """A draw is kept when both always-radar and always-comm earn less than this of the optimum."""
 
-TUNING = range(0, 8200)
-"""Draw indices the defaults may be chosen on: every draw below ``REPORTING`` has been looked at
-while a default was chosen or measured (docs/lab/ says which draws served which choice)."""
-
 REPORTING = 8200
 """The first draw index of the reported benchmark (``first_draw``): none of them was looked at
 before it reported."""
+
+TUNING = range(REPORTING)
+"""Draw indices the defaults may be chosen on: every draw below ``REPORTING`` has been looked at
+while a default was chosen or measured (docs/lab/ says which draws served which choice)."""
 
 OPTIONAL = ("env.factors", "env.bursty", "env.detection_prob", "env.false_alarm_prob", "reward.r5")
 """Keys absent from the base scenario (a command line adds them with ``+``)."""

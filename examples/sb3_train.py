@@ -3,7 +3,7 @@
 SB3's DQN on the binary env (comm or radar each step) or its SAC on the radar share
 (``env.actions=continuous``), with SB3's own defaults; the greedy policy is then scored exactly
 against the scenario's optimum (``DFRCGymEnv.score``) and written as a ``policy.csv`` that
-``recipes/evaluate.py policy=…`` reads:
+``recipes/evaluate.py policy=…`` reads, beside SB3's own ``progress.csv``:
 
     python examples/sb3_train.py --algo dqn --steps 50000 --out outputs/sb3_dqn env.p1.speed=0.5
     python recipes/evaluate.py policy=outputs/sb3_dqn/policy.csv env.p1.speed=0.5
@@ -21,6 +21,7 @@ from pathlib import Path
 import gymnasium
 import torch
 from stable_baselines3 import DQN, SAC
+from stable_baselines3.common.logger import configure
 
 import irdrc  # noqa: F401 - registers irdrc/DFRC-v0
 from irdrc.runs.tables import write_policy_csv
@@ -48,8 +49,12 @@ def main() -> None:
         overrides["env.actions"] = "continuous"  # SAC acts on the radar share ρ ∈ [0, 1]
     env = gymnasium.make("irdrc/DFRC-v0", **overrides)
     learner = DQN if args.algo == "dqn" else SAC
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    model = learner("MlpPolicy", env, seed=args.seed, verbose=0)
+    model.set_logger(configure(str(out), ["csv"]))  # SB3's progress.csv beside the score
     start = time.time()
-    model = learner("MlpPolicy", env, seed=args.seed, verbose=0).learn(args.steps)
+    model.learn(args.steps)
     seconds = time.time() - start
 
     def greedy(obs):
@@ -57,8 +62,6 @@ def main() -> None:
 
     score = env.unwrapped.score(greedy)
     table = env.unwrapped.policy_table(greedy)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
     levels = env.unwrapped.params.env.factor_levels
     write_policy_csv(out / "policy.csv", table, levels, shares=None if args.algo == "dqn" else ())
     result = {**score, "algo": args.algo, "steps": args.steps, "seed": args.seed}

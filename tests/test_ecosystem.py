@@ -6,6 +6,7 @@ through TorchRL's ``PettingZooWrapper`` (``examples/fleet_mappo_pettingzoo.py``)
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -80,9 +81,10 @@ def test_fleet_score_is_the_fleet_scorers():
         env.score(lambda obs: {a: np.zeros(3) for a in env.possible_agents})
 
 
-def _run(args: list[str], cwd: Path) -> str:
+def _run(args: list[str], cwd: Path, tmp: Path | None = None) -> str:
+    env = None if tmp is None else {**os.environ, "TMPDIR": str(tmp)}
     done = subprocess.run(
-        [sys.executable, *args], cwd=cwd, capture_output=True, text=True, timeout=900
+        [sys.executable, *args], cwd=cwd, capture_output=True, text=True, timeout=900, env=env
     )
     assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-2000:]
     return done.stdout
@@ -95,12 +97,18 @@ def _run(args: list[str], cwd: Path) -> str:
 def test_sb3_trains_and_evaluate_scores_its_table(algo, steps, scenario, tmp_path):
     """SB3's DQN (binary) and SAC (radar share) train on ``irdrc/DFRC-v0`` for a short budget (the
     plumbing, not SB3's tuning: no learning threshold); ``recipes/evaluate.py policy=…`` reads the
-    written table and finds the same exact ratio as ``score``."""
-    out = tmp_path / algo
+    written table and finds the same exact ratio as ``score``. SB3's own log is its
+    ``progress.csv`` in the output folder, not a folder of its own under the temporary directory."""
+    out, tmp = tmp_path / algo, tmp_path / "tmp"
+    tmp.mkdir()
     printed = _run(
-        ["examples/sb3_train.py", "--algo", algo, "--steps", str(steps), "--out", str(out)], ROOT
+        ["examples/sb3_train.py", "--algo", algo, "--steps", str(steps), "--out", str(out)],
+        ROOT,
+        tmp,
     )
     assert f"SB3 {algo}:" in printed
+    assert (out / "progress.csv").is_file()
+    assert not [p.name for p in tmp.iterdir() if p.name.startswith("SB3-")]
     score = json.loads((out / "score.json").read_text())
     _run(
         [

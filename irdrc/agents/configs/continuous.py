@@ -97,15 +97,15 @@ class SACConfig(ShareConfig):
     """SAC's hyperparameters (``recipes/sac.py``): the machinery's and SAC's temperature.
 
     Attributes:
-        temperature_init: the entropy temperature at the start (then tuned to the target entropy).
+        temperature_init: the entropy temperature at the start, then tuned towards the target
+            entropy at the optimiser's (annealed) learning rate: over a default run it about
+            halves.
         target_entropy: the entropy the temperature is tuned towards, nats (TorchRL's "auto" is
-            −1 for one action dimension, a spread of a third of [0, 1]; −5 keeps the actor's
-            sampling within about 0.01 of its share).
+            −1 for one action dimension, a spread of a third of [0, 1]).
 
     Half the machinery's updates, each on twice its batch (the same replay ratio): SAC's update
-    costs mostly its fixed overhead at these sizes (a run: 96 s before, about 55 s with 2 threads;
-    docs/TIMESHARING.md), and 720 000 env steps instead of 800 000 (45–53 s of training on the
-    tuning seeds, every run ≥ 0.99).
+    costs mostly its fixed overhead at these sizes; and 720 000 env steps (about 50 s of training
+    here on one thread).
     """
 
     total_frames: int = 720_000

@@ -40,13 +40,17 @@ def test_a_run_row_reads_convergence_and_the_ledger_at_the_window():
 def test_the_learner_table_pools_random_draws_and_reports_medians_and_worst():
     runs = [
         run_row(
-            Job("posterior", f"draw {i}", 10, 4), {"history": history(r, s), "wall_seconds": 1}, 3
+            Job("posterior", f"draw {i}", 10, 4), {"history": history(r, s), "wall_seconds": w}, 3
         )
-        for i, (r, s) in enumerate([([0.5, 0.995, 1, 1], 10.0), ([0.5, 0.9, 0.9, 0.9], 30.0)])
+        for i, (r, s, w) in enumerate(
+            [([0.5, 0.995, 1, 1], 10.0, 2.0), ([0.5, 0.9, 0.9, 0.9], 30.0, 5.0)]
+        )
     ]
     table = learner_table(runs, 3)
     assert "| posterior | random draws | 1/2 | 1 (1) |" in table
     assert "| 60 (90) |" in table  # regret at episode 3: 30 and 90, median 60, worst 90
+    assert "wall time per run, s (median) |" in table.splitlines()[0]
+    assert table.splitlines()[2].endswith("| 3.5 |")  # wall seconds 2 and 5: median 3.5
 
 
 def test_the_lagrangian_row_counts_evaluations_over_the_target_and_its_end():
@@ -72,3 +76,4 @@ def test_the_safe_table_puts_the_lagrangian_training_beside_the_safe_learner():
     table = safe_table([within, over], lag, 3)
     assert "| 0.05 | paper | 1/2 | 0.0600 |" in table
     assert "0/1, worst 0.3000, at the end 0.2 |" in table
+    assert "| 2/2 | 1 | 0/1, worst" in table  # the safe runs' wall time, 1 s each, before it

@@ -93,6 +93,7 @@ def learner_table(rows: list[dict[str, Any]], window: int) -> str:
                 f"{_med([r['expected_missed'] for r in mine])} ({max(r['expected_missed'] for r in mine):.4g})",
                 _med([r["floor_missed"] for r in mine]),
                 _med([r["steps_per_second"] for r in mine]),
+                _med([r["wall_seconds"] for r in mine]),
             ]
         )
     return md_table(
@@ -107,6 +108,7 @@ def learner_table(rows: list[dict[str, Any]], window: int) -> str:
             f"missed events over {window} episodes, median (worst)",
             "the optimum's (floor)",
             "env steps/s of training",
+            "wall time per run, s (median)",
         ],
         body,
     )
@@ -130,6 +132,7 @@ def safe_table(rows: list[dict[str, Any]], lag: list[dict[str, Any]], window: in
                 f"{sum(r['expected_holds'] for r in mine)}/{len(mine)}",
                 f"{_med(ratios)} ({min(ratios):.4f})" if ratios else "—",
                 f"{sum(r['meets_target'] for r in mine)}/{len(mine)}",
+                _med([r["wall_seconds"] for r in mine]),
                 (
                     f"{sum(r['violations'] == 0 for r in theirs)}/{len(theirs)}, worst "
                     f"{max(r['worst_cumulative_miss'] for r in theirs):.4f}, at the end "
@@ -148,6 +151,7 @@ def safe_table(rows: list[dict[str, Any]], lag: list[dict[str, Any]], window: in
             "expected missed ≤ target × expected events, every evaluation",
             f"greedy plan's packets / the LP's at {window} episodes, median (worst)",
             "greedy plan's long-run miss ≤ target",
+            "wall time per run, s (median)",
             "Lagrangian DQN's training: runs within the target throughout, worst, at the end "
             "(median)",
         ],

@@ -152,11 +152,11 @@ def test_mappo_through_torchrl_pettingzoo_wrapper_is_scored_exactly(tmp_path):
 
 
 @pytest.mark.e2e
-def test_readme_sb3_lines_run():
+def test_readme_sb3_lines_run(tmp_path):
     """The README's Stable-Baselines3 lines run as printed (with a budget of 500 steps) and print
-    the exact score."""
+    the exact score (SB3's log folder goes to this test's temporary directory)."""
     readme = (ROOT / "README.md").read_text()
     block = readme.split("### Other libraries", 1)[1].split("```python\n", 1)[1].split("```")[0]
     assert "stable_baselines3" in block and ".learn(50_000)" in block
-    printed = _run(["-c", block.replace(".learn(50_000)", ".learn(500)")], ROOT)
+    printed = _run(["-c", block.replace(".learn(50_000)", ".learn(500)")], ROOT, tmp_path)
     assert "'ratio':" in printed

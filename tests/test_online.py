@@ -379,6 +379,38 @@ def test_the_safe_learner_plans_on_a_mixed_noisy_or_chain(scorer):
     assert ratio(False) > 0.86 > ratio(True)
 
 
+def test_the_safe_learner_states_its_confidence_in_the_plan(scorer):
+    """``plan_confidence`` draws models from the posterior of the counts: after 32 episodes at
+    m* = 0.1 (seed 1) the true long-run miss detection of the plan lies within 4 of its posterior
+    sds of the draws' mean (4 sds leave room for a posterior somewhat narrower than the truth's
+    spread), the spread is narrower than after 4 episodes (8× the data), and the learner's own
+    sampler is left as it was. A plan that sends everywhere misses every event (probability 0 of
+    meeting the target); radar everywhere, with P_d = 1, misses almost none (probability 1)."""
+    cfg = configs.learner_config("safe", {"episodes": 32, "target_miss": 0.1})
+    grader = ConstrainedScorer(scorer, 0.1)
+
+    def learned(episodes: int) -> SafeLearner:
+        learner = make_learner("safe", cfg, PAPER, 1)
+        learn_on_stream(learner, PAPER, scorer, episodes=episodes)
+        return learner
+
+    late, early = learned(32), learned(4)
+    fire = [f.copy() for f in late.counts.fire]
+    conf = late.plan_confidence()
+    assert all((a == b).all() for a, b in zip(fire, late.counts.fire, strict=True))
+    true = grader.metrics(late.plan).miss_detection
+    assert conf["miss_sd"] > 0 and abs(true - conf["miss_mean"]) <= 4 * conf["miss_sd"]
+    assert conf["miss_sd"] < early.plan_confidence()["miss_sd"]
+    assert conf == late.plan_confidence()  # drawn on a generator fixed by the data
+    late.plan = torch.tensor([[1.0, 0.0]]).repeat(late.num_states, 1)
+    assert late.plan_confidence(draws=5)["p_within_target"] == 0.0
+    late.plan = torch.tensor([[0.0, 1.0]]).repeat(late.num_states, 1)
+    radar = late.plan_confidence(draws=5)
+    assert radar["p_within_target"] == 1.0 and radar["miss_mean"] < 0.01  # P_d drawn near 1
+    with pytest.raises(ValueError, match="draws=1"):
+        late.plan_confidence(draws=1)
+
+
 def test_learner_keys_are_checked_against_the_chosen_learner():
     with pytest.raises(ValueError, match=r"algo.batch_sze \(did you mean algo.batch_size\?\)"):
         configs.learner_config("dqn", {"batch_sze": 3})
@@ -417,6 +449,22 @@ def test_the_recipe_writes_the_ledger_everywhere(tmp_path, capsys):
     assert app.execute(recipe, [*resume, "algo.episodes=5"]) == 0
     rows = list(csv.DictReader((tmp_path / "metrics.csv").open()))
     assert [int(r["episodes"]) for r in rows] == [0, 1, 2, 3, 4, 5]
+
+
+def test_the_safe_recipe_states_the_plans_confidence(tmp_path, capsys):
+    """``learner=safe``: summary.json carries the LP, the plan's ratio to it and its stated
+    confidence, and the printout says them."""
+    from irdrc.online import recipe
+    from irdrc.runs import app
+
+    args = ["learner=safe", "algo.episodes=2", f"hydra.run.dir={tmp_path}", "logger=none"]
+    assert app.execute(recipe, [*args, "progress=false"]) == 0
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    conf = summary["plan_confidence"]
+    assert set(conf) == {"miss_mean", "miss_sd", "p_within_target", "draws"}
+    assert 0.0 <= conf["p_within_target"] <= 1.0 and summary["lp"]["throughput"] > 0
+    out = capsys.readouterr().out
+    assert f"probability {conf['p_within_target']:.2f}" in out and "the LP's packets" in out
 
 
 @pytest.mark.parametrize(

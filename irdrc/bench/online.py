@@ -204,6 +204,7 @@ def run_job(job: Job, gamma: float) -> dict[str, Any]:
         "seconds_learning": record.info["seconds_act_and_learn"]
         + record.info["seconds_episode_end"],
         "lp_throughput": greedy_scorer.lp.value if greedy_scorer is not None else None,
+        "plan_confidence": learner.plan_confidence() if job.learner == "safe" else None,
     }
 
 

@@ -56,6 +56,7 @@ def run_row(job: Any, result: dict[str, Any], window: int) -> dict[str, Any]:
                 "lp_ratio": at.get("lp_ratio"),
                 "meets_target": bool(at.get("meets_target")),
                 "greedy_miss": at["miss_detection"],
+                "confidence": result.get("plan_confidence"),
             }
         )
     return row
@@ -132,6 +133,7 @@ def safe_table(rows: list[dict[str, Any]], lag: list[dict[str, Any]], window: in
                 f"{sum(r['expected_holds'] for r in mine)}/{len(mine)}",
                 f"{_med(ratios)} ({min(ratios):.4f})" if ratios else "—",
                 f"{sum(r['meets_target'] for r in mine)}/{len(mine)}",
+                _confidence([r["confidence"] for r in mine if r.get("confidence")], target),
                 _med([r["wall_seconds"] for r in mine]),
                 (
                     f"{sum(r['violations'] == 0 for r in theirs)}/{len(theirs)}, worst "
@@ -151,12 +153,23 @@ def safe_table(rows: list[dict[str, Any]], lag: list[dict[str, Any]], window: in
             "expected missed ≤ target × expected events, every evaluation",
             f"greedy plan's packets / the LP's at {window} episodes, median (worst)",
             "greedy plan's long-run miss ≤ target",
+            "its posterior: P(plan's miss ≤ target), mean; the sd of its miss over the target, median",
             "wall time per run, s (median)",
             "Lagrangian DQN's training: runs within the target throughout, worst, at the end "
             "(median)",
         ],
         body,
     )
+
+
+def _confidence(values: list[dict[str, float]], target: float) -> str:
+    """The safe plans' stated confidence (``SafeLearner.plan_confidence``) over a cell's runs: the
+    mean probability of meeting the target, and the median spread as a share of the target."""
+    if not values:
+        return "—"
+    p = statistics.mean(v["p_within_target"] for v in values)
+    sd = statistics.median(v["miss_sd"] for v in values) / target
+    return f"{p:.2f}; {100 * sd:.1f} %"
 
 
 def lagrangian_row(job: Any, result: dict[str, Any], horizon: int) -> dict[str, Any]:

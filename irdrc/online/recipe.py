@@ -160,6 +160,7 @@ def run(cfg: Config, run) -> dict[str, Any]:
             "miss_detection": greedy_scorer.lp.metrics.miss_detection,
         }
         summary["lp_ratio"] = ledger["lp_ratio"]
+        summary["plan_confidence"] = learner.plan_confidence()
     print_ledger(ledger, summary, cfg)
     run.finish(summary, interrupted_at=record.env_steps if record.interrupted else None)
     return summary
@@ -187,5 +188,11 @@ def print_ledger(row: dict[str, Any], summary: dict[str, Any], cfg: Config) -> N
         print(
             f"  target_miss={cfg.algo.target_miss}: the greedy plan sends {row['lp_ratio']:.4f} of "
             f"the LP's packets, its long-run miss detection {row['miss_detection']:.4f}"
+        )
+        conf = summary["plan_confidence"]
+        print(
+            f"  what its data say of that miss detection: {conf['miss_mean']:.4f} ± "
+            f"{conf['miss_sd']:.4f} (posterior mean ± sd), at or under the target with "
+            f"probability {conf['p_within_target']:.2f}"
         )
     print(f"  {summary['env_steps_per_second']:.0f} env steps/s of training (evaluations included)")

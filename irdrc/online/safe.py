@@ -23,6 +23,11 @@ Two parts:
 Its behaviour policy in the ledger is the plan, or radar everywhere while the budget forbids
 sending at the episode's start: the budget's interventions within an episode are not in the exact
 ledger (the realised counts have them).
+
+Its **stated confidence** in the plan (``plan_confidence``): the budget holds the vehicle's count,
+but the plan deployed alone is only as good as the data behind it. Over models drawn from the
+posterior of the counts, it gives the plan's long-run miss detection (mean and standard deviation)
+and the share of draws in which it is at or under m*.
 """
 
 from __future__ import annotations
@@ -51,6 +56,10 @@ from irdrc.online.qlearning import tuple_state
 GIBBS_SWEEPS = 200
 """Sweeps of the noisy-or sampler before each plan (``FormCounts.advance``): from its cold start the
 posterior mean overstates the event probabilities, and the plan sends less than the data allow."""
+
+
+CONFIDENCE_DRAWS = 50
+"""Posterior models drawn for ``SafeLearner.plan_confidence`` (its probability to ±0.07 at worst)."""
 
 
 class SafeLearner(StreamLearner):
@@ -136,6 +145,34 @@ class SafeLearner(StreamLearner):
 
     def greedy(self) -> torch.Tensor:
         return self.plan
+
+    def plan_confidence(self, draws: int = CONFIDENCE_DRAWS) -> dict[str, float]:
+        """The plan's long-run miss detection under ``draws`` models drawn from the posterior of
+        the counts so far: ``miss_mean``, ``miss_sd`` and ``p_within_target``, the share of draws
+        in which it is at or under m* (the stated confidence that the plan meets the target
+        without the budget). Drawn on a generator fixed by the data; the learner's own sampler
+        state is left as it was."""
+        from irdrc.core.exact.solve import metrics_from_occupancy, stationary_occupancy
+
+        if draws < 2:
+            raise ValueError(f"plan_confidence: draws={draws}, at least 2 are needed for a spread")
+        rng = np.random.default_rng([self.counts.steps, self.events, self.missed])
+        fire = [f.copy() for f in self.counts.fire]
+        miss = []
+        try:
+            for _ in range(draws):
+                model = self.counts.model(self.counts.estimate(rng))
+                occ = stationary_occupancy(model, self.plan)
+                miss.append(metrics_from_occupancy(model, occ).miss_detection)
+        finally:
+            self.counts.fire = fire
+        values = np.asarray(miss)
+        return {
+            "miss_mean": float(values.mean()),
+            "miss_sd": float(values.std(ddof=1)),
+            "p_within_target": float(np.mean(values <= self.cfg.target_miss + 1e-12)),
+            "draws": draws,
+        }
 
     def state_dict(self) -> dict[str, Any]:
         return {

@@ -46,6 +46,7 @@ def run_row(job: Any, result: dict[str, Any], window: int) -> dict[str, Any]:
             if r.get("cumulative_miss_detection") is not None
             and not _nan(r["cumulative_miss_detection"])
         ]
+        conf = result.get("plan_confidence") or {}
         row.update(
             {
                 "worst_cumulative_miss": max(cum, default=0.0),
@@ -56,7 +57,8 @@ def run_row(job: Any, result: dict[str, Any], window: int) -> dict[str, Any]:
                 "lp_ratio": at.get("lp_ratio"),
                 "meets_target": bool(at.get("meets_target")),
                 "greedy_miss": at["miss_detection"],
-                "confidence": result.get("plan_confidence"),
+                "plan_miss_sd": conf.get("miss_sd"),
+                "plan_p_within_target": conf.get("p_within_target"),
             }
         )
     return row
@@ -133,7 +135,7 @@ def safe_table(rows: list[dict[str, Any]], lag: list[dict[str, Any]], window: in
                 f"{sum(r['expected_holds'] for r in mine)}/{len(mine)}",
                 f"{_med(ratios)} ({min(ratios):.4f})" if ratios else "—",
                 f"{sum(r['meets_target'] for r in mine)}/{len(mine)}",
-                _confidence([r["confidence"] for r in mine if r.get("confidence")], target),
+                _confidence(mine, target),
                 _med([r["wall_seconds"] for r in mine]),
                 (
                     f"{sum(r['violations'] == 0 for r in theirs)}/{len(theirs)}, worst "
@@ -162,13 +164,14 @@ def safe_table(rows: list[dict[str, Any]], lag: list[dict[str, Any]], window: in
     )
 
 
-def _confidence(values: list[dict[str, float]], target: float) -> str:
+def _confidence(rows: list[dict[str, Any]], target: float) -> str:
     """The safe plans' stated confidence (``SafeLearner.plan_confidence``) over a cell's runs: the
     mean probability of meeting the target, and the median spread as a share of the target."""
-    if not values:
+    rows = [r for r in rows if r.get("plan_miss_sd") is not None]
+    if not rows:
         return "—"
-    p = statistics.mean(v["p_within_target"] for v in values)
-    sd = statistics.median(v["miss_sd"] for v in values) / target
+    p = statistics.mean(r["plan_p_within_target"] for r in rows)
+    sd = statistics.median(r["plan_miss_sd"] for r in rows) / target
     return f"{p:.2f}; {100 * sd:.1f} %"
 
 

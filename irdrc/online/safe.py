@@ -59,7 +59,8 @@ posterior mean overstates the event probabilities, and the plan sends less than 
 
 
 CONFIDENCE_DRAWS = 50
-"""Posterior models drawn for ``SafeLearner.plan_confidence`` (its probability to ±0.07 at worst)."""
+"""Posterior models drawn for ``SafeLearner.plan_confidence``: its probability then has a standard
+error of at most 0.07 (√(0.25/50))."""
 
 
 class SafeLearner(StreamLearner):

@@ -3,7 +3,13 @@
 from __future__ import annotations
 
 from irdrc.bench.online import Job
-from irdrc.bench.online_tables import lagrangian_row, learner_table, run_row, safe_table
+from irdrc.bench.online_tables import (
+    calibration_note,
+    lagrangian_row,
+    learner_table,
+    run_row,
+    safe_table,
+)
 
 
 def history(ratios: list[float], regret_step: float = 10.0, cum: float = 0.04) -> list[dict]:
@@ -84,3 +90,34 @@ def test_the_safe_table_puts_the_lagrangian_training_beside_the_safe_learner():
     # the one run with a stated confidence: P 0.4, sd 0.001 = 2 % of the target; then the safe
     # runs' wall time, 1 s each, before the Lagrangian DQN
     assert "| 2/2 | 0.40; 2.0 % | 1 | 0/1, worst" in table
+
+
+def test_the_calibration_note_holds_each_plans_stated_spread_against_its_true_miss():
+    """Every hand-made plan's exact miss is 0.045 (``history``): posterior means 0.0445, 0.048
+    and 0.06 with sd 0.001 put it 0.5, 3 and 15 sds away; a radar-everywhere plan (sd 0, its mean
+    the truth) is within; a run without a stated confidence is left out."""
+    job = Job("safe", "paper", 10, 3, 0.05)
+    rows = [
+        run_row(
+            job,
+            {
+                "history": history([0, 0.5, 0.9, 0.95]),
+                "wall_seconds": 1,
+                "plan_confidence": {"miss_mean": m, "miss_sd": sd, "p_within_target": p},
+            },
+            3,
+        )
+        for m, sd, p in [
+            (0.0445, 0.001, 0.6),
+            (0.048, 0.001, 1.0),
+            (0.06, 0.001, 0.0),
+            (0.045, 0.0, 1.0),
+        ]
+    ]
+    rows.append(run_row(job, {"history": history([0, 0.5, 0.9, 0.95]), "wall_seconds": 1}, 3))
+    note = calibration_note(rows)
+    assert "over the 4 safe runs" in note
+    assert "within one posterior sd of the posterior mean in 2 (50 %" in note
+    assert "within two in 2 (50 %" in note
+    assert "average 0.65; 4 of the 4 plans meet it" in note
+    assert calibration_note(rows[-1:]) == ""

@@ -23,7 +23,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from irdrc.bench.online_tables import lagrangian_row, learner_table, run_row, safe_table
+from irdrc.bench.online_tables import (
+    calibration_note,
+    lagrangian_row,
+    learner_table,
+    run_row,
+    safe_table,
+)
 from irdrc.bench.random_scenarios import REPORTING, contested_draws
 from irdrc.core.checks import INT, build, check_bool, check_list, check_numbers, numbers
 from irdrc.online.configs import LEARNERS, PROFILES
@@ -326,6 +332,8 @@ def run(cfg: Config, run) -> int:
         )
     if safe:
         parts.append(safe_table(safe, lag, cfg.window))
+        if note := calibration_note(safe):
+            parts.append(note)
     table = "\n\n".join(parts)
     print("\n" + table)
     write_table_md(run.dir / "bench_online.md", table, time.perf_counter() - start)

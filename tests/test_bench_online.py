@@ -1,6 +1,13 @@
-"""``recipes/bench_online.py``'s tables (``irdrc.bench.online_tables``) on hand-made runs."""
+"""``recipes/bench_online.py``: its tables (``irdrc.bench.online_tables``) on hand-made runs, and the
+recipe end to end on a tiny grid."""
 
 from __future__ import annotations
+
+import csv
+import re
+
+import pytest
+from conftest import load, run_recipe
 
 from irdrc.bench.online import Job
 from irdrc.bench.online_tables import (
@@ -121,3 +128,63 @@ def test_the_calibration_note_holds_each_plans_stated_spread_against_its_true_mi
     assert "within two in 2 (50 %" in note
     assert "average 0.65; 4 of the 4 plans meet it" in note
     assert calibration_note(rows[-1:]) == ""
+
+
+@pytest.mark.e2e
+def test_the_benchmark_runs_every_kind_of_job_writes_its_files_and_resumes(tmp_path):
+    """A learner on every named scenario, one on `paper` alone and the safe learner, 3 episodes
+    each (the safe learner's stop at the window, 2): a row per run, the tables, the calibration
+    note and the figure; then ``resume=true`` runs nothing again and remakes the same rows."""
+    grid = (
+        "scenarios=[paper]",
+        "learners=[posterior]",
+        "paper_learners=[qlearning]",
+        "seeds=[10]",
+        "paper_seeds=[11]",
+        "random_draws=0",
+        "episodes=3",
+        "window=2",
+        "safe_targets=[0.1]",
+        "safe_scenarios=[paper]",
+        "safe_seeds=[12]",
+        "lagrangian_seeds=[]",
+        "workers=1",
+    )
+    assert run_recipe("bench_online", tmp_path, *grid) == 0
+    rows = list(csv.DictReader((tmp_path / "bench_online.csv").open()))
+    assert [(r["learner"], r["scenario"], r["seed"]) for r in rows] == [
+        ("posterior", "paper", "10"),
+        ("qlearning", "paper", "11"),
+        ("safe", "paper", "12"),
+    ]
+    for r in rows:
+        assert -2 < float(r["final_ratio"]) <= 1 + 1e-9 and float(r["regret"]) > -1e-6
+    safe = rows[-1]
+    # P_d = 1 on `paper`: the budget holds the vehicle's count under the target at every step
+    assert safe["violations"] == "0" and float(safe["worst_cumulative_miss"]) <= 0.1
+    assert 0 <= float(safe["plan_p_within_target"]) <= 1 and float(safe["plan_miss_sd"]) >= 0
+    table = (tmp_path / "bench_online.md").read_text()
+    assert "| posterior | paper | " in table and "| qlearning | paper | " in table
+    assert "| 0.1 | paper | 1/1 | " in table
+    assert "over the 1 safe runs" in table
+    assert (tmp_path / "bench_online_paper.png").stat().st_size > 0
+    kept = {p.name: p.stat().st_mtime_ns for p in (tmp_path / "runs").iterdir()}
+    assert len(kept) == 3
+    before = (tmp_path / "bench_online.csv").read_text()
+    assert run_recipe("bench_online", tmp_path, *grid, "resume=true") == 0
+    assert {p.name: p.stat().st_mtime_ns for p in (tmp_path / "runs").iterdir()} == kept
+    assert (tmp_path / "bench_online.csv").read_text() == before
+
+
+@pytest.mark.parametrize(
+    "override, message",
+    [
+        ("learners=[nobody]", "learners: 'nobody' must be one of"),
+        ("scenarios=[nowhere]", "scenarios: 'nowhere' must be one of"),
+        ("window=300", "window=300 must be <= episodes=200"),
+        ("safe_targets=[1.5]", "safe_targets"),
+    ],
+)
+def test_the_benchmark_refuses_a_bad_grid_before_any_work(override, message):
+    with pytest.raises(ValueError, match=re.escape(message)):
+        load("bench_online", override)

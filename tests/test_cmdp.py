@@ -14,9 +14,11 @@ from irdrc.core import policies
 from irdrc.core.cmdp import (
     Constraint,
     InfeasibleTarget,
+    fewest_missed,
     objective_table,
     solve_cmdp,
     solve_lp,
+    transitions,
 )
 from irdrc.core.evaluate import evaluate
 from irdrc.core.exact import build_model, episodic_metrics, stationary_metrics, value_iteration
@@ -132,6 +134,26 @@ def test_infeasible_targets_are_named(paper):
         solve_cmdp(paper, 0.0, max_drop=0.01, min_radar=0.99)
     with pytest.raises(InfeasibleTarget, match=r"target_miss=0 .*|together"):
         solve_cmdp(paper, 0.0, max_drop=0.01)
+
+
+@pytest.mark.parametrize(
+    ("overrides", "floor"),
+    [
+        ({}, 0.0),  # P_d = 1: radar everywhere misses nothing
+        ({"env.detection_prob": 0.8}, 0.2),
+        # a radar reaction changes which events happen, not each one's chance of a miss
+        ({"env.detection_prob": 0.7, "env.radar_reaction": True}, 0.3),
+    ],
+)
+def test_a_miss_target_under_what_the_radar_misses_is_refused_with_the_floor(overrides, floor):
+    """Every event is missed w.p. 1 in comm and 1 − P_d in radar mode, whatever the state: no
+    policy misses fewer than 1 − P_d of the events, radar everywhere that many."""
+    model = build_model(Params.from_overrides(overrides))
+    assert fewest_missed(transitions(model), model) == pytest.approx(floor, abs=1e-9)
+    if floor:
+        with pytest.raises(InfeasibleTarget, match=rf"fewer than {floor:g} of the events"):
+            solve_cmdp(model, floor / 2)
+        assert solve_cmdp(model, floor + 0.01).metrics.miss_detection <= floor + 0.01
 
 
 @pytest.mark.parametrize(

@@ -201,15 +201,42 @@ def build_constraints(
     return out
 
 
-def _explain_infeasible(P: list, constraints: list[Constraint]) -> str:
-    """Which constraint no policy can meet alone (its best achievable value), or that they
-    conflict only together."""
-    for c in constraints:
+def _explain_infeasible(P: list, constraints: list[Constraint], model: ExactMDP) -> str:
+    """Which constraint no policy can meet alone (for the miss target, the fewest events any
+    policy misses; for the others, their best achievable value), or that they conflict only
+    together."""
+    for i, c in enumerate(constraints):
         best = solve_lp(P, -c.coef).value * -1  # the smallest Σ x·coef any policy reaches
-        if best > c.bound + 1e-12:
-            return f"{c.name} is infeasible: no stationary policy reaches it (best {best:.6g} vs bound {c.bound:.6g})"
+        if best <= c.bound + 1e-12:
+            continue
+        if i == 0:  # the miss target
+            floor = fewest_missed(P, model)
+            return (
+                f"{c.name} is infeasible: no stationary policy misses fewer than {floor:.6g} of "
+                "the events on this scenario; choose a target_miss above that"
+            )
+        return f"{c.name} is infeasible: no stationary policy reaches it (best {best:.6g} vs bound {c.bound:.6g})"
     names = ", ".join(c.name for c in constraints)
     return f"the constraints {names} cannot all hold together (each alone can)"
+
+
+def fewest_missed(P: list, model: ExactMDP, tol: float = 1e-12) -> float:
+    """The least long-run miss detection (missed events over events) of any stationary policy:
+    Dinkelbach's iteration on the ratio, one LP a step (each policy's ratio is below the last
+    until none is)."""
+    missed = model.missed.to(torch.float64).cpu()
+    event = model.event.to(torch.float64).cpu()[None].expand_as(missed)
+    ratio = 1.0  # comm everywhere misses every event
+    for _ in range(50):
+        x = solve_lp(P, -(missed - ratio * event)).occupancy
+        events = float((x * event).sum())
+        if events <= 0:
+            return 0.0  # a policy under which no event happens misses none
+        new = float((x * missed).sum()) / events
+        if new >= ratio - tol:
+            return new
+        ratio = new
+    return ratio
 
 
 def solve_cmdp(
@@ -262,7 +289,7 @@ def _solve_once(
     try:
         lp = solve_lp(P, table, constraints)
     except InfeasibleTarget:
-        raise InfeasibleTarget(_explain_infeasible(P, constraints)) from None
+        raise InfeasibleTarget(_explain_infeasible(P, constraints, model)) from None
     # Ties (e.g. throughput is capped at λ, reached by many policies): among the optimal
     # occupancies, the one with the fewest missed events per step.
     keep = Constraint("optimum", -table, -(lp.value - TIE_TOL * max(1.0, abs(lp.value))))

@@ -329,6 +329,8 @@ def test_shell_quote_round_trips_through_a_shell(arg: str) -> None:
         ("algo=qlearning", "use python recipes/qlearning.py"),
         ("algo=qlearning_paper", "use python recipes/qlearning.py algo=qlearning_paper"),
         ("algo=dqn_lagrangian", "use python recipes/constrained.py learner=dqn_lagrangian"),
+        ("algo=posterior", "use python recipes/online.py learner=posterior"),
+        ("algo=safe", "use python recipes/online.py learner=safe"),
         ("executor=ray", "executor= is for python recipes/bench_constrained.py"),
     ],
 )

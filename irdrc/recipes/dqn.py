@@ -34,6 +34,8 @@ ELSEWHERE = {
     "algo=qlearning": "python recipes/qlearning.py",
     "algo=qlearning_paper": "python recipes/qlearning.py algo=qlearning_paper",
     "algo=dqn_lagrangian": "python recipes/constrained.py learner=dqn_lagrangian",
+    "algo=posterior": "python recipes/online.py learner=posterior",
+    "algo=safe": "python recipes/online.py learner=safe",
 }
 
 

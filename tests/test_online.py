@@ -472,7 +472,13 @@ def test_the_safe_recipe_states_the_plans_confidence(tmp_path, capsys):
     [
         (["algo.batch_size=64"], "unknown key(s) algo.batch_size"),
         (["learner=dqn", "algo.batch_sze=64"], "did you mean algo.batch_size?"),
-        (["learner=sac"], "learner='sac' must be one of"),
+        (["learner=nobody"], "learner='nobody' must be one of"),
+        (
+            ["learner=sac"],
+            "learner=sac is not a learner on one vehicle's stream: use python recipes/sac.py",
+        ),
+        (["learner=vdn"], "use python recipes/fleet.py learner=vdn"),
+        (["learner=dqn_lagrangian"], "use python recipes/constrained.py learner=dqn_lagrangian"),
         (["env.actions=continuous"], "env.actions=continuous"),
         (["learner=safe", "algo.target_miss=1.5"], "algo.target_miss=1.5"),
     ],

@@ -244,9 +244,26 @@ PROFILES: dict[str, Any] = {
 LEARNERS = tuple(PROFILES)
 
 
+ELSEWHERE = {
+    "dqn_lagrangian": "python recipes/constrained.py learner=dqn_lagrangian",
+    "sac": "python recipes/sac.py",
+    "ppo": "python recipes/ppo.py",
+    **{
+        n: f"python recipes/fleet.py learner={n}"
+        for n in ("idqn", "vdn", "qmix", "mappo", "ippo", "joint")
+    },
+}
+"""Learners of other recipes, by the name a user may try here: where each runs."""
+
+
 def learner_config(learner: str, algo: Any) -> Any:
     """The profile of ``learner`` with the ``algo`` mapping's keys over it; unknown keys are
-    refused, naming the closest of that learner's keys."""
+    refused, naming the closest of that learner's keys (a learner of another recipe, that
+    recipe)."""
+    if learner in ELSEWHERE:
+        raise ValueError(
+            f"learner={learner} is not a learner on one vehicle's stream: use {ELSEWHERE[learner]}"
+        )
     checks.check_choice("learner", learner, LEARNERS)
     base = PROFILES[learner]
     data = dict(algo or {})

@@ -416,7 +416,9 @@ def test_learner_keys_are_checked_against_the_chosen_learner():
         configs.learner_config("dqn", {"batch_sze": 3})
     with pytest.raises(ValueError, match=r"algo\.target_miss"):
         configs.learner_config("posterior", {"target_miss": 0.1})
-    with pytest.raises(ValueError, match="learner='ppo' must be one of"):
+    with pytest.raises(ValueError, match="learner='rainbow' must be one of"):
+        configs.learner_config("rainbow", {})
+    with pytest.raises(ValueError, match="learner=ppo is not a learner on one vehicle's stream"):
         configs.learner_config("ppo", {})
     with pytest.raises(ValueError, match=r"algo.hidden\[0\]"):
         configs.learner_config("dqn", {"hidden": [0]})

@@ -209,7 +209,7 @@ def _explain_infeasible(P: list, constraints: list[Constraint], model: ExactMDP)
         best = solve_lp(P, -c.coef).value * -1  # the smallest Σ x·coef any policy reaches
         if best <= c.bound + 1e-12:
             continue
-        if i == 0:  # the miss target
+        if i == 0:  # the miss target (build_constraints puts it first)
             floor = fewest_missed(P, model)
             return (
                 f"{c.name} is infeasible: no stationary policy misses fewer than {floor:.6g} of "

@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from irdrc.agents.configs import QLearningConfig
+from irdrc.agents.configs.fleet import FLEET_LEARNERS
 from irdrc.agents.configs.value import NetworkConfig
 from irdrc.core import checks
 
@@ -248,10 +249,7 @@ ELSEWHERE = {
     "dqn_lagrangian": "python recipes/constrained.py learner=dqn_lagrangian",
     "sac": "python recipes/sac.py",
     "ppo": "python recipes/ppo.py",
-    **{
-        n: f"python recipes/fleet.py learner={n}"
-        for n in ("idqn", "vdn", "qmix", "mappo", "ippo", "joint")
-    },
+    **{n: f"python recipes/fleet.py learner={n}" for n in FLEET_LEARNERS},
 }
 """Learners of other recipes, by the name a user may try here: where each runs."""
 

@@ -493,3 +493,20 @@ def test_the_recipe_refuses_before_any_work(tmp_path, capsys, args, message):
     code = app.execute(recipe, ["learner=posterior", *args, f"hydra.run.dir={run_dir}"])
     assert code == 2 and message in capsys.readouterr().err
     assert not run_dir.exists()
+
+
+def test_onlines_own_learner_example_runs_as_printed_and_prints_what_the_page_says():
+    """ONLINE.md's *Your own learner on one stream*: its code, run as printed in a fresh
+    interpreter, prints exactly the line the page shows (the stream and the coin are seeded)."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    page = (Path(__file__).parents[1] / "docs" / "ONLINE.md").read_text()
+    section = page.split("## Your own learner on one stream\n", 1)[1].split("\n## ", 1)[0]
+    code = section.split("```python\n", 1)[1].split("```", 1)[0]
+    shown = section.split("```text\n", 1)[1].split("```", 1)[0].strip()
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True
+    )
+    assert out.stdout.strip() == shown

@@ -226,25 +226,29 @@ def test_a_resumed_run_is_the_uninterrupted_run(scorer, name):
     assert resumed.episode_rewards == whole.episode_rewards
 
 
+@pytest.mark.parametrize("full", [True, False], ids=["every_state", "sample_states"])
 @pytest.mark.parametrize("double", [True, False])
-def test_the_one_stream_dqn_loss_is_the_td_mean_square_of_its_sample(double):
+def test_the_one_stream_dqn_loss_is_the_td_mean_square_of_its_sample(double, full):
     """``StreamDQN.td_loss`` sums per (state, action) before the backward pass; its value and its
     gradient are the plain mean over the sample of (Q(s, a) − y)², y = r − r̄ + γ·Q_target(s′, a′),
-    a′ the online network's choice (double DQN) or the target's own (``algo.double_dqn=false``).
+    a′ the online network's choice (double DQN) or the target's own (``algo.double_dqn=false``),
+    whether one pass covers every state or (above ``FULL_PASS_STATES``) the sample's states only.
     The sample repeats pairs, as replay samples do."""
     from irdrc.online.dqn import StreamDQN
 
     cfg = configs.learner_config("dqn", {"double_dqn": double})
     learner = StreamDQN(cfg, PAPER, seed=3)
+    learner.full = full
     with torch.no_grad():  # a target that differs from the online network
         for p in learner.target.parameters():
             p.add_(0.3 * torch.randn_like(p))
     learner.center.value = 0.37
     g = torch.Generator().manual_seed(0)
     S = PAPER.env.num_states
+    few = torch.randperm(S, generator=g)[:40]  # 40 states spread over S
     sample = torch.stack(
         [
-            torch.randint(0, 40, (500,), generator=g).double(),  # few states: repeated pairs
+            few[torch.randint(0, 40, (500,), generator=g)].double(),  # repeated pairs
             torch.randint(0, 2, (500,), generator=g).double(),
             torch.randn(500, generator=g, dtype=torch.float64) * 10,
             torch.randint(0, S, (500,), generator=g).double(),
@@ -266,6 +270,27 @@ def test_the_one_stream_dqn_loss_is_the_td_mean_square_of_its_sample(double):
     assert float(loss.detach()) == pytest.approx(float(plain.detach()), rel=1e-4)
     for got, want in zip(grads, expected, strict=True):
         torch.testing.assert_close(got, want, rtol=1e-3, atol=1e-5)
+
+
+def test_above_full_pass_states_the_one_stream_dqn_acts_on_the_network_as_a_table_would():
+    """Above ``FULL_PASS_STATES`` (a 200-packet queue: 6 432 states) an update passes only its
+    sample's states, and between two full tables the vehicle's greedy action is its own state's
+    pass: the same action as the whole table of the same network, in every state."""
+    from irdrc.online.dqn import FULL_PASS_STATES, StreamDQN
+
+    params = Params.from_overrides({"env.queue_capacity": 200})
+    assert params.env.num_states > FULL_PASS_STATES
+    learner = StreamDQN(configs.learner_config("dqn", {"episodes": 2}), params, seed=0)
+    assert not learner.full
+    rec = learn_on_stream(learner, params, exact_scorer(params), episodes=2, seed=0)
+    assert learner.updates > 0 and len(rec.history) == 3
+    learner.eps, learner.table = 0.0, None
+    acted = [learner.act(s) for s in range(0, params.env.num_states, 7)]
+    assert learner.table is None  # acting made no table
+    table = learner.values(online=True).argmax(-1)[::7].tolist()
+    assert acted == table
+    whole = learner.values(online=True).argmax(-1).tolist()
+    assert learner.behaviour().argmax(-1).tolist() == whole  # what the ledger scores
 
 
 def dqn_first_99(seed: int, stop_after: int, **algo) -> int | None:

@@ -2,14 +2,17 @@
 update written out below, in TorchRL's component order — model → exploration → buffer → loss →
 target → optimiser; the loop is the vehicle's own stream (``irdrc.online.loop``).
 
-A vehicle's steps come one at a time, and its observation is one of S states' (a few hundred), so
-the parts are driven the way one stream allows:
+A vehicle's steps come one at a time, and its observation is one of S states' (a few hundred on
+most scenarios), so the parts are driven the way one stream allows:
 
 - the vehicle acts ε-greedily on the online network's greedy table, one look-up per step;
 - its steps go into the replay as they come; every ``update_every`` steps, ``updates`` gradient
   updates on ``batch_size`` sampled transitions follow;
 - an update evaluates the network once on the S observations and reads every sampled transition's
-  values from that pass, so a sample costs the same whatever its size. The TD(0) target is double
+  values from that pass, so a sample costs the same whatever its size. Above ``FULL_PASS_STATES``
+  states (``env=large``: 100 800) it evaluates only the states its sample names, and the vehicle's
+  greedy action comes from a pass on its own state until a policy over every state is asked for
+  (the ledger's, once an episode). The TD(0) target is double
   DQN's: r − r̄ + γ·Q_target(s′, argmax_a Q(s′, a)) (``double_dqn``; else the target's own
   maximum), r̄ the reward centre (below);
 - the rewards are centred: r̄, the collected rewards' average, moves after every burst by (1 − γ)
@@ -44,6 +47,12 @@ STORE_EVERY = 64
 """Steps are written into the replay at least this many at a time (a write costs about as much
 whatever its size): a transition waits at most this many steps before it can be sampled."""
 
+FULL_PASS_STATES = 4096
+"""Up to this many states an update passes every state's observation through the network (a few
+tenths of a millisecond at a few hundred states) and the vehicle acts on that pass's table; above
+it, where a pass over every state costs more than one over a sample's at most 2 × ``batch_size``
+states (53 ms an update at 100 800 states), an update passes only the sample's states."""
+
 
 class StreamDQN(StreamLearner):
     """DQN learning from one vehicle's steps as they come (see the module docstring).
@@ -58,6 +67,7 @@ class StreamDQN(StreamLearner):
         self.cfg, self.name = cfg, cfg.name
         torch.manual_seed(seed)
         self.num_states = S = params.env.num_states
+        self.full = S <= FULL_PASS_STATES
         self.total_steps = cfg.episodes * params.env.horizon
 
         # 1. model: every state's observation, scaled → MLP → one Q-value per action
@@ -88,7 +98,7 @@ class StreamDQN(StreamLearner):
         self.last_loss = float("nan")
         self.seconds = {"replay_write": 0.0, "replay_sample": 0.0, "update": 0.0}
         self.last_values = self._values(self.qnet)
-        self.table = self.last_values.argmax(-1).tolist()
+        self.table: list[int] | None = self.last_values.argmax(-1).tolist()
 
     # -- acting -----------------------------------------------------------------------------------
 
@@ -98,6 +108,9 @@ class StreamDQN(StreamLearner):
     def act(self, state: int) -> int:
         if self.eps > 0 and self.rng.random() < self.eps:
             return self.rng.randrange(2)
+        if self.table is None:  # above FULL_PASS_STATES, between two full tables
+            with torch.no_grad():
+                return int(self.qnet(self.obs[state]).argmax())
         return self.table[state]
 
     def observe(self, state: int, action: int, step: Step) -> None:
@@ -122,13 +135,19 @@ class StreamDQN(StreamLearner):
 
     def td_loss(self, sample: torch.Tensor) -> torch.Tensor:
         """The double-DQN TD(0) loss of a replay sample (rows s, a, r, s′), from one pass over
-        every state: the mean over the sample of (Q(s, a) − target)², summed per (state, action)
-        first — the same gradient, with no per-sample indexing in the backward pass."""
-        q = self.qnet(self.obs)  # [S, 2], recorded
+        every state (over the sample's states above ``FULL_PASS_STATES``): the mean over the
+        sample of (Q(s, a) − target)², summed per (state, action) first — the same gradient, with
+        no per-sample indexing in the backward pass."""
         s, a, s2 = (sample[:, i].long() for i in (0, 1, 3))
+        obs = self.obs
+        if not self.full:  # the sample's states alone, s and s′ as rows of that pass
+            rows, inverse = torch.unique(torch.cat([s, s2]), return_inverse=True)
+            obs, s, s2 = obs[rows], inverse[: len(s)], inverse[len(s) :]
+        q = self.qnet(obs)  # [S, 2] (or [rows, 2]), recorded
         with torch.no_grad():
-            self.last_values = q.detach()
-            target_next = self._values(self.target)[s2]
+            if self.full:
+                self.last_values = q.detach()
+            target_next = self.target(obs)[s2]
             # double DQN: the online network picks the next action, the target values it
             pick = (q[s2] if self.cfg.double_dqn else target_next).argmax(-1, keepdim=True)
             next_value = target_next.gather(1, pick).squeeze(1)
@@ -164,12 +183,17 @@ class StreamDQN(StreamLearner):
             self.updates += 1
             self.seconds["replay_sample"] += t1 - t0
             self.seconds["update"] += time.perf_counter() - t1
-        # the values of the last update's pass (one step behind: no extra pass)
-        values = self.last_values
-        self.table = values.argmax(-1).tolist()
-        # r̄ follows the values: the states just visited are valued near zero on average
         recent = torch.tensor([r[0] for r in self.log[-cfg.update_every :]])
-        self.center.follow(float(values[recent].max(-1).values.double().mean()), cfg.gamma)
+        if self.full:  # the values of the last update's pass (one step behind: no extra pass)
+            values = self.last_values
+            self.table = values.argmax(-1).tolist()
+            recent_values = values[recent]
+        else:
+            self.table = None  # a whole table only when asked for (``_table``)
+            with torch.no_grad():
+                recent_values = self.qnet(self.obs[recent])
+        # r̄ follows the values: the states just visited are valued near zero on average
+        self.center.follow(float(recent_values.max(-1).values.double().mean()), cfg.gamma)
 
     def _values(self, net: torch.nn.Module) -> torch.Tensor:
         """[S, 2] ``net``'s action values of every state (no gradient)."""
@@ -188,13 +212,20 @@ class StreamDQN(StreamLearner):
     def info(self) -> dict[str, Any]:
         return {f"seconds_{k}": v for k, v in self.seconds.items()}
 
+    def _table(self) -> list[int]:
+        """The acting table (the online network's greedy action in every state), made from one
+        pass over every state where the last burst left none."""
+        if self.table is None:
+            self.table = self.values(online=True).argmax(-1).tolist()
+        return self.table
+
     def greedy(self) -> torch.Tensor:
         if self.cfg.policy_network == "online":
-            return torch.tensor(self.table)
+            return torch.tensor(self._table())
         return self.values(online=False).argmax(-1)
 
     def behaviour(self) -> torch.Tensor:
-        probs = torch.nn.functional.one_hot(torch.tensor(self.table), 2).to(torch.float64)
+        probs = torch.nn.functional.one_hot(torch.tensor(self._table()), 2).to(torch.float64)
         return (1.0 - self.eps) * probs + self.eps / 2.0
 
     def state_dict(self) -> dict[str, Any]:
@@ -235,4 +266,4 @@ class StreamDQN(StreamLearner):
         self.rng.setstate(tuple_state(state["rng"]))
         torch.set_rng_state(state["torch_rng"])
         self.last_values = state["last_values"]
-        self.table = self.last_values.argmax(-1).tolist()
+        self.table = self.last_values.argmax(-1).tolist() if self.full else None

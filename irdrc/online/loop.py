@@ -129,7 +129,9 @@ def learn_on_stream(
     ledger = Ledger(scorer)
     record = RunRecord(method=learner.name, greedy=torch.zeros(1, 1, dtype=torch.int64))
     optimum = greedy_scorer.optimal_metrics.avg_reward
-    seconds = {"episode_start": 0.0, "act_and_learn": 0.0, "episode_end": 0.0, "evaluate": 0.0}
+    seconds = dict.fromkeys(
+        ("episode_start", "act_and_learn", "episode_end", "ledger", "evaluate"), 0.0
+    )
     start = 0
     t0 = time.perf_counter()
     if resume is not None:
@@ -193,7 +195,7 @@ def learn_on_stream(
             raise ValueError(f"{learner.name}: switches {cuts[:-1]} must rise within (0, {T})")
         a0 = time.perf_counter()
         s = stream.reset()
-        total, t = Tally(), 0
+        total, t, scoring = Tally(), 0, 0.0
         for cut in cuts:
             tally = Tally(steps=cut - t)
             for _ in range(cut - t):
@@ -206,7 +208,9 @@ def learn_on_stream(
                 tally.sent += out.sent
                 tally.dropped += out.dropped
                 s = out.state
+            l0 = time.perf_counter()
             ledger.add(behaviour, tally)
+            scoring += time.perf_counter() - l0
             total += tally
             t = cut
             if cut < T:
@@ -215,7 +219,8 @@ def learn_on_stream(
         a1 = time.perf_counter()
         scalars = learner.end_episode(episode)
         seconds["episode_start"] += a0 - b0
-        seconds["act_and_learn"] += a1 - a0
+        seconds["act_and_learn"] += a1 - a0 - scoring
+        seconds["ledger"] += scoring
         seconds["episode_end"] += time.perf_counter() - a1
         done = episode + 1
         record.episode_rewards.append(

@@ -478,6 +478,29 @@ def test_the_recipe_writes_the_ledger_everywhere(tmp_path, capsys):
     assert [int(r["episodes"]) for r in rows] == [0, 1, 2, 3, 4, 5]
 
 
+@pytest.mark.parametrize(
+    ("first", "stay", "words"),
+    [
+        (None, None, "never ≥ 0.99"),
+        (1, None, "first ≥ 0.99 after 1 episode (the last evaluation)"),
+        (4, 0.5, "first ≥ 0.99 after 4 episodes, ≥ 0.99 at 50% of the evaluations since"),
+    ],
+)
+def test_the_printed_ledger_says_when_the_greedy_policy_first_reached_099(
+    capsys, first, stay, words
+):
+    """The console's convergence clause, in words that agree with the count."""
+    from types import SimpleNamespace
+
+    from irdrc.online.recipe import print_ledger
+
+    keys = ("regret", "realised_regret", "expected_missed", "realised_missed", "floor_missed")
+    row = dict.fromkeys((*keys, "expected_sent", "realised_sent", "cumulative_miss_detection"), 1.0)
+    summary = {"episodes_to_99": first, "stay_99": stay, "episodes": 6, "env_steps_per_second": 1.0}
+    print_ledger(row, summary, SimpleNamespace(learner="posterior"))
+    assert f"greedy policy: {words}\n" in capsys.readouterr().out
+
+
 def test_the_safe_recipe_states_the_plans_confidence(tmp_path, capsys):
     """``learner=safe``: summary.json carries the LP, the plan's ratio to it and its stated
     confidence, and the printout says them."""

@@ -275,7 +275,8 @@ def test_the_one_stream_dqn_loss_is_the_td_mean_square_of_its_sample(double, ful
 def test_above_full_pass_states_the_one_stream_dqn_acts_on_the_network_as_a_table_would():
     """Above ``FULL_PASS_STATES`` (a 200-packet queue: 6 432 states) an update passes only its
     sample's states, and between two full tables the vehicle's greedy action is its own state's
-    pass: the same action as the whole table of the same network, in every state."""
+    pass: the same action as the whole table of the same network, in every state; its checkpoint
+    holds no full pass."""
     from irdrc.online.dqn import FULL_PASS_STATES, StreamDQN
 
     params = Params.from_overrides({"env.queue_capacity": 200})
@@ -291,6 +292,8 @@ def test_above_full_pass_states_the_one_stream_dqn_acts_on_the_network_as_a_tabl
     assert acted == table
     whole = learner.values(online=True).argmax(-1).tolist()
     assert learner.behaviour().argmax(-1).tolist() == whole  # what the ledger scores
+    # no update makes a full pass here, so the checkpoint keeps none (it would only go stale)
+    assert learner.state_dict()["last_values"] is None
 
 
 def dqn_first_99(seed: int, stop_after: int, **algo) -> int | None:

@@ -97,8 +97,11 @@ class StreamDQN(StreamLearner):
         self.updates = 0
         self.last_loss = float("nan")
         self.seconds = {"replay_write": 0.0, "replay_sample": 0.0, "update": 0.0}
-        self.last_values = self._values(self.qnet)
-        self.table: list[int] | None = self.last_values.argmax(-1).tolist()
+        # the last update's full pass (None above FULL_PASS_STATES, where no update makes one)
+        self.last_values = self._values(self.qnet) if self.full else None
+        self.table: list[int] | None = None
+        if self.last_values is not None:
+            self.table = self.last_values.argmax(-1).tolist()
 
     # -- acting -----------------------------------------------------------------------------------
 
@@ -265,5 +268,5 @@ class StreamDQN(StreamLearner):
         self.last_loss = float(state["last_loss"])
         self.rng.setstate(tuple_state(state["rng"]))
         torch.set_rng_state(state["torch_rng"])
-        self.last_values = state["last_values"]
-        self.table = self.last_values.argmax(-1).tolist() if self.full else None
+        self.last_values = state["last_values"] if self.full else None
+        self.table = None if self.last_values is None else self.last_values.argmax(-1).tolist()

@@ -267,28 +267,6 @@ def run_recipe(*args: str) -> subprocess.CompletedProcess:
     )
 
 
-def test_sacs_actor_is_the_share_beta_over_one_dimension():
-    """SAC's actor samples shares inside (0, 1) with one log-probability per row (``SACLoss``
-    refuses an [N, 1] one beside the critics' [N] values), and its deterministic share is the
-    Beta's mode, which reaches 1 where β = 1."""
-    from irdrc.agents.configs.continuous import SACConfig
-    from irdrc.agents.sac import make_actor
-    from irdrc.agents.shares import OneShareBeta, ShareBeta
-    from irdrc.core.env import DFRCEnv
-
-    a, b = torch.tensor([[50.0], [3.0]]), torch.tensor([[1.0], [3.0]])
-    d = OneShareBeta(a, b)
-    x = d.rsample((100,))
-    assert x.shape == (100, 2, 1) and bool(((x > 0) & (x < 1)).all())
-    assert d.log_prob(x).shape == (100, 2)
-    torch.testing.assert_close(d.log_prob(x), ShareBeta(a, b).log_prob(x).sum(-1))
-    assert d.deterministic_sample.reshape(-1).tolist() == pytest.approx([1.0, 0.5])
-    env = DFRCEnv(params(**{"env.actions": "continuous"}), batch_size=[4])
-    actor = make_actor(env, SACConfig())
-    dist = actor.get_dist(actor.module[0](env.reset()))
-    assert isinstance(dist, OneShareBeta) and dist.log_prob(dist.rsample()).shape == (4,)
-
-
 @pytest.mark.e2e
 def test_sac_runs_scored_exactly_and_writes_its_shares(tmp_path):
     out = tmp_path / "run"

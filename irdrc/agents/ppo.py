@@ -16,6 +16,9 @@ from typing import Any
 
 import torch
 from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModule
+from torch import nn
+from torchrl.envs.utils import ExplorationType
 from torchrl.modules import ProbabilisticActor, ValueOperator
 from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.value import GAE
@@ -31,14 +34,25 @@ from irdrc.agents.offpolicy import (
     make_optimizer,
     observation_top,
 )
-from irdrc.agents.shares import ShareBeta, beta_actor, share_run, share_table
+from irdrc.agents.shares import BetaConcentrations, ShareBeta, share_run, share_table
 from irdrc.core.env import DFRCEnv
 from irdrc.core.params import Params
 
 
 def make_actor(env: DFRCEnv, cfg: PPOConfig) -> ProbabilisticActor:
     """Scaled observation → MLP → (α, β) > 1 → Beta on [0, 1], writing its log-probability."""
-    return beta_actor(env, cfg.network, ShareBeta, return_log_prob=True)
+    net = nn.Sequential(make_body(observation_top(env), cfg.network, 2), BetaConcentrations())
+    module = TensorDictModule(
+        net, in_keys=["observation"], out_keys=["concentration1", "concentration0"]
+    )
+    return ProbabilisticActor(
+        module,
+        in_keys=["concentration1", "concentration0"],
+        spec=env.action_spec_unbatched,
+        distribution_class=ShareBeta,
+        return_log_prob=True,
+        default_interaction_type=ExplorationType.RANDOM,
+    )
 
 
 def make_critic(env: DFRCEnv, cfg: PPOConfig) -> ValueOperator:

@@ -3,10 +3,8 @@ at once on the off-policy loop every learner shares — top to bottom in TorchRL
 model (actor, critics) → exploration (the actor's own sampling) → collector → buffer → loss → target
 → optimiser → logger (the caller's hooks) → loop.
 
-The actor is a Beta distribution of shares through ``ProbabilisticActor``
-(``irdrc.agents.shares.OneShareBeta``, PPO's Beta): bounded, its mode — the deterministic share —
-reaches ρ = 0 and ρ = 1, where the optimum of most risky states lies. The rows explore beside it on
-DQN's ε ladder, replay is prioritised by the critics' TD error, and the policy is the
+The actor is a ``TanhNormal`` bounded to [0, 1] through ``ProbabilisticActor``; the rows explore
+beside it on DQN's ε ladder, replay is prioritised by the critics' TD error, and the policy is the
 Polyak-averaged actor. Every evaluation scores its deterministic share in every state *exactly*
 against the continuum's optimum
 (``irdrc.core.exact.continuum.ContinuumScorer``), which only scores, never steers.
@@ -18,8 +16,10 @@ from typing import Any
 
 import torch
 from tensordict import TensorDictBase
-from tensordict.nn import TensorDictModule, TensorDictSequential
-from torchrl.modules import ProbabilisticActor, ValueOperator
+from tensordict.nn import NormalParamExtractor, TensorDictModule, TensorDictSequential
+from torch import nn
+from torchrl.envs.utils import ExplorationType
+from torchrl.modules import ProbabilisticActor, TanhNormal, ValueOperator
 from torchrl.objectives import SACLoss
 
 from irdrc.agents.base import Hooks, RunContext, RunRecord
@@ -30,26 +30,29 @@ from irdrc.agents.offpolicy import (
     PolyakUpdate,
     RewardCenter,
     clip_and_step,
+    make_body,
     make_buffer,
     make_collector,
     make_optimizer,
     observation_top,
 )
-from irdrc.agents.shares import (
-    Critic,
-    OneShareBeta,
-    ShareLadder,
-    beta_actor,
-    share_run,
-    share_table,
-)
+from irdrc.agents.shares import Critic, ShareLadder, share_run, share_table
 from irdrc.core.env import DFRCEnv
 from irdrc.core.params import Params
 
 
 def make_actor(env: DFRCEnv, cfg: SACConfig) -> ProbabilisticActor:
-    """Scaled observation → MLP → (α, β) > 1 → Beta on [0, 1], its mode the deterministic share."""
-    return beta_actor(env, cfg.network, OneShareBeta)
+    """Scaled observation → MLP → (loc, scale) → TanhNormal on [0, 1]."""
+    net = nn.Sequential(make_body(observation_top(env), cfg.network, 2), NormalParamExtractor())
+    module = TensorDictModule(net, in_keys=["observation"], out_keys=["loc", "scale"])
+    return ProbabilisticActor(
+        module,
+        in_keys=["loc", "scale"],
+        spec=env.action_spec_unbatched,
+        distribution_class=TanhNormal,
+        distribution_kwargs={"low": 0.0, "high": 1.0},
+        default_interaction_type=ExplorationType.RANDOM,
+    )
 
 
 def make_critic(env: DFRCEnv, cfg: SACConfig) -> ValueOperator:
@@ -114,7 +117,7 @@ def train(
         params, cfg, seed=seed, device=device, scorer=scorer, resume=resume
     )
 
-    # 1. model: the actor (a Beta on [0, 1]) and a critic Q(observation, ρ)
+    # 1. model: the actor (TanhNormal on [0, 1]) and a critic Q(observation, ρ)
     actor = make_actor(env, cfg)
     critic = make_critic(env, cfg)
     # 2. exploration: the actor samples its own shares, and an ε ladder over the rows

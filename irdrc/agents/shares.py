@@ -1,6 +1,6 @@
 """The parts of a learner of the radar share ρ ∈ [0, 1] (MODEL.md § D), apart from its loss: a critic
-Q(observation, ρ), exploration of shares over the env rows, a Beta distribution of shares and the
-actor that outputs it, and the policy's table of shares."""
+Q(observation, ρ), exploration of shares over the env rows, a Beta distribution of shares, and the
+policy's table of shares."""
 
 from __future__ import annotations
 
@@ -8,14 +8,12 @@ from typing import Any
 
 import torch
 from tensordict import TensorDict
-from tensordict.nn import TensorDictModule
 from torch import nn
 from torchrl.envs.utils import ExplorationType, set_exploration_type
-from torchrl.modules import ProbabilisticActor
 
 from irdrc.agents.configs.value import NetworkConfig
 from irdrc.agents.loop import start_frames
-from irdrc.agents.offpolicy import eps_ladder, make_body, observation_top
+from irdrc.agents.offpolicy import eps_ladder, make_body
 from irdrc.core.env import DFRCEnv
 from irdrc.core.params import Params
 
@@ -60,42 +58,6 @@ class BetaConcentrations(nn.Module):
     def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         c = nn.functional.softplus(x) + 1.0
         return c[..., :1], c[..., 1:]
-
-
-class OneShareBeta(torch.distributions.Independent):
-    """``ShareBeta`` as the distribution of the one-dimensional action: its log-probability summed
-    over that dimension (the shape ``SACLoss`` reads), the Beta's mode as the deterministic share."""
-
-    def __init__(self, concentration1: torch.Tensor, concentration0: torch.Tensor) -> None:
-        super().__init__(ShareBeta(concentration1, concentration0), 1)
-
-    @property
-    def deterministic_sample(self) -> torch.Tensor:
-        """The mode of ``ShareBeta``."""
-        return self.base_dist.deterministic_sample
-
-
-def beta_actor(
-    env: DFRCEnv,
-    network: NetworkConfig,
-    distribution_class: type = ShareBeta,
-    return_log_prob: bool = False,
-) -> ProbabilisticActor:
-    """Scaled observation → MLP → (α, β) > 1 (``BetaConcentrations``) → a Beta of shares on
-    [0, 1] through ``ProbabilisticActor``, sampling by default: ``ShareBeta`` (PPO's, writing its
-    log-probability) or ``OneShareBeta`` (SAC's)."""
-    net = nn.Sequential(make_body(observation_top(env), network, 2), BetaConcentrations())
-    module = TensorDictModule(
-        net, in_keys=["observation"], out_keys=["concentration1", "concentration0"]
-    )
-    return ProbabilisticActor(
-        module,
-        in_keys=["concentration1", "concentration0"],
-        spec=env.action_spec_unbatched,
-        distribution_class=distribution_class,
-        return_log_prob=return_log_prob,
-        default_interaction_type=ExplorationType.RANDOM,
-    )
 
 
 class ShareLadder(nn.Module):

@@ -99,9 +99,7 @@ class StreamDQN(StreamLearner):
         self.seconds = {"replay_write": 0.0, "replay_sample": 0.0, "update": 0.0}
         # the last update's full pass (None above FULL_PASS_STATES, where no update makes one)
         self.last_values = self._values(self.qnet) if self.full else None
-        self.table: list[int] | None = None
-        if self.last_values is not None:
-            self.table = self.last_values.argmax(-1).tolist()
+        self.table: list[int] | None = self._last_table()
 
     # -- acting -----------------------------------------------------------------------------------
 
@@ -198,6 +196,10 @@ class StreamDQN(StreamLearner):
         # r̄ follows the values: the states just visited are valued near zero on average
         self.center.follow(float(recent_values.max(-1).values.double().mean()), cfg.gamma)
 
+    def _last_table(self) -> list[int] | None:
+        """The greedy table of the last full pass (None where there is none)."""
+        return None if self.last_values is None else self.last_values.argmax(-1).tolist()
+
     def _values(self, net: torch.nn.Module) -> torch.Tensor:
         """[S, 2] ``net``'s action values of every state (no gradient)."""
         with torch.no_grad():
@@ -269,4 +271,4 @@ class StreamDQN(StreamLearner):
         self.rng.setstate(tuple_state(state["rng"]))
         torch.set_rng_state(state["torch_rng"])
         self.last_values = state["last_values"] if self.full else None
-        self.table = None if self.last_values is None else self.last_values.argmax(-1).tolist()
+        self.table = self._last_table()

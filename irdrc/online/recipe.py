@@ -169,13 +169,15 @@ def run(cfg: Config, run) -> dict[str, Any]:
 def print_ledger(row: dict[str, Any], summary: dict[str, Any], cfg: Config) -> None:
     """The price of learning, in a few lines."""
     first, stay = summary["episodes_to_99"], summary["stay_99"]
-    after = f"after {first} episode{'' if first == 1 else 's'}"
     if first is None:
         conv = "never ≥ 0.99"
-    elif stay is None:
-        conv = f"first ≥ 0.99 {after} (the last evaluation)"
     else:
-        conv = f"first ≥ 0.99 {after}, ≥ 0.99 at {stay:.0%} of the evaluations since"
+        conv = f"first ≥ 0.99 after {first} episode{'' if first == 1 else 's'}"
+        conv += (
+            " (the last evaluation)"
+            if stay is None
+            else f", ≥ 0.99 at {stay:.0%} of the evaluations since"
+        )
     print(
         f"\nthe price of learning over {summary['episodes']} episodes (exact, from the behaviour "
         f"policy of each episode; realised on the stream in brackets):\n"

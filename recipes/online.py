@@ -1,7 +1,7 @@
 """One vehicle learning on the road from its own stream, with the price of learning counted exactly.
 
-python recipes/online.py                                 # DQN on one stream, paper scenario
-python recipes/online.py learner=posterior env=multilevel
+python recipes/online.py                                 # posterior sampling on the model's form
+python recipes/online.py learner=dqn env=multilevel      # DQN on one stream, told nothing
 python recipes/online.py learner=safe algo.target_miss=0.1
 python recipes/online.py learner=qlearning_paper algo.episodes=600
 """

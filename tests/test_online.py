@@ -454,14 +454,15 @@ def test_learner_keys_are_checked_against_the_chosen_learner():
 
 
 def test_the_recipe_writes_the_ledger_everywhere(tmp_path, capsys):
-    """``recipes/online.py`` in-process, 3 episodes of posterior sampling: exit 0; the ledger in
-    metrics.csv (a row per episode), summary.json and the printout; a checkpoint to resume from."""
+    """``recipes/online.py`` in-process, 3 episodes of its default learner (posterior sampling):
+    exit 0; the ledger in metrics.csv (a row per episode), summary.json and the printout; a
+    checkpoint to resume from."""
     import csv
 
     from irdrc.online import recipe
     from irdrc.runs import app
 
-    args = ["learner=posterior", "algo.episodes=3", f"hydra.run.dir={tmp_path}", "logger=none"]
+    args = ["algo.episodes=3", f"hydra.run.dir={tmp_path}", "logger=none"]
     assert app.execute(recipe, [*args, "progress=false"]) == 0
     rows = list(csv.DictReader((tmp_path / "metrics.csv").open()))
     assert [int(r["episodes"]) for r in rows] == [0, 1, 2, 3]

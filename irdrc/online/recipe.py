@@ -2,8 +2,8 @@
 exactly while it learns: the greedy policy against the optimum, and the price of learning (the
 regret and the missed events of the policy it behaved by) every episode.
 
-    python recipes/online.py                                 # DQN on one stream, paper scenario
-    python recipes/online.py learner=posterior env=multilevel
+    python recipes/online.py                                 # posterior sampling on the model's form
+    python recipes/online.py learner=dqn env=multilevel      # DQN on one stream, told nothing
     python recipes/online.py learner=safe algo.target_miss=0.1
     python recipes/online.py learner=qlearning_paper algo.episodes=600
 """
@@ -35,7 +35,7 @@ ADVICE = {
 
 
 def _algo(data: Any, prefix: str) -> Any:
-    return learner_config(data.get("learner", "dqn"), data.get("algo") or {})
+    return learner_config(data.get("learner", "posterior"), data.get("algo") or {})
 
 
 @dataclass(frozen=True)
@@ -43,7 +43,7 @@ class Config(Learning):
     """The keys of ``recipes/conf/online.yaml``."""
 
     params: Params = field(default=None, metadata=ONE_VEHICLE)
-    learner: str = "dqn"
+    learner: str = "posterior"
     algo: Any = field(default=None, metadata={"keys": ("algo",), "build": _algo})
     plot: Plot = field(default_factory=Plot)
 

@@ -33,6 +33,24 @@ ADVICE = {
 }
 """What a run that ends below the optimum is told to try, per learner."""
 
+SAFE_END_THRESHOLD = 0.95
+"""A ``learner=safe`` run whose final plan sends less than this share of the LP's packets ends with
+a warning (it is read against the LP at its ``target_miss``, not the unconstrained optimum)."""
+
+
+def lp_warning(history: list[dict[str, Any]], advice: str) -> str | None:
+    """The warning a safe run ends with: its final plan below ``SAFE_END_THRESHOLD`` of the LP's
+    packets, where its best evaluation was and what to try; None when it ends at or above it."""
+    final = float(history[-1]["lp_ratio"])
+    if not final < SAFE_END_THRESHOLD:
+        return None
+    best = max(history, key=lambda r: float(r["lp_ratio"]))
+    return (
+        f"warning: the final plan sends {final:.4f} of the LP's packets (below "
+        f"{SAFE_END_THRESHOLD}); its best evaluation sent {float(best['lp_ratio']):.4f} at "
+        f"{int(best['env_steps'])} env steps (metrics.csv); try {advice}"
+    )
+
 
 def _algo(data: Any, prefix: str) -> Any:
     return learner_config(data.get("learner", "posterior"), data.get("algo") or {})
@@ -144,6 +162,11 @@ def run(cfg: Config, run) -> dict[str, Any]:
             plot_format=cfg.plot.format,
             advice=ADVICE[cfg.learner],
             plot=plot_run,
+            end_check=(
+                (lambda history: lp_warning(history, ADVICE["safe"]))
+                if greedy_scorer is not None
+                else None
+            ),
         ),
     )
     ledger = record.history[-1]

@@ -50,6 +50,9 @@ class LearnerRun:
             profile's ``ADVICE``).
         plot: draws the learning curve, ``plot(record, path, title)`` (default
             ``plot_learning_curve``: against env steps).
+        end_check: the warning a finished run ends with, from its history, or None (default
+            ``end_warning`` with ``advice``: the final greedy policy against the optimum; a
+            learner held to a constraint reads its own target instead).
         labels: each scenario's overrides as command-line words (from ``points``).
     """
 
@@ -64,6 +67,7 @@ class LearnerRun:
     plot_format: str = "png"
     advice: str | None = None
     plot: Callable[..., None] | None = None
+    end_check: Callable[[list[dict[str, Any]]], str | None] | None = None
     labels: list[list[str]] = field(init=False)
 
     def __post_init__(self) -> None:
@@ -232,7 +236,8 @@ def print_learner(
     )
     print(f"\nfinal greedy policy: {final:.4f} of the optimum's average reward (exact); {reached}")
     print(policy_differences(scorers[0].model, record.greedy[0].cpu(), scorers[0].optimal.policy))
-    if not record.interrupted and (warning := end_warning(record.history, lr.advice)):
+    check = lr.end_check or (lambda history: end_warning(history, lr.advice))
+    if not record.interrupted and (warning := check(record.history)):
         print(warning, flush=True)
 
 

@@ -240,6 +240,15 @@ def test_qlearning_recipe_rejects_bad_algo_key(tmp_path):
     assert out.returncode != 0 and "algo.bogus" in out.stderr
 
 
+def test_cli_lists_every_recipe_with_a_whole_summary():
+    from irdrc.runs.cli import recipes
+
+    known = recipes()
+    assert {"dqn", "online", "solve", "bench_online"} <= set(known)
+    # a summary cut at the docstring's first line break ends mid-sentence
+    assert [n for n, what in known.items() if not what.endswith((".", "?"))] == []
+
+
 @pytest.mark.e2e
 def test_cli_lists_and_dispatches(tmp_path):
     listing = subprocess.run(

@@ -1,5 +1,5 @@
 """``irdrc`` command: ``irdrc RECIPE [overrides…]`` runs ``recipes/RECIPE.py``; ``irdrc`` lists the
-recipes, each with the first line of what it does."""
+recipes, each with the summary of what it does."""
 
 from __future__ import annotations
 
@@ -11,13 +11,13 @@ from irdrc.runs.compose import ROOT, list_scenarios
 
 
 def recipes() -> dict[str, str]:
-    """The runnable recipes, each with the first line of its docstring."""
+    """The runnable recipes, each with its docstring's summary (its first paragraph, on one line)."""
     out = {}
     for path in sorted((ROOT / "recipes").glob("*.py")):
         if path.stem.startswith("_"):
             continue
         doc = ast.get_docstring(ast.parse(path.read_text())) or ""
-        out[path.stem] = doc.strip().splitlines()[0] if doc.strip() else ""
+        out[path.stem] = " ".join(doc.strip().split("\n\n")[0].split())
     return out
 
 

@@ -521,17 +521,23 @@ def test_the_safe_recipe_states_the_plans_confidence(tmp_path, capsys):
     assert f"probability {conf['p_within_target']:.2f}" in out and "the LP's packets" in out
     # read against the LP, not the unconstrained optimum it is not meant to reach
     assert "of the optimum (below 0.99)" not in out
+    assert summary["lp_ratio"] < 0.95  # two episodes of data: a plan far short of the LP …
+    assert "of the LP's packets (below 0.95" in out  # … and the warning says so
 
 
 def test_a_safe_run_is_warned_against_the_lp():
-    from irdrc.online.recipe import SAFE_END_THRESHOLD, lp_warning
+    from irdrc.online.recipe import SAFE_END_THRESHOLD
+    from irdrc.runs.report import end_warning
 
-    rows = [{"lp_ratio": 0.5, "env_steps": 0}, {"lp_ratio": SAFE_END_THRESHOLD, "env_steps": 400}]
-    assert lp_warning(rows, "algo.episodes=600") is None
-    rows = [{"lp_ratio": 0.96, "env_steps": 400}, {"lp_ratio": 0.9, "env_steps": 800}]
-    warning = lp_warning(rows, "algo.episodes=600")
-    assert warning.startswith("warning: the final plan sends 0.9000 of the LP's packets")
-    assert "best evaluation sent 0.9600 at 400 env steps" in warning
+    def warn(rows):
+        return end_warning(
+            rows, "algo.episodes=600", key="lp_ratio", threshold=SAFE_END_THRESHOLD, of="the LP's"
+        )
+
+    assert warn([{"lp_ratio": 0.5, "env_steps": 0}, {"lp_ratio": 0.96, "env_steps": 400}]) is None
+    warning = warn([{"lp_ratio": 0.96, "env_steps": 400}, {"lp_ratio": 0.9, "env_steps": 800}])
+    assert warning.startswith("warning: the final greedy policy is 0.9000 of the LP's (below 0.95")
+    assert "its best evaluation was 0.9600 at 400 env steps" in warning
     assert warning.endswith("try algo.episodes=600")
 
 

@@ -11,6 +11,7 @@ regret and the missed events of the policy it behaved by) every episode.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import partial
 from typing import Any
 
 from irdrc.core.checks import build
@@ -37,23 +38,12 @@ SAFE_END_THRESHOLD = 0.95
 """A ``learner=safe`` run whose final plan sends less than this share of the LP's packets ends with
 a warning (it is read against the LP at its ``target_miss``, not the unconstrained optimum)."""
 
-
-def lp_warning(history: list[dict[str, Any]], advice: str) -> str | None:
-    """The warning a safe run ends with: its final plan below ``SAFE_END_THRESHOLD`` of the LP's
-    packets, where its best evaluation was and what to try; None when it ends at or above it."""
-    final = float(history[-1]["lp_ratio"])
-    if not final < SAFE_END_THRESHOLD:
-        return None
-    best = max(history, key=lambda r: float(r["lp_ratio"]))
-    return (
-        f"warning: the final plan sends {final:.4f} of the LP's packets (below "
-        f"{SAFE_END_THRESHOLD}); its best evaluation sent {float(best['lp_ratio']):.4f} at "
-        f"{int(best['env_steps'])} env steps (metrics.csv); try {advice}"
-    )
+DEFAULT_LEARNER = "posterior"
+"""``learner=`` when none is given (``recipes/conf/online.yaml`` says the same)."""
 
 
 def _algo(data: Any, prefix: str) -> Any:
-    return learner_config(data.get("learner", "posterior"), data.get("algo") or {})
+    return learner_config(data.get("learner", DEFAULT_LEARNER), data.get("algo") or {})
 
 
 @dataclass(frozen=True)
@@ -61,7 +51,7 @@ class Config(Learning):
     """The keys of ``recipes/conf/online.yaml``."""
 
     params: Params = field(default=None, metadata=ONE_VEHICLE)
-    learner: str = "posterior"
+    learner: str = DEFAULT_LEARNER
     algo: Any = field(default=None, metadata={"keys": ("algo",), "build": _algo})
     plot: Plot = field(default_factory=Plot)
 
@@ -125,7 +115,7 @@ def run(cfg: Config, run) -> dict[str, Any]:
     from irdrc.online.figures import plot_run
     from irdrc.online.learners import make_learner
     from irdrc.online.loop import learn_on_stream
-    from irdrc.runs.report import LearnerRun, finish_learner
+    from irdrc.runs.report import LearnerRun, end_warning, finish_learner
 
     run.threads(cfg.num_threads)
     run.make_logger(cfg.logger, cfg.algo.name)
@@ -163,7 +153,13 @@ def run(cfg: Config, run) -> dict[str, Any]:
             advice=ADVICE[cfg.learner],
             plot=plot_run,
             end_check=(
-                (lambda history: lp_warning(history, ADVICE["safe"]))
+                partial(
+                    end_warning,
+                    advice=ADVICE["safe"],
+                    key="lp_ratio",
+                    threshold=SAFE_END_THRESHOLD,
+                    of="the LP's packets",
+                )
                 if greedy_scorer is not None
                 else None
             ),

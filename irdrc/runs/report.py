@@ -52,7 +52,7 @@ class LearnerRun:
             ``plot_learning_curve``: against env steps).
         end_check: the warning a finished run ends with, from its history, or None (default
             ``end_warning`` with ``advice``: the final greedy policy against the optimum; a
-            learner held to a constraint reads its own target instead).
+            learner held to a constraint passes ``end_warning`` read against its own target).
         labels: each scenario's overrides as command-line words (from ``points``).
     """
 
@@ -329,29 +329,38 @@ ADVICE = {
 profile the main job's and Q-learning's recipes run, ``recipes/conf/algo``)."""
 
 
-def end_warning(history: list[dict[str, Any]], advice: str | None = None) -> str | None:
-    """One warning line when a learner's final greedy policy is below ``END_THRESHOLD`` of the
-    optimum, or more than ``END_SLACK`` below its own best evaluation, saying where that best
-    evaluation was and, with ``advice``, the override to try; ``None`` when every learner ends
-    well. The exact model only scores: the warning does not change which network the run
-    returns."""
+def end_warning(
+    history: list[dict[str, Any]],
+    advice: str | None = None,
+    *,
+    key: str = "optimality_ratio",
+    threshold: float | None = None,
+    of: str = "the optimum",
+) -> str | None:
+    """One warning line when a learner's final greedy policy is below ``threshold`` (default
+    ``END_THRESHOLD``) of the optimum, or more than ``END_SLACK`` below its own best evaluation,
+    saying where that best evaluation was and, with ``advice``, the override to try; ``None`` when
+    every learner ends well. ``key`` is the history's column read and ``of`` what it is a share of
+    (a learner held to a constraint: ``lp_ratio``, "the LP's packets"). The exact model only
+    scores: the warning does not change which network the run returns."""
+    threshold = END_THRESHOLD if threshold is None else threshold
     runs: dict[int, list[dict[str, Any]]] = {}
     for e in history:
         runs.setdefault(int(e.get("learner", 0)), []).append(e)
     bad = []
     for learner, hist in sorted(runs.items()):
-        final = float(hist[-1]["optimality_ratio"])
-        best = max(hist, key=lambda e: float(e["optimality_ratio"]))
-        gap = float(best["optimality_ratio"]) - final
-        if final < END_THRESHOLD or gap > END_SLACK:
-            why = [f"below {END_THRESHOLD}"] if final < END_THRESHOLD else []
+        final = float(hist[-1][key])
+        best = max(hist, key=lambda e: float(e[key]))
+        gap = float(best[key]) - final
+        if final < threshold or gap > END_SLACK:
+            why = [f"below {threshold}"] if final < threshold else []
             if gap > END_SLACK:
                 why.append(f"{gap:.4f} below its best")
             bad.append(
                 (
                     learner,
-                    f"{final:.4f} of the optimum ({', '.join(why)}); its best evaluation "
-                    f"was {float(best['optimality_ratio']):.4f} at {int(best['env_steps'])} env steps",
+                    f"{final:.4f} of {of} ({', '.join(why)}); its best evaluation "
+                    f"was {float(best[key]):.4f} at {int(best['env_steps'])} env steps",
                 )
             )
     if not bad:

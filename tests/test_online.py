@@ -226,6 +226,31 @@ def test_a_resumed_run_is_the_uninterrupted_run(scorer, name):
     assert resumed.episode_rewards == whole.episode_rewards
 
 
+@pytest.mark.parametrize("name", ["dqn", "dqn_paper", "posterior", "qlearning", "safe"])
+def test_a_longer_run_begins_as_the_shorter_one(scorer, name):
+    """Every schedule counts episodes, not the run (DQN's learning rate anneals over
+    ``lr_decay_episodes``, 4 here): the first 3 episodes of a 6-episode run are a 3-episode run's,
+    number for number (with DQN's rate annealed over the run, they differ from its first update)."""
+
+    def history(episodes: int) -> list[dict]:
+        cfg = dataclasses.replace(tiny(name), episodes=episodes)
+        if name == "dqn":
+            cfg = dataclasses.replace(cfg, lr_decay_episodes=4)
+        grader = ConstrainedScorer(scorer, 0.1) if name == "safe" else None
+        rec = learn_on_stream(
+            make_learner(name, cfg, PAPER, 5),
+            PAPER,
+            scorer,
+            episodes=episodes,
+            seed=5,
+            greedy_scorer=grader,
+        )
+        return [{k: v for k, v in r.items() if k != "wall_seconds"} for r in rec.history]
+
+    short, long = history(3), history(6)
+    assert json.dumps(long[: len(short)]) == json.dumps(short)
+
+
 @pytest.mark.parametrize("full", [True, False], ids=["every_state", "sample_states"])
 @pytest.mark.parametrize("double", [True, False])
 def test_the_one_stream_dqn_loss_is_the_td_mean_square_of_its_sample(double, full):
@@ -298,8 +323,8 @@ def test_above_full_pass_states_the_one_stream_dqn_acts_on_the_network_as_a_tabl
 
 def dqn_first_99(seed: int, stop_after: int, **algo) -> int | None:
     """The episode at which the default one-stream DQN's greedy policy first reaches 0.99 of the
-    optimum on the paper scenario, its run of the default 300 episodes (the learning rate anneals
-    over them) stopped after ``stop_after``; None if it did not."""
+    optimum on the paper scenario, its run of the default 300 episodes stopped after
+    ``stop_after``; None if it did not."""
     scorer = exact_scorer(PAPER)
     cfg = configs.learner_config("dqn", algo)
     done = []

@@ -44,8 +44,10 @@ class StreamDQNConfig:
             rewards, subtracted from every sampled reward and moved after every burst by (1 − γ)
             times the mean greedy value of the states just visited, so that the values the
             network fits stay near zero (``irdrc.agents.offpolicy.RewardCenter``).
-        lr, lr_end: Adam's learning rate, from ``lr`` to ``lr_end`` linearly over the run's env
-            steps.
+        lr, lr_end: Adam's learning rate, from ``lr`` to ``lr_end`` linearly …
+        lr_decay_episodes: … over this many episodes' env steps, then ``lr_end``: counted in
+            episodes, not over the run, so that a run's first episodes do not depend on how long
+            it is (a vehicle on the road does not know when it will stop learning).
         max_grad_norm: gradient clipping (0: off).
         tau: the target network's Polyak rate per update.
         policy_network: whose greedy table is the learner's policy, the one scored: ``target``
@@ -68,6 +70,7 @@ class StreamDQNConfig:
     reward_centering: float = 1e-3
     lr: float = 1e-3
     lr_end: float = 1e-5
+    lr_decay_episodes: int = 200
     max_grad_norm: float = 0.0
     tau: float = 0.01
     policy_network: str = "target"
@@ -93,6 +96,7 @@ class StreamDQNConfig:
                 ("gamma", 0, 1, checks.OPEN_HI),
                 ("lr", 0, 1, {"open_lo": True, "open_hi": True}),
                 ("lr_end", 0, 1, checks.OPEN_HI),
+                ("lr_decay_episodes", 1, 10**7, checks.INT),
                 ("max_grad_norm", 0, 1e12, {}),
                 ("tau", 0, 1, {}),
                 ("reward_centering", 0, 1, checks.OPEN_HI),

@@ -68,7 +68,7 @@ class StreamDQN(StreamLearner):
         torch.manual_seed(seed)
         self.num_states = S = params.env.num_states
         self.full = S <= FULL_PASS_STATES
-        self.total_steps = cfg.episodes * params.env.horizon
+        self.decay_steps = cfg.lr_decay_episodes * params.env.horizon
 
         # 1. model: every state's observation, scaled → MLP → one Q-value per action
         self.obs = decode_state(torch.arange(S), params.env.factor_levels).to(torch.float32)
@@ -88,7 +88,7 @@ class StreamDQN(StreamLearner):
         self.target = copy.deepcopy(self.qnet).requires_grad_(False)
         self._online_params = [p.data for p in self.qnet.parameters()]
         self._target_params = [p.data for p in self.target.parameters()]
-        # 6. optimiser: Adam, its learning rate annealed over the run's env steps
+        # 6. optimiser: Adam, its learning rate annealed over ``lr_decay_episodes`` episodes
         self.optimizer = torch.optim.Adam(self.qnet.parameters(), lr=cfg.lr, fused=True)
 
         self.log: list[tuple[int, int, float, int]] = []  # every transition, in order
@@ -164,7 +164,7 @@ class StreamDQN(StreamLearner):
     def _learn(self) -> None:
         """A burst of updates on replay samples, then the acting table anew."""
         cfg = self.cfg
-        progress = min(1.0, self.steps / self.total_steps)
+        progress = min(1.0, self.steps / self.decay_steps)
         for group in self.optimizer.param_groups:
             group["lr"] = cfg.lr + (cfg.lr_end - cfg.lr) * progress
         for _ in range(cfg.updates):

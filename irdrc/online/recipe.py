@@ -24,8 +24,7 @@ NAME = "online"
 RESUMABLE = True
 
 ADVICE = {
-    "dqn": "learner=posterior (told the model's form, it needs far fewer episodes: docs/ONLINE.md)"
-    " or algo.episodes=600",
+    "dqn": "learner=posterior (told the model's form, it needs far fewer episodes: docs/ONLINE.md)",
     "dqn_paper": "learner=dqn (our profile on one stream: docs/ONLINE.md)",
     "qlearning": "learner=posterior (docs/ONLINE.md) or algo.episodes=1200",
     "qlearning_paper": "learner=qlearning (step sizes 1/k: docs/ONLINE.md)",

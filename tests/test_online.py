@@ -184,6 +184,11 @@ def tiny(name: str) -> object:
     return configs.learner_config(name, base)
 
 
+def numbers(rows: list[dict]) -> list[dict]:
+    """A run's evaluations without their wall times: what two equal runs share number for number."""
+    return [{k: v for k, v in r.items() if k != "wall_seconds"} for r in rows]
+
+
 @pytest.mark.parametrize("name", ["dqn", "dqn_paper", "posterior", "qlearning", "safe"])
 def test_a_resumed_run_is_the_uninterrupted_run(scorer, name):
     """Checkpointed after 3 of 6 episodes (through torch.save / weights_only load, as a checkpoint
@@ -219,9 +224,6 @@ def test_a_resumed_run_is_the_uninterrupted_run(scorer, name):
         greedy_scorer=grader,
     )
 
-    def numbers(rows):
-        return [{k: v for k, v in r.items() if k != "wall_seconds"} for r in rows]
-
     assert json.dumps(numbers(resumed.history)) == json.dumps(numbers(whole.history))
     assert resumed.episode_rewards == whole.episode_rewards
 
@@ -245,7 +247,7 @@ def test_a_longer_run_begins_as_the_shorter_one(scorer, name):
             seed=5,
             greedy_scorer=grader,
         )
-        return [{k: v for k, v in r.items() if k != "wall_seconds"} for r in rec.history]
+        return numbers(rec.history)
 
     short, long = history(3), history(6)
     assert json.dumps(long[: len(short)]) == json.dumps(short)

@@ -251,6 +251,15 @@ def test_fleet_recipe_files_and_tables(tmp_path):
     assert "fleet reward / the centralised optimum" in r.stdout
     # 256 fleet steps end far below the optimum: the warning names the one override to try
     assert "warning: qmix ends at" in r.stdout and "learner=joint env.observe=full" in r.stdout
+    # a finished run is refused on resume, unless its files are gone: then it writes them again
+    resume = [f"resume={out / 'checkpoint.pt'}", "progress=false"]
+    r = run_recipe("fleet.py", *resume, cwd=tmp_path)
+    assert r.returncode == 2 and "nothing left to train" in r.stderr, r.stderr[-2000:]
+    (out / "summary.json").unlink()
+    r = run_recipe("fleet.py", *resume, cwd=tmp_path)
+    assert r.returncode == 0, r.stderr[-2000:]
+    again = json.loads((out / "summary.json").read_text())
+    assert again["env_steps"] == 256 and again["metrics"] == s["metrics"]
 
 
 @pytest.mark.e2e

@@ -500,10 +500,15 @@ def test_the_recipe_writes_the_ledger_everywhere(tmp_path, capsys):
     assert (tmp_path / "checkpoint.pt").is_file() and (tmp_path / "learning_curve.png").is_file()
     out = capsys.readouterr().out
     assert "the price of learning over 3 episodes" in out and "where the optimum misses" in out
-    # nothing left to learn at 3 episodes; a longer run goes on from the checkpoint
+    # nothing left to train at 3 episodes; a longer run goes on from the checkpoint
     resume = [f"resume={tmp_path / 'checkpoint.pt'}", "logger=none", "progress=false"]
     assert app.execute(recipe, resume) == 2
-    assert "nothing left to learn" in capsys.readouterr().err
+    assert "nothing left to train" in capsys.readouterr().err
+    # … unless its files are gone (a crash while they were written): then it writes them again
+    (tmp_path / "summary.json").unlink()
+    assert app.execute(recipe, resume) == 0
+    again = json.loads((tmp_path / "summary.json").read_text())
+    assert again["episodes"] == 3 and again["ledger"] == summary["ledger"]
     assert app.execute(recipe, [*resume, "algo.episodes=5"]) == 0
     rows = list(csv.DictReader((tmp_path / "metrics.csv").open()))
     assert [int(r["episodes"]) for r in rows] == [0, 1, 2, 3, 4, 5]

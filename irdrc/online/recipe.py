@@ -18,6 +18,7 @@ from irdrc.core.checks import build
 from irdrc.core.params import Params
 from irdrc.online.configs import LEARNERS, learner_config
 from irdrc.runs.compose import Composed
+from irdrc.runs.resume import refuse_finished
 from irdrc.runs.sections import ONE_VEHICLE, Learning, Plot, check_eval_period, check_exact
 
 NAME = "online"
@@ -87,11 +88,10 @@ def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
             )
     explicit = "eval.every_frames" in composed.explicit
     check_eval_period(cfg.eval.every_frames, cfg.total_frames, explicit)
-    if resume is not None and int(resume.get("episode", 0)) >= cfg.algo.episodes:
-        raise ValueError(
-            f"resume={cfg.resume} is at episode {resume.get('episode')}, algo.episodes="
-            f"{cfg.algo.episodes}: nothing left to learn; raise algo.episodes to go on"
-        )
+    if resume is not None:
+        episodes = cfg.algo.episodes
+        done = int(resume.get("episode", 0))
+        refuse_finished(cfg.resume, done, episodes, "algo.episodes", episodes, unit="episodes")
     return cfg
 
 

@@ -15,7 +15,7 @@ from typing import Any
 from irdrc.agents.configs import DQNConfig
 from irdrc.core.checks import build
 from irdrc.runs.compose import Composed
-from irdrc.runs.resume import nothing_left
+from irdrc.runs.resume import refuse_finished
 from irdrc.runs.sections import (
     OneVehicleLearning,
     algo_field,
@@ -64,14 +64,9 @@ def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
     check_memory(cfg.algo)
     explicit = "eval.every_frames" in composed.explicit
     check_eval_period(cfg.eval.every_frames, cfg.algo.total_frames, explicit)
-    if resume is not None and nothing_left(
-        cfg.resume, int(resume["frames"]), cfg.algo.total_frames
-    ):
-        raise ValueError(
-            f"resume={cfg.resume} is at {resume['frames']} env steps, algo.total_frames="
-            f"{cfg.algo.total_frames}: nothing left to train; raise algo.total_frames to train it "
-            "longer"
-        )
+    if resume is not None:
+        total = cfg.algo.total_frames
+        refuse_finished(cfg.resume, int(resume["frames"]), total, "algo.total_frames", total)
     return cfg
 
 

@@ -16,7 +16,7 @@ from irdrc.core.checks import INT, build, check_numbers
 from irdrc.core.params import Params
 from irdrc.runs.compose import Composed
 from irdrc.runs.grid import is_scenario_key, parse_grid
-from irdrc.runs.resume import nothing_left
+from irdrc.runs.resume import refuse_finished
 from irdrc.runs.sections import (
     ONE_VEHICLE,
     Learning,
@@ -88,10 +88,9 @@ def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
     cfg.eval.check_cost(cfg.params)
     total = cfg.algo.episodes * cfg.params.env.horizon
     check_eval_period(cfg.eval.every_frames, total, "eval.every_frames" in composed.explicit)
-    if resume is not None and nothing_left(cfg.resume, int(resume["frames"]), total):
-        raise ValueError(
-            f"resume={cfg.resume} is at {resume['frames']} env steps, algo.episodes="
-            f"{cfg.algo.episodes}: nothing left to train; raise algo.episodes to train it longer"
+    if resume is not None:
+        refuse_finished(
+            cfg.resume, int(resume["frames"]), total, "algo.episodes", cfg.algo.episodes
         )
     return cfg
 

@@ -114,3 +114,20 @@ def nothing_left(resume_path: Any, done: int, total: int) -> bool:
     whose files are missing (a signal during the final evaluation, a crash) is finished again."""
     written = (Path(str(resume_path)).expanduser().parent / "summary.json").is_file()
     return done >= total and written
+
+
+def refuse_finished(
+    resume_path: Any, done: int, total: int, key: str, value: int, unit: str = "env steps"
+) -> None:
+    """Refuse a resumed run with nothing left to do (``nothing_left``: ``done`` of ``total``
+    ``unit`` trained, its files written), naming the key ``key`` (now ``value``) that trains it
+    longer.
+
+    Raises:
+        ValueError: the run is finished.
+    """
+    if nothing_left(resume_path, done, total):
+        raise ValueError(
+            f"resume={resume_path} is at {done} {unit}, {key}={value}: nothing left to train; "
+            f"raise {key} to train it longer"
+        )

@@ -19,7 +19,7 @@ from irdrc.agents.configs import OBJECTIVES, LagrangianConfig, OffPolicyConfig
 from irdrc.core import checks
 from irdrc.core.params import Params
 from irdrc.runs.compose import Composed
-from irdrc.runs.resume import nothing_left
+from irdrc.runs.resume import refuse_finished
 from irdrc.runs.sections import (
     ONE_VEHICLE,
     Learning,
@@ -175,13 +175,9 @@ def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
         check_shares_fit(cfg.params)
     if cfg.learner == "dqn_lagrangian":
         check_dense(cfg.params)  # the learner's exact scorer needs the dense model
-    if resume is not None and nothing_left(
-        cfg.resume, int(resume["frames"]), cfg.algo.dqn.total_frames
-    ):
-        raise ValueError(
-            f"resume={cfg.resume} is at {resume['frames']} env steps, algo.total_frames="
-            f"{cfg.algo.dqn.total_frames}: nothing left to train"
-        )
+    if resume is not None:
+        total = cfg.algo.dqn.total_frames
+        refuse_finished(cfg.resume, int(resume["frames"]), total, "algo.total_frames", total)
     return cfg
 
 

@@ -23,6 +23,7 @@ from irdrc.agents.configs import (
 )
 from irdrc.core.checks import INT, build, check_choice, check_numbers
 from irdrc.runs.compose import Composed
+from irdrc.runs.resume import refuse_finished
 from irdrc.runs.sections import (
     A_FLEET,
     Learning,
@@ -114,12 +115,9 @@ def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
             f"eval.every_frames={cfg.eval.every_frames} is more than the run's {cfg.total} "
             f"{UNIT}; use a smaller value"
         )
-    done = int(resume.get("env_steps", resume["frames"])) if resume is not None else 0
-    if resume is not None and done >= cfg.total:
-        raise ValueError(
-            f"resume={cfg.resume} is at {done} {UNIT}, algo.total_frames={cfg.total}: nothing "
-            "left to train; raise algo.total_frames to train it longer"
-        )
+    if resume is not None:
+        done = int(resume.get("env_steps", resume["frames"]))
+        refuse_finished(cfg.resume, done, cfg.total, "algo.total_frames", cfg.total, unit=UNIT)
     return cfg
 
 

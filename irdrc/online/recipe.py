@@ -139,16 +139,10 @@ def run(cfg: Config, run) -> dict[str, Any]:
         )
     summary = finish_learner(
         run,
-        LearnerRun(
-            name=cfg.algo.name,
-            record=record,
-            scenarios=[cfg.params],
-            scorers=[scorer],
-            points=[{}],
-            num_learners=1,
-            eval=cfg.eval,
-            seed=cfg.seed,
-            plot_format=cfg.plot.format,
+        LearnerRun.single(
+            cfg,
+            record,
+            scorer,
             advice=ADVICE[cfg.learner],
             plot=plot_run,
             end_check=(

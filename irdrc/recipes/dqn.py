@@ -85,20 +85,7 @@ def run(cfg: Config, run) -> dict[str, Any]:
     best = continuum_optimum(cfg.params, cfg.optimum_gamma)  # with G levels, else None
     final = record.history[-1]["optimality_ratio"]  # the final policy's, exact
     log_scalars(logger, {"final/optimality_ratio": final}, record.env_steps)
-    summary = finish_learner(
-        run,
-        LearnerRun(
-            name=cfg.algo.name,
-            record=record,
-            scenarios=[cfg.params],
-            scorers=[scorer],
-            points=[{}],
-            num_learners=1,
-            eval=cfg.eval,
-            seed=cfg.seed,
-            plot_format=cfg.plot.format,
-        ),
-    )
+    summary = finish_learner(run, LearnerRun.single(cfg, record, scorer))
     if best is not None:  # G levels read against the optimum over ρ ∈ [0, 1] (MODEL.md § D)
         learned, levels = summary["metrics"]["avg_reward"], summary["optimal"]["avg_reward"]
         summary["continuum"] = {

@@ -75,6 +75,23 @@ class LearnerRun:
         if self.advice is None and self.name in ADVICE:  # fitted to this run
             self.advice = ADVICE[self.name].format(twice=2 * int(self.record.env_steps))
 
+    @classmethod
+    def single(cls, cfg: Any, record: RunRecord, scorer: Scorer, **rest: Any) -> LearnerRun:
+        """One learner on one scenario, from a recipe's config (``algo.name``, ``params``,
+        ``eval``, ``seed``, ``plot.format``); ``rest`` sets the optional attributes."""
+        return cls(
+            name=cfg.algo.name,
+            record=record,
+            scenarios=[cfg.params],
+            scorers=[scorer],
+            points=[{}],
+            num_learners=1,
+            eval=cfg.eval,
+            seed=cfg.seed,
+            plot_format=cfg.plot.format,
+            **rest,
+        )
+
     @property
     def final_policy(self):
         """Learner 0's final policy: its randomised [S, A] probabilities where it has them, else

@@ -59,6 +59,7 @@ def refused(recipe: str, *overrides: str) -> str:
         ("solve", ["tol=nan"], "tol=nan"),
         ("tradeoff", ["search.lo=10", "search.hi=5"], "search.lo=10"),
         ("figure2", ["claim3_r4=[-5]"], "claim3_r4[0]=-5"),
+        ("bench_online", ["scenarios=paper"], "(one item: scenarios=[paper])"),
         ("dqn", ["algo.updates_per_batch=0"], "algo.updates_per_batch=0"),
         ("qlearning", ["algo.init_q=nan"], "algo.init_q=nan"),
         ("qlearning", ["algo.epsilon_decay_episodes=2.5"], "algo.epsilon_decay_episodes=2.5"),

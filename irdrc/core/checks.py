@@ -90,7 +90,8 @@ def check_list(
     """``value`` as a tuple if it is a list (non-empty unless ``empty``; of ``length`` items when
     given), each item passed through ``item(f"{key}[{i}]", x)``; else a ``ValueError``."""
     if not isinstance(value, list | tuple):
-        raise ValueError(f"{key}={value!r} must be a list")
+        hint = f" (one item: {key}=[{value}])" if isinstance(value, str | int | float) else ""
+        raise ValueError(f"{key}={value!r} must be a list{hint}")
     if length is not None and len(value) != length:
         raise ValueError(f"{key}={list(value)!r} must be a list of {length} values")
     if not value and not empty:

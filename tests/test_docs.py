@@ -28,6 +28,7 @@ from irdrc.runs.grid import override_key
 ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"
 DOCS = sorted((ROOT / "docs").glob("*.md"))
+LAB = sorted((ROOT / "docs" / "lab").glob("*.md"))
 
 COMMAND = re.compile(
     r"(?:python|\.venv/bin/python) recipes/(\w+)\.py([^`\n]*)|`irdrc (\w+)([^`\n]*)"
@@ -56,14 +57,18 @@ TAG_NAME = re.compile(r"(?:tag|tagged|at-tag:) `?([a-z0-9]+(?:-[a-z0-9]+)*-v\d+)
 TAG_ROW = re.compile(r"^\| `([\w.-]+)` \| ([0-9a-f]{7,40}) \|", re.M)
 
 
-def test_every_tag_a_doc_names_has_its_commit_in_defaults():
-    """A clone may lack the tags: DEFAULTS.md's table names each one's commit, and that commit is
-    in this history."""
-    table = dict(TAG_ROW.findall((ROOT / "docs" / "DEFAULTS.md").read_text()))
-    named = {t for doc in [README, *DOCS] for t in TAG_NAME.findall(doc.read_text())}
+REGISTER = ROOT / "docs" / "lab" / "removed-options.md"
+"""The register of removed options: each tag that runs one, with its commit."""
+
+
+def test_every_tag_a_doc_names_has_its_commit_in_the_register():
+    """A clone may lack the tags: the register's table names each one's commit, and that commit is
+    in this history. The lab notes are read too: they name the tags of what they measured."""
+    table = dict(TAG_ROW.findall(REGISTER.read_text()))
+    named = {t for doc in [README, *DOCS, *LAB] for t in TAG_NAME.findall(doc.read_text())}
     assert named, "the pattern finds no tag: it no longer matches how the docs name tags"
     assert named <= set(table), (
-        f"tags without a commit in DEFAULTS.md: {sorted(named - set(table))}"
+        f"tags without a commit in {REGISTER.name}: {sorted(named - set(table))}"
     )
     shallow = subprocess.run(
         ["git", "rev-parse", "--is-shallow-repository"], cwd=ROOT, capture_output=True, text=True
@@ -246,7 +251,7 @@ def anchors(path: Path) -> set[str]:
     return {slug(h) for h in re.findall(r"^#+ (.+)$", path.read_text(), flags=re.M)}
 
 
-@pytest.mark.parametrize("doc", [README, *DOCS], ids=lambda p: p.name)
+@pytest.mark.parametrize("doc", [README, *DOCS, *LAB], ids=lambda p: f"{p.parent.name}/{p.name}")
 def test_links_point_at_files_and_headings_that_exist(doc):
     text = re.sub(r"```.*?```", "", doc.read_text(), flags=re.S)
     for target in re.findall(r"\]\(([^)\s]+)\)", text):
@@ -254,9 +259,11 @@ def test_links_point_at_files_and_headings_that_exist(doc):
             continue
         path, _, anchor = target.partition("#")
         file = (doc.parent / path).resolve() if path else doc
-        assert file.exists(), f"{doc.name} links to {target}: no such file"
+        assert file.exists(), f"{doc.relative_to(ROOT)} links to {target}: no such file"
         if anchor and file.suffix == ".md":
-            assert anchor in anchors(file), f"{doc.name} links to {target}: no such heading"
+            assert anchor in anchors(file), (
+                f"{doc.relative_to(ROOT)} links to {target}: no such heading"
+            )
 
 
 def test_readme_is_a_door():

@@ -48,9 +48,9 @@ def current(text: str) -> str:
 def test_at_tag_regions_are_closed_and_cut():
     text = "a `algo.lr`\n<!-- at-tag: v1 -->`algo.n_steps=3`\n<!-- /at-tag -->\nb"
     assert current(text) == "a `algo.lr`\n\nb"
-    for doc in [README, *DOCS]:
+    for doc in [README, *DOCS, *LAB]:
         body = doc.read_text()
-        assert body.count("<!-- at-tag:") == body.count("<!-- /at-tag -->"), doc.name
+        assert body.count("<!-- at-tag:") == body.count("<!-- /at-tag -->"), doc.relative_to(ROOT)
 
 
 TAG_NAME = re.compile(r"(?:tag|tagged|at-tag:) `?([a-z0-9]+(?:-[a-z0-9]+)*-v\d+)`?")

@@ -557,20 +557,53 @@ def test_the_safe_recipe_states_the_plans_confidence(tmp_path, capsys):
     assert "of the LP's packets (below 0.95" in out  # … and the warning says so
 
 
+def test_a_safe_run_is_not_told_it_fell_from_a_plan_that_broke_its_target(tmp_path, capsys):
+    """Early in a ``learner=safe`` run the greedy plan can send more than the LP by breaking the
+    target; the end warning reads the best only among the plans that met it."""
+    import csv
+
+    from irdrc.online import recipe
+    from irdrc.runs import app
+
+    args = ["learner=safe", "algo.target_miss=0.1", "algo.episodes=3", "logger=none"]
+    assert app.execute(recipe, [*args, f"hydra.run.dir={tmp_path}", "progress=false"]) == 0
+    rows = list(csv.DictReader((tmp_path / "metrics.csv").open()))
+    final = float(rows[-1]["lp_ratio"])
+    # the case this test is about: an evaluation above the final plan that broke the target
+    assert any(float(r["lp_ratio"]) > final + 0.1 and r["meets_target"] == "0.0" for r in rows)
+    out = capsys.readouterr().out
+    assert f"{final:.4f} of the LP's packets (below 0.95)" in out and "below its best" not in out
+
+
 def test_a_safe_run_is_warned_against_the_lp():
     from irdrc.online.recipe import SAFE_END_THRESHOLD
     from irdrc.runs.report import end_warning
 
     def warn(rows):
         return end_warning(
-            rows, "algo.episodes=600", key="lp_ratio", threshold=SAFE_END_THRESHOLD, of="the LP's"
+            rows,
+            "algo.episodes=600",
+            key="lp_ratio",
+            threshold=SAFE_END_THRESHOLD,
+            of="the LP's",
+            best_among="meets_target",
         )
 
-    assert warn([{"lp_ratio": 0.5, "env_steps": 0}, {"lp_ratio": 0.96, "env_steps": 400}]) is None
-    warning = warn([{"lp_ratio": 0.96, "env_steps": 400}, {"lp_ratio": 0.9, "env_steps": 800}])
+    def row(ratio, steps, meets=1.0):
+        return {"lp_ratio": ratio, "env_steps": steps, "meets_target": meets}
+
+    assert warn([row(0.5, 0), row(0.96, 400)]) is None
+    warning = warn([row(0.96, 400), row(0.9, 800)])
     assert warning.startswith("warning: the final greedy policy is 0.9000 of the LP's (below 0.95")
     assert "its best evaluation was 0.9600 at 400 env steps" in warning
     assert warning.endswith("try algo.episodes=600")
+    # a plan sending more than the LP breaks the target: it is no best the learner fell from
+    early = warn([row(0.0, 0), row(1.2, 400, meets=0.0), row(0.93, 800)])
+    assert "below 0.95)" in early and "below its best" not in early
+    assert "its best evaluation was 0.9300 at 800 env steps" in early
+    assert warn([row(0.0, 0), row(1.2, 400, meets=0.0), row(0.97, 800)]) is None
+    never = warn([row(1.2, 400, meets=0.0), row(0.9, 800, meets=0.0)])
+    assert "none of its evaluations had meets_target" in never
 
 
 @pytest.mark.parametrize(

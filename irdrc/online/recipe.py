@@ -152,6 +152,7 @@ def run(cfg: Config, run) -> dict[str, Any]:
                     key="lp_ratio",
                     threshold=SAFE_END_THRESHOLD,
                     of="the LP's packets",
+                    best_among="meets_target",
                 )
                 if greedy_scorer is not None
                 else None

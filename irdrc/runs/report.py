@@ -353,13 +353,16 @@ def end_warning(
     key: str = "optimality_ratio",
     threshold: float | None = None,
     of: str = "the optimum",
+    best_among: str | None = None,
 ) -> str | None:
     """One warning line when a learner's final greedy policy is below ``threshold`` (default
     ``END_THRESHOLD``) of the optimum, or more than ``END_SLACK`` below its own best evaluation,
     saying where that best evaluation was and, with ``advice``, the override to try; ``None`` when
     every learner ends well. ``key`` is the history's column read and ``of`` what it is a share of
-    (a learner held to a constraint: ``lp_ratio``, "the LP's packets"). The exact model only
-    scores: the warning does not change which network the run returns."""
+    (a learner held to a constraint: ``lp_ratio``, "the LP's packets"). With ``best_among`` (a
+    history column, ``meets_target``), only the evaluations where it is true count as a best: a
+    plan that breaks its target is not a best to fall from. The exact model only scores: the
+    warning does not change which network the run returns."""
     threshold = END_THRESHOLD if threshold is None else threshold
     runs: dict[int, list[dict[str, Any]]] = {}
     for e in history:
@@ -367,19 +370,20 @@ def end_warning(
     bad = []
     for learner, hist in sorted(runs.items()):
         final = float(hist[-1][key])
-        best = max(hist, key=lambda e: float(e[key]))
-        gap = float(best[key]) - final
+        eligible = [e for e in hist if best_among is None or float(e[best_among]) > 0]
+        best = max(eligible, key=lambda e: float(e[key])) if eligible else None
+        gap = float(best[key]) - final if best is not None else 0.0
         if final < threshold or gap > END_SLACK:
             why = [f"below {threshold}"] if final < threshold else []
             if gap > END_SLACK:
                 why.append(f"{gap:.4f} below its best")
-            bad.append(
-                (
-                    learner,
-                    f"{final:.4f} of {of} ({', '.join(why)}); its best evaluation "
-                    f"was {float(best[key]):.4f} at {int(best['env_steps'])} env steps",
-                )
+            where = (
+                f"its best evaluation was {float(best[key]):.4f} at {int(best['env_steps'])} "
+                "env steps"
+                if best is not None
+                else f"none of its evaluations had {best_among}"
             )
+            bad.append((learner, f"{final:.4f} of {of} ({', '.join(why)}); {where}"))
     if not bad:
         return None
     tail = f"; try {advice}" if advice else ""

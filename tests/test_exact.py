@@ -8,7 +8,7 @@ import pytest
 import torch
 from conftest import assert_chi2
 
-from irdrc import DFRCEnv, Params
+from irdrc import DFRCEnv, Params, state_index
 from irdrc.core import policies
 from irdrc.core.evaluate import evaluate
 from irdrc.core.exact import (
@@ -283,26 +283,89 @@ def test_exact_model_is_float64_from_the_parameters_on(name):
 
 def test_closest_decisions_are_the_smallest_margins_and_their_cost_is_exact():
     """The table the solve recipe prints: rows in order of the smallest margin |Q*(comm) −
-    Q*(radar)| over queue lengths, and each row's ratio is the optimum with the other mode taken
-    at that factor combination (every d), evaluated here independently."""
-    from irdrc.core.exact import stationary_metrics, value_iteration
+    Q*(radar)| over queue lengths; each row's ratio is the optimum with the other mode taken at
+    that factor combination (every d), evaluated here independently; the samples that tell the
+    modes apart are (1.96·(σ_comm + σ_radar)/margin)² at the combination's closest queue length,
+    and the episodes are those samples over the optimum's visits per episode."""
+    from irdrc.core.exact import (
+        one_step_spread,
+        stationary_metrics,
+        stationary_occupancy,
+        value_iteration,
+    )
     from irdrc.runs.tables import closest_decisions
 
     params = Params.from_overrides({"env.p1.speed": 1.0})
     model = build_model(params)
     sol = value_iteration(model, gamma=0.99, tol=1e-9)
-    lines = closest_decisions(model, sol.q, sol.policy, count=4).splitlines()
+    lines = closest_decisions(model, sol, 0.99, count=4).splitlines()
     assert lines[0].startswith("c r w v m") and len(lines) == 5
     nf = model.num_states // (params.env.queue_capacity + 1)
-    margin = (sol.q[0] - sol.q[1]).abs().view(-1, nf).min(0).values
+    margins = (sol.q[0] - sol.q[1]).abs().view(-1, nf)
+    margin = margins.min(0).values
     best = stationary_metrics(model, sol.policy).avg_reward
+    spread = one_step_spread(model, sol.values, 0.99).view(2, -1, nf)
+    visits = params.env.horizon * stationary_occupancy(model, sol.policy).sum(0).view(-1, nf).sum(0)
     for rank, line in enumerate(lines[1:]):
         f = int(torch.argsort(margin)[rank])
         bits = line[:9]
         assert [int(b) for b in bits.split()] == [(f >> k) & 1 for k in (4, 3, 2, 1, 0)]
-        assert float(line.split()[7]) == pytest.approx(float(margin[f]), abs=1e-4)
+        cells = line[9:].split()
+        assert float(cells[2]) == pytest.approx(float(margin[f]), abs=1e-4)
         flipped = sol.policy.view(-1, nf).clone()
         flipped[:, f] = 1 - flipped[:, f]
         ratio = stationary_metrics(model, flipped.reshape(-1)).avg_reward / best
-        assert float(line.split()[-1]) == pytest.approx(ratio, abs=1e-4)
+        assert float(cells[6]) == pytest.approx(ratio, abs=1e-4)
         assert ratio < 1.0  # the optimum's own mode is the better one there
+        d = int(margins[:, f].argmin())
+        sc, sr = float(spread[0, d, f]), float(spread[1, d, f])
+        assert [float(cells[7].rstrip(",")), float(cells[8])] == pytest.approx([sc, sr], abs=0.01)
+        need = (1.96 * (sc + sr) / float(margin[f])) ** 2
+        # the last two columns, right-aligned in 14 and 8 characters, thousands split by spaces
+        samples = float(line[-24:-10].replace(" ", ""))
+        assert samples == pytest.approx(need, abs=0.5)
+        episodes = float(line[-8:].replace(" ", ""))
+        assert episodes == pytest.approx(need / float(visits[f]), abs=0.5)
+
+
+@pytest.mark.parametrize(
+    "overrides",
+    [
+        {},
+        {"env.detection_prob": 0.9, "env.false_alarm_prob": 0.05, "reward.r5": 10},
+        {"env.p1.speed": 1.0, "reward.r4": 50},
+    ],
+    ids=["paper", "imperfect_radar", "speed1_r4_50"],
+)
+def test_one_step_spread_is_the_simulators(overrides):
+    """``one_step_spread`` against the simulator: from a calm state, a risky one and one with an
+    object nearby (the radar reaction), each action 200 000 steps of ``Dynamics``, the sample
+    standard deviation of r + γ·V*(s′). Tolerance: the rarest outcome here (an event, p ≈ 0.02)
+    gives the one-step value a kurtosis of about 1/p ≈ 50, so the sample sd's relative standard
+    error is about ½·√(50/200 000) ≈ 0.8 %; 4 % is five of them. Without Var[V*(s′)] the calm
+    state's radar spread is 12 % lower, and without the false alarms' r5² the imperfect radar's
+    calm spread is several times lower, so either mistake fails."""
+    from irdrc.core.dynamics import Dynamics
+    from irdrc.core.exact import one_step_spread, value_iteration
+
+    params = Params.from_overrides(overrides)
+    model = build_model(params)
+    sol = value_iteration(model, gamma=0.99, tol=1e-9)
+    spread = one_step_spread(model, sol.values, 0.99)
+    dyn = Dynamics(params)
+    gen = torch.Generator().manual_seed(0)
+    n = 200_000
+    calm, risky, nearby = state_index(2, 0, 0, 0, 0, 0), state_index(5, 1, 1, 0, 1, 0), 1
+    for s in (calm, risky, nearby):
+        for a in (0, 1):
+            out = dyn.step(torch.full((n,), s), torch.full((n,), a), gen)
+            y = out.reward.double() + 0.99 * sol.values[out.state]
+            assert float(y.std()) == pytest.approx(float(spread[a, s]), rel=0.04), (s, a)
+
+
+def test_one_step_spread_is_for_a_scenarios_binary_model():
+    from irdrc.core.exact import one_step_spread
+
+    model = build_model(Params(), shares=(0.0, 0.5, 1.0))
+    with pytest.raises(ValueError, match="binary model"):
+        one_step_spread(model, torch.zeros(model.num_states), 0.99)

@@ -38,6 +38,7 @@ class ModelTables:
         detect_reward: [F] reward of a detected event, r4·(b + 1), b = Σ of the event factors'
             levels.
         R: [2, F] expected reward.
+        R2: [2, F] expected squared reward (its spread: ``irdrc.core.exact.one_step_spread``).
         missed: [2, F] expected missed events (comm: the event; radar: the event undetected).
         false_alarm: [2, F] expected false alarms (radar without an event, times P_fa).
         nu: [2, F] link capacity ν (0 in radar mode).
@@ -53,6 +54,7 @@ class ModelTables:
     comm_reward: torch.Tensor
     detect_reward: torch.Tensor
     R: torch.Tensor
+    R2: torch.Tensor
     missed: torch.Tensor
     false_alarm: torch.Tensor
     nu: torch.Tensor
@@ -140,6 +142,7 @@ def model_tables(params: Params) -> ModelTables:
     if pfa > 0.0:
         R1 = R1 - (1.0 - event) * pfa * rw.r5
     R = torch.stack([R0, R1])
+    R2 = squared_reward(event, comm_reward, detect_reward, pd, pfa, rw.r3, rw.r5)
     missed = torch.stack([event, event * (1.0 - pd)])
     false_alarm = torch.stack([torch.zeros_like(event), (1.0 - event) * pfa])
     nu = torch.stack([_f64(specs[c_i].packets)[lv[c_i]], torch.zeros(n, dtype=torch.float64)])
@@ -152,9 +155,30 @@ def model_tables(params: Params) -> ModelTables:
         comm_reward=comm_reward,
         detect_reward=detect_reward,
         R=R,
+        R2=R2,
         missed=missed,
         false_alarm=false_alarm,
         nu=nu,
         rate=rates[lv[-1]],
         upper=tuple(upper),
+    )
+
+
+def squared_reward(
+    event: torch.Tensor,
+    comm_reward: torch.Tensor,
+    detect_reward: torch.Tensor,
+    pd: float,
+    pfa: float,
+    r3: float,
+    r5: float,
+) -> torch.Tensor:
+    """[2, F] the expected squared reward of a comm and a radar step: comm earns ``comm_reward``
+    without an event and −r3 with one; radar earns ``detect_reward`` for a detected event (w.p.
+    ``pd``), −r3 for one it misses, −r5 for a false alarm (w.p. ``pfa`` without an event), else 0."""
+    return torch.stack(
+        [
+            (1.0 - event) * comm_reward**2 + event * r3**2,
+            event * (pd * detect_reward**2 + (1.0 - pd) * r3**2) + (1.0 - event) * pfa * r5**2,
+        ]
     )

@@ -41,7 +41,7 @@ from irdrc.core.dynamics import decode_state
 from irdrc.core.exact.factored import FactoredModel, factored_model
 from irdrc.core.params import Params
 from irdrc.core.stream import Step
-from irdrc.core.tables import ModelTables
+from irdrc.core.tables import ModelTables, squared_reward
 
 
 @dataclass
@@ -316,6 +316,7 @@ class FormCounts:
             comm_reward=r_comm,
             detect_reward=detect,
             R=torch.stack([R0, R1]),
+            R2=squared_reward(e, r_comm, detect, pd, pfa, est.miss_penalty, est.alarm_cost),
             missed=torch.stack([e, e * (1.0 - pd)]),
             false_alarm=torch.stack([zeros, (1.0 - e) * pfa]),
             nu=torch.stack([est.packets[c], zeros]),

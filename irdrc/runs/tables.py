@@ -276,24 +276,31 @@ def share_table(model: Any, rho: torch.Tensor) -> str:
     return "\n".join(lines)
 
 
-def closest_decisions(model: Any, q: torch.Tensor, policy: torch.Tensor, count: int = 6) -> str:
+def closest_decisions(model: Any, sol: Any, gamma: float, count: int = 6) -> str:
     """The optimum's closest calls, where a learner that estimates each mode's value from samples
     needs the most of them to choose right: the ``count`` factor combinations with the smallest
     margin |Q*(comm) − Q*(radar)| at some queue length, each with its mode, its margins over d, its
     share of the optimum's time, and — exactly, by policy evaluation — the optimum's ratio were the
-    other mode taken there at every queue length. ``q`` is value iteration's [2, S]."""
-    from irdrc.core.exact import stationary_metrics, stationary_occupancy
+    other mode taken there at every queue length. Then, at the queue length of its smallest
+    margin: the spread of one step's value r + γ·V*(s′) under each mode (``one_step_spread``), the
+    samples that tell the modes apart at 95 % — (1.96·(σ_comm + σ_radar)/margin)², split between
+    the modes as their spreads — and the episodes in which the optimum visits the combination that
+    often. ``sol`` is value iteration's ``Solution`` at ``gamma``."""
+    from irdrc.core.exact import one_step_spread, stationary_metrics, stationary_occupancy
 
     D = model.params.env.queue_capacity
     labels = _config_labels(model.params)
-    margin = (q[0] - q[1]).abs().double().view(D + 1, len(labels))
-    acts = torch.as_tensor(policy).long().view(D + 1, len(labels))
-    share = stationary_occupancy(model, policy).sum(0).double().view(D + 1, len(labels)).sum(0)
-    best = stationary_metrics(model, policy).avg_reward
+    nf = len(labels)
+    margin = (sol.q[0] - sol.q[1]).abs().double().view(D + 1, nf)
+    acts = torch.as_tensor(sol.policy).long().view(D + 1, nf)
+    share = stationary_occupancy(model, sol.policy).sum(0).double().view(D + 1, nf).sum(0)
+    best = stationary_metrics(model, sol.policy).avg_reward
+    spread = one_step_spread(model, sol.values, gamma).view(2, D + 1, nf)
+    per_episode = model.params.env.horizon * share
     phase = " phase" if model.params.env.factor_levels[-1] > 1 else ""
     lines = [
         f"c r w v m{phase}  P(event)  mode          margin (min … max over d)  share of time  "
-        "other mode here: ratio"
+        "other mode here: ratio  spread comm, radar  samples (95 %)  episodes"
     ]
     for f in torch.argsort(margin.min(0).values)[:count].tolist():
         mode = binary_mode(acts[:, f])
@@ -301,8 +308,18 @@ def closest_decisions(model: Any, q: torch.Tensor, policy: torch.Tensor, count: 
         flipped[:, f] = 1 - flipped[:, f]
         ratio = stationary_metrics(model, flipped.reshape(-1)).avg_reward / best
         lo, hi = float(margin[:, f].min()), float(margin[:, f].max())
+        d = int(margin[:, f].argmin())
+        sc, sr = float(spread[0, d, f]), float(spread[1, d, f])
+        need = (1.96 * (sc + sr) / lo) ** 2 if lo > 0 else math.inf
+        episodes = need / float(per_episode[f]) if per_episode[f] > 0 else math.inf
         lines.append(
             f"{labels[f][0]}  {float(model.event[f]):8.4f}  {mode:<12}  "
-            f"{f'{lo:.4f} … {hi:.4f}':<25}  {float(share[f]):13.4f}  {ratio:.4f}"
+            f"{f'{lo:.4f} … {hi:.4f}':<25}  {float(share[f]):13.4f}  {ratio:22.4f}  "
+            f"{f'{sc:.2f}, {sr:.2f}':>18}  {_count(need):>14}  {_count(episodes):>8}"
         )
     return "\n".join(lines)
+
+
+def _count(x: float) -> str:
+    """A count for a table: ``12``, ``1 461``, ``inf``."""
+    return "inf" if not math.isfinite(x) else f"{x:,.0f}".replace(",", " ")

@@ -242,3 +242,26 @@ def policy_evaluation(mdp: ExactMDP, policy: Any, gamma: float = DEFAULT_OPTIMUM
     R = (table.T * mdp.R).sum(0)
     eye = torch.eye(mdp.num_states, dtype=torch.float64)
     return torch.linalg.solve(eye - check_gamma(gamma) * P, R)
+
+
+def one_step_spread(mdp: ExactMDP, values: torch.Tensor, gamma: float) -> torch.Tensor:
+    """[A, S] the standard deviation of one step's sampled value r + γ·V(s′) from each state under
+    each action: √(Var[r] + γ²·Var[V(s′)]). Reward and next state are drawn independently given
+    (s, a) (the event and the radar's draw move no factor, MODEL.md's step), so nothing else adds.
+    A learner that estimates each action's value from samples needs about (z·σ/margin)² of them
+    where the margin between the actions is small against σ. Defined for a scenario's binary
+    model (comm or radar: v1 and § B); ``values`` [S] (e.g. value iteration's V*)."""
+    from irdrc.core.tables import model_tables
+
+    params = getattr(mdp, "params", None)
+    if params is None or mdp.num_actions != 2 or params.env.actions != "binary":
+        raise ValueError(
+            "one_step_spread: defined on a scenario's binary model (comm or radar each step)"
+        )
+    t = model_tables(params)
+    f = torch.arange(mdp.num_states, device=mdp.device) % t.num_configs
+    V = values.to(torch.float64)
+    var_r = (t.R2.to(mdp.device)[:, f] - mdp.R**2).clamp(min=0.0)
+    mean = mdp.expect(V)
+    var_v = (mdp.expect(V * V) - mean**2).clamp(min=0.0)
+    return (var_r + check_gamma(gamma) ** 2 * var_v).sqrt()

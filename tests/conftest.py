@@ -142,6 +142,14 @@ def step_from():
     return one_step
 
 
+@pytest.fixture(scope="module")
+def paper_scorer():
+    """The paper scenario's exact scorer (its optimum solved once per test module)."""
+    from irdrc.core.exact import exact_scorer
+
+    return exact_scorer(Params())
+
+
 def assert_chi2(counts: torch.Tensor, expected: torch.Tensor) -> None:
     """Pearson χ² of observed transition ``counts`` [rows, S] against ``expected`` counts.
 

@@ -1,0 +1,186 @@
+"""The safe learner on one stream (``irdrc.online.safe``): the miss budget, the plan, its stated
+confidence, and the recipe's report of it."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import pytest
+import torch
+
+from irdrc.core.params import Params
+from irdrc.online import configs
+from irdrc.online.learners import make_learner
+from irdrc.online.loop import learn_on_stream
+from irdrc.online.safe import ConstrainedScorer, SafeLearner
+
+PAPER = Params()
+
+
+def comm_everywhere(learner: SafeLearner) -> None:
+    """A plan that sends in every state (the budget alone keeps the misses down)."""
+    learner._solve = lambda: torch.tensor([[1.0, 0.0]]).repeat(learner.num_states, 1)
+
+
+def test_the_miss_budget_keeps_cumulative_miss_detection_under_the_target(paper_scorer):
+    """With a plan that sends everywhere, the budget alone holds the cumulative miss detection at
+    or under m* = 0.1 at every evaluation; with the budget lifted (the mutation) it breaks."""
+    cfg = configs.learner_config("safe", {"episodes": 5, "target_miss": 0.1})
+    grader = ConstrainedScorer(paper_scorer, 0.1)
+
+    def worst(mutate: bool) -> float:
+        learner = make_learner("safe", cfg, PAPER, 0)
+        comm_everywhere(learner)
+        if mutate:
+            learner._may_send = lambda: True
+        rec = learn_on_stream(learner, PAPER, paper_scorer, episodes=5, greedy_scorer=grader)
+        cum = [r["cumulative_miss_detection"] for r in rec.history[1:]]
+        return max(c for c in cum if not math.isnan(c))
+
+    assert worst(False) <= 0.1
+    assert worst(True) > 0.5
+
+
+def test_the_safe_learner_starts_in_radar_and_learns_to_send(paper_scorer):
+    """Its first episode is radar everywhere (no slack yet); within 10 episodes of the paper
+    scenario at m* = 0.1 its plan sends more than half the LP's packets, with every evaluation's
+    cumulative miss detection ≤ 0.1."""
+    cfg = configs.learner_config("safe", {"episodes": 10, "target_miss": 0.1})
+    grader = ConstrainedScorer(paper_scorer, 0.1)
+    rec = learn_on_stream(
+        make_learner("safe", cfg, PAPER, 1), PAPER, paper_scorer, episodes=10, greedy_scorer=grader
+    )
+    first = rec.history[1]
+    assert first["realised_sent"] == 0 and first["realised_missed"] == 0
+    assert all(r["cumulative_miss_detection"] <= 0.1 for r in rec.history[1:])
+    assert rec.history[-1]["lp_ratio"] > 0.5
+
+
+def test_the_safe_learner_plans_again_whenever_its_data_doubles(paper_scorer):
+    """Before episodes 0, 1, 2, 4 and 8 of 10: five LPs, and the plan is unchanged between them."""
+    cfg = configs.learner_config("safe", {"episodes": 10, "target_miss": 0.1})
+    learner = make_learner("safe", cfg, PAPER, 1)
+    solved = []
+    solve = learner._solve
+    learner._solve = lambda: solved.append(learner.counts.steps) or solve()
+    learn_on_stream(learner, PAPER, paper_scorer, episodes=10)
+    assert solved == [0, 400, 800, 1600, 3200] and learner.updates == 5
+
+
+def test_the_safe_learner_plans_on_a_mixed_noisy_or_chain(paper_scorer):
+    """Its plan after 33 episodes at m* = 0.05 (seed 1) sends 0.899 of the LP's packets when
+    measured; planning on the posterior mean of the sampler's cold start (the mutation: no sweeps
+    before a plan) overstates the events and sends 0.828."""
+    cfg = configs.learner_config("safe", {"episodes": 33, "target_miss": 0.05})
+    grader = ConstrainedScorer(paper_scorer, 0.05)
+
+    def ratio(mutate: bool) -> float:
+        learner = make_learner("safe", cfg, PAPER, 1)
+        if mutate:
+            learner.counts.advance = lambda rng, sweeps: None
+        rec = learn_on_stream(learner, PAPER, paper_scorer, episodes=33, greedy_scorer=grader)
+        return rec.history[-1]["lp_ratio"]
+
+    assert ratio(False) > 0.86 > ratio(True)
+
+
+def test_the_safe_learner_states_its_confidence_in_the_plan(paper_scorer):
+    """``plan_confidence`` draws models from the posterior of the counts: after 32 episodes at
+    m* = 0.1 (seed 1) the true long-run miss detection of the plan lies within 4 of its posterior
+    sds of the draws' mean (4 sds leave room for a posterior somewhat narrower than the truth's
+    spread), the spread is narrower than after 4 episodes (8× the data), and the learner's own
+    sampler is left as it was. A plan that sends everywhere misses every event (probability 0 of
+    meeting the target); radar everywhere, with P_d = 1, misses almost none (probability 1)."""
+    cfg = configs.learner_config("safe", {"episodes": 32, "target_miss": 0.1})
+    grader = ConstrainedScorer(paper_scorer, 0.1)
+
+    def learned(episodes: int) -> SafeLearner:
+        learner = make_learner("safe", cfg, PAPER, 1)
+        learn_on_stream(learner, PAPER, paper_scorer, episodes=episodes)
+        return learner
+
+    late, early = learned(32), learned(4)
+    fire = [f.copy() for f in late.counts.fire]
+    conf = late.plan_confidence()
+    assert all((a == b).all() for a, b in zip(fire, late.counts.fire, strict=True))
+    true = grader.metrics(late.plan).miss_detection
+    assert conf["miss_sd"] > 0 and abs(true - conf["miss_mean"]) <= 4 * conf["miss_sd"]
+    assert conf["miss_sd"] < early.plan_confidence()["miss_sd"]
+    assert conf == late.plan_confidence()  # drawn on a generator fixed by the data
+    late.plan = torch.tensor([[1.0, 0.0]]).repeat(late.num_states, 1)
+    assert late.plan_confidence(draws=5)["p_within_target"] == 0.0
+    late.plan = torch.tensor([[0.0, 1.0]]).repeat(late.num_states, 1)
+    radar = late.plan_confidence(draws=5)
+    assert radar["p_within_target"] == 1.0 and radar["miss_mean"] < 0.01  # P_d drawn near 1
+    with pytest.raises(ValueError, match="draws=1"):
+        late.plan_confidence(draws=1)
+
+
+def test_the_safe_recipe_states_the_plans_confidence(tmp_path, capsys):
+    """``learner=safe``: summary.json carries the LP, the plan's ratio to it and its stated
+    confidence, and the printout says them."""
+    from irdrc.online import recipe
+    from irdrc.runs import app
+
+    args = ["learner=safe", "algo.episodes=2", f"hydra.run.dir={tmp_path}", "logger=none"]
+    assert app.execute(recipe, [*args, "progress=false"]) == 0
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    conf = summary["plan_confidence"]
+    assert set(conf) == {"miss_mean", "miss_sd", "p_within_target", "draws"}
+    assert 0.0 <= conf["p_within_target"] <= 1.0 and summary["lp"]["throughput"] > 0
+    out = capsys.readouterr().out
+    assert f"probability {conf['p_within_target']:.2f}" in out and "the LP's packets" in out
+    # read against the LP, not the unconstrained optimum it is not meant to reach
+    assert "of the optimum (below 0.99)" not in out
+    assert summary["lp_ratio"] < 0.95  # two episodes of data: a plan far short of the LP …
+    assert "of the LP's packets (below 0.95" in out  # … and the warning says so
+
+
+def test_a_safe_run_is_not_told_it_fell_from_a_plan_that_broke_its_target(tmp_path, capsys):
+    """Early in a ``learner=safe`` run the greedy plan can send more than the LP by breaking the
+    target; the end warning reads the best only among the plans that met it."""
+    import csv
+
+    from irdrc.online import recipe
+    from irdrc.runs import app
+
+    args = ["learner=safe", "algo.target_miss=0.1", "algo.episodes=3", "logger=none"]
+    assert app.execute(recipe, [*args, f"hydra.run.dir={tmp_path}", "progress=false"]) == 0
+    rows = list(csv.DictReader((tmp_path / "metrics.csv").open()))
+    final = float(rows[-1]["lp_ratio"])
+    # the case this test is about: an evaluation above the final plan that broke the target
+    assert any(float(r["lp_ratio"]) > final + 0.1 and float(r["meets_target"]) == 0 for r in rows)
+    out = capsys.readouterr().out
+    assert f"{final:.4f} of the LP's packets (below 0.95)" in out and "below its best" not in out
+
+
+def test_a_safe_run_is_warned_against_the_lp():
+    from irdrc.online.recipe import SAFE_END_THRESHOLD
+    from irdrc.runs.report import end_warning
+
+    def warn(rows):
+        return end_warning(
+            rows,
+            "algo.episodes=600",
+            key="lp_ratio",
+            threshold=SAFE_END_THRESHOLD,
+            of="the LP's",
+            best_among="meets_target",
+        )
+
+    def row(ratio, steps, meets=1.0):
+        return {"lp_ratio": ratio, "env_steps": steps, "meets_target": meets}
+
+    assert warn([row(0.5, 0), row(0.96, 400)]) is None
+    warning = warn([row(0.96, 400), row(0.9, 800)])
+    assert warning.startswith("warning: the final greedy policy is 0.9000 of the LP's (below 0.95")
+    assert "its best evaluation was 0.9600 at 400 env steps" in warning
+    assert warning.endswith("try algo.episodes=600")
+    # a plan sending more than the LP breaks the target: it is no best the learner fell from
+    early = warn([row(0.0, 0), row(1.2, 400, meets=0.0), row(0.93, 800)])
+    assert "below 0.95)" in early and "below its best" not in early
+    assert "its best evaluation was 0.9300 at 800 env steps" in early
+    assert warn([row(0.0, 0), row(1.2, 400, meets=0.0), row(0.97, 800)]) is None
+    never = warn([row(1.2, 400, meets=0.0), row(0.9, 800, meets=0.0)])
+    assert "none of its evaluations had meets_target" in never

@@ -117,9 +117,10 @@ def test_the_safe_learner_states_its_confidence_in_the_plan(paper_scorer):
         late.plan_confidence(draws=1)
 
 
-def test_the_safe_recipe_states_the_plans_confidence(tmp_path, capsys):
+def test_the_safe_recipe_states_the_plans_confidence(tmp_path, capsys, paper_scorer):
     """``learner=safe``: summary.json carries the LP, the plan's ratio to it and its stated
-    confidence, and the printout says them."""
+    confidence, and the printout says them; it sets the plan's states against the LP's, not the
+    unconstrained optimum's."""
     from irdrc.online import recipe
     from irdrc.runs import app
 
@@ -135,6 +136,22 @@ def test_the_safe_recipe_states_the_plans_confidence(tmp_path, capsys):
     assert "of the optimum (below 0.99)" not in out
     assert summary["lp_ratio"] < 0.95  # two episodes of data: a plan far short of the LP …
     assert "of the LP's packets (below 0.95" in out  # … and the warning says so
+    # its states are set against the LP's, not the optimum's
+    from irdrc.core.cmdp import solve_cmdp
+    from irdrc.runs.tables import read_policy_csv
+
+    target = summary["target_miss"]
+    plan = read_policy_csv(tmp_path / "policy.csv", 352)
+    lp = solve_cmdp(paper_scorer.model, target)
+    differing = int((plan != lp.policy.argmax(-1)).sum())
+    assert differing != int((plan != paper_scorer.optimal.policy).sum())  # tells them apart
+    assert "differs from the optimum" not in out
+    n = len(lp.randomised)
+    named = f"the LP at target_miss={target}" + (
+        f" (its likelier mode in the {n} state{'s' * (n != 1)} where it randomises)" if n else ""
+    )
+    assert f"the learned policy differs from {named} in {differing} of 352 states" in out
+    assert "P(event)  learned       LP\n" in out
 
 
 def test_a_safe_run_is_not_told_it_fell_from_a_plan_that_broke_its_target(tmp_path, capsys):

@@ -157,6 +157,9 @@ def run(cfg: Config, run) -> dict[str, Any]:
                 if greedy_scorer is not None
                 else None
             ),
+            reference=lp_reference(greedy_scorer.lp, cfg.algo.target_miss)
+            if greedy_scorer is not None
+            else None,
         ),
     )
     ledger = record.history[-1]
@@ -177,6 +180,14 @@ def run(cfg: Config, run) -> dict[str, Any]:
     print_ledger(ledger, summary, cfg)
     run.finish(summary, interrupted_at=record.env_steps if record.interrupted else None)
     return summary
+
+
+def lp_reference(lp: Any, target_miss: float) -> tuple[str, str, Any]:
+    """What a safe learner's plan is set against in the printout: the LP's likelier mode per state
+    (``LearnerRun.reference``), named with the states where it randomises."""
+    n = len(lp.randomised)
+    where = f" (its likelier mode in the {n} state{'s' if n != 1 else ''} where it randomises)"
+    return f"the LP at target_miss={target_miss}" + (where if n else ""), "LP", lp.policy.argmax(-1)
 
 
 def print_ledger(row: dict[str, Any], summary: dict[str, Any], cfg: Config) -> None:

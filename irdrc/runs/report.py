@@ -53,6 +53,9 @@ class LearnerRun:
         end_check: the warning a finished run ends with, from its history, or None (default
             ``end_warning`` with ``advice``: the final greedy policy against the optimum; a
             learner held to a constraint passes ``end_warning`` read against its own target).
+        reference: what the final greedy policy's states are set against in the printout, as
+            (the sentence's words, the column's name, its actions [S]), or None: the optimum. A
+            learner held to a constraint passes the constrained optimum's.
         labels: each scenario's overrides as command-line words (from ``points``).
     """
 
@@ -68,6 +71,7 @@ class LearnerRun:
     advice: str | None = None
     plot: Callable[..., None] | None = None
     end_check: Callable[[list[dict[str, Any]]], str | None] | None = None
+    reference: tuple[str, str, Any] | None = None
     labels: list[list[str]] = field(init=False)
 
     def __post_init__(self) -> None:
@@ -252,7 +256,8 @@ def print_learner(
         else f"not ≥ 99 % at any evaluation of its {record.env_steps} env steps"
     )
     print(f"\nfinal greedy policy: {final:.4f} of the optimum's average reward (exact); {reached}")
-    print(policy_differences(scorers[0].model, record.greedy[0].cpu(), scorers[0].optimal.policy))
+    against = lr.reference or ("the optimum", "optimum", scorers[0].optimal.policy)
+    print(policy_differences(scorers[0].model, record.greedy[0].cpu(), against[2], *against[:2]))
     check = lr.end_check or (lambda history: end_warning(history, lr.advice))
     if not record.interrupted and (warning := check(record.history)):
         print(warning, flush=True)

@@ -225,9 +225,17 @@ def binary_mode(col: torch.Tensor) -> str:
     )
 
 
-def policy_differences(model: Any, actions: torch.Tensor, optimal: torch.Tensor) -> str:
-    """In words, where a policy differs from the optimum: one line per factor combination (c, r, w,
-    v, m) with a difference, each policy's mode by queue length (C = comm, R = radar, d = 0 … D)."""
+def policy_differences(
+    model: Any,
+    actions: torch.Tensor,
+    optimal: torch.Tensor,
+    against: str = "the optimum",
+    column: str = "optimum",
+) -> str:
+    """In words, where a policy differs from the optimum (or from the policy ``optimal`` another
+    reference names: ``against`` in the sentence, ``column`` over its modes): one line per factor
+    combination (c, r, w, v, m) with a difference, each policy's mode by queue length (C = comm,
+    R = radar, d = 0 … D)."""
     D = model.params.env.queue_capacity
     labels = _config_labels(model.params)
     acts = torch.as_tensor(actions).long().view(D + 1, len(labels))
@@ -235,15 +243,15 @@ def policy_differences(model: Any, actions: torch.Tensor, optimal: torch.Tensor)
     levels = model.params.env.levels if model.params.env.actions == "levels" else 0
     n_diff = int((acts != opt).sum())
     if n_diff == 0:
-        return f"the learned policy equals the optimum in all {model.num_states} states"
+        return f"the learned policy equals {against} in all {model.num_states} states"
     lines = [
-        f"the learned policy differs from the optimum in {n_diff} of {model.num_states} states "
+        f"the learned policy differs from {against} in {n_diff} of {model.num_states} states "
         + (
             f"(radar share level by queue length d = 0 … D; level g is ρ = g/{levels - 1}):"
             if levels
             else "(mode by queue length d = 0 … D; C = comm, R = radar):"
         ),
-        f"  c r w v m{' phase' if model.params.env.factor_levels[-1] > 1 else ''}  P(event)  learned       optimum",
+        f"  c r w v m{' phase' if model.params.env.factor_levels[-1] > 1 else ''}  P(event)  learned       {column}",
     ]
     for f, (bits, _) in enumerate(labels):
         if bool((acts[:, f] == opt[:, f]).all()):

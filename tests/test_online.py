@@ -98,6 +98,11 @@ def test_the_printed_ledger_says_when_the_greedy_policy_first_reached_099(
         (["learner=dqn_lagrangian"], "use python recipes/constrained.py learner=dqn_lagrangian"),
         (["env.actions=continuous"], "env.actions=continuous"),
         (["learner=safe", "algo.target_miss=1.5"], "algo.target_miss=1.5"),
+        (
+            ["learner=safe", "env=large"],
+            "learner=safe solves an LP over all S = 100800 states before its first episode and "
+            "whenever its data doubles: it runs on scenarios of at most 5792 states",
+        ),
     ],
 )
 def test_the_recipe_refuses_before_any_work(tmp_path, capsys, args, message):

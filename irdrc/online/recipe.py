@@ -10,6 +10,7 @@ regret and the missed events of the policy it behaved by) every episode.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from functools import partial
 from typing import Any
@@ -80,11 +81,14 @@ def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
         )
     if cfg.learner == "safe":
         from irdrc.core.exact import fits_dense
+        from irdrc.core.exact.dense import DENSE_MODEL_LIMIT_BYTES
 
         if not fits_dense(cfg.params):
+            most = math.isqrt(DENSE_MODEL_LIMIT_BYTES // 16)
             raise ValueError(
-                f"learner=safe solves an LP over S = {cfg.params.env.num_states} states every "
-                "episode: use a scenario whose dense model fits (env.queue_capacity smaller)"
+                f"learner=safe solves an LP over all S = {cfg.params.env.num_states} states before "
+                f"its first episode and whenever its data doubles: it runs on scenarios of at most "
+                f"{most} states (a smaller env.queue_capacity)"
             )
     explicit = "eval.every_frames" in composed.explicit
     check_eval_period(cfg.eval.every_frames, cfg.total_frames, explicit)

@@ -180,3 +180,62 @@ def test_a_radar_share_network_is_scored_as_its_run_did(recipe, tmp_path):
     )
     assert other.returncode == 0, other.stderr[-2000:]
     assert "of this scenario's optimum over ρ" in other.stdout
+
+
+def test_target_miss_reads_a_table_against_the_lp(tmp_path, capsys):
+    """``target_miss=…``: the LP's own randomised policy is 1.0000 of the LP's packets and meets the
+    target; the unconstrained optimum sends more than the LP and is over it, by its exact miss
+    detection; a target no policy meets (an imperfect radar misses 1 − P_d = 0.1 of the events in
+    radar mode) is said, not raised; a radar-share policy and env.actions=continuous are refused."""
+    from irdrc.core.cmdp import solve_cmdp
+    from irdrc.core.exact import build_model, exact_scorer
+    from irdrc.core.params import Params
+    from irdrc.recipes import evaluate
+    from irdrc.runs.app import execute
+    from irdrc.runs.tables import write_policy_csv
+
+    params = Params()
+    model = build_model(params)
+    lp = solve_cmdp(model, 0.05)
+    assert lp.randomised  # a randomised table goes through as one
+    write_policy_csv(tmp_path / "lp.csv", lp.policy, params.env.factor_levels)
+    optimum = exact_scorer(params)
+    write_policy_csv(tmp_path / "opt.csv", optimum.optimal.policy, params.env.factor_levels)
+
+    def scored(table: str, *more: str) -> dict:
+        out = tmp_path / table
+        args = [f"policy={tmp_path / table}.csv", "target_miss=0.05", "eval.mc_episodes=0", *more]
+        assert execute(evaluate, [*args, f"hydra.run.dir={out}"]) == 0
+        return json.loads((out / "summary.json").read_text())
+
+    own = scored("lp")
+    assert own["lp_ratio"] == pytest.approx(1.0, abs=1e-6) and own["meets_target"] is True
+    assert own["lp"]["throughput"] == pytest.approx(lp.value)
+    assert "target_miss=0.05: 1.0000 of the LP's packets" in capsys.readouterr().out
+    best = scored("opt")
+    miss = optimum.optimal_metrics.miss_detection
+    assert best["meets_target"] is False and miss > 0.05 and best["lp_ratio"] > 1.0
+    assert best["lp_ratio"] == pytest.approx(optimum.optimal_metrics.throughput / lp.value)
+    assert f"its long-run miss detection {miss:.4f} over it" in capsys.readouterr().out
+    assert "LP at target_miss=0.05 (exact, long run)" in best["table"]
+
+    radar = Params.from_overrides({"env.detection_prob": 0.9})
+    write_policy_csv(tmp_path / "radar.csv", [1] * 352, radar.env.factor_levels)
+    none = scored("radar", "env.detection_prob=0.9")
+    assert none["lp"] is None and none["meets_target"] is False
+    assert "no policy meets it on this scenario" in capsys.readouterr().out
+
+    rho = tmp_path / "rho.csv"
+    write_policy_csv(rho, [0.5] * 352, params.env.factor_levels, shares=())
+    refused = run(
+        "evaluate.py", f"policy={rho}", "target_miss=0.05", f"hydra.run.dir={tmp_path / 'x'}"
+    )
+    assert (
+        refused.returncode == 2 and "a radar-share policy's constrained optimum" in refused.stderr
+    )
+    shares = run(
+        "evaluate.py", f"policy={rho}", "target_miss=0.05", "env.actions=continuous",
+        f"hydra.run.dir={tmp_path / 'y'}",
+    )  # fmt: skip
+    assert shares.returncode == 2 and "env.actions=continuous" in shares.stderr, shares.stderr
+    assert not (tmp_path / "x").exists() and not (tmp_path / "y").exists()  # before any work

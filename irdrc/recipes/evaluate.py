@@ -9,6 +9,11 @@ network is evaluated on the observations of the new scenario's states, scaled as
 
     python recipes/evaluate.py checkpoint=outputs/DATE/TIME/checkpoint.pt env.p1.speed=1.0
     python recipes/evaluate.py policy=outputs/DATE/TIME/policy.csv env=ref_impl
+    python recipes/evaluate.py policy=outputs/DATE/TIME/policy.csv target_miss=0.1
+
+With ``target_miss`` a comm/radar policy is also read against the constrained optimum at that
+miss-detection target (the LP of ``recipes/constrained.py``): its packets over the LP's, and whether
+its own long-run miss detection meets the target.
 """
 
 from __future__ import annotations
@@ -19,6 +24,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from irdrc.core import checks
 from irdrc.core.checks import build
 from irdrc.core.params import Params
 from irdrc.runs.compose import Composed
@@ -30,11 +36,13 @@ NAME = "evaluate"
 @dataclass(frozen=True)
 class Config:
     """The evaluation's keys (``recipes/conf/evaluate.yaml``): exactly one of ``checkpoint`` and
-    ``policy``."""
+    ``policy``; ``target_miss`` (optional) reads a comm/radar policy against the LP at that
+    target too."""
 
     params: Params = field(default=None, metadata=ONE_VEHICLE)
     checkpoint: str | None = None
     policy: str | None = None
+    target_miss: float | None = None
     eval: Eval = field(default_factory=Eval)
     optimum_gamma: float = 0.99
     seed: int = 0
@@ -49,13 +57,27 @@ class Config:
                 f"policy=…/policy.csv (a single-vehicle run's table); got "
                 f"{' and '.join(given) or 'neither'}"
             )
+        if self.target_miss is not None:
+            target = checks.check_number("target_miss", self.target_miss, 0, 1, open_hi=True)
+            object.__setattr__(self, "target_miss", target)
+            if self.params.env.actions != "binary":
+                raise ValueError(
+                    f"target_miss reads a comm/radar policy against the LP; with "
+                    f"env.actions={self.params.env.actions} the constrained optimum is "
+                    "recipes/constrained.py's (env.actions=continuous: over the radar share)"
+                )
 
 
 def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
     """The typed config, checked; the policy's file read and fitted to the scenario."""
     cfg = build(Config, composed.cfg)
     cfg.eval.check_cost(cfg.params)
-    load_source(cfg)  # exactly one readable checkpoint / policy that fits the scenario
+    _, source, name = load_source(cfg)  # exactly one readable checkpoint / policy that fits
+    if name == "rho" and cfg.target_miss is not None:
+        raise ValueError(
+            f"{source}: target_miss reads a comm/radar policy against the LP; a radar-share "
+            "policy's constrained optimum is recipes/constrained.py env.actions=continuous"
+        )
     return cfg
 
 
@@ -209,6 +231,7 @@ def run(cfg: Config, run) -> dict[str, Any]:
     if dense:
         rows["optimal (exact, episodic)"] = episodic_metrics(model, scorer.optimal.policy)
         rows["round_robin (exact, long run)"] = stationary_metrics(model, "round_robin")
+    constrained = against_lp(model, learned, cfg.target_miss, rows)
     ratio = learned.avg_reward / opt.avg_reward
     wall = time.perf_counter() - t0
     print(f"scenario={run.scenario} (S = {S}): {source}\n")
@@ -218,6 +241,8 @@ def run(cfg: Config, run) -> dict[str, Any]:
         f"{params.env.horizon} steps from a uniform reset, as the Monte-Carlo row samples"
     )
     print(f"\n{name}: {ratio:.4f} of this scenario's optimum (average reward, exact)")
+    if constrained:
+        print(constrained.pop("line"))
     if policy.ndim == 1 and dense:
         print(policy_differences(model, policy, scorer.optimal.policy))
     write_policy_csv(run.dir / "policy.csv", policy, params.env.factor_levels)
@@ -234,9 +259,50 @@ def run(cfg: Config, run) -> dict[str, Any]:
             int((policy != scorer.optimal.policy).sum()) if policy.ndim == 1 else None
         ),
         table=table_dict(rows, errs),
+        **constrained,
     )
     run.finish(summary)
     return summary
+
+
+def against_lp(
+    model: Any, learned: Any, target_miss: float | None, rows: dict[str, Any]
+) -> dict[str, Any]:
+    """With ``target_miss``, the policy read against the LP at that target (its row added to
+    ``rows``): summary.json's ``target_miss``, ``lp`` (throughput, miss detection; None where no
+    policy meets the target), ``lp_ratio`` (packets per step over the LP's), ``meets_target``, and
+    the printed ``line``. Without it, {}."""
+    if target_miss is None:
+        return {}
+    from irdrc.core.cmdp import InfeasibleTarget, solve_cmdp
+
+    meets = learned.miss_detection <= target_miss + 1e-12
+    verdict = "meets it" if meets else "over it"
+    own = f"its long-run miss detection {learned.miss_detection:.4f} {verdict}"
+    try:
+        lp = solve_cmdp(model, target_miss)
+    except InfeasibleTarget:
+        line = f"target_miss={target_miss}: no policy meets it on this scenario; {own}"
+        return {
+            "target_miss": target_miss,
+            "lp": None,
+            "lp_ratio": None,
+            "meets_target": meets,
+            "line": line,
+        }
+    rows[f"LP at target_miss={target_miss} (exact, long run)"] = lp.metrics
+    ratio = learned.throughput / lp.value if lp.value > 0 else float("nan")
+    line = (
+        f"target_miss={target_miss}: {ratio:.4f} of the LP's packets "
+        f"({learned.throughput:.4f} against {lp.value:.4f} per step); {own}"
+    )
+    return {
+        "target_miss": target_miss,
+        "lp": {"throughput": lp.value, "miss_detection": lp.metrics.miss_detection},
+        "lp_ratio": ratio,
+        "meets_target": meets,
+        "line": line,
+    }
 
 
 def score_shares(cfg: Config, run, rho: Any, source: str, t0: float) -> dict[str, Any]:

@@ -146,6 +146,7 @@ def test_the_safe_recipe_states_the_plans_confidence(tmp_path, capsys, paper_sco
     differing = int((plan != lp.policy.argmax(-1)).sum())
     assert differing != int((plan != paper_scorer.optimal.policy).sum())  # tells them apart
     assert "differs from the optimum" not in out
+    assert "of the unconstrained optimum's average reward (exact)" in out
     n = len(lp.randomised)
     named = f"the LP at target_miss={target}" + (
         f" (its likelier mode in the {n} state{'s' * (n != 1)} where it randomises)" if n else ""

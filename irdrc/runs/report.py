@@ -255,7 +255,8 @@ def print_learner(
         if first99 is not None
         else f"not ≥ 99 % at any evaluation of its {record.env_steps} env steps"
     )
-    print(f"\nfinal greedy policy: {final:.4f} of the optimum's average reward (exact); {reached}")
+    optimum = "the unconstrained optimum's" if lr.reference else "the optimum's"
+    print(f"\nfinal greedy policy: {final:.4f} of {optimum} average reward (exact); {reached}")
     against = lr.reference or ("the optimum", "optimum", scorers[0].optimal.policy)
     print(policy_differences(scorers[0].model, record.greedy[0].cpu(), against[2], *against[:2]))
     check = lr.end_check or (lambda history: end_warning(history, lr.advice))

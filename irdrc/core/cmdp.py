@@ -239,6 +239,14 @@ def fewest_missed(P: list, model: ExactMDP, tol: float = 1e-12) -> float:
     return ratio
 
 
+def lp_standing(metrics: Metrics, lp_value: float, target_miss: float) -> tuple[float, bool]:
+    """A policy read against the LP at ``target_miss``: its packets per step over the LP's
+    (``lp_value``; NaN where the LP sends nothing), and whether its own long-run miss detection
+    is at or under the target."""
+    ratio = metrics.throughput / lp_value if lp_value > 0 else float("nan")
+    return ratio, metrics.miss_detection <= target_miss + 1e-12
+
+
 def solve_cmdp(
     model: Any,
     target_miss: float,

@@ -41,6 +41,7 @@ import torch
 from irdrc.core.cmdp import (
     InfeasibleTarget,
     build_constraints,
+    lp_standing,
     objective_table,
     solve_cmdp,
     solve_lp,
@@ -221,8 +222,5 @@ class ConstrainedScorer:
 
     def extra(self, table: torch.Tensor) -> dict[str, float]:
         """``lp_ratio`` and ``meets_target`` of ``table``."""
-        m = self.scorer.metrics(table)
-        return {
-            "lp_ratio": m.throughput / self.lp.value if self.lp.value > 0 else float("nan"),
-            "meets_target": float(m.miss_detection <= self.target_miss + 1e-12),
-        }
+        ratio, meets = lp_standing(self.scorer.metrics(table), self.lp.value, self.target_miss)
+        return {"lp_ratio": ratio, "meets_target": float(meets)}

@@ -274,32 +274,29 @@ def against_lp(
     the printed ``line``. Without it, {}."""
     if target_miss is None:
         return {}
-    from irdrc.core.cmdp import InfeasibleTarget, solve_cmdp
+    from irdrc.core.cmdp import InfeasibleTarget, lp_standing, solve_cmdp
 
-    meets = learned.miss_detection <= target_miss + 1e-12
-    verdict = "meets it" if meets else "over it"
-    own = f"its long-run miss detection {learned.miss_detection:.4f} {verdict}"
     try:
         lp = solve_cmdp(model, target_miss)
     except InfeasibleTarget:
+        lp = None
+    ratio, meets = lp_standing(learned, lp.value if lp else 0.0, target_miss)
+    verdict = "meets it" if meets else "over it"
+    own = f"its long-run miss detection {learned.miss_detection:.4f} {verdict}"
+    if lp is None:
         line = f"target_miss={target_miss}: no policy meets it on this scenario; {own}"
-        return {
-            "target_miss": target_miss,
-            "lp": None,
-            "lp_ratio": None,
-            "meets_target": meets,
-            "line": line,
-        }
-    rows[f"LP at target_miss={target_miss} (exact, long run)"] = lp.metrics
-    ratio = learned.throughput / lp.value if lp.value > 0 else float("nan")
-    line = (
-        f"target_miss={target_miss}: {ratio:.4f} of the LP's packets "
-        f"({learned.throughput:.4f} against {lp.value:.4f} per step); {own}"
-    )
+    else:
+        rows[f"LP at target_miss={target_miss} (exact, long run)"] = lp.metrics
+        line = (
+            f"target_miss={target_miss}: {ratio:.4f} of the LP's packets "
+            f"({learned.throughput:.4f} against {lp.value:.4f} per step); {own}"
+        )
     return {
         "target_miss": target_miss,
-        "lp": {"throughput": lp.value, "miss_detection": lp.metrics.miss_detection},
-        "lp_ratio": ratio,
+        "lp": None
+        if lp is None
+        else {"throughput": lp.value, "miss_detection": lp.metrics.miss_detection},
+        "lp_ratio": None if lp is None else ratio,
         "meets_target": meets,
         "line": line,
     }

@@ -26,9 +26,13 @@ DENSE_MAX_STATES = 8192
 """The largest S the dense model is built for (2·S² float64: 1 GiB)."""
 
 
+DENSE_FIT_STATES = math.isqrt(DENSE_MODEL_LIMIT_BYTES // 16)
+"""The largest S whose dense transition tensor (2·S² float64) fits ``DENSE_MODEL_LIMIT_BYTES``."""
+
+
 def fits_dense(params: Params) -> bool:
     """Whether the dense transition tensor of ``params`` fits ``DENSE_MODEL_LIMIT_BYTES``."""
-    return 16 * params.env.num_states**2 <= DENSE_MODEL_LIMIT_BYTES
+    return params.env.num_states <= DENSE_FIT_STATES
 
 
 @dataclass(frozen=True, eq=False)

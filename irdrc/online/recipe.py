@@ -79,13 +79,13 @@ def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
             "each step (env.actions=binary); the radar share is learned by recipes/sac.py"
         )
     if cfg.learner == "safe":
-        from irdrc.core.exact.dense import DENSE_FIT_STATES, fits_dense
+        from irdrc.core.exact.dense import dense_fit_states, fits_dense
 
         if not fits_dense(cfg.params):
             raise ValueError(
                 f"learner=safe solves an LP over all S = {cfg.params.env.num_states} states before "
                 f"its first episode and whenever its data doubles: it runs on scenarios of at most "
-                f"{DENSE_FIT_STATES} states (a smaller env.queue_capacity)"
+                f"{dense_fit_states()} states (a smaller env.queue_capacity)"
             )
     explicit = "eval.every_frames" in composed.explicit
     check_eval_period(cfg.eval.every_frames, cfg.total_frames, explicit)

@@ -26,13 +26,14 @@ DENSE_MAX_STATES = 8192
 """The largest S the dense model is built for (2·S² float64: 1 GiB)."""
 
 
-DENSE_FIT_STATES = math.isqrt(DENSE_MODEL_LIMIT_BYTES // 16)
-"""The largest S whose dense transition tensor (2·S² float64) fits ``DENSE_MODEL_LIMIT_BYTES``."""
+def dense_fit_states() -> int:
+    """The largest S whose dense transition tensor (2·S² float64) fits ``DENSE_MODEL_LIMIT_BYTES``."""
+    return math.isqrt(DENSE_MODEL_LIMIT_BYTES // 16)
 
 
 def fits_dense(params: Params) -> bool:
     """Whether the dense transition tensor of ``params`` fits ``DENSE_MODEL_LIMIT_BYTES``."""
-    return params.env.num_states <= DENSE_FIT_STATES
+    return params.env.num_states <= dense_fit_states()
 
 
 @dataclass(frozen=True, eq=False)

@@ -125,13 +125,13 @@ def test_scale_benchmark_table(tmp_path):
 def test_factored_scorer_scores_as_the_dense_one(monkeypatch):
     """exact_scorer switches to the factored model above the dense limit (forced low here), and
     the factored scorer's optimum and its ratios of arbitrary tables are the dense scorer's."""
-    import irdrc.core.exact.dense as dense_mod
+    import irdrc.core.sizes as sizes
     from irdrc.core.exact import DenseModel, FactoredModel, exact_scorer
 
     params = random_params(3)
     dense = exact_scorer(params)
     assert isinstance(dense.model, DenseModel)
-    monkeypatch.setattr(dense_mod, "DENSE_MODEL_LIMIT_BYTES", 16 * params.env.num_states**2 - 1)
+    monkeypatch.setattr(sizes, "DENSE_LIMIT_BYTES", 16 * params.env.num_states**2 - 1)
     fac = exact_scorer(params)
     assert isinstance(fac.model, FactoredModel)
     assert torch.equal(fac.optimal.policy, dense.optimal.policy)

@@ -94,7 +94,7 @@ def test_the_learners_take_a_model_beyond_the_dense_limit(learner):
     151 GiB, and ``python recipes/study.py`` stopped at ``large``)."""
     from conftest import load
 
-    from irdrc.runs.sections import fits_dense
+    from irdrc.core.sizes import fits_dense
 
     cfg = load(learner, "env=large")
     assert cfg.params.env.num_states == 100_800 and not fits_dense(cfg.params)

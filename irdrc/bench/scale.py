@@ -210,7 +210,7 @@ def run_bench_scale(cfg: Config, out: Path) -> None:
     start = time.perf_counter()
     import torch
 
-    from irdrc.runs.sections import DENSE_LIMIT_BYTES
+    from irdrc.core.sizes import DENSE_LIMIT_BYTES
 
     devices = ["cpu"] + (["cuda"] if cfg.gpu and torch.cuda.is_available() else [])
     rows: list[dict[str, Any]] = []

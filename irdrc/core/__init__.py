@@ -8,6 +8,7 @@
 - ``env``: ``DFRCEnv``, the batched TorchRL env; ``gym``: the gymnasium wrapper (``irdrc/DFRC-v0``);
 - ``exact``: everything exact on one interface generic over the number of actions (dense and
   factored models, one value iteration, stationary and episodic metrics, scorers);
+- ``sizes``: how large a model the dense exact side takes (pure Python, read by the config checks);
 - ``cmdp``: the constrained optimum, a linear program on any exact model;
 - ``metrics``: the ``Metrics`` record, its names and the one definition of every rate;
 - ``policies``: baseline and table policies as TensorDictModules;

@@ -79,7 +79,7 @@ def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
             "each step (env.actions=binary); the radar share is learned by recipes/sac.py"
         )
     if cfg.learner == "safe":
-        from irdrc.core.exact.dense import dense_fit_states, fits_dense
+        from irdrc.core.sizes import dense_fit_states, fits_dense
 
         if not fits_dense(cfg.params):
             raise ValueError(

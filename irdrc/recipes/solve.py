@@ -18,14 +18,13 @@ from typing import Any
 
 from irdrc.core.checks import INT, build, check_number, check_numbers
 from irdrc.core.params import Params
+from irdrc.core.sizes import DENSE_LIMIT_BYTES, fits_dense
 from irdrc.runs.compose import Composed
 from irdrc.runs.sections import (
-    DENSE_LIMIT_BYTES,
     ONE_OR_FLEET,
     Eval,
     available_memory,
     check_common,
-    fits_dense,
 )
 
 NAME = "solve"

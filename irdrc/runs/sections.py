@@ -10,7 +10,7 @@ import math
 from dataclasses import dataclass, field
 from typing import Any
 
-from irdrc.core import checks
+from irdrc.core import checks, sizes
 from irdrc.core.params import Params
 from irdrc.fleet.config import fleet_from_config, is_fleet
 from irdrc.fleet.spec import FleetSpec
@@ -19,10 +19,6 @@ BACKENDS = ("none", "csv", "tensorboard", "wandb")
 WANDB_MODES = ("auto", "online", "offline", "disabled")
 PLOT_FORMATS = ("png", "pdf", "svg")
 """Formats of a run's figures (``plot.format``)."""
-
-DENSE_LIMIT_BYTES = 2**29
-"""The dense exact model's transition tensor (2·S² float64) is built up to this size (as
-``irdrc.core.exact.dense.DENSE_MODEL_LIMIT_BYTES``)."""
 
 MC_LIMIT_STEPS = 1e6
 """A Monte-Carlo evaluation steps its batch ``env.horizon`` times per round (~0.1 ms a step here):
@@ -67,23 +63,17 @@ A_FLEET = {"keys": ("env", "reward"), "build": a_fleet}
 ``params: Params = field(default=None, metadata=ONE_VEHICLE)``."""
 
 
-def fits_dense(params: Params) -> bool:
-    """Whether the dense transition tensor of ``params`` fits ``DENSE_LIMIT_BYTES`` (above it the
-    exact model is the factored one)."""
-    return 16 * params.env.num_states**2 <= DENSE_LIMIT_BYTES
-
-
 def check_dense(params: Params) -> None:
     """Refuse a model whose dense transition tensor would exhaust memory, with its estimate and
     the largest queue that fits."""
-    S = params.env.num_states
-    dense = 16 * S * S
-    if dense > DENSE_LIMIT_BYTES:
-        top = int(math.sqrt(DENSE_LIMIT_BYTES / 16) // math.prod(params.env.factor_levels)) - 1
+    if not sizes.fits_dense(params):
+        S = params.env.num_states
+        dense = 16 * S * S
+        top = sizes.dense_fit_states() // math.prod(params.env.factor_levels) - 1
         raise ValueError(
             f"env.queue_capacity={params.env.queue_capacity}: the exact model has S = {S} states "
             f"and its dense transition tensor would take {dense / 2**30:.1f} GiB (limit "
-            f"{DENSE_LIMIT_BYTES / 2**30:.1f} GiB); use env.queue_capacity ≤ {top}"
+            f"{sizes.DENSE_LIMIT_BYTES / 2**30:.1f} GiB); use env.queue_capacity ≤ {top}"
         )
 
 

@@ -11,7 +11,7 @@ takes expectations and steps distributions.
 The fleet's model (``irdrc.fleet.model``) is one more ``ExactMDP``, with 2^N joint actions.
 """
 
-from irdrc.core.exact.dense import DenseModel, build_model, fits_dense, stationary_distribution
+from irdrc.core.exact.dense import DenseModel, build_model, stationary_distribution
 from irdrc.core.exact.factored import FactoredModel, build_factored
 from irdrc.core.exact.mdp import ExactMDP, as_probs, as_schedule
 from irdrc.core.exact.scorer import Scorer, exact_model, exact_scorer
@@ -27,6 +27,7 @@ from irdrc.core.exact.solve import (
     value_iteration,
 )
 from irdrc.core.exact.stationary import stationary_distribution_factored
+from irdrc.core.sizes import fits_dense
 
 __all__ = [
     "DEFAULT_OPTIMUM_GAMMA",

@@ -18,22 +18,9 @@ import torch
 from irdrc.core.exact.mdp import ExactMDP
 from irdrc.core.params import Params
 
-DENSE_MODEL_LIMIT_BYTES = 2**29
-"""Recipes use the dense model while its transition tensor (2·S² float64) fits in this; above it
-they switch to the factored operator (``irdrc.core.exact.factored``) or refuse."""
-
 DENSE_MAX_STATES = 8192
-"""The largest S the dense model is built for (2·S² float64: 1 GiB)."""
-
-
-def dense_fit_states() -> int:
-    """The largest S whose dense transition tensor (2·S² float64) fits ``DENSE_MODEL_LIMIT_BYTES``."""
-    return math.isqrt(DENSE_MODEL_LIMIT_BYTES // 16)
-
-
-def fits_dense(params: Params) -> bool:
-    """Whether the dense transition tensor of ``params`` fits ``DENSE_MODEL_LIMIT_BYTES``."""
-    return params.env.num_states <= dense_fit_states()
+"""The largest S the dense model is built for (2·S² float64: 1 GiB). Recipes stop earlier, at
+``irdrc.core.sizes.DENSE_LIMIT_BYTES``."""
 
 
 @dataclass(frozen=True, eq=False)

@@ -17,6 +17,7 @@ from irdrc.core.exact.solve import (
 )
 from irdrc.core.metrics import Metrics
 from irdrc.core.params import Params
+from irdrc.core.sizes import fits_dense
 
 
 class Scorer:
@@ -69,8 +70,8 @@ class Scorer:
 
 def exact_model(params: Params, device: str | torch.device = "cpu") -> ExactMDP:
     """The exact model of ``params``: dense while its transition tensor fits
-    ``DENSE_MODEL_LIMIT_BYTES``, else factored."""
-    from irdrc.core.exact.dense import build_model, fits_dense
+    ``irdrc.core.sizes.DENSE_LIMIT_BYTES``, else factored."""
+    from irdrc.core.exact.dense import build_model
     from irdrc.core.exact.factored import build_factored
 
     return build_model(params) if fits_dense(params) else build_factored(params, device)
@@ -79,8 +80,6 @@ def exact_model(params: Params, device: str | torch.device = "cpu") -> ExactMDP:
 def exact_scorer(params: Params, gamma: float = DEFAULT_OPTIMUM_GAMMA) -> Scorer:
     """The scorer of ``params`` on its exact model (``exact_model``); value iteration to 1e-9 on a
     dense model, to McQueen's 1e-6 on a factored one (values of order 10²–10³)."""
-    from irdrc.core.exact.dense import fits_dense
-
     return Scorer(exact_model(params), gamma, tol=1e-9 if fits_dense(params) else 1e-6)
 
 

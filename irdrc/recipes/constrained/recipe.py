@@ -18,13 +18,13 @@ from typing import Any
 from irdrc.agents.configs import OBJECTIVES, LagrangianConfig, OffPolicyConfig
 from irdrc.core import checks
 from irdrc.core.params import Params
+from irdrc.core.sizes import fits_dense
 from irdrc.runs.compose import Composed
 from irdrc.runs.resume import refuse_finished
 from irdrc.runs.sections import (
     ONE_VEHICLE,
     Learning,
     check_dense,
-    fits_dense,
 )
 
 NAME = "constrained"

@@ -48,6 +48,71 @@ def test_a_gain_never_shown_is_planned_as_the_largest_reward_seen():
     assert est.miss_penalty == 0.0 and est.packets.min() > 0
 
 
+def test_posterior_sampling_draws_only_what_the_mode_changes():
+    """``mode_draw``: two draws on the same counts differ in the (speed, object) chains, P_d, P_fa
+    and the event probabilities, and agree with the posterior mean in the exogenous chains, the
+    arrivals and the packets. Under noisy-or the quiet probability 1 − e of a combination is the
+    product of its factors' 1 − p, so the ratio of two combinations that differ only in the road
+    (or weather) level is that factor's, at its posterior mean; drawing the road's probabilities
+    too (the mutation) breaks it."""
+    import numpy as np
+
+    from irdrc.core.stream import VehicleStream
+    from irdrc.online.form import FormCounts
+
+    counts, stream = FormCounts(PAPER, 1.0), VehicleStream(PAPER, 0)
+    coin = np.random.default_rng(0)
+    for step in range(2000):
+        if step % PAPER.env.horizon == 0:
+            s = stream.reset()
+        action = int(coin.integers(2))
+        out = stream.step(action)
+        counts.observe(s, action, out)
+        s = out.state
+    mean = counts.estimate()
+    draws = []
+    for seed in (1, 2):
+        draw = counts.mode_draw(np.random.default_rng(seed))
+        # the road and weather probabilities at their mean: that of the chain where it stands
+        at = counts._mean_draws()
+        draws.append((draw, [sum(f[i] for f in at) / len(at) for i in (0, 1)]))
+    for draw, _ in draws:
+        for name, chain in mean.chains.items():
+            assert torch.equal(draw.chains[name], chain), name
+        assert torch.equal(draw.rate, mean.rate) and torch.equal(draw.packets, mean.packets)
+    (one, (road, weather)), (two, _) = draws
+    assert not torch.equal(one.speed_object, two.speed_object)
+    assert one.detection != two.detection and one.false_alarm != two.false_alarm
+    assert not torch.allclose(one.event, two.event, rtol=1e-3)
+    for draw, (road, weather) in draws:
+        quiet = (1.0 - draw.event).reshape(2, 2, 2, 2)  # (road, weather, speed, object)
+        road_ratio = torch.tensor((1.0 - road[1]) / (1.0 - road[0]), dtype=torch.float64)
+        weather_ratio = torch.tensor((1.0 - weather[1]) / (1.0 - weather[0]), dtype=torch.float64)
+        assert torch.allclose(quiet[1] / quiet[0], road_ratio, rtol=1e-12)
+        assert torch.allclose(quiet[:, 1] / quiet[:, 0], weather_ratio, rtol=1e-12)
+
+
+def test_posterior_sampling_plans_on_the_draw_of_what_the_mode_changes():
+    """Each new plan is the optimum of ``FormCounts.mode_draw`` on the learner's generator (a draw
+    of every number, ``estimate(rng)``, plans another policy: the mutation)."""
+    import copy
+
+    import numpy as np
+
+    from irdrc.core.exact import value_iteration
+
+    cfg = configs.learner_config("posterior", {"episodes": 3})
+    learner = make_learner("posterior", cfg, PAPER, 0)
+    learn_on_stream(
+        learner, PAPER, exact_scorer(PAPER), episodes=3, seed=0, eval_every_frames=10**9
+    )
+    counts, rng = copy.deepcopy(learner.counts), np.random.default_rng()
+    rng.bit_generator.state = learner.rng.bit_generator.state
+    learner.switch(0)
+    expected = value_iteration(counts.model(counts.mode_draw(rng)), gamma=cfg.gamma, tol=cfg.tol)
+    assert learner.plan == expected.policy.tolist()
+
+
 def tiny(name: str) -> object:
     base = {"episodes": 6}
     if name.startswith("dqn"):

@@ -19,8 +19,9 @@ factors are drawn given the probabilities, then the probabilities given the firi
 Beta),
 arrivals, detections and false alarms, and it reads the numbers that a step shows exactly (a comm
 reward, the penalty, the detection reward, a channel level's packets once a step is limited by
-them). ``estimate`` gives the posterior mean or one posterior sample of every number, and
-``tables`` the model's per-configuration tables (``irdrc.core.tables.ModelTables``), which the exact
+them). ``estimate`` gives the posterior mean or one posterior sample of every number,
+``mode_draw`` one sample of the numbers whose data the vehicle's mode changes with the rest at
+their mean, and ``tables`` the model's per-configuration tables (``irdrc.core.tables.ModelTables``), which the exact
 core plans on (``irdrc.core.exact.factored_model``). A number never shown is planned
 optimistically: a gain (a channel level's comm reward, the detection reward) as the largest reward
 the stream has shown, a cost (the miss penalty, the false-alarm cost) as 0, a channel level's

@@ -102,7 +102,8 @@ def test_the_safe_table_puts_the_lagrangian_training_beside_the_safe_learner():
 def test_the_calibration_note_holds_each_plans_stated_spread_against_its_true_miss():
     """Every hand-made plan's exact miss is 0.045 (``history``): posterior means 0.0445, 0.048
     and 0.06 with sd 0.001 put it 0.5, 3 and 15 sds away; a radar-everywhere plan (sd 0, its mean
-    the truth) is within; a run without a stated confidence is left out."""
+    the truth) is within; the truth is below the posterior mean in two (0.045 < 0.048 and 0.06,
+    not 0.0445 nor 0.045); a run without a stated confidence is left out."""
     job = Job("safe", "paper", 10, 3, 0.05)
     rows = [
         run_row(
@@ -126,6 +127,9 @@ def test_the_calibration_note_holds_each_plans_stated_spread_against_its_true_mi
     assert "over the 4 safe runs" in note
     assert "within one posterior sd of the posterior mean in 2 (50 %" in note
     assert "within two in 2 (50 %" in note
+    assert (
+        "below the posterior mean (fewer misses than the posterior expects) in 2 of the 4" in note
+    )
     assert "average 0.65; 4 of the 4 plans meet it" in note
     assert calibration_note(rows[-1:]) == ""
 

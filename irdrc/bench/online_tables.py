@@ -179,8 +179,10 @@ def _confidence(rows: list[dict[str, Any]], target: float) -> str:
 def calibration_note(rows: list[dict[str, Any]]) -> str:
     """The safe plans' stated confidence held against the truth, over every safe run that states
     one: how often the plan's exact long-run miss detection lies within one and two posterior sds
-    of the posterior mean (about 68 % and 95 % if the posterior is calibrated), beside the mean
-    stated probability of meeting the target and the plans that do ("" where no run states one)."""
+    of the posterior mean (about 68 % and 95 % if the posterior is calibrated), on which side of it
+    (below: the posterior expects more misses than the plan makes, and its stated probability errs
+    low), beside the mean stated probability of meeting the target and the plans that do ("" where
+    no run states one)."""
     rows = [r for r in rows if r.get("plan_miss_sd") is not None]
     if not rows:
         return ""
@@ -194,11 +196,13 @@ def calibration_note(rows: list[dict[str, Any]]) -> str:
     one, two = sum(x <= 1 for x in z), sum(x <= 2 for x in z)
     p = statistics.mean(r["plan_p_within_target"] for r in rows)
     meets = sum(bool(r["meets_target"]) for r in rows)
+    below = sum(r["greedy_miss"] < r["plan_miss_mean"] for r in rows)
     return (
         f"The stated confidence against the truth, over the {n} safe runs: each plan's exact "
         f"long-run miss detection lies within one posterior sd of the posterior mean in {one} "
         f"({100 * one / n:.0f} %; about 68 % if the posterior is calibrated) and within two in "
-        f"{two} ({100 * two / n:.0f} %; about 95 %). The stated probabilities of meeting the "
+        f"{two} ({100 * two / n:.0f} %; about 95 %), and below the posterior mean (fewer misses "
+        f"than the posterior expects) in {below} of the {n}. The stated probabilities of meeting the "
         f"target average {p:.2f}; {meets} of the {n} plans meet it."
     )
 

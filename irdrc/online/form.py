@@ -125,7 +125,7 @@ class FormCounts:
             [[(m >> i) & 1 for i in range(4)] for m in range(1, 16)], dtype=float
         )  # the 15 non-empty sets of firing factors
         self.fire = [np.full(n, 0.01) for n in (Lr, Lw, Lv, Lm)]
-        self._mean_cache: tuple[tuple, list[list[np.ndarray]]] | None = None
+        self._mean_cache: tuple[bytes, list[list[np.ndarray]]] | None = None
 
     @property
     def steps(self) -> int:
@@ -271,10 +271,10 @@ class FormCounts:
         mean: from a copy of the chain, on a generator fixed by the data (so that the mean is the
         same whenever it is asked for)."""
         k, n = np.asarray(self.event_k, float), np.asarray(self.event_n, float)
-        key = (int(n.sum()), int(k.sum()), b"".join(f.tobytes() for f in self.fire))
+        key = b"".join(x.tobytes() for x in (k, n, *self.fire))  # what the draws depend on
         if self._mean_cache is not None and self._mean_cache[0] == key:
             return self._mean_cache[1]
-        local = np.random.default_rng(key[:2])
+        local = np.random.default_rng([int(n.sum()), int(k.sum())])
         fire, out = [f.copy() for f in self.fire], []
         for _ in range(self.GIBBS_MEAN_DRAWS):
             fire = self._gibbs(fire, k, n, local)

@@ -19,9 +19,8 @@ factors are drawn given the probabilities, then the probabilities given the firi
 Beta),
 arrivals, detections and false alarms, and it reads the numbers that a step shows exactly (a comm
 reward, the penalty, the detection reward, a channel level's packets once a step is limited by
-them). ``estimate`` gives the posterior mean or one posterior sample of every number,
-``mode_draw`` one sample of the numbers whose data the vehicle's mode changes with the rest at
-their mean, and ``tables`` the model's per-configuration tables (``irdrc.core.tables.ModelTables``), which the exact
+them). ``estimate`` gives the posterior mean or one posterior sample of every number, and
+``tables`` the model's per-configuration tables (``irdrc.core.tables.ModelTables``), which the exact
 core plans on (``irdrc.core.exact.factored_model``). A number never shown is planned
 optimistically: a gain (a channel level's comm reward, the detection reward) as the largest reward
 the stream has shown, a cost (the miss penalty, the false-alarm cost) as 0, a channel level's
@@ -30,7 +29,6 @@ packets as everything the queue could send.
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 import math
 from dataclasses import dataclass
@@ -125,7 +123,6 @@ class FormCounts:
             [[(m >> i) & 1 for i in range(4)] for m in range(1, 16)], dtype=float
         )  # the 15 non-empty sets of firing factors
         self.fire = [np.full(n, 0.01) for n in (Lr, Lw, Lv, Lm)]
-        self._mean_cache: tuple[bytes, list[list[np.ndarray]]] | None = None
 
     @property
     def steps(self) -> int:
@@ -214,30 +211,6 @@ class FormCounts:
             false_alarm=float(beta(np.float64(self.alarms), np.float64(self.quiet_radar))),
         )
 
-    def mode_draw(self, rng: np.random.Generator) -> Estimate:
-        """One posterior draw of every number whose data the vehicle's mode changes, the posterior
-        mean of every other.
-
-        Drawn: the (speed, object) chain under each action, P_d and P_fa, and the event
-        probabilities of the speed and object levels (the mode moves how often the vehicle sees
-        them: the radar reaction). At their mean: the channel, road, weather and phase chains, the
-        arrival rates, and the event probabilities of the road and weather levels, which every
-        step shows whatever the vehicle does. Under the sum event model every combination of
-        levels holds a speed and an object level, so every one is drawn."""
-        drawn, mean = self.estimate(rng), self.estimate()
-        event = drawn.event
-        if self.noisy_or:
-            draws = self._mean_draws()
-            road, weather = (sum(f[i] for f in draws) / len(draws) for i in (0, 1))
-            event = torch.from_numpy(self._combined([road, weather, self.fire[2], self.fire[3]]))
-        return dataclasses.replace(
-            mean,
-            speed_object=drawn.speed_object,
-            event=event,
-            detection=drawn.detection,
-            false_alarm=drawn.false_alarm,
-        )
-
     GIBBS_SWEEPS = 10
     """Sweeps of the noisy-or sampler between two draws (it goes on from where the last stopped)."""
     GIBBS_MEAN_DRAWS = 20
@@ -263,24 +236,14 @@ class FormCounts:
             for _ in range(self.GIBBS_SWEEPS):
                 self.fire = self._gibbs(self.fire, k, n, rng)
             return self._combined(self.fire)
-        draws = self._mean_draws()
-        return sum(self._combined(fire) for fire in draws) / len(draws)
-
-    def _mean_draws(self) -> list[list[np.ndarray]]:
-        """``GIBBS_MEAN_DRAWS`` noisy-or draws of the per-factor probabilities for a posterior
-        mean: from a copy of the chain, on a generator fixed by the data (so that the mean is the
-        same whenever it is asked for)."""
-        k, n = np.asarray(self.event_k, float), np.asarray(self.event_n, float)
-        key = b"".join(x.tobytes() for x in (k, n, *self.fire))  # what the draws depend on
-        if self._mean_cache is not None and self._mean_cache[0] == key:
-            return self._mean_cache[1]
+        # the mean: draws from a copy of the chain, on a generator fixed by the data (so that it
+        # is the same whenever it is asked for)
         local = np.random.default_rng([int(n.sum()), int(k.sum())])
-        fire, out = [f.copy() for f in self.fire], []
+        fire, total = [f.copy() for f in self.fire], 0.0
         for _ in range(self.GIBBS_MEAN_DRAWS):
             fire = self._gibbs(fire, k, n, local)
-            out.append(fire)
-        self._mean_cache = (key, out)
-        return out
+            total = total + self._combined(fire)
+        return total / self.GIBBS_MEAN_DRAWS
 
     def _combined(self, fire: list[np.ndarray]) -> np.ndarray:
         """[combinations] 1 − Π (1 − p_i[level]): noisy-or's event probabilities."""

@@ -4,16 +4,13 @@ learner that the model-free ones are read against.
 It is told the model's form and nothing else (``irdrc.online.form``), and plans every number it
 has not seen yet optimistically. Its first step, before any data, picks each mode with probability
 1/2. Before every later episode, and whenever the stream's length doubles (after 1, 2, 4, …, 256
-steps in the first episode, 512 in the second, …), it draws one model and acts by that model's
-optimal policy until the next draw, planned exactly on the factored operator with value iteration
-at the optimum's discount (posterior sampling for reinforcement learning, Osband, Russo and Van Roy
-2013, with the doubling draws of Ouyang et al. 2017's dynamic episodes). The draw
-(``FormCounts.mode_draw``) takes from the posterior the numbers whose data its choice of mode
-changes: the (speed, object) chain under each action (Dirichlet rows), P_d and P_fa (Beta) and the
-event probabilities of the speed and object levels. Every other number (the channel, road, weather
-and phase chains, the arrival rates, the road and weather levels' event probabilities) every step
-shows whatever the vehicle does; drawing it would explore nothing, and it is planned at its
-posterior mean. Its greedy policy, the one it would deploy, is the plan of the posterior mean.
+steps in the first episode, 512 in the second, …), it draws one model from the posterior of every
+number its counts allow (Dirichlet rows for the chains, Beta for the event, detection and
+false-alarm probabilities, Gamma for the arrival rates) and acts by that model's optimal policy
+until the next draw, planned exactly on the factored operator with value iteration at the
+optimum's discount (posterior sampling for reinforcement learning, Osband, Russo and Van Roy 2013,
+with the doubling draws of Ouyang et al. 2017's dynamic episodes). Its greedy policy, the one it
+would deploy, is the plan of the posterior mean.
 """
 
 from __future__ import annotations
@@ -59,7 +56,7 @@ class PosteriorSampling(StreamLearner):
 
     def _draw(self) -> None:
         """A new plan: the optimum of one model drawn from the posterior."""
-        self.plan = self._solve(self.counts.mode_draw(self.rng)).tolist()
+        self.plan = self._solve(self.counts.estimate(self.rng)).tolist()
         self.updates += 1
 
     def begin_episode(self, episode: int) -> None:

@@ -138,7 +138,8 @@ def test_the_calibration_note_holds_each_plans_stated_spread_against_its_true_mi
 def test_the_benchmark_runs_every_kind_of_job_writes_its_files_and_resumes(tmp_path):
     """A learner on every named scenario, one on `paper` alone and the safe learner, 3 episodes
     each (the safe learner's stop at the window, 2): a row per run, the tables, the calibration
-    note and the figure; then ``resume=true`` runs nothing again and remakes the same rows."""
+    note and the figure; then ``resume=true`` runs nothing again and remakes the same rows, its
+    time line saying that the runs were kept."""
     grid = (
         "scenarios=[paper]",
         "learners=[posterior]",
@@ -178,6 +179,9 @@ def test_the_benchmark_runs_every_kind_of_job_writes_its_files_and_resumes(tmp_p
     assert run_recipe("bench_online", tmp_path, *grid, "resume=true") == 0
     assert {p.name: p.stat().st_mtime_ns for p in (tmp_path / "runs").iterdir()} == kept
     assert (tmp_path / "bench_online.csv").read_text() == before
+    # its time line counts this invocation's runs only, and says so
+    assert "3 more were kept from an earlier one" in (tmp_path / "bench_online.md").read_text()
+    assert "kept from" not in table
 
 
 @pytest.mark.parametrize(

@@ -240,9 +240,10 @@ def plan(cfg: Config, draws: list) -> list[Job]:
     return jobs
 
 
-def execute(cfg: Config, jobs: list[Job], out: Path) -> dict[str, dict[str, Any]]:
+def execute(cfg: Config, jobs: list[Job], out: Path) -> tuple[dict[str, dict[str, Any]], int]:
     """Run every job not in ``out/runs`` yet (all of them unless ``resume``), ``workers`` at a time
-    in processes of their own, keeping each result as it finishes; returns every job's result."""
+    in processes of their own, keeping each result as it finishes; returns every job's result and
+    how many were kept from an earlier invocation."""
     import concurrent.futures as cf
     import multiprocessing
 
@@ -269,7 +270,7 @@ def execute(cfg: Config, jobs: list[Job], out: Path) -> dict[str, dict[str, Any]
             atomic_write_text(runs / f"{job.name}.json", json.dumps(_clean(result)))
             results[job.name] = result
             ticker.tick()
-    return results
+    return results, len(jobs) - len(todo)
 
 
 def _clean(x: Any) -> Any:
@@ -297,7 +298,7 @@ def run(cfg: Config, run) -> int:
     )
     jobs = plan(cfg, draws)
     print(f"bench_online: {len(jobs)} runs, {cfg.workers} at a time, into {run.dir}", flush=True)
-    results = execute(cfg, jobs, Path(run.dir))
+    results, kept = execute(cfg, jobs, Path(run.dir))
     rows, safe, lag = [], [], []
     for job in jobs:
         result = results[job.name]
@@ -336,7 +337,7 @@ def run(cfg: Config, run) -> int:
             parts.append(note)
     table = "\n\n".join(parts)
     print("\n" + table)
-    write_table_md(run.dir / "bench_online.md", table, time.perf_counter() - start)
+    write_table_md(run.dir / "bench_online.md", table, time.perf_counter() - start, kept)
     for scenario in cfg.scenarios:
         histories = {
             n: [

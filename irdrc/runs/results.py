@@ -106,22 +106,31 @@ def machine_description() -> str:
     return f"{os.cpu_count()} cores ({cpu}){gpu}, torch {torch.__version__}"
 
 
-def measured_line(wall_seconds: float | None = None) -> str:
+def measured_line(wall_seconds: float | None = None, kept_runs: int = 0) -> str:
     """``Measured on DATE on MACHINE[, in N s].``: the one line a generated table carries about where
-    and when it was measured (``machine_description``)."""
+    and when it was measured (``machine_description``). ``kept_runs``: runs a resumed benchmark
+    took from an earlier invocation, whose time N does not count (said on the line)."""
     import datetime
 
     date = datetime.date.today().isoformat()
     took = ""
     if wall_seconds is not None:
         took = ", in " + f"{wall_seconds:,.0f}".replace(",", " ") + " s"
+    if kept_runs:
+        took += (
+            f" (the runs of this invocation; {kept_runs} more were kept from an earlier one "
+            "into the same directory)"
+        )
     return f"Measured on {date} on {machine_description()}{took}."
 
 
-def write_table_md(path: Path, table: str, wall_seconds: float | None = None) -> None:
+def write_table_md(
+    path: Path, table: str, wall_seconds: float | None = None, kept_runs: int = 0
+) -> None:
     """Write a benchmark's Markdown table with its ``measured_line`` under it (atomically): the
     file ``python -m irdrc.paper.docs`` embeds in docs/."""
-    atomic_write_text(Path(path), table.rstrip() + "\n\n" + measured_line(wall_seconds) + "\n")
+    line = measured_line(wall_seconds, kept_runs)
+    atomic_write_text(Path(path), table.rstrip() + "\n\n" + line + "\n")
 
 
 def summary_dict(

@@ -323,6 +323,14 @@ def test_bench_robust_recipe(tmp_path):
             line = f"{r['candidate']} env.p1.speed=0.1 reward.r4=5.0 seed={r['seed']}: final"
             assert line in out.stdout and line in table
             assert "differs from the optimum" in table
+    # resumed into the same directory: nothing runs again, the same rows, and the time line says
+    # that it counts none of them
+    again = run_recipe("bench_robust.py", "resume=true", f"hydra.run.dir={tmp_path}")
+    assert again.returncode == 0, again.stderr[-2000:]
+    assert "4 grid points, 0 to run (resume)" in again.stdout
+    assert list(csv.DictReader((tmp_path / "bench_robust.csv").open())) == rows
+    assert "4 more were kept from an earlier one" in (tmp_path / "bench_robust.md").read_text()
+    assert "kept from an earlier one" not in table
     bad = run_recipe("bench_robust.py", "p1_speed=[1.5]", f"hydra.run.dir={tmp_path / 'x'}")
     assert bad.returncode == 2 and "p1_speed[0]=1.5" in bad.stderr
     bad = run_recipe(

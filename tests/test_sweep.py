@@ -381,6 +381,24 @@ def test_status_files_are_checked(tmp_path, capsys):
     assert read_status(d) is None and str(d / "status.json") in capsys.readouterr().out
 
 
+def test_kept_points_counts_what_a_resumed_run_does_not_run_again(tmp_path):
+    """A benchmark's time line leaves out the points a resumed run keeps: DONE ones, and only
+    with ``resume`` (an ERROR or INCOMPLETE point runs again; without ``resume`` every one does)."""
+    from irdrc.runs.sections import Executor
+    from irdrc.sweeps.trials import kept_points
+
+    planned = [{"point_id": name} for name in ("a", "b", "c", "d")]
+    for name, status in (("a", "DONE"), ("b", "DONE"), ("c", "ERROR")):
+        d = tmp_path / "trials" / name
+        d.mkdir(parents=True)
+        (d / "status.json").write_text(json.dumps({"status": status}))
+        (d / "summary.json").write_text("{}")
+    assert kept_points(Executor(executor="local", resume=True), planned, tmp_path) == 2
+    assert kept_points(Executor(executor="local"), planned, tmp_path) == 0
+    (tmp_path / "trials" / "b" / "summary.json").unlink()  # DONE without its summary: not done
+    assert kept_points(Executor(executor="local", resume=True), planned, tmp_path) == 1
+
+
 def test_seed_statistics_per_point_and_banded_curves(tmp_path):
     """A grid over seeds: ``summary_by_point.csv`` has, per point without its seed, the mean and
     the 95 % t half-width over the DONE seeds (an ERROR seed left out); ``learning_curves.png``

@@ -85,11 +85,12 @@ def run(cfg: Config, run) -> int:
     the runs whose miss detection is ≤ target + ``miss_tolerance`` and those whose objective is
     ≥ ``objective_share`` of the LP optimum, with env steps (training + measurement) and seconds."""
     from irdrc.runs.results import write_rows_csv, write_table_md
-    from irdrc.sweeps.trials import execute
+    from irdrc.sweeps.trials import execute, kept_points
 
     start = time.perf_counter()
     out, tol, share, grid = run.dir, cfg.miss_tolerance, cfg.objective_share, cfg.grid
     planned = list(cfg.planned)
+    kept = kept_points(cfg.executor, planned, out)
     code = execute(cfg.executor, planned, out, run.recipe)
     rows = []
     for p in planned:
@@ -128,7 +129,7 @@ def run(cfg: Config, run) -> int:
         f"target + {tol:g}, objective ≥ {share:g} of the LP optimum"
     )
     print(table)
-    write_table_md(Path(out) / "bench_constrained.md", table, time.perf_counter() - start)
+    write_table_md(Path(out) / "bench_constrained.md", table, time.perf_counter() - start, kept)
     run.finish(None)
     return code
 

@@ -145,10 +145,11 @@ def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
 def run(cfg: Config, run) -> int:
     """Run both parts, then write ``bench_fleet.csv`` (a row per run), ``bench_fleet.md`` (the
     tables) and ``fleet_frontier.<format>``."""
-    from irdrc.sweeps.trials import execute
+    from irdrc.sweeps.trials import execute, kept_points
 
     start = time.perf_counter()
     out, planned, part = run.dir, list(cfg.planned), cfg.part
+    kept = kept_points(cfg.executor, planned, out)
     code = execute(cfg.executor, planned, out, run.recipe)
     rows, tables, specs = [], {}, {}
     for p in planned:
@@ -204,7 +205,7 @@ def run(cfg: Config, run) -> int:
     print("\n" + table)
     if a:
         frontier_figure(a, tables, out / f"fleet_frontier.{cfg.plot.format}")
-    write_table_md(out / "bench_fleet.md", table, time.perf_counter() - start)
+    write_table_md(out / "bench_fleet.md", table, time.perf_counter() - start, kept)
     run.finish(None)
     return code
 

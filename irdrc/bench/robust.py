@@ -141,10 +141,11 @@ def run(cfg: Config, run) -> int:
     from irdrc.core.exact import Scorer, build_model
     from irdrc.runs.results import read_csv_rows, write_rows_csv, write_table_md
     from irdrc.runs.tables import policy_differences, read_policy_csv
-    from irdrc.sweeps.trials import execute
+    from irdrc.sweeps.trials import execute, kept_points
 
     start = time.perf_counter()
     out, th, planned = run.dir, cfg.threshold, list(cfg.planned)
+    kept = kept_points(cfg.executor, planned, out)
     code = execute(cfg.executor, planned, out, run.recipe)
     rows = []
     for p in planned:
@@ -181,7 +182,7 @@ def run(cfg: Config, run) -> int:
             "\n\nRuns that do not hold, and where their final policy differs:\n\n"
             + "\n\n".join("```\n" + f + "\n```" for f in failures)
         )
-    write_table_md(out / "bench_robust.md", table, time.perf_counter() - start)
+    write_table_md(out / "bench_robust.md", table, time.perf_counter() - start, kept)
     run.finish(None)
     return code
 

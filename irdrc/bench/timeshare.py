@@ -135,10 +135,11 @@ def run(cfg: Config, run) -> int:
     """Every (learner, scenario, seed) as one run; writes ``bench_timeshare.csv`` (a row per run)
     and ``bench_timeshare.md`` (the table)."""
     from irdrc.runs.results import read_csv_rows, write_rows_csv, write_table_md
-    from irdrc.sweeps.trials import execute
+    from irdrc.sweeps.trials import execute, kept_points
 
     start = time.perf_counter()
     out, planned = run.dir, list(cfg.planned)
+    kept = kept_points(cfg.executor, planned, out)
     code = execute(cfg.executor, planned, out, run.recipe)
     rows = []
     for p in planned:
@@ -152,7 +153,7 @@ def run(cfg: Config, run) -> int:
     if cfg.random:
         table = random_summary(rows, cfg) + "\n\n" + table
     print("\n" + table)
-    write_table_md(out / "bench_timeshare.md", table, time.perf_counter() - start)
+    write_table_md(out / "bench_timeshare.md", table, time.perf_counter() - start, kept)
     run.finish(None)
     return code
 

@@ -102,13 +102,7 @@ def execute(cfg: Executor, planned: list[dict[str, Any]], out: Path, recipe: str
         raise ValueError("two planned points share an id (the same method, base and overrides)")
     out = Path(out).resolve()
     trials_dir = out / "trials"
-    todo = [
-        p
-        for p in planned
-        if not (
-            cfg.resume and (read_status(trials_dir / p["point_id"]) or {}).get("status") == "DONE"
-        )
-    ]
+    todo = [p for p in planned if not _kept(cfg, trials_dir / p["point_id"])]
     total = len(planned)
     methods = ", ".join(sorted({p["method"] for p in planned}))
     print(
@@ -140,6 +134,19 @@ def execute(cfg: Executor, planned: list[dict[str, Any]], out: Path, recipe: str
     if by_point is not None:
         print(f"wrote {by_point}" + (f" and {curves}" if curves else ""), flush=True)
     return 130 if interrupted else code
+
+
+def kept_points(cfg: Executor, planned: list[dict[str, Any]], out: Path) -> int:
+    """How many of the planned points ``execute`` will keep from an earlier invocation into
+    ``out`` rather than run (DONE points, with ``resume``): what a benchmark's time line says its
+    time leaves out."""
+    trials_dir = Path(out).resolve() / "trials"
+    return sum(_kept(cfg, trials_dir / p["point_id"]) for p in planned)
+
+
+def _kept(cfg: Executor, trial_dir: Path) -> bool:
+    """A point a resumed run does not run again: it finished (DONE) in an earlier invocation."""
+    return cfg.resume and (read_status(trial_dir) or {}).get("status") == "DONE"
 
 
 def go_on_command(out: Path, recipe: str = "sweep") -> str:

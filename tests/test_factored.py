@@ -47,6 +47,19 @@ def test_factored_equals_dense_on_random_models(seed):
     assert_factored_equals_dense(random_params(seed), seed)
 
 
+@pytest.mark.parametrize("queue", [10, 60])
+def test_a_link_that_carries_more_than_the_arrivals_can_bring(queue):
+    """ν beyond the arrivals' reach in one step (λ = 1: 19 counts carry all but 1e-16 of the
+    mass), as a learner's optimistic plan has it for a channel level it never saw full; with a
+    deep queue the power steps run on a prefix of the queue lengths (its mass near empty). Both
+    once failed in ``push_rows`` (a shape error, or an empty index)."""
+    params = Params.from_overrides(
+        {"env.queue_capacity": queue, "env.packets_good": queue + 10, "env.packets_bad": 25}
+    )
+    assert int(build_factored(params).pmf.shape[-1]) < 25  # the case in question
+    assert_factored_equals_dense(params, queue)
+
+
 def test_deep_queue_is_solved_without_the_dense_matrix():
     """S = 100 000 (D = 3 124) in the paper's dynamics: the reward ignores the queue, so the
     optimal average reward is the D = 10 one; solved in seconds (the dense matrix would be 160 GB)."""

@@ -208,8 +208,10 @@ class FactoredModel(ExactMDP):
             pmf = self.weights[row]
             K = len(pmf)
             x = X[:, cols]  # [n, m]
-            # full[j] = Σ_k pmf[k]·X[j − k]: mass at d + k; its queue is clamp(j − ν, 0, n − 1).
-            full = x.new_zeros(n + K - 1, x.shape[1])
+            # full[j] = Σ_k pmf[k]·X[j − k]: mass at d + k; its queue is clamp(j − ν, 0, n − 1)
+            # (rows up to ν + n, so that a link carrying more than the arrivals reach still
+            # leaves n rows after it).
+            full = x.new_zeros(max(n + K - 1, nu + n), x.shape[1])
             for k in range(K):
                 full[k : k + n].add_(x, alpha=pmf[k])
             z = full[nu : nu + n].clone()

@@ -15,9 +15,11 @@ from irdrc.core.params import Params
 from tests.test_constrained_recipe import ROOT
 
 
-def random_params(seed: int) -> Params:
+def random_params(seed: int, wide: bool = False) -> Params:
     """A small model with every v1 feature drawn at random (chains, event probabilities, event
-    model, radar reaction, arrivals, link capacities, queue)."""
+    model, radar reaction, arrivals, link capacities, queue). ``wide``: over the whole range a user
+    may type (chains that never or always stay, events up to certainty, up to 8 arrivals a step,
+    links of up to 60 packets, queues of up to 40), not only around the paper's values."""
     g = torch.Generator().manual_seed(seed)
 
     def u(lo: float, hi: float) -> float:
@@ -39,12 +41,28 @@ def random_params(seed: int) -> Params:
         **{f"env.p1.{e}": u(0.05, 0.2) for e in events},
         "reward.r4": u(1.0, 50.0),
     }
+    if wide:
+        ov |= {
+            "env.queue_capacity": int(torch.randint(1, 41, (1,), generator=g)),
+            "env.arrival_rate": u(0.05, 8.0),
+            "env.packets_good": int(torch.randint(0, 61, (1,), generator=g)),
+            "env.packets_bad": int(torch.randint(0, 61, (1,), generator=g)),
+            **{f"env.stay_good.{f}": u(0.0, 1.0) for f in factors},
+            **{f"env.stay_bad.{f}": u(0.0, 1.0) for f in factors},
+            **{f"env.p0.{e}": u(0.0, 0.3) for e in events},
+            **{f"env.p1.{e}": u(0.0, 1.0) for e in events},
+        }
     return Params.from_overrides(ov)
 
 
 @pytest.mark.parametrize("seed", range(6))
 def test_factored_equals_dense_on_random_models(seed):
     assert_factored_equals_dense(random_params(seed), seed)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_factored_equals_dense_on_models_drawn_over_every_allowed_value(seed):
+    assert_factored_equals_dense(random_params(seed, wide=True), seed)
 
 
 @pytest.mark.parametrize("queue", [10, 60])

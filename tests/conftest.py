@@ -104,6 +104,20 @@ def scenario(*overrides: str) -> Params:
     return load("solve", *overrides).model
 
 
+EDGES = {
+    "env.queue_capacity": 3,
+    "env.arrival_rate": 0.3,
+    "env.packets_good": 30,
+    "env.packets_bad": 0,
+    "env.stay_good.channel": 0.0,
+    "env.stay_good.road": 1.0,
+    "env.stay_bad.weather": 1.0,
+    "env.p1.object": 1.0,
+}
+"""A scenario at the ends of the allowed ranges: a link past the queue and the arrivals' reach
+(30 packets, 3 held, λ = 0.3), a bad channel that carries nothing, chains that always or never
+stay, a certain event. The simulator, the stream and the exact model are held to each other on it."""
+
 TINY_ALGO = dict(
     num_envs=8,
     frames_per_batch=32,

@@ -6,7 +6,7 @@ import math
 
 import pytest
 import torch
-from conftest import assert_chi2
+from conftest import EDGES, assert_chi2
 
 from irdrc import DFRCEnv, Params, state_index
 from irdrc.core import policies
@@ -27,17 +27,7 @@ SCENARIOS = {
     "paper": {},
     "sum_no_reaction": {"env.event_model": "sum", "env.radar_reaction": False, "env.p1.speed": 0.6},
     "busy_queue": {"env.arrival_rate": 2.5, "env.queue_capacity": 4, "env.packets_bad": 1},
-    "edges": {  # the ends of the allowed ranges: a link past the queue and the arrivals' reach,
-        # a dead bad channel, chains that always or never stay, a certain event
-        "env.queue_capacity": 3,
-        "env.arrival_rate": 0.3,
-        "env.packets_good": 30,
-        "env.packets_bad": 0,
-        "env.stay_good.channel": 0.0,
-        "env.stay_good.road": 1.0,
-        "env.stay_bad.weather": 1.0,
-        "env.p1.object": 1.0,
-    },
+    "edges": EDGES,
 }
 
 

@@ -6,6 +6,7 @@ import math
 
 import pytest
 import torch
+from conftest import EDGES
 
 from irdrc.bench.random_scenarios import draw_overrides
 from irdrc.core.dynamics import Dynamics
@@ -23,18 +24,7 @@ SCENARIOS = {
     "draw 3": draw_overrides(3),
     "draw 11": draw_overrides(11),
     "draw 17": draw_overrides(17),
-    # the ends of the allowed ranges (test_exact's "edges"): a link past the queue and the
-    # arrivals' reach, a dead bad channel, chains that always or never stay, a certain event
-    "edges": {
-        "env.queue_capacity": 3,
-        "env.arrival_rate": 0.3,
-        "env.packets_good": 30,
-        "env.packets_bad": 0,
-        "env.stay_good.channel": 0.0,
-        "env.stay_good.road": 1.0,
-        "env.stay_bad.weather": 1.0,
-        "env.p1.object": 1.0,
-    },
+    "edges": EDGES,
 }
 
 

@@ -145,6 +145,19 @@ def test_statistics_helpers():
     assert first_reaching(rows, 11, value="mean", at="x") is None
 
 
+def test_the_report_prints_values_below_the_solves_accuracy_as_such():
+    from irdrc.paper.report import _fmt
+
+    # an always-radar DQN's exact throughput is 0 up to float noise (1e-15)
+    assert [_fmt(v) for v in (1.068e-15, -1.0e-15, 0.0, 0.03699, "7")] == [
+        "<1e-12",
+        "<1e-12",
+        "0",
+        "0.03699",
+        "7",
+    ]
+
+
 def test_bisection_on_a_step_function():
     calls = []
 

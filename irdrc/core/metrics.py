@@ -87,9 +87,16 @@ def long_run_rates(s: Mapping[str, float]) -> dict[str, float]:
     return out
 
 
+RESOLUTION = 1e-12
+"""The smallest magnitude a table shows as a number: the exact solves are accurate to about this
+(``GMRES_RTOL``), so a long-run value below it is printed ``<1e-12`` rather than as float noise."""
+
+
 def _fmt(x: float) -> str:
     if x is None or (isinstance(x, float) and math.isnan(x)):
         return "n/a"
+    if x != 0 and abs(x) < RESOLUTION:
+        return f"<{RESOLUTION:.0e}"
     return f"{x:.4g}" if abs(x) >= 1e-3 or x == 0 else f"{x:.2e}"
 
 

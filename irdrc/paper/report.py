@@ -9,6 +9,7 @@ import shutil
 from pathlib import Path
 from typing import Any
 
+from irdrc.core.metrics import RESOLUTION
 from irdrc.paper.docs import replace_block
 from irdrc.paper.figures import read_csv, same_value
 from irdrc.runs.results import atomic_write_text, md_table
@@ -21,7 +22,9 @@ def _fmt(x: Any, digits: int = 4) -> str:
         v = float(x)
     except (TypeError, ValueError):
         return str(x)
-    return "n/a" if math.isnan(v) else f"{v:.{digits}g}"
+    if math.isnan(v):
+        return "n/a"
+    return f"<{RESOLUTION:.0e}" if v != 0 and abs(v) < RESOLUTION else f"{v:.{digits}g}"
 
 
 def write_report(

@@ -10,6 +10,7 @@ regret and the missed events of the policy it behaved by) every episode.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from functools import partial
 from typing import Any
@@ -191,6 +192,10 @@ def lp_reference(lp: Any, target_miss: float) -> tuple[str, str, Any]:
     return f"the LP at target_miss={target_miss}" + (where if n else ""), "LP", lp.policy.argmax(-1)
 
 
+def _share(x: float) -> str:
+    return "n/a (no event yet)" if math.isnan(x) else f"{x:.4f}"
+
+
 def print_ledger(row: dict[str, Any], summary: dict[str, Any], cfg: Config) -> None:
     """The price of learning, in a few lines."""
     first, stay = summary["episodes_to_99"], summary["stay_99"]
@@ -210,7 +215,8 @@ def print_ledger(row: dict[str, Any], summary: dict[str, Any], cfg: Config) -> N
         f"missed events {row['expected_missed']:.1f} ({row['realised_missed']:.0f}) where the "
         f"optimum misses {row['floor_missed']:.1f}; packets sent {row['expected_sent']:.0f} "
         f"({row['realised_sent']:.0f})\n"
-        f"  cumulative miss detection {row['cumulative_miss_detection']:.4f}; greedy policy: {conv}"
+        f"  cumulative miss detection {_share(row['cumulative_miss_detection'])}; greedy policy: "
+        f"{conv}"
     )
     if cfg.learner == "safe":
         print(

@@ -162,8 +162,21 @@ def summary_dict(
 
 
 def write_summary(path: Path, summary: dict[str, Any]) -> None:
-    """Write a summary record as JSON (atomically)."""
-    atomic_write_text(Path(path), json.dumps(summary, indent=2, allow_nan=False) + "\n")
+    """Write a summary record as JSON (atomically); an undefined number (NaN, e.g. the miss
+    detection of a stream with no event yet) is written as null, wherever it is in the record."""
+    atomic_write_text(
+        Path(path), json.dumps(_json_clean(summary), indent=2, allow_nan=False) + "\n"
+    )
+
+
+def _json_clean(value: Any) -> Any:
+    if isinstance(value, dict):
+        return {k: _json_clean(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_json_clean(v) for v in value]
+    if isinstance(value, float) and math.isnan(value):
+        return None
+    return value
 
 
 def read_csv_rows(path: Path) -> list[dict[str, str]]:

@@ -6,6 +6,7 @@ a few go through the command line to check that the answer is one line, exit sta
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import subprocess
@@ -104,6 +105,56 @@ def test_long_horizon_is_cheap_not_refused():
 def test_all_zero_rewards_warn():
     with pytest.warns(UserWarning, match="all 0"):
         load("solve", *(f"reward.r{i}=0" for i in range(1, 5)))
+
+
+NOTHING_TO_EARN = ("reward.r1=0", "reward.r2=0", "reward.r4=0")
+
+
+@pytest.mark.parametrize(
+    ("recipe", "args"),
+    [
+        ("irdrc.online.recipe", ["env=imperfect_radar"]),  # the optimum earns −0.205 per step
+        ("irdrc.online.recipe", ["learner=dqn"]),  # … 0: radar always, no penalty
+        ("irdrc.recipes.dqn", []),
+        ("irdrc.recipes.qlearning", []),
+        ("irdrc.recipes.shares.sac", []),
+    ],
+)
+def test_learners_refuse_an_optimum_that_earns_nothing(tmp_path, capsys, recipe, args):
+    """Learners are scored by their ratio to the optimum's reward; at an optimum that earns ≤ 0
+    per step that ratio does not rank policies (online.py reported a worse policy as 1.0000 of the
+    optimum, others divided by zero). Refused: one line, exit 2, no run directory."""
+    import importlib
+
+    from irdrc.runs import app
+
+    module = importlib.import_module(recipe)
+    run = [*NOTHING_TO_EARN, *args, f"hydra.run.dir={tmp_path / 'run'}", "progress=false"]
+    assert app.execute(module, [*run, "logger=none"]) == 2
+    err = capsys.readouterr().err
+    assert "the exact optimum earns" in err and "needs an optimum that earns more than 0" in err
+    assert not (tmp_path / "run").exists()
+
+
+def test_an_optimum_that_earns_nothing_is_read_without_a_ratio(tmp_path, capsys):
+    from irdrc.recipes import evaluate
+    from irdrc.runs import app
+
+    table = tmp_path / "policy.csv"
+    assert app.execute(solve, [f"hydra.run.dir={tmp_path / 'solved'}"]) == 0
+    (tmp_path / "solved" / "policy.csv").rename(table)
+    args = [f"policy={table}", "eval.mc_episodes=0", f"hydra.run.dir={tmp_path / 'run'}"]
+    assert app.execute(evaluate, [*args, *NOTHING_TO_EARN]) == 0
+    out = capsys.readouterr().out
+    assert (
+        "below this scenario's optimum (0 per step: no ratio to an optimum that earns ≤ 0)" in out
+    )
+    summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert summary["optimality_ratio"] is None and summary["optimal"]["avg_reward"] == 0
+    # solve.py's closest decisions: no ratio either (it divided by zero)
+    assert app.execute(solve, [*NOTHING_TO_EARN, f"hydra.run.dir={tmp_path / 'zero'}"]) == 0
+    rows = capsys.readouterr().out.split("closest decisions")[1].split("exact metrics")[0]
+    assert rows.count(" n/a ") == 6
 
 
 def test_sweep_values_are_validated_before_any_trial():

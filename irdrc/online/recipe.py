@@ -112,7 +112,7 @@ def convergence(history: list[dict[str, Any]]) -> dict[str, Any]:
 def run(cfg: Config, run) -> dict[str, Any]:
     """Learn on the stream, then finish the run directory as every learner's (``finish_learner``)
     with the ledger beside it."""
-    from irdrc.core.exact import exact_scorer
+    from irdrc.core.exact import exact_scorer, require_ratio
     from irdrc.online.figures import plot_run
     from irdrc.online.learners import make_learner
     from irdrc.online.loop import learn_on_stream
@@ -121,6 +121,7 @@ def run(cfg: Config, run) -> dict[str, Any]:
     run.threads(cfg.num_threads)
     run.make_logger(cfg.logger, cfg.algo.name)
     scorer = exact_scorer(cfg.params, cfg.optimum_gamma)
+    require_ratio(scorer)
     greedy_scorer = None
     if cfg.learner == "safe":
         from irdrc.online.safe import ConstrainedScorer

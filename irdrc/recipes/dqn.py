@@ -73,7 +73,7 @@ def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
 def run(cfg: Config, run) -> dict[str, Any]:
     """Train, evaluate, finish the run directory (``irdrc.runs.report``)."""
     from irdrc.agents import dqn
-    from irdrc.core.exact import exact_scorer
+    from irdrc.core.exact import exact_scorer, require_ratio
     from irdrc.core.exact.continuum import continuum_optimum
     from irdrc.runs.report import LearnerRun, finish_learner
     from irdrc.runs.tracking import log_scalars
@@ -81,6 +81,7 @@ def run(cfg: Config, run) -> dict[str, Any]:
     run.threads(cfg.num_threads)
     logger = run.make_logger(cfg.logger, cfg.algo.name)
     scorer = exact_scorer(cfg.params, cfg.optimum_gamma)  # dense, or factored beyond its reach
+    require_ratio(scorer)
     record = run.train(cfg, dqn.train, scorer)
     best = continuum_optimum(cfg.params, cfg.optimum_gamma)  # with G levels, else None
     final = record.history[-1]["optimality_ratio"]  # the final policy's, exact

@@ -26,6 +26,7 @@ from typing import Any
 
 from irdrc.core import checks
 from irdrc.core.checks import build
+from irdrc.core.metrics import Metrics
 from irdrc.core.params import Params
 from irdrc.runs.compose import Composed
 from irdrc.runs.sections import ONE_VEHICLE, Eval, check_common
@@ -192,6 +193,18 @@ def load_source(cfg: Config) -> tuple[Any, str, str]:
     return policy, f"randomised policy table {path}", "policy"
 
 
+def against_optimum(learned: Metrics, opt: Metrics, what: str) -> str:
+    """The policy's average reward read against the scenario's ``what``: as a ratio where the
+    optimum earns more than 0, else as the reward it falls short by (a ratio to an optimum that
+    earns ≤ 0 would not rank policies)."""
+    if opt.avg_reward > 0:
+        return f"{learned.avg_reward / opt.avg_reward:.4f} of this scenario's {what} (average reward, exact)"
+    return (
+        f"{learned.avg_reward:.4f} per step, {opt.avg_reward - learned.avg_reward:.4f} below this "
+        f"scenario's {what} ({opt.avg_reward:.4g} per step: no ratio to an optimum that earns ≤ 0)"
+    )
+
+
 def run(cfg: Config, run) -> dict[str, Any]:
     """Score the policy of ``checkpoint=`` or ``policy=`` on the composed scenario; write
     summary.json and policy.csv (the policy on this scenario's states), print the table."""
@@ -232,7 +245,6 @@ def run(cfg: Config, run) -> dict[str, Any]:
         rows["optimal (exact, episodic)"] = episodic_metrics(model, scorer.optimal.policy)
         rows["round_robin (exact, long run)"] = stationary_metrics(model, "round_robin")
     constrained = against_lp(model, learned, cfg.target_miss, rows)
-    ratio = learned.avg_reward / opt.avg_reward
     wall = time.perf_counter() - t0
     print(f"scenario={run.scenario} (S = {S}): {source}\n")
     print(format_table(rows, errors=errs))
@@ -240,7 +252,7 @@ def run(cfg: Config, run) -> dict[str, Any]:
         "long run: the policy's stationary average; episodic: episodes of "
         f"{params.env.horizon} steps from a uniform reset, as the Monte-Carlo row samples"
     )
-    print(f"\n{name}: {ratio:.4f} of this scenario's optimum (average reward, exact)")
+    print(f"\n{name}: {against_optimum(learned, opt, 'optimum')}")
     if constrained:
         print(constrained.pop("line"))
     if policy.ndim == 1 and dense:
@@ -330,13 +342,10 @@ def score_shares(cfg: Config, run, rho: Any, source: str, t0: float) -> dict[str
     rows["optimal binary (exact, long run)"] = exact_scorer(
         binary, cfg.optimum_gamma
     ).optimal_metrics
-    ratio = learned.avg_reward / opt.avg_reward
     S = cfg.params.env.num_states
     print(f"scenario={run.scenario} (S = {S}): {source}\n")
     print(format_table(rows, errors=errs))
-    print(
-        f"\npolicy: {ratio:.4f} of this scenario's optimum over ρ ∈ [0, 1] (average reward, exact)"
-    )
+    print(f"\npolicy: {against_optimum(learned, opt, 'optimum over ρ ∈ [0, 1]')}")
     write_policy_csv(run.dir / "policy.csv", rho, cfg.params.env.factor_levels, shares=())
     summary = summary_dict(
         method="evaluate",

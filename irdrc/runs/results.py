@@ -144,7 +144,8 @@ def summary_dict(
     optimal: Metrics,
     **extra: Any,
 ) -> dict[str, Any]:
-    """The ``summary.json`` record. ``optimality_ratio`` = avg_reward / optimal avg_reward."""
+    """The ``summary.json`` record. ``optimality_ratio`` = avg_reward / optimal avg_reward (None
+    where the optimum earns ≤ 0: such a ratio would not rank policies)."""
     out = {
         "method": method,
         "scenario": scenario,
@@ -154,7 +155,7 @@ def summary_dict(
         "metrics": {k: clean_number(v) for k, v in metrics.as_dict().items()},
         "optimal": {k: clean_number(v) for k, v in optimal.as_dict().items()},
         "optimality_ratio": clean_number(metrics.avg_reward / optimal.avg_reward)
-        if optimal.avg_reward != 0
+        if optimal.avg_reward > 0
         else None,
     }
     out.update(extra)

@@ -293,7 +293,8 @@ def closest_decisions(model: Any, sol: Any, gamma: float, count: int = 6) -> str
     margin: the spread of one step's value r + γ·V*(s′) under each mode (``one_step_spread``), the
     samples that tell the modes apart at 95 % — (1.96·(σ_comm + σ_radar)/margin)², split between
     the modes as their spreads — and the episodes in which the optimum visits the combination that
-    often. ``sol`` is value iteration's ``Solution`` at ``gamma``."""
+    often. ``sol`` is value iteration's ``Solution`` at ``gamma``. The ratio is n/a where the
+    optimum earns ≤ 0 per step (a ratio to it would not rank policies)."""
     from irdrc.core.exact import one_step_spread, stationary_metrics, stationary_occupancy
 
     D = model.params.env.queue_capacity
@@ -314,7 +315,8 @@ def closest_decisions(model: Any, sol: Any, gamma: float, count: int = 6) -> str
         mode = binary_mode(acts[:, f])
         flipped = acts.clone()
         flipped[:, f] = 1 - flipped[:, f]
-        ratio = stationary_metrics(model, flipped.reshape(-1)).avg_reward / best
+        other = stationary_metrics(model, flipped.reshape(-1)).avg_reward
+        ratio = f"{other / best:22.4f}" if best > 0 else f"{'n/a':>22}"
         lo, hi = float(margin[:, f].min()), float(margin[:, f].max())
         d = int(margin[:, f].argmin())
         sc, sr = float(spread[0, d, f]), float(spread[1, d, f])
@@ -322,7 +324,7 @@ def closest_decisions(model: Any, sol: Any, gamma: float, count: int = 6) -> str
         episodes = need / float(per_episode[f]) if per_episode[f] > 0 else math.inf
         lines.append(
             f"{labels[f][0]}  {float(model.event[f]):8.4f}  {mode:<12}  "
-            f"{f'{lo:.4f} … {hi:.4f}':<25}  {float(share[f]):13.4f}  {ratio:22.4f}  "
+            f"{f'{lo:.4f} … {hi:.4f}':<25}  {float(share[f]):13.4f}  {ratio}  "
             f"{f'{sc:.2f}, {sr:.2f}':>18}  {_count(need):>14}  {_count(episodes):>8}"
         )
     return "\n".join(lines)

@@ -14,7 +14,7 @@ The fleet's model (``irdrc.fleet.model``) is one more ``ExactMDP``, with 2^N joi
 from irdrc.core.exact.dense import DenseModel, build_model, stationary_distribution
 from irdrc.core.exact.factored import FactoredModel, build_factored
 from irdrc.core.exact.mdp import ExactMDP, as_probs, as_schedule
-from irdrc.core.exact.scorer import Scorer, exact_model, exact_scorer
+from irdrc.core.exact.scorer import Scorer, exact_model, exact_scorer, require_ratio
 from irdrc.core.exact.solve import (
     DEFAULT_OPTIMUM_GAMMA,
     Solution,
@@ -47,6 +47,7 @@ __all__ = [
     "metrics_from_occupancy",
     "one_step_spread",
     "policy_evaluation",
+    "require_ratio",
     "stationary_distribution",
     "stationary_distribution_factored",
     "stationary_metrics",

@@ -68,6 +68,26 @@ class Scorer:
         return self.metrics(table).avg_reward / self.optimal_metrics.avg_reward
 
 
+def require_ratio(scorer: Any) -> None:
+    """Refuse to score learners against an optimum that earns ≤ 0 per step.
+
+    A learner is read as its long-run reward over the optimum's (MODEL.md); that ratio ranks
+    policies only when the optimum earns more than 0 (with a negative optimum a worse policy would
+    score above 1). ``scorer``: any scorer with ``optimal_metrics``.
+
+    Raises:
+        ValueError: naming the optimum's reward and what to change.
+    """
+    best = scorer.optimal_metrics.avg_reward
+    if not best > 0:
+        raise ValueError(
+            f"the exact optimum earns {best:.4g} per step: learners are scored by their ratio to "
+            "it, which needs an optimum that earns more than 0; raise a reward (reward.r1, "
+            "reward.r2, reward.r4) or lower a penalty (reward.r3, reward.r5), or solve it "
+            "exactly with recipes/solve.py"
+        )
+
+
 def exact_model(params: Params, device: str | torch.device = "cpu") -> ExactMDP:
     """The exact model of ``params``: dense while its transition tensor fits
     ``irdrc.core.sizes.DENSE_LIMIT_BYTES``, else factored."""

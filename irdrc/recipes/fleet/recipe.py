@@ -124,6 +124,7 @@ def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
 def run(cfg: Config, run) -> dict[str, Any]:
     """Train the learner on the fleet, finish its run directory (``finish_fleet``)."""
     from irdrc.agents import marl
+    from irdrc.core.exact import require_ratio
     from irdrc.fleet.evaluate import FleetMCScorer
     from irdrc.fleet.model import FleetModel
     from irdrc.fleet.policies import single_optima
@@ -142,6 +143,7 @@ def run(cfg: Config, run) -> dict[str, Any]:
     else:
         scorer = FleetMCScorer(model, single, **mc_keys(cfg))
         reference = f"best baseline: {scorer.reference} (Monte-Carlo)"
+    require_ratio(scorer)
     print(
         f"reference: {reference}, {scorer.optimal_metrics.avg_reward:.4f} per fleet step "
         f"({time.perf_counter() - t0:.1f} s)",

@@ -45,7 +45,7 @@ def run_learner(cfg: Any, run, train: Any) -> dict[str, Any]:
     ``episode_rewards.csv``, ``policy.csv`` (``rho``), ``learning_curve.<format>`` and
     ``summary.json``."""
     from irdrc.agents.base import EPISODE_FIELDS
-    from irdrc.core.exact import build_model, stationary_metrics, value_iteration
+    from irdrc.core.exact import build_model, require_ratio, stationary_metrics, value_iteration
     from irdrc.core.exact.continuum import ContinuumScorer
     from irdrc.core.metrics import format_table
     from irdrc.runs.curves import plot_learning_curve
@@ -57,6 +57,7 @@ def run_learner(cfg: Any, run, train: Any) -> dict[str, Any]:
     run.threads(cfg.num_threads)
     logger = run.make_logger(cfg.logger, cfg.algo.name)
     scorer = ContinuumScorer(cfg.params, cfg.optimum_gamma)
+    require_ratio(scorer)
     print(
         f"scenario={run.scenario}: optimum over ρ ∈ [0, 1] {scorer.optimal_metrics.avg_reward:.4f} "
         f"per step (exact, within {scorer.optimal.value_bound:.0e} in value)",

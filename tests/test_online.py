@@ -63,17 +63,21 @@ def test_the_recipe_writes_the_ledger_everywhere(tmp_path, capsys):
 
 def test_a_stream_without_an_event_yet_writes_its_summary(tmp_path, capsys):
     """Two 7-step episodes with no event: the cumulative miss detection is undefined. The run
-    ends well (it raised on writing summary.json), with null there and 'n/a' in the printout."""
+    ends well (it raised on writing summary.json), with null there and 'n/a' in the printout;
+    each episode is evaluated."""
     from irdrc.online import recipe
     from irdrc.runs import app
 
-    args = ["env.horizon=7", "eval.every_frames=7", "algo.episodes=2", "env.p0.road=0"]
+    args = ["env.horizon=7", "algo.episodes=2", "env.p0.road=0"]
     quiet = ["env.p0.weather=0", "env.p0.speed=0", "env.p0.object=0", "env.p1.road=0"]
     quiet += ["env.p1.weather=0", "env.p1.speed=0", "env.p1.object=0", "reward.r4=0"]
     run = [f"hydra.run.dir={tmp_path}", "logger=none", "progress=false"]
     assert app.execute(recipe, [*args, *quiet, *run]) == 0
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert summary["ledger"]["cumulative_miss_detection"] is None
+    # the greedy policy is scored every episode by default, whatever the horizon (not every 400)
+    rows = (tmp_path / "metrics.csv").read_text().splitlines()[1:]
+    assert [int(r.split(",")[2]) for r in rows] == [0, 1, 2]
     assert "cumulative miss detection n/a (no event yet)" in capsys.readouterr().out
 
 

@@ -11,7 +11,7 @@ regret and the missed events of the policy it behaved by) every episode.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import partial
 from typing import Any
 
@@ -88,6 +88,8 @@ def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
                 f"its first episode and whenever its data doubles: it runs on scenarios of at most "
                 f"{dense_fit_states()} states (a smaller env.queue_capacity)"
             )
+    if cfg.eval.every_frames is None:  # every episode, whatever its length
+        cfg = replace(cfg, eval=replace(cfg.eval, every_frames=cfg.params.env.horizon))
     explicit = "eval.every_frames" in composed.explicit
     check_eval_period(cfg.eval.every_frames, cfg.total_frames, explicit)
     if resume is not None:

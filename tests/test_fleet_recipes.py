@@ -169,6 +169,30 @@ def test_per_vehicle_values(tmp_path):
     assert copies[0]["avg_reward"] != pytest.approx(copies[1]["avg_reward"], abs=1e-3)
 
 
+def test_a_list_valued_key_is_shared_as_it_is_and_per_vehicle_as_a_list_of_lists():
+    """``env.bursty.rates=[0.5,2.0]`` is every vehicle's two traffic phases (it was read as one
+    rate per vehicle and refused); a list of such lists gives each vehicle its own, beside a
+    per-vehicle scalar list."""
+    from conftest import load
+
+    bursty = ["env.arrival_rate=null", "+env.bursty.transition=[[0.9,0.1],[0.2,0.8]]"]
+    spec, _ = load("fleet", *bursty, "+env.bursty.rates=[0.5,2.0]", "env.p1.speed=[0.1,1.0]").fleet
+    assert [v.env.bursty.rates for v in spec.per_vehicle] == [(0.5, 2.0), (0.5, 2.0)]
+    assert [v.env.p1.speed for v in spec.per_vehicle] == [0.1, 1.0]
+    spec, _ = load("fleet", *bursty, "+env.bursty.rates=[[0.5,2.0],[0.3,1.0]]").fleet
+    assert [v.env.bursty.rates for v in spec.per_vehicle] == [(0.5, 2.0), (0.3, 1.0)]
+    levels = ["+env.factors.speed.transition=[[0.8,0.2,0],[0.1,0.8,0.1],[0,0.25,0.75]]"]
+    spec, _ = load(
+        "fleet", *levels, "+env.factors.speed.event=[[0.003,0.01,0.1],[0.003,0.02,0.5]]"
+    ).fleet
+    assert [v.env.factor("speed").event for v in spec.per_vehicle] == [
+        (0.003, 0.01, 0.1),
+        (0.003, 0.02, 0.5),
+    ]
+    spec, _ = load("fleet", *levels, "+env.factors.speed.event=[0.003,0.01,0.1]").fleet
+    assert spec.per_vehicle is None and spec.vehicle.env.factor("speed").event == (0.003, 0.01, 0.1)
+
+
 def test_solve_env_fleet_prints_what_cooperation_is_worth(tmp_path):
     """``recipes/solve.py env=fleet``: the centralised optimum beside N independent single-vehicle
     optima (1.8155 against 1.0962 per fleet step at N = 2, K = 1, share 0.5)."""

@@ -22,24 +22,48 @@ def is_fleet(cfg: Mapping | None) -> bool:
     return isinstance(env, Mapping) and "vehicles" in env
 
 
+LIST_DEPTH = {"rates": 1, "transition": 2, "levels": 1, "event": 1, "packets": 1, "comm_reward": 1}
+"""How deeply a single vehicle's list-valued key nests (``env.bursty.*``, ``env.factors.<f>.*``):
+such a key is per-vehicle only as a list of those (``env.bursty.rates=[[0.5,2],[0.3,1]]``)."""
+
+
+def _depth(value: Any) -> int:
+    if not isinstance(value, list | tuple):
+        return 0
+    return 1 + max((_depth(v) for v in value), default=0)
+
+
+def _per_vehicle(key: str, value: Any) -> bool:
+    """Whether ``value`` at dotted ``key`` lists one value per vehicle: a list at a key whose
+    single-vehicle value is not one, or a list of the single-vehicle lists at a list-valued key."""
+    parts = key.split(".")
+    list_valued = (parts[1:2] == ["bursty"] and len(parts) == 3) or (
+        parts[1:2] == ["factors"] and len(parts) == 4
+    )
+    natural = LIST_DEPTH.get(parts[-1], 0) if list_valued else 0
+    return isinstance(value, list | tuple) and _depth(value) > natural
+
+
 def _lists(node: Any, prefix: str) -> list[str]:
-    """Dotted keys whose value is a list (per-vehicle values)."""
+    """Dotted keys whose value lists one value per vehicle (``_per_vehicle``)."""
     if isinstance(node, Mapping):
         return [k for key, v in node.items() for k in _lists(v, f"{prefix}{key}.")]
-    return [prefix[:-1]] if isinstance(node, list | tuple) else []
+    return [prefix[:-1]] if _per_vehicle(prefix[:-1], node) else []
 
 
-def _pick(node: Any, i: int) -> Any:
-    """``node`` with every list replaced by its ``i``-th element (vehicle i + 1's value)."""
+def _pick(node: Any, i: int, prefix: str) -> Any:
+    """``node`` with every per-vehicle list replaced by its ``i``-th element (vehicle i + 1's)."""
     if isinstance(node, Mapping):
-        return {k: _pick(v, i) for k, v in node.items()}
-    return node[i] if isinstance(node, list | tuple) else node
+        return {k: _pick(v, i, f"{prefix}{k}.") for k, v in node.items()}
+    return node[i] if _per_vehicle(prefix[:-1], node) else node
 
 
 def fleet_from_config(cfg: Mapping) -> tuple[FleetSpec, str]:
     """The fleet (``FleetSpec``) and what each vehicle observes (``env.observe``) from a config
     holding ``env`` (a fleet scenario) and ``reward``. Any single-vehicle key may be a list of one
-    value per vehicle (``env.p1.speed=[0.1,1.0]``, ``reward.r4=[5,50]``) where they differ.
+    value per vehicle (``env.p1.speed=[0.1,1.0]``, ``reward.r4=[5,50]``) where they differ; a
+    list-valued key (``env.bursty.rates``, ``env.factors.speed.event`` …) is shared as it is and
+    per vehicle as a list of such lists.
 
     Raises:
         ValueError: not a fleet, a bad fleet value, a bad vehicle value (as the single-vehicle
@@ -67,7 +91,11 @@ def fleet_from_config(cfg: Mapping) -> tuple[FleetSpec, str]:
     per = []
     for i in range(n):
         try:
-            per.append(Params.from_config({"env": _pick(env, i), "reward": _pick(reward, i)}))
+            per.append(
+                Params.from_config(
+                    {"env": _pick(env, i, "env."), "reward": _pick(reward, i, "reward.")}
+                )
+            )
         except ValueError as err:
             raise ValueError(f"vehicle {i + 1}: {err}") from err
     return FleetSpec(vehicle=per[0], per_vehicle=tuple(per), **fleet), observe

@@ -136,6 +136,20 @@ def test_learners_refuse_an_optimum_that_earns_nothing(tmp_path, capsys, recipe,
     assert not (tmp_path / "run").exists()
 
 
+def test_a_progress_row_has_no_ratio_to_an_optimum_that_earns_nothing():
+    """The Lagrangian DQN is read against the LP whatever the rewards: on a scenario whose reward
+    optimum earns 0 it trains (constrained.py divided by zero in its first evaluation)."""
+    import math
+
+    from irdrc.agents.base import progress_record
+    from irdrc.core.metrics import Metrics
+
+    m = Metrics(**dict.fromkeys(Metrics.__dataclass_fields__, 0.5))
+    assert progress_record(0, 1, 1, 0.1, 1, m, 0.25)["optimality_ratio"] == 2.0
+    assert math.isnan(progress_record(0, 1, 1, 0.1, 1, m, 0.0)["optimality_ratio"])
+    assert math.isnan(progress_record(0, 1, 1, 0.1, 1, m, -0.2)["optimality_ratio"])
+
+
 def test_an_optimum_that_earns_nothing_is_read_without_a_ratio(tmp_path, capsys):
     from irdrc.recipes import evaluate
     from irdrc.runs import app

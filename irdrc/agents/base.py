@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import hashlib
 import io
+import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -189,14 +190,17 @@ def progress_record(
     metrics: Metrics,
     optimal_avg_reward: float,
 ) -> dict[str, Any]:
-    """One row of ``PROGRESS_FIELDS``."""
+    """One row of ``PROGRESS_FIELDS``; ``optimality_ratio`` is NaN where the optimum earns ≤ 0
+    (the constrained learner is read against the LP, whatever the rewards)."""
     return {
         "learner": int(learner),
         "env_steps": int(env_steps),
         "episodes": int(episodes),
         "wall_seconds": float(wall_seconds),
         "updates": int(updates),
-        "optimality_ratio": metrics.avg_reward / optimal_avg_reward,
+        "optimality_ratio": (
+            metrics.avg_reward / optimal_avg_reward if optimal_avg_reward > 0 else math.nan
+        ),
         **metrics.as_dict(),
     }
 

@@ -139,3 +139,19 @@ def test_the_advice_to_train_longer_is_twice_the_runs_own_env_steps():
     assert advice("dqn", 4_000_000).startswith("algo.total_frames=8000000 ")
     assert advice("dqn_levels", 1_000_000).startswith("algo.total_frames=2000000 ")
     assert advice("qlearning", 10**6).startswith("algo.episodes=2400")
+
+
+def test_a_long_lp_is_announced_before_it_starts(tmp_path, capsys, monkeypatch):
+    """The constrained optimum's LP is one solver call with no progress of its own (minutes at a
+    few thousand states): beyond ``LP_NOTICE_STATES`` a line says it started, before the result."""
+    from irdrc.recipes.constrained import recipe
+    from irdrc.runs import app, progress
+
+    args = ["target_miss=0.1", f"hydra.run.dir={tmp_path / 'a'}"]
+    assert app.execute(recipe, args) == 0
+    assert "[lp]" not in capsys.readouterr().out  # 352 states: no notice
+    monkeypatch.setattr(progress, "LP_NOTICE_STATES", 300)
+    assert app.execute(recipe, ["target_miss=0.1", f"hydra.run.dir={tmp_path / 'b'}"]) == 0
+    out = capsys.readouterr().out
+    assert "[lp] solving the constrained optimum over 352 states" in out
+    assert out.index("[lp]") < out.index("constrained optimum (LP)")

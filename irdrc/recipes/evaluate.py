@@ -287,7 +287,9 @@ def against_lp(
     if target_miss is None:
         return {}
     from irdrc.core.cmdp import InfeasibleTarget, lp_standing, solve_cmdp
+    from irdrc.runs.progress import lp_notice
 
+    lp_notice(model.num_states)
     try:
         lp = solve_cmdp(model, target_miss)
     except InfeasibleTarget:

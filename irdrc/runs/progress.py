@@ -55,6 +55,23 @@ class Heartbeat:
             print(f"[{self.label}] {text}, {now - self.start:.0f} s", flush=True)
 
 
+LP_NOTICE_STATES = 1000
+"""Beyond this many states the constrained optimum's LP (one HiGHS call, no progress of its own)
+is announced before it starts: it takes under a second at the paper's 352 states and minutes at a
+few thousand."""
+
+
+def lp_notice(num_states: int) -> None:
+    """Say that a long LP is starting (``LP_NOTICE_STATES``), so that a quiet terminal is not taken
+    for a hung one."""
+    if num_states > LP_NOTICE_STATES:
+        print(
+            f"[lp] solving the constrained optimum over {num_states:,} states (one solver call; "
+            "minutes at this size) …".replace(",", " "),
+            flush=True,
+        )
+
+
 def busy() -> str:
     """``, machine busy: …`` when more processes want the CPUs than there are (the 1-minute load
     average above the cores), which slows a run; '' otherwise."""

@@ -227,12 +227,14 @@ def solve_lp(cfg: Config, run) -> dict[str, Any]:
     from irdrc.core.cmdp import solve_cmdp
     from irdrc.core.exact import stationary_metrics, value_iteration
     from irdrc.core.metrics import format_table
+    from irdrc.runs.progress import lp_notice
     from irdrc.runs.report import table_dict
     from irdrc.runs.results import summary_dict
     from irdrc.runs.tables import write_policy_csv
 
     t0 = time.perf_counter()
     model = lp_model(cfg.params)
+    lp_notice(model.num_states)
     sol = solve_cmdp(model, **cfg.constraints)
     wall = time.perf_counter() - t0
     tol = 1e-9 if fits_dense(cfg.params) else 1e-6
@@ -294,6 +296,7 @@ def run_learned(cfg: Config, run) -> dict[str, Any]:
     from irdrc.core.cmdp import solve_cmdp
     from irdrc.core.exact import Scorer, build_model, stationary_metrics
     from irdrc.core.metrics import format_table
+    from irdrc.runs.progress import lp_notice
     from irdrc.runs.report import table_dict
     from irdrc.runs.results import summary_dict, write_metrics_csv, write_rows_csv
     from irdrc.runs.tables import write_policy_csv
@@ -302,6 +305,7 @@ def run_learned(cfg: Config, run) -> dict[str, Any]:
     config = cfg.algo
     model = build_model(cfg.params)
     t0 = time.perf_counter()
+    lp_notice(model.num_states)
     sol = solve_cmdp(model, **cfg.constraints)
     print(
         f"scenario={run.scenario}: the exact constrained optimum (LP, {time.perf_counter() - t0:.2f} "

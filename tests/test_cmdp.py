@@ -208,3 +208,26 @@ def test_cost_signals_under_documented_keys():
     g.reset(seed=0)
     _, _, _, _, info = g.step(0)
     assert {"event", "missed", "sent", "dropped", "capacity"} <= set(info)
+
+
+def test_a_solver_failure_is_one_line_and_the_safe_learner_keeps_its_plan(paper, monkeypatch):
+    """HiGHS can end without a solution on a large, nearly reducible LP (status 4 after minutes
+    on 2 624 states of a bursty scenario with an absorbing phase): ``solve_cmdp`` raises
+    ``SolverFailed``, a ValueError that recipes answer in one line (it was a RuntimeError, a
+    traceback), and the safe learner keeps the plan it has."""
+    import scipy.optimize
+
+    from irdrc.core.cmdp import SolverFailed
+    from irdrc.online import configs
+    from irdrc.online.learners import make_learner
+
+    class Failed:
+        status, message, x, fun = 4, "HiGHS Status 4: Solve error", None, None
+
+    monkeypatch.setattr(scipy.optimize, "linprog", lambda *a, **k: Failed())
+    with pytest.raises(SolverFailed, match=r"HiGHS Status 4: Solve error; 704 variables"):
+        solve_cmdp(paper, 0.1)
+    assert issubclass(SolverFailed, ValueError)
+    learner = make_learner("safe", configs.learner_config("safe", {"episodes": 2}), Params(), 0)
+    before = learner.plan.clone()
+    assert torch.equal(learner._solve(), before)

@@ -38,14 +38,20 @@ again while the policy's exact miss detection still exceeds the target), so solv
 makes the returned policy miss more than asked."""
 
 RANDOMISED_TOL = 1e-9
+"""A state is randomised when both actions have probability above this."""
 
 TIE_TOL = 1e-9
 """Second stage: among policies within this (relative) distance of the optimum, the fewest misses."""
-"""A state is randomised when both actions have probability above this."""
 
 
 class InfeasibleTarget(ValueError):
     """No stationary policy meets the constraints; the message names the constraint."""
+
+
+class SolverFailed(ValueError):
+    """HiGHS ended without a solution (a numerical failure, a time or iteration limit); the
+    message gives the LP's size and what makes it smaller. A ``ValueError``, so that a recipe
+    answers it in one line."""
 
 
 @dataclass(frozen=True)
@@ -111,7 +117,7 @@ def solve_lp(P: Any, objective: torch.Tensor, constraints: list[Constraint] = ()
 
     Raises:
         InfeasibleTarget: when HiGHS finds no feasible occupancy.
-        RuntimeError: on any other solver failure.
+        SolverFailed: on any other solver failure.
     """
     from scipy import sparse
     from scipy.optimize import linprog
@@ -143,7 +149,11 @@ def solve_lp(P: Any, objective: torch.Tensor, constraints: list[Constraint] = ()
     if res.status == 2:
         raise InfeasibleTarget(res.message)
     if res.status != 0:
-        raise RuntimeError(f"the LP solver failed: {res.message}")
+        raise SolverFailed(
+            f"the LP solver failed on this model ({res.message}; {A * S:,} variables, "
+            f"{A_eq.nnz:,} non-zeros): a smaller model (env.queue_capacity, fewer factor levels "
+            "or arrival phases) gives a smaller LP".replace(",", " ")
+        )
     x = torch.from_numpy(res.x).to(torch.float64).clamp(min=0).reshape(A, S)
     x = x / x.sum()
     mass = x.sum(0)
@@ -275,7 +285,7 @@ def solve_cmdp(
         if not sol.metrics.miss_detection > target_miss:
             return sol
         margin *= 10
-    raise RuntimeError(
+    raise SolverFailed(
         f"target_miss={target_miss:g}: the LP's policy misses {sol.metrics.miss_detection:.10g} "
         "even with a margin; the solver's tolerance is too coarse for this model"
     )
@@ -302,7 +312,7 @@ def _solve_once(
     # occupancies, the one with the fewest missed events per step.
     keep = Constraint("optimum", -table, -(lp.value - TIE_TOL * max(1.0, abs(lp.value))))
     # numerically at the edge (infeasible, or a status HiGHS cannot settle): keep the first
-    with contextlib.suppress(InfeasibleTarget, RuntimeError):
+    with contextlib.suppress(InfeasibleTarget, SolverFailed):
         lp = solve_lp(P, -model.missed.to(torch.float64).cpu(), [*constraints, keep])
     mass = lp.occupancy.sum(0)
     several = (lp.policy > RANDOMISED_TOL).sum(-1) > 1

@@ -40,6 +40,7 @@ import torch
 
 from irdrc.core.cmdp import (
     InfeasibleTarget,
+    SolverFailed,
     build_constraints,
     lp_standing,
     objective_table,
@@ -109,7 +110,7 @@ class SafeLearner(StreamLearner):
             )
         except InfeasibleTarget:
             return torch.nn.functional.one_hot(self.radar, 2).to(torch.float64)
-        except RuntimeError:
+        except SolverFailed:
             return self.plan
         return lp.policy
 

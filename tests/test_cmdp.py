@@ -210,6 +210,29 @@ def test_cost_signals_under_documented_keys():
     assert {"event", "missed", "sent", "dropped", "capacity"} <= set(info)
 
 
+def test_where_the_simplex_fails_the_interior_point_method_solves_the_lp(paper, monkeypatch):
+    """A 2 624-state bursty scenario's LP ended in HiGHS status 4 after minutes of the dual
+    simplex, and its interior-point method solved it: ``solve_lp`` tries that next. Here the
+    simplex is made to fail; the answer is the same optimum."""
+    import scipy.optimize
+
+    want = solve_cmdp(paper, 0.1)
+    real, tried = scipy.optimize.linprog, []
+
+    class Failed:
+        status, message, x, fun = 4, "HiGHS Status 4: Solve error", None, None
+
+    def simplex_fails(*args, **kwargs):
+        tried.append(kwargs["method"])
+        return Failed() if kwargs["method"] == "highs" else real(*args, **kwargs)
+
+    monkeypatch.setattr(scipy.optimize, "linprog", simplex_fails)
+    got = solve_cmdp(paper, 0.1)
+    assert "highs-ipm" in tried and got.metrics.miss_detection <= 0.1
+    # the same optimum, to the solvers' tolerances (the margin below the target is 1e-7)
+    assert got.value == pytest.approx(want.value, rel=1e-6)
+
+
 def test_a_solver_failure_is_one_line_and_the_safe_learner_keeps_its_plan(paper, monkeypatch):
     """HiGHS can end without a solution on a large, nearly reducible LP (status 4 after minutes
     on 2 624 states of a bursty scenario with an absorbing phase): ``solve_cmdp`` raises

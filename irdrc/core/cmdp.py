@@ -32,6 +32,11 @@ OBJECTIVES = ("throughput", "avg_reward", "link_capacity")
 HIGHS_OPTIONS = {"primal_feasibility_tolerance": 1e-9, "dual_feasibility_tolerance": 1e-9}
 """Tighter than HiGHS's defaults (1e-7); 1e-10 makes HiGHS fail on the paper's model."""
 
+SOLVERS = ("highs", "highs-ipm")
+"""HiGHS's methods in the order tried: its choice (the dual simplex), then, where that ends without
+a solution (a numerical failure on a large, nearly reducible LP), the interior-point method, whose
+crossover also ends at a vertex."""
+
 MISS_MARGIN = 1e-7
 """The LP is solved for a miss target this much below the one asked (when that is positive; ×10 and
 again while the policy's exact miss detection still exceeds the target), so solver tolerance never
@@ -117,7 +122,7 @@ def solve_lp(P: Any, objective: torch.Tensor, constraints: list[Constraint] = ()
 
     Raises:
         InfeasibleTarget: when HiGHS finds no feasible occupancy.
-        SolverFailed: on any other solver failure.
+        SolverFailed: when neither of ``SOLVERS`` ends with a solution.
     """
     from scipy import sparse
     from scipy.optimize import linprog
@@ -136,16 +141,19 @@ def solve_lp(P: Any, objective: torch.Tensor, constraints: list[Constraint] = ()
     if constraints:
         A_ub = sparse.csr_matrix(np.stack([c.coef.reshape(-1).numpy() for c in constraints]))
         b_ub = np.array([c.bound for c in constraints], dtype=np.float64)
-    res = linprog(
-        -objective.reshape(-1).numpy(),
-        A_ub=A_ub,
-        b_ub=b_ub,
-        A_eq=A_eq,
-        b_eq=b_eq,
-        bounds=(0, None),
-        method="highs",
-        options=HIGHS_OPTIONS,
-    )
+    for method in SOLVERS:
+        res = linprog(
+            -objective.reshape(-1).numpy(),
+            A_ub=A_ub,
+            b_ub=b_ub,
+            A_eq=A_eq,
+            b_eq=b_eq,
+            bounds=(0, None),
+            method=method,
+            options=HIGHS_OPTIONS,
+        )
+        if res.status in (0, 2):
+            break
     if res.status == 2:
         raise InfeasibleTarget(res.message)
     if res.status != 0:

@@ -52,6 +52,7 @@ def refused(recipe: str, *overrides: str) -> str:
         ("dqn", ["num_threads=0"], "num_threads=0"),
         ("solve", ["optimum_gamma=abc"], "optimum_gamma='abc'"),
         ("solve", ["gamma=abc"], "did you mean optimum_gamma?"),
+        ("dqn", ["total_frames=4000"], "did you mean algo.total_frames?"),
         ("qlearning", ["algo.alpha=abc"], "algo.alpha='abc'"),
         ("qlearning", ["num_learners=1000000"], "num_learners=1000000"),
         ("qlearning", ["batch_grid={}"], "batch_grid is empty"),
@@ -84,6 +85,13 @@ def test_bad_input_is_refused_naming_the_key(recipe, overrides, named):
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="a CUDA device is present")
+def test_an_unknown_key_with_no_near_name_gets_no_guess():
+    """``progress`` is a key of the learning recipes, not of evaluate.py: no guess (it was
+    'did you mean target_miss?')."""
+    message = refused("evaluate", "progress=false")
+    assert "unknown key 'progress' in evaluate" in message and "did you mean" not in message
+
+
 def test_cuda_without_a_device_is_refused():
     assert "no CUDA device" in refused("dqn", "device=cuda")
 

@@ -256,8 +256,12 @@ def _explain(config_name: str, args: list[str], err: Exception) -> str:
 
 
 def unknown_key(config_name: str, key: str, known: set[str]) -> str:
-    """The one line that refuses an unknown ``key``, with the closest of the ``known`` keys."""
-    near = closest(key, known, cutoff=0.5)
+    """The one line that refuses an unknown ``key``, with the closest of the ``known`` keys: the
+    one known key that ends in the same name (``total_frames`` → ``algo.total_frames``, ``gamma``
+    → ``optimum_gamma``), else the closest spelling, if any is close."""
+    leaf = key.rsplit(".", 1)[-1]
+    same = [k for k in known if k.rsplit(".", 1)[-1] == leaf or k.endswith("_" + leaf)]
+    near = same[0] if len(same) == 1 else closest(key, known)
     hint = f"; did you mean {near}?" if near else ""
     return f"unknown key {key!r} in {config_name}{hint} ({config_name}.yaml has no such key)"
 

@@ -262,3 +262,29 @@ def test_centering_runs_and_tracks_the_objective_mean(monkeypatch):
     )
     L.train(Params(), cfg, seed=0, eval_every_frames=128)
     assert len(seen) == 256 // 32 and all(0.0 <= v <= 4.0 for v in seen)  # packets sent per step
+
+
+def test_the_final_search_counts_in_the_runs_wall_time(monkeypatch):
+    """The final policy's measurements are counted in env_steps and so in the wall time: a search
+    made to last 3 s more shows in ``wall_seconds`` (it ended before the search, a run reporting
+    10.8 M env steps in 0 s)."""
+    import time
+
+    cfg = LagrangianConfig(
+        dqn=OffPolicyConfig(
+            num_envs=8,
+            frames_per_batch=32,
+            total_frames=256,
+            init_random_frames=64,
+            batch_size=64,
+            updates_per_batch=1,
+            reward_means=False,
+            name="dqn_lagrangian",
+        ),
+        search=SearchConfig(measure_envs=8, measure_steps=50, measure_burn_in=10, mix_steps=2),
+    )
+    search = L.final_policy
+    monkeypatch.setattr(L, "final_policy", lambda *a: time.sleep(3.0) or search(*a))
+    start = time.perf_counter()
+    rec = L.train(Params(), cfg, seed=0, eval_every_frames=256)
+    assert rec.wall_seconds >= 3.0 and rec.wall_seconds <= time.perf_counter() - start

@@ -25,6 +25,7 @@ exact model only scores (``history``, the final metrics).
 from __future__ import annotations
 
 import math
+import time
 from typing import Any
 
 import torch
@@ -308,13 +309,16 @@ def train(
     record.info["mu_trace"] = multiplier.trace
     if record.interrupted:
         return record
-    # The final policy, from measurements on a separate batch of envs (counted in env_steps).
+    # The final policy, from measurements on a separate batch of envs (counted in env_steps and
+    # in the run's wall time).
+    start = time.perf_counter()
     with policy_view(loss, dq):
         q = heads_table(heads, env)
     mu = float(combined.mu)
     probs, facts = final_policy(q, params, mu, cfg, seed)
     record.measurement_env_steps = int(facts["measure_env_steps"])
     record.env_steps += record.measurement_env_steps
+    record.wall_seconds += time.perf_counter() - start
     record.policy = probs[None]
     record.greedy = (probs[:, 1] > 0.5).long()[None]
     record.q = (q[:, 0] - mu * q[:, 1]).float()[None]

@@ -149,13 +149,14 @@ def test_dual_step_is_relative_and_bounded():
     assert L.dual_step(2e-3, 0.0, 10_000, cfg) == 1e-3
 
 
-def test_short_run_reports_mu_measured_miss_and_a_probability_policy():
-    cfg = LagrangianConfig(
+def tiny(total_frames: int = 1024) -> LagrangianConfig:
+    """A run of ``total_frames`` env steps on 8 envs with a short final search."""
+    return LagrangianConfig(
         dqn=OffPolicyConfig(
             num_envs=8,
             frames_per_batch=32,
-            total_frames=1024,
-            init_random_frames=256,
+            total_frames=total_frames,
+            init_random_frames=total_frames // 4,
             batch_size=1000,
             updates_per_batch=4,
             reward_means=False,
@@ -163,6 +164,10 @@ def test_short_run_reports_mu_measured_miss_and_a_probability_policy():
         ),
         search=SearchConfig(measure_envs=8, measure_steps=50, measure_burn_in=10, mix_steps=2),
     )
+
+
+def test_short_run_reports_mu_measured_miss_and_a_probability_policy():
+    cfg = tiny()
     seen = []
     rec = L.train(Params(), cfg, seed=0, eval_every_frames=512, hooks=Hooks(on_batch=seen.append))
     assert {"mu", "measured_miss", "loss"} <= set(seen[-1])
@@ -270,19 +275,7 @@ def test_the_final_search_counts_in_the_runs_wall_time(monkeypatch):
     10.8 M env steps in 0 s)."""
     import time
 
-    cfg = LagrangianConfig(
-        dqn=OffPolicyConfig(
-            num_envs=8,
-            frames_per_batch=32,
-            total_frames=256,
-            init_random_frames=64,
-            batch_size=64,
-            updates_per_batch=1,
-            reward_means=False,
-            name="dqn_lagrangian",
-        ),
-        search=SearchConfig(measure_envs=8, measure_steps=50, measure_burn_in=10, mix_steps=2),
-    )
+    cfg = tiny(256)
     search = L.final_policy
     monkeypatch.setattr(L, "final_policy", lambda *a: time.sleep(3.0) or search(*a))
     start = time.perf_counter()

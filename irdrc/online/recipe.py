@@ -195,7 +195,7 @@ def lp_reference(lp: Any, target_miss: float) -> tuple[str, str, Any]:
     return f"the LP at target_miss={target_miss}" + (where if n else ""), "LP", lp.policy.argmax(-1)
 
 
-def _share(x: float) -> str:
+def _miss_text(x: float) -> str:
     return "n/a (no event yet)" if math.isnan(x) else f"{x:.4f}"
 
 
@@ -218,7 +218,7 @@ def print_ledger(row: dict[str, Any], summary: dict[str, Any], cfg: Config) -> N
         f"missed events {row['expected_missed']:.1f} ({row['realised_missed']:.0f}) where the "
         f"optimum misses {row['floor_missed']:.1f}; packets sent {row['expected_sent']:.0f} "
         f"({row['realised_sent']:.0f})\n"
-        f"  cumulative miss detection {_share(row['cumulative_miss_detection'])}; greedy policy: "
+        f"  cumulative miss detection {_miss_text(row['cumulative_miss_detection'])}; greedy policy: "
         f"{conv}"
     )
     if cfg.learner == "safe":

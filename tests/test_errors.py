@@ -78,6 +78,16 @@ def refused(recipe: str, *overrides: str) -> str:
         ("sweep", ["sweep.grid={}"], "sweep.grid is empty"),
         ("sweep", ["method=sarsa", "sweep.grid={seed: [0]}"], "method='sarsa'"),
         ("dqn", ["algo=qlearning_paper"], "recipes/qlearning.py algo=qlearning_paper"),
+        ("dqn", ["algo.max_lr=1"], "did you mean algo.lr?"),
+        # a benchmark whose lists leave nothing to run, or an empty mapping read as the default
+        ("bench_online", ["scenarios=[]", "random_draws=0", "safe_targets=[]"], "nothing to run"),
+        ("bench_online", ["scenarios=[]", "random_learners=[]", "safe_targets=[]"], "nothing"),
+        ("bench_fleet", ["learners=[]", "scale_learners=[]"], "nothing to run"),
+        ("bench_fleet", ["learners=[]", "vehicles=[]"], "nothing to run"),
+        ("bench_timeshare", ["seeds=[]"], "seeds=[] must be a non-empty list"),
+        ("bench_timeshare", ["scenarios={}"], "scenarios={} must map names"),
+        ("bench_robust", ["candidates={}"], "candidates={} must map names"),
+        ("bench_dqn", ["profiles={}"], "profiles={} must map names"),
     ],
 )
 def test_bad_input_is_refused_naming_the_key(recipe, overrides, named):
@@ -90,6 +100,15 @@ def test_an_unknown_key_with_no_near_name_gets_no_guess():
     'did you mean target_miss?')."""
     message = refused("evaluate", "progress=false")
     assert "unknown key 'progress' in evaluate" in message and "did you mean" not in message
+
+
+def test_a_near_name_is_looked_for_in_the_keys_own_section():
+    """``algo.total_frames`` is DQN's budget; Q-learning's is ``algo.episodes``. No key of
+    Q-learning's ``algo`` is spelled like it, so no guess (it was 'did you mean algo.name?', the
+    whole dotted key being close)."""
+    message = refused("qlearning", "algo.total_frames=4000")
+    assert "unknown key 'algo.total_frames' in qlearning" in message
+    assert "did you mean" not in message
 
 
 def test_cuda_without_a_device_is_refused():

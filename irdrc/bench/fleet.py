@@ -32,6 +32,7 @@ import matplotlib.pyplot as plt
 from irdrc.agents.configs import FLEET_LEARNERS
 from irdrc.core import checks
 from irdrc.runs.compose import Composed
+from irdrc.runs.grid import require_runs
 from irdrc.runs.results import (
     atomic_savefig,
     md_table,
@@ -139,6 +140,10 @@ def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
         for p in plan(fleet, grid, [*base, *extra]):
             planned.append(p)
             part[p["point_id"]] = ("B", learner)
+    require_runs(
+        len(planned),
+        "learners × share × channels × seeds; scale_learners × vehicles × scale_seeds",
+    )
     return replace(cfg, planned=tuple(planned), part=part)
 
 

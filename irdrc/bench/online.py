@@ -34,6 +34,7 @@ from irdrc.bench.random_scenarios import REPORTING, contested_draws
 from irdrc.core.checks import INT, build, check_bool, check_list, check_numbers, numbers
 from irdrc.online.configs import LEARNERS, PROFILES
 from irdrc.runs.compose import Composed, list_scenarios
+from irdrc.runs.grid import require_runs
 from irdrc.runs.sections import seeds
 
 NAME = "bench_online"
@@ -107,6 +108,13 @@ class Config:
         check_bool("resume", self.resume)
         if self.window > self.episodes:
             raise ValueError(f"window={self.window} must be <= episodes={self.episodes}")
+        random = self.random_draws if self.random_learners else 0
+        require_runs(
+            len(plan(self, [])) + random,
+            "scenarios × learners × seeds; paper_learners × paper_seeds with paper among the "
+            "scenarios; random_draws × random_learners; safe_targets × safe_scenarios × "
+            "(safe_seeds, lagrangian_seeds)",
+        )
 
 
 def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:

@@ -76,7 +76,9 @@ class Config:
         item = lambda key, v: check_choice(key, v, tuple(LEARNERS))  # noqa: E731
         object.__setattr__(self, "learners", check_list("learners", self.learners, item))
         default = (5,) if self.random else (5, 6, 7, 8, 9)
-        object.__setattr__(self, "seeds", seeds("seeds", self.seeds or default))
+        object.__setattr__(
+            self, "seeds", seeds("seeds", default if self.seeds is None else self.seeds)
+        )
         object.__setattr__(self, "overrides", check_list("overrides", self.overrides, empty=True))
         check_numbers(self, "", (("draws", 1, 100_000, INT), ("first_draw", 0, 10**9, INT)))
         if isinstance(self.scenarios, str) and not self.random:
@@ -95,7 +97,9 @@ class Config:
         found by ``load`` with ``scenarios=random``)."""
         if self.random:
             return dict(self.drawn)
-        return candidate_overrides(self.scenarios or SCENARIOS, "scenarios")
+        return candidate_overrides(
+            SCENARIOS if self.scenarios is None else self.scenarios, "scenarios"
+        )
 
 
 def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:

@@ -257,11 +257,24 @@ def _explain(config_name: str, args: list[str], err: Exception) -> str:
 
 def unknown_key(config_name: str, key: str, known: set[str]) -> str:
     """The one line that refuses an unknown ``key``, with the closest of the ``known`` keys: the
-    one known key that ends in the same name (``total_frames`` → ``algo.total_frames``, ``gamma``
-    → ``optimum_gamma``), else the closest spelling, if any is close."""
-    leaf = key.rsplit(".", 1)[-1]
-    same = [k for k in known if k.rsplit(".", 1)[-1] == leaf or k.endswith("_" + leaf)]
-    near = same[0] if len(same) == 1 else closest(key, known)
+    one known key whose name is the same or ends it (``total_frames`` → ``algo.total_frames``,
+    ``gamma`` → ``optimum_gamma``, ``algo.eval_every_episodes`` → ``algo.episodes``), else the
+    closest spelling: within the key's own section when that section exists, if any is close."""
+    parent, _, leaf = key.rpartition(".")
+    same = [
+        k
+        for k in known
+        if (name := k.rpartition(".")[2]) == leaf
+        or name.endswith("_" + leaf)
+        or leaf.endswith("_" + name)
+    ]
+    siblings = {k.rpartition(".")[2]: k for k in known if k.rpartition(".")[0] == parent}
+    if len(same) == 1:
+        near = same[0]
+    elif parent and siblings:  # a known section: only its own keys, by their names
+        near = siblings.get(closest(leaf, siblings) or "")
+    else:
+        near = closest(key, known)
     hint = f"; did you mean {near}?" if near else ""
     return f"unknown key {key!r} in {config_name}{hint} ({config_name}.yaml has no such key)"
 

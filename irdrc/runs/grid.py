@@ -91,16 +91,27 @@ def scenario_of(overrides: list[str]) -> str:
 
 
 def candidate_overrides(candidates: Any, key: str = "candidates") -> dict[str, list[str]]:
-    """The candidates compared: name → overrides (one, the default, when unset)."""
-    raw = candidates or {"dqn": []}
+    """The candidates compared: name → overrides (one, the default, when unset: ``None``). An
+    empty mapping is refused: it would compare nothing."""
+    raw = {"dqn": []} if candidates is None else candidates
     if not isinstance(raw, dict) or not raw:
-        raise ValueError(f"{key} must map names to lists of overrides, e.g. {{dqn: []}}")
+        example = "{p01: [env.p1.speed=0.1]}" if key == "scenarios" else "{dqn: []}"
+        raise ValueError(
+            f"{key}={raw} must map names to lists of overrides, e.g. {example} (null: the default)"
+        )
     out = {}
     for name, extra in raw.items():
         if not isinstance(extra, list) or not all(isinstance(o, str) and "=" in o for o in extra):
             raise ValueError(f"{key}.{name} must be a list of overrides (key=value)")
         out[str(name)] = list(extra)
     return out
+
+
+def require_runs(count: int, parts: str) -> None:
+    """Refuse a benchmark whose lists leave it nothing to run: ``parts`` names the lists whose
+    product makes each of its parts (e.g. ``learners × seeds``)."""
+    if count == 0:
+        raise ValueError(f"nothing to run: each part is empty ({parts}); give one a value")
 
 
 def shell_quote(arg: str) -> str:

@@ -344,3 +344,20 @@ def test_a_starved_vehicle_is_named_in_words_and_a_win_over_a_baseline_is_no_ver
     )
     assert "earns 0.3000 more than the best baseline" in text
     assert "no verdict on the optimum" in text and "wins" not in text
+
+
+def test_a_fleet_whose_exact_evaluations_are_slow_says_so_first():
+    """Past SLOW_EXACT_STATES joint states every exact evaluation takes a minute or more (a
+    stationary distribution by power iteration): the run's first lines say so, so that a quiet
+    terminal is not taken for a hung one. At the paper's sizes nothing is said."""
+    from irdrc.core.params import Params
+    from irdrc.fleet.model import FleetModel
+    from irdrc.fleet.spec import FleetSpec
+    from irdrc.recipes.fleet.report import SLOW_EXACT_STATES, describe
+
+    paper = FleetSpec(vehicles=2)
+    assert "[fleet]" not in describe(paper, "own", FleetModel(paper))
+    deep = FleetSpec(vehicle=Params.from_overrides({"env.queue_capacity": 31}), vehicles=2)
+    model = FleetModel(deep)
+    assert model.exact and model.num_states > SLOW_EXACT_STATES
+    assert "a minute or more each" in describe(deep, "own", model).splitlines()[1]

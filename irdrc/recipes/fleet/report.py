@@ -40,8 +40,13 @@ def differences(spec: FleetSpec) -> dict[str, list[Any]]:
     return {k: [d.get(k) for d in per] for k in per[0] if len({repr(d.get(k)) for d in per}) > 1}
 
 
+SLOW_EXACT_STATES = 250_000
+"""Beyond this many joint states the description says that exact evaluations are slow (here one
+stationary distribution took 14–29 s at 246 016 states and 103 s at 495 616)."""
+
+
 def describe(spec: FleetSpec, observe: str, model: FleetModel) -> str:
-    """One line naming the fleet."""
+    """One line naming the fleet (and a second where its exact evaluations are slow)."""
     reach = "exact" if model.exact else "beyond the exact model: Monte-Carlo"
     differ = differences(spec)
     alike = (
@@ -49,10 +54,16 @@ def describe(spec: FleetSpec, observe: str, model: FleetModel) -> str:
         if not differ
         else "vehicles differ in " + ", ".join(f"{k}={v}" for k, v in differ.items())
     )
+    slow = (
+        "\n[fleet] every exact evaluation, the optimum's first, is a stationary distribution over "
+        "these joint states by power iteration: a minute or more each at this size"
+        if model.exact and model.num_states > SLOW_EXACT_STATES
+        else ""
+    )
     return (
         f"fleet: {spec.vehicles} vehicles ({alike}), {spec.channels} channel(s), {spec.access} "
         f"access, share {spec.share:g}, observe {observe}; {model.num_states:,} joint states "
-        f"({reach})"
+        f"({reach}){slow}"
     )
 
 

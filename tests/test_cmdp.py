@@ -286,15 +286,17 @@ def test_a_policy_below_the_lps_own_optimum_is_said(paper, monkeypatch):
         solve_cmdp(paper, 0.1)
 
 
-def test_a_tie_break_that_misses_more_than_its_occupancy_says_gives_way_to_the_first_stage():
+@pytest.mark.parametrize("queue", [25, 28])
+def test_a_tie_break_whose_policy_misses_more_or_sends_less_gives_way_to_the_first_stage(queue):
     """The second stage (the fewest misses among the optimal occupancies) can leave states a
-    vanishing mass whose policy is the solver's noise: at a queue of 25 packets and m* = 0.05 its
-    policy misses 0.0503. The first stage's policy, which meets the target, is the answer; the
-    margin used to be raised instead, to a policy sending 0.4124 where the LP sends 0.4132 (at a
-    queue of 40, to none: no margin tried met the target)."""
+    vanishing mass whose policy is the solver's noise. At m* = 0.05 and a queue of 25 its policy
+    misses 0.0503 (the margin used to be raised instead, to a policy sending 0.41235 where the LP
+    sends 0.41319; at a queue of 40 no margin tried met the target); at a queue of 28 it meets
+    the target but sends 0.41235. The first stage's policy, which meets the target and sends what
+    the LP sends, is the answer."""
     from irdrc.core.cmdp import MISS_MARGIN, build_constraints
 
-    model = build_model(Params.from_overrides({"env.queue_capacity": 25}))
+    model = build_model(Params.from_overrides({"env.queue_capacity": queue}))
     sol = solve_cmdp(model, 0.05)
     table = objective_table(model, "throughput")
     first = solve_lp(transitions(model), table, build_constraints(model, 0.05 - MISS_MARGIN))

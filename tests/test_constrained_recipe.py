@@ -243,3 +243,24 @@ def test_a_degenerate_optimum_is_explained():
         model = build_model(Params.from_overrides({"reward.r4": r4}))
         notes.append(degenerate_note(stationary_metrics(model, value_iteration(model).policy)))
     assert notes[0] is None and "never communicates" in notes[1] and "r4" in notes[1]
+
+
+def test_a_long_lp_over_shares_is_announced_and_one_past_memory_refused(capsys, monkeypatch):
+    """The LP over radar shares is one solver call (minutes at a few hundred states, no progress,
+    Ctrl-C waits for it): one estimated past LP_NOTICE_SECONDS is announced with its estimate, and
+    one needing more memory than is free is refused before any work."""
+    from irdrc.core.params import Params
+    from irdrc.recipes.constrained import region
+
+    params = Params.from_overrides({"env.actions": "continuous"})
+    nonzeros, seconds, need = region.share_lp_cost(params)
+    assert nonzeros > 10**6 and 0 < seconds < region.LP_NOTICE_SECONDS  # the paper: 24 s here
+    region.share_lp_notice(params)
+    assert capsys.readouterr().out == ""
+    monkeypatch.setattr(region, "LP_NOTICE_SECONDS", seconds / 2)
+    region.share_lp_notice(params)
+    assert "[lp] the constrained optimum over radar shares" in capsys.readouterr().out
+    region.check_share_lp(params)  # this machine has the memory
+    monkeypatch.setattr("irdrc.runs.sections.available_memory", lambda: int(need))
+    with pytest.raises(ValueError, match="more than this machine has free"):
+        region.check_share_lp(params)

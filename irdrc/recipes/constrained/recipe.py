@@ -170,9 +170,11 @@ def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
     feasibility is the LP itself (``run`` solves it before any file is written)."""
     cfg = checks.build(Config, composed.cfg)
     if cfg.params.env.actions != "binary":
+        from irdrc.recipes.constrained.region import check_share_lp
         from irdrc.recipes.solve import check_shares_fit
 
         check_shares_fit(cfg.params)
+        check_share_lp(cfg.params)
     if cfg.learner == "dqn_lagrangian":
         check_dense(cfg.params)  # the learner's exact scorer needs the dense model
     if resume is not None:

@@ -32,6 +32,64 @@ def worth(objective: str, shared: float, binary: float, target: float) -> str:
 SHOWN = 8
 """At most this many randomised states are printed (``policy.csv`` has them all)."""
 
+LP_SECONDS, LP_NONZEROS, LP_POWER = 57.0, 3.09e6, 1.6
+"""The LP over radar shares as measured here (one core): 57 s at 3.09 M non-zeros (21 shares, 480
+states), 359 s at 10.4 M (928 states): time ∝ non-zeros^1.6."""
+
+LP_BYTES_PER_NONZERO = 210
+"""The LP's peak memory per non-zero, as measured here (2.2 GB at 10.4 M non-zeros)."""
+
+LP_NOTICE_SECONDS = 60.0
+"""An LP over shares estimated to take longer than this is announced before it starts."""
+
+
+def share_lp_cost(params: Params) -> tuple[int, float, float]:
+    """(non-zeros, seconds, bytes) of the largest LP over radar shares that ``params`` asks for:
+    over its G levels (``env.actions=levels``), or the 21 of the region's feasible LP
+    (``continuous``); seconds and bytes as measured here (``LP_SECONDS``)."""
+    from irdrc.core.cmdp import transitions
+    from irdrc.core.exact import build_model
+    from irdrc.core.share_cmdp import LEVELS
+
+    if params.env.actions == "continuous":
+        grid = torch.linspace(0.0, 1.0, LEVELS, dtype=torch.float64)
+        model = build_model(params, shares=grid)
+    else:
+        model = build_model(params)
+    nonzeros = sum(P.nnz for P in transitions(model))
+    seconds = LP_SECONDS * (nonzeros / LP_NONZEROS) ** LP_POWER
+    return nonzeros, seconds, LP_BYTES_PER_NONZERO * nonzeros
+
+
+def check_share_lp(params: Params) -> None:
+    """Refuse an LP over radar shares that would need more memory than this machine has free."""
+    from irdrc.recipes.solve import size
+    from irdrc.runs.sections import available_memory
+
+    nonzeros, _, need = share_lp_cost(params)
+    free = available_memory()
+    if free is not None and need > 0.8 * free:
+        raise ValueError(
+            f"env.actions={params.env.actions}: the LP over radar shares has {nonzeros / 1e6:.1f} M "
+            f"non-zeros for S = {params.env.num_states:,} states and would need ~{size(need)}, more "
+            f"than this machine has free ({size(free)}); use a smaller scenario "
+            "(env.queue_capacity) or env.actions=binary"
+        )
+
+
+def share_lp_notice(params: Params) -> None:
+    """Say that a long LP over shares is starting, with its estimate (``LP_NOTICE_SECONDS``)."""
+    from irdrc.recipes.solve import duration, size
+
+    nonzeros, seconds, need = share_lp_cost(params)
+    if seconds > LP_NOTICE_SECONDS:
+        print(
+            f"[lp] the constrained optimum over radar shares: an LP of {nonzeros / 1e6:.1f} M "
+            f"non-zeros over {params.env.num_states:,} states, ~{duration(seconds)} and "
+            f"~{size(need)} here; one solver call, which Ctrl-C interrupts only when it ends",
+            flush=True,
+        )
+
 
 def describe(policy: Any, levels: Any) -> list[str]:
     """One line per state where ``policy`` (a ``SharePolicy``) uses two shares (``SHOWN`` at most)."""
@@ -63,6 +121,7 @@ def solve_shares(cfg: Any, run) -> dict[str, Any]:
 
     params, target, objective = cfg.params, cfg.target_miss, cfg.objective
     env = params.env
+    share_lp_notice(params)
     t0 = time.perf_counter()
     extra: dict[str, Any] = {}
     if env.actions == "continuous":

@@ -218,3 +218,31 @@ def test_a_multilevel_scenario_keeps_its_factors_across_action_spaces():
     q = dataclasses.replace(p, env=dataclasses.replace(p.env, actions="continuous"))
     assert q.env.factors == p.env.factors and q.env.num_states == p.env.num_states == 528
     assert binary_params(q).env.factors == p.env.factors
+
+
+def test_a_reaction_that_saturates_before_full_radar_is_solved():
+    """At κ ≥ 49 the dwell reaction reaches 1 in float64 before ρ = 1, so the last segment's
+    reaction is flat; its rescaled reaction divided by zero and torch's least squares failed
+    (an internal assert). Past it the optimum over ρ goes on from where it was at κ = 48: no
+    lower (sensing only improves), with a step bound that grows as smoothly as below it (∝ κ²,
+    from the first segment's curvature), above the G-level and binary optima."""
+    from irdrc.core.exact import build_model, stationary_metrics, value_iteration
+    from irdrc.core.exact.continuum import ContinuumScorer
+
+    def over_rho(gain):
+        params = Params.from_overrides({"env.actions": "continuous", "env.dwell_gain": gain})
+        scorer = ContinuumScorer(params)
+        return scorer.optimal_metrics.avg_reward, scorer
+
+    def optimum(overrides):
+        model = build_model(Params.from_overrides(overrides))
+        return stationary_metrics(model, value_iteration(model).policy).avg_reward
+
+    below, at48 = over_rho(48.0)
+    for gain in (50.0, 100.0):
+        value, scorer = over_rho(gain)
+        assert value >= below - 1e-9
+        bound = scorer.optimal.step_bound
+        assert 0.0 < bound < 1.2 * at48.optimal.step_bound * (gain / 48.0) ** 2
+        levels = optimum({"env.actions": "levels", "env.levels": 3, "env.dwell_gain": gain})
+        assert value >= max(levels, optimum({})) - 1e-9

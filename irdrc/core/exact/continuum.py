@@ -66,8 +66,16 @@ class Segments:
         lo, hi = self.lo[k], self.hi[k]
         u = reaction(torch.stack([rho, lo, hi]), self.sensing, self.gain)
         t = (rho - lo) / (hi - lo)
-        ut = (u[0] - u[1]) / (u[2] - u[1])
+        du = u[2] - u[1]
+        flat = du < FLAT_REACTION
+        ut = torch.where(flat, t, (u[0] - u[1]) / torch.where(flat, 1.0, du))
         return k, torch.einsum("sj,sjk->sk", _basis(t, ut, self.scale[k].T), self.inverse[k])
+
+
+FLAT_REACTION = 1e-12
+"""A segment over which the sensing reaction u rises by less than this is flat: its ũ is the share
+t itself. At a large κ the reaction reaches 1 in float64 before ρ = 1 (κ = 50: from ρ = 0.75 on),
+and u is then a constant the span {1, ρ} already holds."""
 
 
 def _basis(t: torch.Tensor, ut: torch.Tensor, k: Any) -> torch.Tensor:
@@ -112,6 +120,8 @@ def segments(params: Params, grid: int = GRID) -> Segments:
         )
 
         def rescaled(t: torch.Tensor, lo=lo, hi=hi, ua=ua, ub=ub) -> torch.Tensor:
+            if ub - ua < FLAT_REACTION:
+                return t
             u = reaction(lo + t * (hi - lo), env.sensing, env.dwell_gain)
             return (u - ua) / (ub - ua)
 
@@ -293,7 +303,7 @@ def step_bound(params: Params, seg: Segments, Q: torch.Tensor) -> float:
         du = float(u[1] - u[0])
         coef = Q[:, seg.nodes[j]] @ seg.inverse[j].T  # [S, 4]
         d1, d2 = reaction_slope_bound(lo, env.sensing, env.dwell_gain)
-        u1, u2 = d1 / du, d2 / du
+        u1, u2 = (1.0 / width, 0.0) if du < FLAT_REACTION else (d1 / du, d2 / du)
         v2 = u2 / c
         w2 = (2 * u1 / width + u2 + abs(a2) * v2) / cw
         curv = coef[:, 2].abs() * v2 + coef[:, 3].abs() * w2

@@ -302,3 +302,31 @@ def test_a_tie_break_whose_policy_misses_more_or_sends_less_gives_way_to_the_fir
     first = solve_lp(transitions(model), table, build_constraints(model, 0.05 - MISS_MARGIN))
     assert sol.value == pytest.approx(first.value, rel=1e-9)
     assert 0.05 - 2 * MISS_MARGIN <= sol.metrics.miss_detection <= 0.05
+
+
+def test_of_the_two_stages_policies_that_meet_the_target_the_one_that_attains_more_stands(
+    paper, monkeypatch
+):
+    """Where the second stage's policy attains less than the LP's optimum, the first stage's
+    replaces it only if it attains more: at a queue of 80, p^v_1 = 0.5 and m* = 0.1 the second
+    stage's policy sends 0.7795 and the first stage's 4e-5. Here the first stage's policy is made
+    radar everywhere (it sends nothing) and the second stage's the constrained optimum at 0.05 (it
+    sends 0.413 of the LP's 0.826): the second stands, and the shortfall is said."""
+    from irdrc.core import cmdp
+
+    low = solve_cmdp(paper, 0.05)
+    real, calls = cmdp.solve_lp, []
+
+    def staged(P, objective, constraints=()):
+        lp = real(P, objective, constraints)
+        calls.append(lp)
+        if len(calls) % 2:  # the first stage
+            radar = torch.zeros_like(lp.policy)
+            radar[:, -1] = 1.0
+            return dataclasses.replace(lp, policy=radar)
+        return dataclasses.replace(lp, policy=low.policy)
+
+    monkeypatch.setattr(cmdp, "solve_lp", staged)
+    with pytest.warns(UserWarning, match=r"but its policy attains 0\.41319\d exactly"):
+        sol = solve_cmdp(paper, 0.1)
+    assert sol.value == pytest.approx(low.value, rel=1e-12) and len(calls) == 2

@@ -330,3 +330,26 @@ def test_of_the_two_stages_policies_that_meet_the_target_the_one_that_attains_mo
     with pytest.warns(UserWarning, match=r"but its policy attains 0\.41319\d exactly"):
         sol = solve_cmdp(paper, 0.1)
     assert sol.value == pytest.approx(low.value, rel=1e-12) and len(calls) == 2
+
+
+def test_an_interrupted_solver_call_is_known_to_run_on_until_it_ends():
+    """An interrupt leaves ``interruptible``'s worker running (HiGHS cannot be stopped), and a
+    recipe must then leave by ``os._exit``: its C++ threads do not survive the runtime's teardown
+    (an abort, status 134, in 2 of 6 tries). ``solver_running`` says so, though the thread's
+    ``is_alive`` reads False once an interrupt has broken off the ``join``."""
+    import subprocess
+    import sys
+
+    script = (
+        "import os, signal, threading, time\n"
+        "from irdrc.core import cmdp\n"
+        "threading.Timer(0.3, os.kill, (os.getpid(), signal.SIGINT)).start()\n"
+        "try:\n"
+        "    cmdp.interruptible(time.sleep, 1.5)\n"
+        "except KeyboardInterrupt:\n"
+        "    print(cmdp.solver_running())\n"
+        "time.sleep(2.0)\n"
+        "print(cmdp.solver_running())\n"
+    )
+    r = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
+    assert r.stdout.split() == ["True", "False"], r.stdout + r.stderr

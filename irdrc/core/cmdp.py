@@ -17,6 +17,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import math
+import threading
 import warnings
 from dataclasses import dataclass, field
 from typing import Any
@@ -119,6 +120,45 @@ class CMDPSolution:
         return self.policy[:, -1]
 
 
+_RUNNING: set[int] = set()
+"""The ids of ``interruptible``'s calls still running (a thread's ``is_alive`` is not to be
+trusted after a ``join`` that an interrupt broke off)."""
+
+
+def solver_running() -> bool:
+    """Whether a solver call abandoned by an interrupt (``interruptible``) is still running: a
+    process that exits then should leave by ``os._exit``, since HiGHS's threads do not survive the
+    C++ runtime's teardown (an abort, exit status 134)."""
+    return bool(_RUNNING)
+
+
+def interruptible(fn: Any, *args: Any, **kwargs: Any) -> Any:
+    """``fn(*args, **kwargs)`` in a worker thread while the main thread waits in Python, so that a
+    SIGINT or SIGTERM is handled at once rather than when a long solver call ends (HiGHS releases
+    the GIL); the worker, a daemon, is abandoned to the process's exit. Off the main thread, a
+    plain call."""
+    if threading.current_thread() is not threading.main_thread():
+        return fn(*args, **kwargs)
+    box: dict[str, Any] = {}
+
+    def work() -> None:
+        try:
+            box["value"] = fn(*args, **kwargs)
+        except BaseException as exc:  # re-raised in the caller's thread
+            box["error"] = exc
+        finally:
+            _RUNNING.discard(id(box))
+
+    _RUNNING.add(id(box))
+    worker = threading.Thread(target=work, name="irdrc-lp", daemon=True)
+    worker.start()
+    while worker.is_alive():
+        worker.join(0.2)
+    if "error" in box:
+        raise box["error"]
+    return box["value"]
+
+
 def transitions(model: ExactMDP) -> list:
     """P_a of every action as SciPy sparse matrices (``ExactMDP.sparse``: dense, or built from a
     factored model's factors with O(S · fan-out) non-zeros)."""
@@ -152,7 +192,8 @@ def solve_lp(P: Any, objective: torch.Tensor, constraints: list[Constraint] = ()
         A_ub = sparse.csr_matrix(np.stack([c.coef.reshape(-1).numpy() for c in constraints]))
         b_ub = np.array([c.bound for c in constraints], dtype=np.float64)
     for method in SOLVERS:
-        res = linprog(
+        res = interruptible(
+            linprog,
             -objective.reshape(-1).numpy(),
             A_ub=A_ub,
             b_ub=b_ub,

@@ -176,5 +176,11 @@ def fail(message: str, code: int = EXIT_USAGE) -> int:
 
 def main(module: ModuleType) -> None:
     """The entry point of ``recipes/<name>.py``: run the recipe on the command line, exit with
-    its status."""
-    sys.exit(execute(module, sys.argv[1:]))
+    its status (by ``os._exit`` where an interrupted solver call still runs: ``solver_running``)."""
+    code = execute(module, sys.argv[1:])
+    cmdp = sys.modules.get("irdrc.core.cmdp")
+    if cmdp is not None and cmdp.solver_running():
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
+    sys.exit(code)

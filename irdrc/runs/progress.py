@@ -66,10 +66,8 @@ def lp_notice(num_states: int) -> None:
     for a hung one."""
     if num_states > LP_NOTICE_STATES:
         print(
-            f"[lp] solving the constrained optimum over {num_states:,} states (one solver call, "
-            "which Ctrl-C interrupts only when it ends: seconds to minutes at this size) …".replace(
-                ",", " "
-            ),
+            f"[lp] solving the constrained optimum over {num_states:,} states (one solver call "
+            "with no progress of its own: seconds to minutes at this size) …".replace(",", " "),
             flush=True,
         )
 

@@ -86,7 +86,7 @@ def share_lp_notice(params: Params) -> None:
         print(
             f"[lp] the constrained optimum over radar shares: an LP of {nonzeros / 1e6:.1f} M "
             f"non-zeros over {params.env.num_states:,} states, ~{duration(seconds)} and "
-            f"~{size(need)} here; one solver call, which Ctrl-C interrupts only when it ends",
+            f"~{size(need)} here; one solver call with no progress of its own",
             flush=True,
         )
 

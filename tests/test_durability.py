@@ -156,6 +156,23 @@ def test_a_failed_write_keeps_the_previous_file_and_leaves_no_temp(tmp_path):
     assert not (tmp_path / "new.csv").exists()
 
 
+def test_rows_with_a_metric_some_rows_lack_are_written_with_every_column(tmp_path):
+    """A false-alarm rate is defined only where a policy senses: tradeoff.py on a scenario with
+    false alarms failed ('dict contains fields not in fieldnames') when its first row, a policy
+    that never senses, lacked it. The header is every row's keys; a missing value is blank."""
+    import csv
+
+    from irdrc.runs.results import write_rows_csv
+
+    path = tmp_path / "tradeoff.csv"
+    write_rows_csv(
+        path, [{"r4": 0.5, "miss": 1.0}, {"r4": 5, "miss": 0.2, "false_alarm_rate": 0.9}]
+    )
+    rows = list(csv.DictReader(path.open()))
+    assert list(rows[0]) == ["r4", "miss", "false_alarm_rate"]
+    assert rows[0]["false_alarm_rate"] == "" and rows[1]["false_alarm_rate"] == "0.9"
+
+
 def test_files_follow_the_umask(tmp_path):
     atomic_write_text(tmp_path / "a.txt", "x")
     assert (tmp_path / "a.txt").stat().st_mode & 0o777 == FILE_MODE

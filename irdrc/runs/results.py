@@ -202,13 +202,15 @@ def write_rows_csv(
     path: Path, rows: Iterable[dict[str, Any]], fieldnames: Sequence[str] | None = None
 ) -> None:
     """A list of flat dicts as CSV, atomically. The header is ``fieldnames`` (written even with no
-    rows), else the first row's keys."""
+    rows), else every row's keys in the order they first appear (a metric defined in some rows
+    only, such as ``false_alarm_rate`` where a policy never senses, is blank in the others)."""
     rows = list(rows)
     if not rows and fieldnames is None:
         atomic_write_text(Path(path), "")
         return
     buf = io.StringIO()
-    w = csv.DictWriter(buf, fieldnames=list(fieldnames or rows[0]))
+    names = fieldnames or dict.fromkeys(k for row in rows for k in row)
+    w = csv.DictWriter(buf, fieldnames=list(names))
     w.writeheader()
     w.writerows(rows)
     atomic_write_text(Path(path), buf.getvalue())

@@ -145,6 +145,25 @@ def test_statistics_helpers():
     assert first_reaching(rows, 11, value="mean", at="x") is None
 
 
+def test_panel_bands_are_bounded_with_bursty_arrivals_too():
+    """Panels (b)-(d) clip each band to the range its metric lies in; throughput's was the arrival
+    rate, which bursty arrivals leave unset (None), and figure2.py on such a scenario failed at its
+    panels ('<' between None and float). The bound is then the largest phase's rate."""
+    from irdrc.paper.panels import value_bounds
+
+    assert value_bounds(Params().env)["throughput"] == (0.0, 1.0)
+    bursty = Params.from_overrides(
+        {
+            "env.arrival_rate": None,
+            "env.bursty": {"rates": [0.5, 2.0], "transition": [[0.9, 0.1], [0.2, 0.8]]},
+        }
+    )
+    bounds = value_bounds(bursty.env)
+    assert bounds["throughput"] == (0.0, 2.0) and bounds["miss_detection"] == (0.0, 1.0)
+    rows = band_rows("x", [0.1], [[3.0], [2.5]], bounds["throughput"])
+    assert rows[0]["hi"] == 2.0
+
+
 def test_the_report_prints_values_below_the_solves_accuracy_as_such():
     from irdrc.paper.report import _fmt
 

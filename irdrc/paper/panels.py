@@ -182,16 +182,22 @@ def panel_a(fig: Figure) -> tuple[float, float, dict[str, float], dict[str, floa
 PANEL_METRICS = ("avg_reward", "throughput", "link_capacity", "miss_detection")
 
 
-def panels_bcd(fig: Figure) -> dict[str, dict[str, list[float]]]:
-    """Panels (b)–(d): final policies against p^v_1. Returns subject → metric → mean per p^v_1."""
-    ps, env = fig.ps, fig.base.env
-    # The ranges the final policies' exact long-run values lie in: bands are clipped to them.
-    bounds = {
+def value_bounds(env: Any) -> dict[str, tuple[float, float] | None]:
+    """The ranges the final policies' exact long-run values lie in, per panel metric (bands are
+    clipped to them): throughput up to the arrival rate (with bursty arrivals, its largest
+    phase's), link capacity up to the larger packets per comm step."""
+    rate = env.arrival_rate if env.arrival_rate is not None else max(env.bursty.rates)
+    return {
         "avg_reward": None,
-        "throughput": (0.0, env.arrival_rate),
+        "throughput": (0.0, float(rate)),
         "link_capacity": (0.0, float(max(env.packets_good, env.packets_bad))),
         "miss_detection": (0.0, 1.0),
     }
+
+
+def panels_bcd(fig: Figure) -> dict[str, dict[str, list[float]]]:
+    """Panels (b)–(d): final policies against p^v_1. Returns subject → metric → mean per p^v_1."""
+    ps, bounds = fig.ps, value_bounds(fig.base.env)
     metric_rows: dict[str, list[dict]] = {m: [] for m in PANEL_METRICS}
     sweep_means: dict[str, dict[str, list[float]]] = {}
     for name in [m for m in fig.methods if "bcd" in fig.cfg.learners[m].panels]:

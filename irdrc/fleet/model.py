@@ -35,12 +35,13 @@ from __future__ import annotations
 
 import functools
 import math
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterator, Mapping, Sequence
 
 import torch
 
 from irdrc.core.dynamics import decode_state
 from irdrc.core.exact import ExactMDP, build_model
+from irdrc.core.exact.krylov import stationary_krylov
 from irdrc.core.params import Params
 from irdrc.fleet.spec import FLEET_STATE_LIMIT, FleetSpec, grants
 
@@ -365,11 +366,33 @@ class FleetModel(ExactMDP):
         nxt = torch.zeros_like(mu)
         for a in range(self.num_actions):
             part = mu * probs[:, a].reshape(self.shape())
-            if float(part.sum()) == 0.0:
+            if not bool(part.any()):
                 continue
             for p, names, _ in self.joint[a]:
                 nxt = nxt + p * self.push(part, names)
         return nxt.reshape(-1)
+
+    def cycle(
+        self, schedule: Sequence[torch.Tensor], tol: float = 1e-13, max_iter: int = 200_000
+    ) -> list[torch.Tensor]:
+        """The stationary distribution at each phase of ``schedule`` (one table per phase): that of
+        one period's chain by a linear solve (``irdrc.core.exact.krylov.stationary_krylov``; the
+        joint queues mix slowly, so power iteration would need ten times the operator products),
+        then stepped through the phases."""
+
+        def period(x: torch.Tensor) -> torch.Tensor:
+            for probs in schedule:
+                x = self.step(x, probs)
+            return x
+
+        start = torch.full((self.num_states,), 1.0 / self.num_states, dtype=torch.float64)
+        mu, _ = stationary_krylov(period, start, tol=tol, max_iter=max_iter)
+        path = []
+        for probs in schedule:
+            path.append(mu)
+            mu = self.step(mu, probs)
+            mu = mu / mu.sum()
+        return path
 
     def vehicle_tables(self, i: int) -> Mapping[str, torch.Tensor]:
         """Vehicle ``i``'s per-step expectations ([A, S]; ``event`` and ``queue`` [S], ``radar``

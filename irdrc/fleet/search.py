@@ -26,32 +26,12 @@ from dataclasses import dataclass
 
 import torch
 
+from irdrc.core.exact.krylov import MAX_RESTARTS, RESTART, krylov_solve, stationary_krylov
 from irdrc.fleet.model import FleetModel
 from irdrc.fleet.policies import joint_policy
 
 TOL = 1e-12
 """Relative tolerance of the exact solves, and the least relative gain a search step keeps."""
-
-RESTART, MAX_ITER = 60, 400
-"""GMRES's restart length and most restarts per solve."""
-
-
-def _krylov(apply: Callable[[torch.Tensor], torch.Tensor], rhs: torch.Tensor, x0: torch.Tensor):
-    """Solve ``apply(y) = rhs`` by restarted GMRES (the operator is never a matrix); returns the
-    solution and whether it reached ``TOL`` (relative residual)."""
-    import numpy as np
-    from scipy.sparse.linalg import LinearOperator, gmres
-
-    n = rhs.numel()
-
-    def matvec(y: np.ndarray) -> np.ndarray:
-        return apply(torch.from_numpy(np.ascontiguousarray(y).reshape(-1))).numpy()
-
-    op = LinearOperator((n, n), matvec=matvec, dtype=np.float64)
-    y, info = gmres(
-        op, rhs.numpy(), x0=x0.numpy(), rtol=TOL, atol=0.0, restart=RESTART, maxiter=MAX_ITER
-    )
-    return torch.from_numpy(y), info == 0
 
 
 @dataclass(frozen=True)
@@ -96,18 +76,7 @@ class Chain:
         """The fleet's exact long-run average reward of ``tables`` (see the class docstring)."""
         model, pol = self.model, self.joint(tables)
         probs = torch.nn.functional.one_hot(pol, model.num_actions).to(torch.float64)
-        v = torch.full_like(self.x, 1.0 / self.x.numel())
-        x, ok = _krylov(lambda y: y - model.step(y, probs) + v * y.sum(), v, self.x)
-        x = x.clamp_min(0.0)
-        x = x / x.sum()
-        if not ok:  # the lazy chain's power iteration from GMRES's answer
-            for _ in range(max_iter):
-                nxt = 0.5 * (x + model.step(x, probs))
-                nxt = nxt / nxt.sum()
-                if float((nxt - x).abs().sum()) < TOL:
-                    break
-                x = nxt
-            x = nxt
+        x, _ = stationary_krylov(lambda y: model.step(y, probs), self.x, tol=TOL, max_iter=max_iter)
         self.x = x
         return float(x @ model.R.gather(0, pol[None])[0])
 
@@ -121,7 +90,9 @@ class Chain:
         def apply(y: torch.Tensor) -> torch.Tensor:
             return y - model.expect(y).gather(0, pol[None])[0] + (v @ y)
 
-        self.h, _ = _krylov(apply, r - g, self.h)
+        self.h, _, _ = krylov_solve(
+            apply, r - g, self.h, rtol=TOL, restart=RESTART, maxiter=MAX_RESTARTS
+        )
         Q = model.R + model.expect(self.h)  # [A, S]
         now = Q.gather(0, pol[None])[0]
         out = torch.zeros(tables.shape, dtype=torch.float64)

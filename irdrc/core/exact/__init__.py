@@ -4,6 +4,8 @@ takes expectations and steps distributions.
 - ``dense``: ``build_model`` — P[a, s, s′] in memory (small S; the cross-check);
 - ``factored``: ``build_factored`` — no S × S matrix, for S in the millions (MODEL.md § B.4);
 - ``stationary``: the factored model's fast stationary solvers;
+- ``krylov``: linear solves on operators never built as matrices (GMRES), and a stationary
+  distribution as one such solve (the fleet's);
 - ``solve``: one value iteration, one occupancy → metrics routine, stationary and episodic metrics
   of any policy (stationary, randomised, periodic);
 - ``scorer``: a model's optimum and the exact metrics of any policy table against it.

@@ -13,6 +13,7 @@ from typing import Any
 
 import torch
 
+from irdrc.core.exact.krylov import krylov_solve
 from irdrc.core.exact.mdp import ExactMDP, as_probs
 
 NEGLIGIBLE_MASS = 1e-30
@@ -236,34 +237,21 @@ def banded_stationary(src: Any, dst: Any, vals: Any, n: int) -> Any:
 
 
 def _stationary_gmres(model: ExactMDP, probs: torch.Tensor) -> tuple[torch.Tensor | None, int]:
-    import numpy as np
-    from scipy.sparse.linalg import LinearOperator, gmres
-
     S = model.num_states
     pc = probs.cpu().reshape(S, -1)
-    calls = 0
-
-    def matvec(x):
-        nonlocal calls
-        calls += 1
-        xt = torch.from_numpy(np.asarray(x, dtype=np.float64).reshape(-1))
-        return (xt - model.step(xt, pc) + xt.sum() / S).numpy()
-
     start = _initial(model, probs.cpu(), None).reshape(-1)
-    A = LinearOperator((S, S), matvec=matvec, dtype=np.float64)
-    b = np.full(S, 1.0 / S)
-    x, info = gmres(
-        A,
+    b = torch.full((S,), 1.0 / S, dtype=torch.float64)
+    x, ok, calls = krylov_solve(
+        lambda y: y - model.step(y, pc) + y.sum() / S,
         b,
-        x0=start.cpu().numpy(),
+        start.cpu(),
         rtol=GMRES_RTOL,
-        atol=0.0,
         restart=100,
         maxiter=GMRES_MAX_MATVECS // 100,
     )
-    if info != 0 or float(np.min(x)) < -1e-9 * float(np.max(np.abs(x))):
+    if not ok or float(x.min()) < -1e-9 * float(x.abs().max()):
         return None, calls
-    mu = torch.from_numpy(np.clip(x, 0.0, None))
+    mu = x.clamp_min(0.0)
     return (mu / mu.sum()).to(model.device), calls
 
 

@@ -40,9 +40,10 @@ def differences(spec: FleetSpec) -> dict[str, list[Any]]:
     return {k: [d.get(k) for d in per] for k in per[0] if len({repr(d.get(k)) for d in per}) > 1}
 
 
-SLOW_EXACT_STATES = 250_000
+SLOW_EXACT_STATES = 500_000
 """Beyond this many joint states the description says that exact evaluations are slow (here one
-stationary distribution took 14–29 s at 246 016 states and 103 s at 495 616)."""
+policy's exact metrics took 7–9 s at 430 336 joint states, 36–39 s at 952 576 and 5 min at
+1 982 464)."""
 
 
 def describe(spec: FleetSpec, observe: str, model: FleetModel) -> str:
@@ -56,7 +57,8 @@ def describe(spec: FleetSpec, observe: str, model: FleetModel) -> str:
     )
     slow = (
         "\n[fleet] every exact evaluation, the optimum's first, is a stationary distribution over "
-        "these joint states by power iteration: a minute or more each at this size"
+        "these joint states (one linear solve): from half a minute to several minutes each at this "
+        "size"
         if model.exact and model.num_states > SLOW_EXACT_STATES
         else ""
     )

@@ -239,3 +239,61 @@ def test_target_miss_reads_a_table_against_the_lp(tmp_path, capsys):
     )  # fmt: skip
     assert shares.returncode == 2 and "env.actions=continuous" in shares.stderr, shares.stderr
     assert not (tmp_path / "x").exists() and not (tmp_path / "y").exists()  # before any work
+
+
+def test_a_comm_radar_table_on_a_scenario_of_radar_shares_means_comm_and_radar(tmp_path):
+    """A comm/radar table's action 1 is radar: ρ = 1. On ``env.actions=levels`` it is the last
+    level, not level 1 (ρ = 1/(G − 1)); on ``continuous`` it is scored as the shares 0 and 1
+    (before, the first was scored as another policy without a word and the second failed). The
+    binary optimum's table, so played, earns the binary optimum's reward: ρ ∈ {0, 1} are the
+    binary model's actions in every model of MODEL.md § D."""
+    import torch
+
+    from irdrc.core.exact import exact_scorer
+    from irdrc.core.params import Params
+    from irdrc.recipes import evaluate
+    from irdrc.runs.app import execute
+    from irdrc.runs.tables import write_policy_csv
+
+    params = Params()
+    best = exact_scorer(params)
+    write_policy_csv(tmp_path / "policy.csv", best.optimal.policy, params.env.factor_levels)
+    want = best.optimal_metrics.avg_reward
+    policy = f"policy={tmp_path / 'policy.csv'}"
+    for actions in ("levels", "continuous"):
+        out = tmp_path / actions
+        args = [policy, f"env.actions={actions}", "eval.mc_episodes=16", "eval.mc_num_envs=16"]
+        assert execute(evaluate, [*args, f"hydra.run.dir={out}"]) == 0
+        summary = json.loads((out / "summary.json").read_text())
+        assert summary["metrics"]["avg_reward"] == pytest.approx(want, rel=1e-9), actions
+    played = (tmp_path / "levels" / "policy.csv").read_text().splitlines()[1:]
+    levels = {int(row.split(",")[6]) for row in played}
+    assert levels == {0, Params().env.levels - 1}
+    with pytest.raises(ValueError, match=r"randomised comm/radar table .* env\.actions=levels"):
+        evaluate.fit_actions(
+            torch.full((4, 2), 0.5),
+            (0.0, 1.0),
+            Params.from_overrides({"env.actions": "levels"}),
+            "t",
+        )
+    fifths = (0.0, 0.25, 0.5, 0.75, 1.0)
+    with pytest.raises(ValueError, match=r"shares \[0\.25\] are not among .*continuous scores any"):
+        evaluate.fit_actions(torch.tensor([0, 1, 4]), fifths, params, "a levels network")
+
+
+def test_a_checkpoint_without_a_network_to_read_names_its_recipe_and_its_table(tmp_path, capsys):
+    """A one-stream learner's checkpoint is not one evaluate reads: the refusal names the recipe
+    that wrote it and the run's table, which evaluate scores."""
+    from irdrc.online import recipe
+    from irdrc.recipes import evaluate
+    from irdrc.runs.app import execute
+
+    run_dir = tmp_path / "online"
+    args = ["learner=qlearning", "algo.episodes=1", "logger=none", "progress=false"]
+    assert execute(recipe, [*args, f"hydra.run.dir={run_dir}"]) == 0
+    capsys.readouterr()
+    out = [f"hydra.run.dir={tmp_path / 'e'}", "eval.mc_episodes=0"]
+    assert execute(evaluate, [f"checkpoint={run_dir / 'checkpoint.pt'}", *out]) == 2
+    err = capsys.readouterr().err
+    assert "(this one: online)" in err and f"policy={run_dir / 'policy.csv'}" in err, err
+    assert execute(evaluate, [f"policy={run_dir / 'policy.csv'}", *out]) == 0

@@ -97,12 +97,17 @@ def network_table(path: Path, params: Params) -> tuple[Any, str, str]:
     state = load_checkpoint(path, key="checkpoint")
     saved = state["config"]
     recipe = checkpoint_recipe(path, state)
-    if "env" not in saved or "vehicles" in saved.get("env", {}) or "target_miss" in saved:
-        recipe = None
-    if recipe not in ("dqn", "sac", "ppo"):
+    fleet = "vehicles" in saved.get("env", {})
+    if recipe not in ("dqn", "sac", "ppo") or "env" not in saved or fleet or "target_miss" in saved:
+        table = path.parent / "policy.csv"
+        hint = (
+            f"; its run's table is scored with policy={table}"
+            if table.is_file() and not fleet
+            else ""
+        )
         raise ValueError(
             f"checkpoint={path}: not a checkpoint of recipes/dqn.py, sac.py or ppo.py (this one: "
-            f"{recipe or 'another recipe'}); evaluate reads a single-vehicle network"
+            f"{recipe or 'another recipe'}); evaluate reads a single-vehicle network{hint}"
         )
     trained = Params.from_config(saved)
     check_observations(path, trained, params)
@@ -116,7 +121,9 @@ def network_table(path: Path, params: Params) -> tuple[Any, str, str]:
         rho = learner.saved_shares(state["loss"], cfg, trained, params)
         return rho, f"{recipe} radar shares {steps}", "rho"
     table, name = dqn_table(state, saved, trained, params)
-    return table, f"{name} {steps}", "network"
+    source = f"{name} {steps}"
+    table, rho = fit_actions(table, trained.env.shares, params, source)
+    return table, source, "rho" if rho else "network"
 
 
 def check_observations(path: Path, trained: Params, params: Params) -> None:
@@ -189,8 +196,50 @@ def load_source(cfg: Config) -> tuple[Any, str, str]:
         return rho, f"radar-share policy table {path}", "rho"
     policy = read_policy_csv(path, num_states=params.env.num_states, probabilities=True)
     if bool(((policy[:, 1] == 0) | (policy[:, 1] == 1)).all()):
-        return policy[:, 1].long(), f"policy table {path}", "policy"
-    return policy, f"randomised policy table {path}", "policy"
+        table, rho = fit_actions(policy[:, 1].long(), (0.0, 1.0), params, f"policy table {path}")
+        return table, f"policy table {path}", "rho" if rho else "policy"
+    source = f"randomised policy table {path}"
+    return fit_actions(policy, (0.0, 1.0), params, source)[0], source, "policy"
+
+
+def fit_actions(
+    policy: Any, shares: tuple[float, ...] | None, params: Params, source: str
+) -> tuple[Any, bool]:
+    """``policy`` — [S] actions indexing ``shares`` (the radar share of each action: (0, 1) for
+    comm/radar), or [S, 2] comm/radar probabilities — in the action space of the scenario
+    ``params`` (MODEL.md § D), and whether it is now a table of radar shares ρ: unchanged where
+    the scenario's actions have the same shares; ρ = shares[action] on ``env.actions=continuous``;
+    else each share's action among the scenario's levels (radar, ρ = 1, is the last level).
+
+    Raises:
+        ValueError: a randomised table on a scenario of other actions, or a share the scenario's
+            levels lack (naming the shares and ``env.actions=continuous``, which takes any).
+    """
+    import torch
+
+    want = params.env.shares
+    if want is not None and tuple(want) == tuple(shares or ()):
+        return policy, False
+    on = f"env.actions={params.env.actions}" + (
+        f" with env.levels={params.env.levels}" if params.env.actions == "levels" else ""
+    )
+    if policy.ndim == 2:
+        raise ValueError(
+            f"{source}: a randomised comm/radar table is scored on env.actions=binary "
+            f"scenarios only (this one: {on})"
+        )
+    rho = torch.as_tensor(shares, dtype=torch.float64)[torch.as_tensor(policy).long()]
+    if want is None:
+        return rho, True
+    grid = torch.as_tensor(want, dtype=torch.float64)
+    level = (rho[:, None] - grid[None]).abs().argmin(-1)
+    missing = sorted({round(float(r), 6) for r in rho[(grid[level] - rho).abs() > 1e-9]})
+    if missing:
+        raise ValueError(
+            f"{source}: its radar shares {missing} are not among the actions of {on} "
+            f"(ρ = {', '.join(f'{g:g}' for g in want)}); env.actions=continuous scores any share"
+        )
+    return level, False
 
 
 def against_optimum(learned: Metrics, opt: Metrics, what: str) -> str:
@@ -237,7 +286,8 @@ def run(cfg: Config, run) -> dict[str, Any]:
         rows[f"{name} (exact, episodic)"] = episodic_metrics(model, policy)
     if cfg.eval.mc_episodes:
         env = DFRCEnv(params, batch_size=[int(cfg.eval.mc_num_envs)], seed=cfg.seed)
-        ev = evaluate(table_policy(policy, seed=cfg.seed), env, episodes=int(cfg.eval.mc_episodes))
+        acting = table_policy(policy, seed=cfg.seed, num_actions=model.num_actions)
+        ev = evaluate(acting, env, episodes=int(cfg.eval.mc_episodes))
         label = f"{name} (Monte-Carlo, episodic)"
         rows[label], errs[label] = ev.metrics, ev.ci95
     rows["optimal (exact, long run)"] = opt

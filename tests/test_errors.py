@@ -111,6 +111,14 @@ def test_a_near_name_is_looked_for_in_the_keys_own_section():
     assert "did you mean" not in message
 
 
+def test_an_unquoted_list_of_overrides_is_answered_with_the_quoted_form():
+    """``sweep.base=[algo.episodes=2]`` is not a Hydra value (an element with '=' must be
+    quoted); the answer is the argument written as it must be (it was Hydra's parser message
+    alone: "OverrideParseException: no viable alternative at input '[algo.episodes='")."""
+    message = refused("sweep", "method=qlearning", "sweep.base=[algo.episodes=2, seed=3]")
+    assert "\"sweep.base=['algo.episodes=2','seed=3']\"" in message, message
+
+
 def test_cuda_without_a_device_is_refused():
     assert "no CUDA device" in refused("dqn", "device=cuda")
 

@@ -252,6 +252,16 @@ def _explain(config_name: str, args: list[str], err: Exception) -> str:
         bad = next((a for a in args if override_key(a) == found.group(1)), "")
         return unknown_key(config_name, found.group(1), _known_keys(config_name, args, bad))
     text = str(err).strip().splitlines()[0] if str(err).strip() else ""
+    if type(err).__name__ == "OverrideParseException":
+        for arg in args:
+            key, _, value = arg.partition("=")
+            if value.startswith("[") and value.endswith("]") and "=" in value:
+                items = [v.strip() for v in value[1:-1].split(",") if v.strip()]
+                quoted = ",".join(v if v[0] in "'\"" else f"'{v}'" for v in items)
+                return (
+                    f"{arg}: a list element that holds '=' is quoted, the whole argument too: "
+                    f'"{key}=[{quoted}]" ({text})'
+                )
     return f"{type(err).__name__}: {text}"
 
 

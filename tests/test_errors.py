@@ -119,6 +119,16 @@ def test_an_unquoted_list_of_overrides_is_answered_with_the_quoted_form():
     assert "\"sweep.base=['algo.episodes=2','seed=3']\"" in message, message
 
 
+def test_a_comma_separated_value_or_multirun_points_to_the_sweep():
+    """``seed=0,1`` is a Hydra sweep, and ``-m`` Hydra's multirun; a recipe runs once, so each
+    answer names the sweep recipe (the first was Hydra's "ConfigCompositionException: Ambiguous
+    value for argument 'seed=0,1'")."""
+    message = refused("solve", "seed=0,1")
+    assert message.startswith("seed=0,1: one run takes one value")
+    assert "sweep.grid='{seed: [0,1]}'" in message
+    assert "recipes/sweep.py" in refused("solve", "-m", "seed=0")
+
+
 def test_cuda_without_a_device_is_refused():
     assert "no CUDA device" in refused("dqn", "device=cuda")
 

@@ -58,7 +58,13 @@ def prepare(module: ModuleType, args: list[str]) -> Prepared:
         notes.append(f"resume: with the run's stored overrides {' '.join(stored)}")
     for a in args:
         if "=" not in a and not a.startswith("~"):
-            raise ValueError(f"{a!r} is not an override: write key=value")
+            many = (
+                "; several runs over a grid of values: python recipes/sweep.py method=… "
+                "sweep.grid='{seed: [0,1,2]}'"
+                if a in ("-m", "--multirun")
+                else ""
+            )
+            raise ValueError(f"{a!r} is not an override: write key=value{many}")
         if a in getattr(module, "ELSEWHERE", {}):
             raise ValueError(f"{a} is not a {module.NAME} profile: use {module.ELSEWHERE[a]}")
     composed = compose_recipe(module, args)

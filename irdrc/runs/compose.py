@@ -252,6 +252,14 @@ def _explain(config_name: str, args: list[str], err: Exception) -> str:
         bad = next((a for a in args if override_key(a) == found.group(1)), "")
         return unknown_key(config_name, found.group(1), _known_keys(config_name, args, bad))
     text = str(err).strip().splitlines()[0] if str(err).strip() else ""
+    ambiguous = re.search(r"Ambiguous value for argument '([^']+)'", str(err))
+    if ambiguous:
+        key, _, value = ambiguous.group(1).partition("=")
+        return (
+            f"{key}={value}: one run takes one value (where the key takes a list: {key}='[{value}]'); "
+            f"several runs over values: python recipes/sweep.py method=… "
+            f"sweep.grid='{{{key}: [{value}]}}'"
+        )
     if type(err).__name__ == "OverrideParseException":
         for arg in args:
             key, _, value = arg.partition("=")

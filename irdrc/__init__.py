@@ -35,6 +35,7 @@ _LAZY = {
     "EnvParams": "irdrc.core.params",
     "Params": "irdrc.core.params",
     "RewardParams": "irdrc.core.params",
+    "scenario": "irdrc.runs.compose",
 }
 
 __all__ = sorted(_LAZY)

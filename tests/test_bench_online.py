@@ -188,7 +188,7 @@ def test_the_benchmark_runs_every_kind_of_job_writes_its_files_and_resumes(tmp_p
     "override, message",
     [
         ("learners=[nobody]", "learners: 'nobody' must be one of"),
-        ("scenarios=[nowhere]", "scenarios: 'nowhere' must be one of"),
+        ("scenarios=[nowhere]", "scenarios[0]='nowhere' must be one of"),
         ("window=300", "window=300 must be <= episodes=200"),
         ("safe_targets=[1.5]", "safe_targets"),
     ],

@@ -88,6 +88,20 @@ def refused(recipe: str, *overrides: str) -> str:
         ("bench_timeshare", ["scenarios={}"], "scenarios={} must map names"),
         ("bench_robust", ["candidates={}"], "candidates={} must map names"),
         ("bench_dqn", ["profiles={}"], "profiles={} must map names"),
+        # a fleet where one vehicle runs, a seed twice, a table written outside the run
+        ("study", ["scenarios=[paper,fleet]"], "scenarios[1]='fleet' is a fleet of vehicles"),
+        ("bench_online", ["safe_scenarios=[fleet]"], "'fleet' is a fleet of vehicles"),
+        ("bench_scale", ["scenarios=[fleet]"], "'fleet' is a fleet of vehicles"),
+        ("study", ["seeds=[0,1,0]"], "seeds=[0, 1, 0] repeats seed 0"),
+        ("bench_dqn", ["seeds=[3,3]"], "repeats seed 3"),
+        ("bench_fleet", ["scale_seeds=[2,2]"], "scale_seeds=[2, 2] repeats seed 2"),
+        ("bench_online", ["lagrangian_seeds=[a]"], "lagrangian_seeds[0]='a'"),
+        ("study", ["csv=../x.csv"], "csv='../x.csv' must be a file name"),
+        ("bench_scale", ["csv=/tmp/x.csv"], "must be a file name"),
+        ("bench_fleet", ["csv=a/b.csv"], "must be a file name"),
+        # a study's per-learner overrides: checked before any run, never the scenario
+        ("study", ["overrides.dqn=['env.p1.speed=0.5']"], "overrides.dqn: 'env.p1.speed=0.5' sets"),
+        ("study", ["overrides.qlearning=['algo.nosuch=1']"], "unknown key 'algo.nosuch'"),
     ],
 )
 def test_bad_input_is_refused_naming_the_key(recipe, overrides, named):

@@ -9,7 +9,7 @@ import torch
 from conftest import assert_chi2
 from gymnasium.utils.env_checker import check_env
 
-import irdrc  # noqa: F401 - registers irdrc/DFRC-v0
+import irdrc  # registers irdrc/DFRC-v0
 from irdrc.core.exact import build_model
 from irdrc.core.gym import DFRCGymEnv
 from irdrc.core.params import Params
@@ -35,6 +35,31 @@ def test_overrides():
     # a keyword without its section: the error names what the constructor takes and the fix
     with pytest.raises(ValueError, match=r"takes params, env, reward.*r4 → 'reward\.r4'"):
         gymnasium.make("irdrc/DFRC-v0", r4=50)
+
+
+def test_a_named_scenario_is_irdrc_scenario():
+    """``irdrc.scenario(NAME, overrides)`` is the ``Params`` the recipes compose for ``env=NAME``
+    (every single-vehicle scenario of envs/), for the gym id's ``params=``. A scenario's name
+    given as a section (``env="multilevel"``) is answered with that call (it was "env must be a
+    mapping, got 'multilevel'", and for the fleet's PettingZoo env "dictionary update sequence
+    element #0 has length 1; 2 is required"); a fleet is not one vehicle."""
+    from irdrc.fleet import parallel_env
+    from irdrc.recipes import solve
+    from irdrc.runs.compose import compose, fleet_scenarios, list_scenarios
+
+    assert fleet_scenarios() == ["fleet"]
+    for name in list_scenarios():
+        if name != "fleet":
+            want = solve.load(compose("solve", [f"env={name}", "reward.r4=50"])).model
+            assert irdrc.scenario(name, {"reward.r4": 50}) == want, name
+    env = gymnasium.make("irdrc/DFRC-v0", params=irdrc.scenario("multilevel"))
+    assert env.unwrapped.params.env.num_states == 792
+    with pytest.raises(ValueError, match=r"env='multilevel': .*irdrc\.scenario\('multilevel'\)"):
+        gymnasium.make("irdrc/DFRC-v0", env="multilevel")
+    with pytest.raises(ValueError, match=r"irdrc\.scenario\('paper'\)"):
+        parallel_env(env="paper")
+    with pytest.raises(ValueError, match=r"'fleet' is a fleet of vehicles: irdrc\.fleet"):
+        irdrc.scenario("fleet")
 
 
 def test_episode_and_info():

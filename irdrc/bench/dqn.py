@@ -13,12 +13,13 @@ import time
 from dataclasses import dataclass, field
 from typing import Any
 
-from irdrc.core.checks import build, check_list, numbers
+from irdrc.core.checks import build, check_list
 from irdrc.core.params import Params
 from irdrc.runs.compose import Composed, compose_recipe
 from irdrc.runs.grid import candidate_overrides
 from irdrc.runs.results import md_table
 from irdrc.runs.sections import ONE_VEHICLE, Eval, check_common
+from irdrc.runs.sections import seeds as distinct_seeds
 
 NAME = "bench_dqn"
 SUMMARY_KEYS = (
@@ -51,7 +52,7 @@ class Config:
 
     def __post_init__(self) -> None:
         check_common(self)
-        seeds = check_list("seeds", self.seeds, numbers(0, 2**32 - 1, integer=True))
+        seeds = distinct_seeds("seeds", self.seeds)
         object.__setattr__(self, "seeds", seeds)
         object.__setattr__(self, "overrides", check_list("overrides", self.overrides, empty=True))
 

@@ -40,7 +40,7 @@ from irdrc.runs.results import (
     write_rows_csv,
     write_table_md,
 )
-from irdrc.runs.sections import EXECUTOR, Executor, Plot
+from irdrc.runs.sections import EXECUTOR, Executor, Plot, seeds
 
 NAME = "bench_fleet"
 OWN_LEARNERS = ("idqn", "vdn", "qmix", "mappo", "ippo")
@@ -95,8 +95,6 @@ class Config:
         lists = (
             ("learners", pick(FLEET_LEARNERS), True),
             ("scale_learners", pick(OWN_LEARNERS), True),
-            ("seeds", checks.numbers(0, 2**32 - 1, integer=True), True),
-            ("scale_seeds", checks.numbers(0, 2**32 - 1, integer=True), True),
             ("share", checks.numbers(0, 1), True),
             ("channels", checks.numbers(1, 16, integer=True), True),
             ("vehicles", checks.numbers(1, 16, integer=True), True),
@@ -106,7 +104,10 @@ class Config:
             object.__setattr__(
                 self, key, checks.check_list(key, getattr(self, key), item, empty=empty)
             )
+        for key in ("seeds", "scale_seeds"):
+            object.__setattr__(self, key, seeds(key, getattr(self, key), empty=True))
         checks.check_bool("search", self.search)
+        checks.check_file_name("csv", self.csv)
         checks.check_numbers(self, "", (("search_sweeps", 1, 1000, checks.INT),))
         from irdrc.core.checks import check_number
 

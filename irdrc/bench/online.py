@@ -33,9 +33,9 @@ from irdrc.bench.online_tables import (
 from irdrc.bench.random_scenarios import REPORTING, contested_draws
 from irdrc.core.checks import INT, build, check_bool, check_list, check_numbers, numbers
 from irdrc.online.configs import LEARNERS, PROFILES
-from irdrc.runs.compose import Composed, list_scenarios
+from irdrc.runs.compose import Composed
 from irdrc.runs.grid import require_runs
-from irdrc.runs.sections import seeds
+from irdrc.runs.sections import one_vehicle_scenarios, seeds
 
 NAME = "bench_online"
 
@@ -72,16 +72,18 @@ class Config:
     optimum_gamma: float = 0.99
 
     def __post_init__(self) -> None:
-        envs = list_scenarios()
         learners = [n for n in LEARNERS if n != "safe"]
-        object.__setattr__(self, "scenarios", _names("scenarios", self.scenarios, envs, True))
+        scenarios = one_vehicle_scenarios("scenarios", self.scenarios, empty=True)
+        object.__setattr__(self, "scenarios", scenarios)
         object.__setattr__(self, "seeds", seeds("seeds", self.seeds))
         object.__setattr__(self, "paper_seeds", seeds("paper_seeds", self.paper_seeds))
         object.__setattr__(self, "safe_seeds", seeds("safe_seeds", self.safe_seeds))
         for key in ("learners", "paper_learners", "random_learners"):
             object.__setattr__(self, key, _names(key, getattr(self, key), learners, True))
         object.__setattr__(
-            self, "safe_scenarios", _names("safe_scenarios", self.safe_scenarios, envs, True)
+            self,
+            "safe_scenarios",
+            one_vehicle_scenarios("safe_scenarios", self.safe_scenarios, True),
         )
         targets = check_list(
             "safe_targets", self.safe_targets, numbers(0, 1, open_lo=True, open_hi=True), empty=True
@@ -103,7 +105,7 @@ class Config:
         object.__setattr__(
             self,
             "lagrangian_seeds",
-            check_list("lagrangian_seeds", self.lagrangian_seeds, empty=True),
+            seeds("lagrangian_seeds", self.lagrangian_seeds, empty=True),
         )
         check_bool("resume", self.resume)
         if self.window > self.episodes:

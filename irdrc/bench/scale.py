@@ -23,8 +23,9 @@ from pathlib import Path
 from typing import Any
 
 from irdrc.core import checks
-from irdrc.runs.compose import Composed, compose, list_scenarios
+from irdrc.runs.compose import Composed, compose
 from irdrc.runs.results import md_table, write_rows_csv, write_table_md
+from irdrc.runs.sections import one_vehicle_scenarios
 
 NAME = "bench_scale"
 
@@ -172,9 +173,8 @@ class Config:
     csv: str = "bench_scale.csv"
 
     def __post_init__(self) -> None:
-        known = tuple(list_scenarios())
-        item = lambda key, x: checks.check_choice(key, x, known)  # noqa: E731
-        object.__setattr__(self, "scenarios", checks.check_list("scenarios", self.scenarios, item))
+        object.__setattr__(self, "scenarios", one_vehicle_scenarios("scenarios", self.scenarios))
+        checks.check_file_name("csv", self.csv)
         sizes = checks.check_list(
             "states", self.states, checks.numbers(64, 32 * 10**6, integer=True)
         )

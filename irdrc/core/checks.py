@@ -79,6 +79,18 @@ def check_bool(key: str, value: Any) -> bool:
     return value
 
 
+def check_file_name(key: str, value: Any) -> str:
+    """``value`` if it is a plain file name (a file the run writes into its own directory), else
+    a ``ValueError`` naming the key (a path elsewhere is set by ``hydra.run.dir``)."""
+    bad = not isinstance(value, str) or not value.strip() or value in (".", "..")
+    if bad or "/" in value or "\\" in value:
+        raise ValueError(
+            f"{key}={value!r} must be a file name: it is written into the run directory, which "
+            "hydra.run.dir=DIR sets"
+        )
+    return value
+
+
 def check_list(
     key: str,
     value: Any,

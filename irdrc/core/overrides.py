@@ -31,6 +31,12 @@ def apply_overrides(merged: dict[str, Any], overrides: Mapping[str, Any]) -> Non
                 "named as on the command line: 'env.p1.speed', 'reward.r4', or nested "
                 "{'env': {...}, 'reward': {...}})"
             )
+        if len(parts) == 1 and not isinstance(value, Mapping):
+            raise ValueError(
+                f"{key}={value!r}: a section is a mapping of its keys ({key}={{'p1': {{'speed': "
+                f"0.5}}}} or **{{'{key}.p1.speed': 0.5}}); a named scenario of envs/ is "
+                f"irdrc.scenario({value!r}), a Params"
+            )
         target = merged
         for p in parts[:-1]:
             target = target.setdefault(p, {})

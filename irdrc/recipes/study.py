@@ -22,13 +22,14 @@ from irdrc.core.checks import (
     check_choice,
     check_list,
     check_number,
-    numbers,
     reject_unknown_keys,
 )
 from irdrc.core.metrics import Metrics, first_reaching
 from irdrc.recipes import solve
 from irdrc.runs.compose import Composed, compose, compose_recipe, list_scenarios
-from irdrc.runs.sections import check_common
+from irdrc.runs.grid import is_scenario_key, override_key
+from irdrc.runs.sections import check_common, one_vehicle_scenarios
+from irdrc.runs.sections import seeds as distinct_seeds
 
 NAME = "study"
 LEARNERS = {
@@ -61,9 +62,9 @@ class Config:
         check_common(self)
         known = list_scenarios()
         pick = lambda choices: lambda key, x: check_choice(key, x, choices)  # noqa: E731
-        object.__setattr__(self, "scenarios", check_list("scenarios", self.scenarios, pick(known)))
+        object.__setattr__(self, "scenarios", one_vehicle_scenarios("scenarios", self.scenarios))
         object.__setattr__(self, "learners", check_list("learners", self.learners, pick(LEARNERS)))
-        seeds = check_list("seeds", self.seeds, numbers(0, 2**32 - 1, integer=True))
+        seeds = distinct_seeds("seeds", self.seeds)
         object.__setattr__(self, "seeds", seeds)
         reject_unknown_keys("evals.", self.evals, ("default", *known))
         for key, n in self.evals.items():
@@ -78,8 +79,30 @@ class Config:
 
 
 def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
-    """The typed config, checked."""
-    return build(Config, composed.cfg)
+    """The typed config, checked; each learner's overrides composed on each scenario, so that a
+    bad one is refused before any run (one that sets the scenario too: each learner runs each of
+    ``scenarios`` as it is, and is scored against that scenario's optimum)."""
+    cfg = build(Config, composed.cfg)
+    for learner in cfg.learners:
+        extra = [str(o) for o in (cfg.overrides or {}).get(learner) or []]
+        for o in extra:
+            if is_scenario_key(o) or override_key(o) == "env":
+                raise ValueError(
+                    f"overrides.{learner}: {o!r} sets the scenario; the study runs every learner "
+                    f"on each of scenarios={list(cfg.scenarios)} as it is"
+                )
+        for scenario in cfg.scenarios:
+            learner_config(learner, scenario, extra)
+    return cfg
+
+
+def learner_config(learner: str, scenario: str, overrides: list[str]) -> Any:
+    """The typed config of ``learner``'s recipe on ``scenario`` with ``overrides``."""
+    from irdrc.recipes import dqn, qlearning
+
+    recipe, profile = LEARNERS[learner]
+    module = {"dqn": dqn, "qlearning": qlearning}[recipe]
+    return module.load(compose_recipe(module, [*profile, f"env={scenario}", *overrides]))
 
 
 class TimedScorer:
@@ -142,11 +165,7 @@ def run_seeds(
 ) -> list[dict[str, Any]]:
     """Train ``learner`` on ``scenario`` for each seed (one batched run for ``BATCHED`` learners);
     one row of ``study.csv`` per seed."""
-    from irdrc.recipes import dqn, qlearning
-
-    recipe, profile = LEARNERS[learner]
-    module = {"dqn": dqn, "qlearning": qlearning}[recipe]
-    cfg = module.load(compose_recipe(module, [*profile, f"env={scenario}", *overrides]))
+    cfg = learner_config(learner, scenario, overrides)
     params = cfg.params
     runs = [(seeds[0], len(seeds))] if learner in BATCHED else [(s, 1) for s in seeds]
     rows = []

@@ -10,6 +10,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import re
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -39,6 +40,37 @@ one adds it (Hydra's ``++``); ``Params`` validates them."""
 def list_scenarios(envs_dir: Path = ENVS_DIR) -> list[str]:
     """Names of the scenarios in ``envs/``."""
     return sorted(p.stem for p in envs_dir.glob("*.yaml"))
+
+
+def fleet_scenarios(envs_dir: Path = ENVS_DIR) -> list[str]:
+    """Names of the scenarios in ``envs/`` that are fleets of vehicles (they set ``vehicles``,
+    themselves or through their defaults)."""
+    return [n for n in list_scenarios(envs_dir) if "vehicles" in load_scenario(n, envs_dir)]
+
+
+def scenario(name: str, overrides: Mapping[str, Any] | None = None) -> Any:
+    """The ``Params`` of the named scenario ``name`` (``envs/<name>.yaml``, one vehicle) with
+    ``overrides`` named as on the command line (``{"env.p1.speed": 0.5, "reward.r4": 50}``), the
+    paper's reward: ``irdrc.scenario("multilevel")``, for the gym id (``params=``) or any model.
+
+    Raises:
+        ValueError: an unknown scenario, a fleet (``irdrc.fleet.parallel_env`` and ``FleetSpec``
+            take those), or a bad key or value.
+    """
+    from omegaconf import OmegaConf
+
+    from irdrc.core.overrides import apply_overrides
+    from irdrc.core.params import Params
+
+    env = OmegaConf.to_container(load_scenario(name), resolve=True)
+    if "vehicles" in env:
+        raise ValueError(
+            f"scenario {name!r} is a fleet of vehicles: irdrc.fleet.parallel_env(**overrides) "
+            "and irdrc.fleet.spec.FleetSpec build fleets"
+        )
+    merged: dict[str, Any] = {"env": env, "reward": {}}
+    apply_overrides(merged, overrides or {})
+    return Params.from_config(merged, strict=False)
 
 
 def config_groups() -> list[str]:

@@ -14,6 +14,7 @@ from irdrc.core import checks, sizes
 from irdrc.core.params import Params
 from irdrc.fleet.config import fleet_from_config, is_fleet
 from irdrc.fleet.spec import FleetSpec
+from irdrc.runs.compose import fleet_scenarios, list_scenarios
 
 BACKENDS = ("none", "csv", "tensorboard", "wandb")
 WANDB_MODES = ("auto", "online", "offline", "disabled")
@@ -162,9 +163,30 @@ def check_device(device: Any) -> str:
     return device
 
 
-def seeds(key: str, value: Any) -> tuple[int, ...]:
-    """A non-empty list of seeds."""
-    return checks.check_list(key, value, checks.numbers(0, 2**32 - 1, integer=True))
+def seeds(key: str, value: Any, empty: bool = False) -> tuple[int, ...]:
+    """A list of distinct seeds (non-empty unless ``empty``): a repeated seed is one run twice."""
+    out = checks.check_list(key, value, checks.numbers(0, 2**32 - 1, integer=True), empty=empty)
+    repeated = sorted({s for s in out if out.count(s) > 1})
+    if repeated:
+        raise ValueError(f"{key}={list(out)} repeats seed {repeated[0]}: the same run twice")
+    return out
+
+
+def one_vehicle_scenarios(key: str, value: Any, empty: bool = False) -> tuple[str, ...]:
+    """A list of named scenarios (``envs/``) of one vehicle each: a fleet is refused, naming the
+    fleet's recipes."""
+    fleets = fleet_scenarios()
+    allowed = [n for n in list_scenarios() if n not in fleets]
+    out = checks.check_list(key, value, empty=empty)
+    for i, name in enumerate(out):
+        if name in fleets:
+            raise ValueError(
+                f"{key}[{i}]={name!r} is a fleet of vehicles; here each run is one vehicle "
+                f"({', '.join(allowed)}) — a fleet runs in recipes/fleet.py, recipes/solve.py "
+                "and recipes/bench_fleet.py"
+            )
+        checks.check_choice(f"{key}[{i}]", name, allowed)
+    return out
 
 
 @dataclass(frozen=True)
@@ -288,7 +310,7 @@ EXECUTOR = {"keys": EXECUTOR_KEYS, "build": _executor}
 
 def check_common(obj: Any) -> None:
     """Check whichever of the keys most recipes share ``obj`` (a recipe's config) has: seed,
-    threads, the discount defining the optimum, device, progress."""
+    threads, the discount defining the optimum, device, progress, the file name of its table."""
     if hasattr(obj, "seed"):
         checks.check_numbers(obj, "", (("seed", 0, 2**32 - 1, checks.INT),))
     if hasattr(obj, "num_threads"):
@@ -300,6 +322,8 @@ def check_common(obj: Any) -> None:
         check_device(obj.device)
     if hasattr(obj, "progress"):
         checks.check_bool("progress", obj.progress)
+    if hasattr(obj, "csv"):
+        checks.check_file_name("csv", obj.csv)
 
 
 def check_eval_period(every: int, total: int, explicit: bool, unit: str = "env steps") -> None:

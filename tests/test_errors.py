@@ -99,6 +99,8 @@ def refused(recipe: str, *overrides: str) -> str:
         ("study", ["csv=../x.csv"], "csv='../x.csv' must be a file name"),
         ("bench_scale", ["csv=/tmp/x.csv"], "must be a file name"),
         ("bench_fleet", ["csv=a/b.csv"], "must be a file name"),
+        # a frontier per env.p1.speed where the speed has its own levels: at load, naming the key
+        ("constrained", ["frontier=true", "env=multilevel"], "frontier_grid.p1_speed=[0.1] draws"),
         # a study's per-learner overrides: checked before any run, never the scenario
         ("study", ["overrides.dqn=['env.p1.speed=0.5']"], "overrides.dqn: 'env.p1.speed=0.5' sets"),
         ("study", ["overrides.qlearning=['algo.nosuch=1']"], "unknown key 'algo.nosuch'"),

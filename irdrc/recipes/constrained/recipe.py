@@ -144,6 +144,16 @@ class Config(Learning):
                         f"{key}={getattr(self, key)}: over ρ ∈ [0, 1] the region bounds "
                         f"target_miss alone; env.actions=levels takes {key} (an LP)"
                     )
+        if self.frontier:
+            for speed in self.frontier_grid.p1_speed:
+                try:
+                    self.params.with_overrides({"env.p1.speed": speed})
+                except ValueError as err:
+                    raise ValueError(
+                        f"frontier_grid.p1_speed={list(self.frontier_grid.p1_speed)} draws one "
+                        f"frontier per env.p1.speed, and on this scenario {err}; "
+                        f"frontier_grid.p1_speed=[{self.params.env.p1.speed:g}] draws its own"
+                    ) from None
         if self.learner == "dqn_lagrangian":
             if self.frontier:
                 raise ValueError("learner=dqn_lagrangian learns one target: use frontier=false")

@@ -100,7 +100,8 @@ def refused(recipe: str, *overrides: str) -> str:
         ("bench_scale", ["csv=/tmp/x.csv"], "must be a file name"),
         ("bench_fleet", ["csv=a/b.csv"], "must be a file name"),
         # a frontier per env.p1.speed where the speed has its own levels: at load, naming the key
-        ("constrained", ["frontier=true", "env=multilevel"], "frontier_grid.p1_speed=[0.1] draws"),
+        ("constrained", ["frontier=true", "env=multilevel"], "frontier_grid.p1_speed=[0.1] takes"),
+        ("tradeoff", ["env=multilevel"], "p1_speed=[0.1, 1.0] sets env.p1.speed one value at a"),
         # a study's per-learner overrides: checked before any run, never the scenario
         ("study", ["overrides.dqn=['env.p1.speed=0.5']"], "overrides.dqn: 'env.p1.speed=0.5' sets"),
         ("study", ["overrides.qlearning=['algo.nosuch=1']"], "unknown key 'algo.nosuch'"),

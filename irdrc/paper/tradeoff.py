@@ -28,7 +28,14 @@ from irdrc.runs.compose import Composed
 from irdrc.runs.grid import parse_grid
 from irdrc.runs.progress import Ticker
 from irdrc.runs.results import write_rows_csv
-from irdrc.runs.sections import EXECUTOR, ONE_VEHICLE, Executor, check_common, seeds
+from irdrc.runs.sections import (
+    EXECUTOR,
+    ONE_VEHICLE,
+    Executor,
+    check_common,
+    check_speeds,
+    seeds,
+)
 from irdrc.sweeps.trials import execute, plan
 
 NAME = "tradeoff"
@@ -98,6 +105,7 @@ class Config:
         r4 = check_list("r4", self.r4, numbers(0, 1e9, open_lo=True))
         object.__setattr__(self, "r4", tuple(sorted(set(r4))))
         object.__setattr__(self, "p1_speed", check_list("p1_speed", self.p1_speed, numbers(0, 1)))
+        check_speeds("p1_speed", self.p1_speed, self.params)
         if self.target_miss is not None:
             object.__setattr__(
                 self, "target_miss", check_number("target_miss", self.target_miss, 0, 1)

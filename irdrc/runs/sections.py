@@ -172,6 +172,20 @@ def seeds(key: str, value: Any, empty: bool = False) -> tuple[int, ...]:
     return out
 
 
+def check_speeds(key: str, speeds: tuple[float, ...], params: Params) -> None:
+    """``speeds``, values of ``env.p1.speed`` a recipe sets one by one (``key``), each one the
+    scenario ``params`` takes; else a ``ValueError`` naming ``key`` and the value that draws the
+    scenario as it is (where ``env.factors.speed`` gives the speed its own levels)."""
+    for speed in speeds:
+        try:
+            params.with_overrides({"env.p1.speed": speed})
+        except ValueError as err:
+            raise ValueError(
+                f"{key}={list(speeds)} sets env.p1.speed one value at a time, and on this "
+                f"scenario {err}; {key}=[{params.env.p1.speed:g}] takes the scenario as it is"
+            ) from None
+
+
 def one_vehicle_scenarios(key: str, value: Any, empty: bool = False) -> tuple[str, ...]:
     """A list of named scenarios (``envs/``) of one vehicle each: a fleet is refused, naming the
     fleet's recipes."""

@@ -25,6 +25,7 @@ from irdrc.runs.sections import (
     ONE_VEHICLE,
     Learning,
     check_dense,
+    check_speeds,
 )
 
 NAME = "constrained"
@@ -145,15 +146,7 @@ class Config(Learning):
                         f"target_miss alone; env.actions=levels takes {key} (an LP)"
                     )
         if self.frontier:
-            for speed in self.frontier_grid.p1_speed:
-                try:
-                    self.params.with_overrides({"env.p1.speed": speed})
-                except ValueError as err:
-                    raise ValueError(
-                        f"frontier_grid.p1_speed={list(self.frontier_grid.p1_speed)} draws one "
-                        f"frontier per env.p1.speed, and on this scenario {err}; "
-                        f"frontier_grid.p1_speed=[{self.params.env.p1.speed:g}] draws its own"
-                    ) from None
+            check_speeds("frontier_grid.p1_speed", self.frontier_grid.p1_speed, self.params)
         if self.learner == "dqn_lagrangian":
             if self.frontier:
                 raise ValueError("learner=dqn_lagrangian learns one target: use frontier=false")

@@ -8,6 +8,7 @@ against the scenario's optimum (``DFRCGymEnv.score``) and written as a ``policy.
     python examples/sb3_train.py --algo dqn --steps 50000 --out outputs/sb3_dqn env.p1.speed=0.5
     python recipes/evaluate.py policy=outputs/sb3_dqn/policy.csv env.p1.speed=0.5
     python examples/sb3_train.py --algo sac --steps 5000 --out outputs/sb3_sac
+    python examples/sb3_train.py --steps 50000 --out outputs/sb3_ml env=multilevel reward.r4=50
     python recipes/evaluate.py policy=outputs/sb3_sac/policy.csv env.actions=continuous
 """
 
@@ -23,7 +24,7 @@ import torch
 from stable_baselines3 import DQN, SAC
 from stable_baselines3.common.logger import configure
 
-import irdrc  # noqa: F401 - registers irdrc/DFRC-v0
+import irdrc  # registers irdrc/DFRC-v0
 from irdrc.runs.tables import write_policy_csv
 
 
@@ -34,10 +35,18 @@ def parse() -> argparse.Namespace:
     p.add_argument("--steps", type=int, default=50_000, help="env steps of training")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default="outputs/sb3", help="folder for policy.csv and score.json")
-    p.add_argument("overrides", nargs="*", help="env.KEY=VALUE or reward.KEY=VALUE")
+    p.add_argument(
+        "overrides", nargs="*", help="env=SCENARIO (envs/), env.KEY=VALUE or reward.KEY=VALUE"
+    )
     args = p.parse_args()
+    if any("=" not in o for o in args.overrides):
+        p.error(f"overrides are KEY=VALUE; got {[o for o in args.overrides if '=' not in o]}")
     pairs = (o.split("=", 1) for o in args.overrides)
     args.overrides = {k: json.loads(v) if v[:1] in "0123456789-[{" else v for k, v in pairs}
+    if args.algo == "dqn" and args.overrides.get("env.actions") == "continuous":
+        p.error(
+            "DQN acts on discrete actions: env.actions=binary or levels (--algo sac: the share)"
+        )
     return args
 
 
@@ -47,7 +56,8 @@ def main() -> None:
     overrides = dict(args.overrides)
     if args.algo == "sac":
         overrides["env.actions"] = "continuous"  # SAC acts on the radar share ρ ∈ [0, 1]
-    env = gymnasium.make("irdrc/DFRC-v0", **overrides)
+    scenario = overrides.pop("env", "paper")  # a named scenario of envs/, these keys on top
+    env = gymnasium.make("irdrc/DFRC-v0", params=irdrc.scenario(scenario, overrides))
     learner = DQN if args.algo == "dqn" else SAC
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -62,11 +72,14 @@ def main() -> None:
 
     score = env.unwrapped.score(greedy)
     table = env.unwrapped.policy_table(greedy)
-    levels = env.unwrapped.params.env.factor_levels
-    write_policy_csv(out / "policy.csv", table, levels, shares=None if args.algo == "dqn" else ())
+    params = env.unwrapped.params
+    # comm/radar actions (binary), else the radar share of each state (levels: level / (G − 1))
+    shares = None if params.env.actions == "binary" else ()
+    write_policy_csv(out / "policy.csv", table, params.env.factor_levels, shares=shares)
     result = {**score, "algo": args.algo, "steps": args.steps, "seed": args.seed}
     result["seconds"] = round(seconds, 1)
-    (out / "score.json").write_text(json.dumps({**result, "overrides": overrides}, indent=1))
+    record = {**result, "scenario": scenario, "overrides": overrides}
+    (out / "score.json").write_text(json.dumps(record, indent=1))
     print(f"SB3 {args.algo}: {score['ratio']:.4f} of the optimum (exact) after {args.steps} steps")
     print(json.dumps(result))
 

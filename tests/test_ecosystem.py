@@ -92,17 +92,25 @@ def _run(args: list[str], cwd: Path, tmp: Path | None = None) -> str:
 
 @pytest.mark.e2e
 @pytest.mark.parametrize(
-    ("algo", "steps", "scenario"), [("dqn", 3000, []), ("sac", 1200, ["env.actions=continuous"])]
+    ("algo", "steps", "train", "scenario"),
+    [
+        ("dqn", 3000, [], []),
+        ("sac", 1200, [], ["env.actions=continuous"]),
+        ("dqn", 1000, ["env.actions=levels"], ["env.actions=levels"]),
+        ("dqn", 1000, ["env=multilevel", "reward.r4=50"], ["env=multilevel", "reward.r4=50"]),
+    ],
 )
-def test_sb3_trains_and_evaluate_scores_its_table(algo, steps, scenario, tmp_path):
-    """SB3's DQN (binary) and SAC (radar share) train on ``irdrc/DFRC-v0`` for a short budget (the
-    plumbing, not SB3's tuning: no learning threshold); ``recipes/evaluate.py policy=…`` reads the
-    written table and finds the same exact ratio as ``score``. SB3's own log is its
-    ``progress.csv`` in the output folder, not a folder of its own under the temporary directory."""
+def test_sb3_trains_and_evaluate_scores_its_table(algo, steps, train, scenario, tmp_path):
+    """SB3's DQN (binary, radar-share levels) and SAC (radar share) train on ``irdrc/DFRC-v0``
+    for a short budget (the plumbing, not SB3's tuning: no learning threshold), on a named
+    scenario too (``env=multilevel``: ``irdrc.scenario``); ``recipes/evaluate.py policy=…`` reads
+    the written table and finds the same exact ratio as ``score`` (a levels table was written as
+    comm/radar actions, its shares truncated to 0). SB3's own log is its ``progress.csv`` in the
+    output folder, not a folder of its own under the temporary directory."""
     out, tmp = tmp_path / algo, tmp_path / "tmp"
     tmp.mkdir()
     printed = _run(
-        ["examples/sb3_train.py", "--algo", algo, "--steps", str(steps), "--out", str(out)],
+        ["examples/sb3_train.py", "--algo", algo, "--steps", str(steps), "--out", str(out), *train],
         ROOT,
         tmp,
     )

@@ -35,10 +35,14 @@ def parse() -> argparse.Namespace:
     p.add_argument("--out", default=None, help="a JSON file for the result")
     p.add_argument("overrides", nargs="*", help="env.KEY=VALUE or reward.KEY=VALUE")
     args = p.parse_args()
+    if any("=" not in o for o in args.overrides):
+        p.error(f"overrides are KEY=VALUE; got {[o for o in args.overrides if '=' not in o]}")
     args.overrides = {
         k: json.loads(v) if v[:1] in "0123456789-[{" else v
         for k, v in (o.split("=", 1) for o in args.overrides)
     }
+    if args.overrides.pop("env", "fleet") != "fleet":
+        p.error("this example runs the fleet (envs/fleet.yaml): env=fleet, its keys on top")
     return args
 
 
@@ -47,6 +51,12 @@ def main() -> None:
     torch.manual_seed(args.seed)
     torch.set_num_threads(1)
     fleet = parallel_env(rewards="team", seed=args.seed, **args.overrides)
+    if not fleet.model.exact:  # the result is scored exactly: refused before training, not after
+        raise SystemExit(
+            f"error: {fleet.model.num_states:,} joint states: this example scores "
+            "its result exactly (env.vehicles=2 on the paper's sizes; "
+            "irdrc.fleet.evaluate scores larger fleets by Monte-Carlo)"
+        )
     agents = fleet.possible_agents
     env = PettingZooWrapper(fleet, group_map={"agents": agents}, return_state=True)
     n, width = len(agents), env.observation_spec["agents", "observation"].shape[-1]

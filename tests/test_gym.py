@@ -41,8 +41,9 @@ def test_a_named_scenario_is_irdrc_scenario():
     """``irdrc.scenario(NAME, overrides)`` is the ``Params`` the recipes compose for ``env=NAME``
     (every single-vehicle scenario of envs/), for the gym id's ``params=``. A scenario's name
     given as a section (``env="multilevel"``) is answered with that call (it was "env must be a
-    mapping, got 'multilevel'", and for the fleet's PettingZoo env "dictionary update sequence
-    element #0 has length 1; 2 is required"); a fleet is not one vehicle."""
+    mapping, got 'multilevel'"); the fleet's PettingZoo env, which is envs/fleet.yaml's fleet, says
+    so (it was "dictionary update sequence element #0 has length 1; 2 is required"); a fleet is
+    not one vehicle."""
     from irdrc.fleet import parallel_env
     from irdrc.recipes import solve
     from irdrc.runs.compose import compose, fleet_scenarios, list_scenarios
@@ -56,7 +57,7 @@ def test_a_named_scenario_is_irdrc_scenario():
     assert env.unwrapped.params.env.num_states == 792
     with pytest.raises(ValueError, match=r"env='multilevel': .*irdrc\.scenario\('multilevel'\)"):
         gymnasium.make("irdrc/DFRC-v0", env="multilevel")
-    with pytest.raises(ValueError, match=r"irdrc\.scenario\('paper'\)"):
+    with pytest.raises(ValueError, match=r"env='paper': parallel_env is the fleet of envs/fleet"):
         parallel_env(env="paper")
     with pytest.raises(ValueError, match=r"'fleet' is a fleet of vehicles: irdrc\.fleet"):
         irdrc.scenario("fleet")

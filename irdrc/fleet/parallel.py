@@ -49,6 +49,12 @@ def fleet_spec(overrides: Mapping[str, Any]) -> tuple[FleetSpec, str]:
     """The fleet and what each vehicle observes from overrides named as on the command line
     (``{"env.vehicles": 4, "env.observe": "full", "env.p1.speed": 0.5, "reward.r4": 50}``, or
     nested), on top of ``env=fleet``'s defaults (two of the paper's vehicles)."""
+    if isinstance(overrides.get("env"), str):
+        raise ValueError(
+            f"env={overrides['env']!r}: parallel_env is the fleet of envs/fleet.yaml, overrides on "
+            "top of it (**{'env.vehicles': 4, 'env.share': 0.5}); a FleetSpec as spec= builds any "
+            "other"
+        )
     merged = Params().to_dict()
     merged["env"]["vehicles"] = 2
     apply_overrides(merged, overrides)

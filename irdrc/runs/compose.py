@@ -13,10 +13,13 @@ import re
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from irdrc.core.checks import closest
 from irdrc.runs.grid import is_scenario_key, override_key
+
+if TYPE_CHECKING:
+    from irdrc.core.params import Params
 
 ROOT = Path(__file__).resolve().parents[2]
 ENVS_DIR = ROOT / "envs"
@@ -48,7 +51,7 @@ def fleet_scenarios(envs_dir: Path = ENVS_DIR) -> list[str]:
     return [n for n in list_scenarios(envs_dir) if "vehicles" in load_scenario(n, envs_dir)]
 
 
-def scenario(name: str, overrides: Mapping[str, Any] | None = None) -> Any:
+def scenario(name: str, overrides: Mapping[str, Any] | None = None) -> Params:
     """The ``Params`` of the named scenario ``name`` (``envs/<name>.yaml``, one vehicle) with
     ``overrides`` named as on the command line (``{"env.p1.speed": 0.5, "reward.r4": 50}``), the
     paper's reward: ``irdrc.scenario("multilevel")``, for the gym id (``params=``) or any model.

@@ -101,3 +101,18 @@ def test_checkpoints_are_paced_by_env_steps_or_wall_time_whichever_first():
     by_steps = hooks(checkpoint_every_frames=100, checkpoint_every_seconds=3600)
     assert not by_steps.checkpoint_due(0, 99) and by_steps.checkpoint_due(99, 100)
     assert not hooks().checkpoint_due(0, 10**9)  # neither: at the end only
+
+
+def test_a_scenario_changed_on_resume_is_named_in_a_few_keys():
+    """``env=multilevel`` on a paper checkpoint changes dozens of keys; the refusal names three
+    and counts the rest under the key the command line set (it listed every one, 659
+    characters for a posterior-sampling run)."""
+    from irdrc.runs.resume import CLASHES_SHOWN, resumed_config
+
+    saved = {"env": {f"k{i}": i for i in range(8)}, "seed": 0}
+    current = {"env": {f"k{i}": i + 1 for i in range(8)}, "seed": 0}
+    with pytest.raises(
+        ValueError, match=r"env\.k0: 0 → 1; env\.k1: 1 → 2; env\.k2: 2 → 3; … 5 more under env\."
+    ):
+        resumed_config(Path("c.pt"), saved, current, frozenset({"env"}))
+    assert CLASHES_SHOWN == 3

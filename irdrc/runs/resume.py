@@ -68,6 +68,10 @@ def edited_config(path: Path, saved: dict[str, Any]) -> list[str]:
     ]
 
 
+CLASHES_SHOWN = 3
+"""Differing keys named per key the command line set (a scenario changes dozens)."""
+
+
 def resumed_config(
     path: Path, saved: dict[str, Any], current: dict[str, Any], explicit: frozenset[str]
 ) -> dict[str, Any]:
@@ -87,9 +91,14 @@ def resumed_config(
     for key in sorted(explicit):
         if key.startswith(RESUME_MAY_DIFFER):
             continue
-        for k in sorted(set(old) | set(new)):
-            if _covered(k, frozenset([key])) and old.get(k, "<absent>") != new.get(k, "<absent>"):
-                clash.append(f"{k}: {old.get(k, '<absent>')} → {new.get(k, '<absent>')}")
+        differ = [
+            f"{k}: {old.get(k, '<absent>')} → {new.get(k, '<absent>')}"
+            for k in sorted(set(old) | set(new))
+            if _covered(k, frozenset([key])) and old.get(k, "<absent>") != new.get(k, "<absent>")
+        ]
+        if len(differ) > CLASHES_SHOWN:  # a group (env=…) that changes a whole section
+            differ = [*differ[:CLASHES_SHOWN], f"… {len(differ) - CLASHES_SHOWN} more under {key}"]
+        clash += differ
     if clash:
         raise ValueError(
             f"resume={path} was trained with another configuration; these keys differ "

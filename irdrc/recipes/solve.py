@@ -160,9 +160,10 @@ def solve_dense(cfg: Config, run) -> dict[str, Any]:
     rows, errs = {}, {}
     opt = rows["optimal (stationary)"] = stationary_metrics(model, sol.policy)
     rows["optimal (episodic)"] = episodic_metrics(model, sol.policy)
-    if cfg.eval.mc_episodes and params.env.actions == "binary":
+    if cfg.eval.mc_episodes:
         env = DFRCEnv(params, batch_size=[int(cfg.eval.mc_num_envs)], seed=cfg.seed)
-        ev = evaluate(table_policy(sol.policy), env, episodes=int(cfg.eval.mc_episodes))
+        acting = table_policy(sol.policy, num_actions=model.num_actions)
+        ev = evaluate(acting, env, episodes=int(cfg.eval.mc_episodes))
         rows["optimal (Monte-Carlo)"], errs["optimal (Monte-Carlo)"] = ev.metrics, ev.ci95
     for name in ("round_robin", "always_comm", "always_radar", "random"):
         rows[f"{name} (stationary)"] = stationary_metrics(model, name)

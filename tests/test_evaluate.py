@@ -297,3 +297,23 @@ def test_a_checkpoint_without_a_network_to_read_names_its_recipe_and_its_table(t
     err = capsys.readouterr().err
     assert "(this one: online)" in err and f"policy={run_dir / 'policy.csv'}" in err, err
     assert execute(evaluate, [f"policy={run_dir / 'policy.csv'}", *out]) == 0
+
+
+def test_a_table_of_another_state_space_says_what_must_match(tmp_path):
+    """A table written for another state space (here a longer queue) is refused with what it must
+    share with the scenario (it said only "704 states, expected 352")."""
+    import torch
+
+    from irdrc.core.params import Params
+    from irdrc.runs.tables import read_policy_csv, read_share_csv, write_policy_csv
+
+    longer = Params.from_overrides({"env.queue_capacity": 12})
+    write_policy_csv(
+        tmp_path / "p.csv", torch.zeros(longer.env.num_states), longer.env.factor_levels
+    )
+    with pytest.raises(ValueError, match=r"416 states, expected 352 \(.*env\.queue_capacity"):
+        read_policy_csv(tmp_path / "p.csv", num_states=352)
+    rho = torch.zeros(longer.env.num_states)
+    write_policy_csv(tmp_path / "r.csv", rho, longer.env.factor_levels, shares=())
+    with pytest.raises(ValueError, match=r"S = 352 states \(a table fits the state space"):
+        read_share_csv(tmp_path / "r.csv", 352)

@@ -113,6 +113,13 @@ def _prob(p: float) -> str:
     return "0" if p == 0 else "1" if p == 1 else repr(p)
 
 
+FITS = (
+    " (a table fits the state space it was written for: the same env.queue_capacity, factor "
+    "levels and traffic phases)"
+)
+"""What a table of another number of states is told."""
+
+
 def read_share_csv(path: Path, num_states: int) -> torch.Tensor:
     """The [S] radar shares of a deterministic ρ policy's ``policy.csv`` (``recipes/sac.py``,
     ``ppo.py``: a ``rho`` column).
@@ -124,7 +131,9 @@ def read_share_csv(path: Path, num_states: int) -> torch.Tensor:
     with Path(path).open() as f:
         rows = list(csv.DictReader(f))
     if len(rows) != num_states:
-        raise ValueError(f"{path}: {len(rows)} rows, the scenario has S = {num_states} states")
+        raise ValueError(
+            f"{path}: {len(rows)} rows, the scenario has S = {num_states} states{FITS}"
+        )
     if any(float(r.get("p_alt") or 0) > 0 for r in rows):
         raise ValueError(
             f"{path}: a randomised ρ policy (p_alt > 0); recipes/constrained.py scores its own"
@@ -177,7 +186,7 @@ def read_policy_csv(
     if bool(((p_radar < 0) | (p_radar > 1) | p_radar.isnan()).any()):
         raise ValueError(f"{path}: p_radar must be a probability in every row")
     if num_states is not None and actions.numel() != num_states:
-        raise ValueError(f"{path}: {actions.numel()} states, expected {num_states}")
+        raise ValueError(f"{path}: {actions.numel()} states, expected {num_states}{FITS}")
     if probabilities:
         return torch.stack([1 - p_radar, p_radar], -1)
     return actions

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import signal
 
 import pytest
 import torch
@@ -81,6 +82,12 @@ def recipe_module(name: str):
     if found is None:
         raise ValueError(f"recipes/{name}.py does not import {module} from irdrc")
     return importlib.import_module(f"{found.group(1)}.{module}")
+
+
+def default_sigint() -> None:
+    """``preexec_fn`` of a child a test sends SIGINT: SIGINT at its default there, even when the
+    tests run in a background job, whose commands start with SIGINT ignored (and pass that on)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
 
 
 def load(recipe: str, *overrides: str):

@@ -9,6 +9,7 @@ import math
 
 import pytest
 import torch
+from conftest import default_sigint
 
 from irdrc import DFRCEnv, Params
 from irdrc.core import policies
@@ -337,7 +338,6 @@ def test_an_interrupted_solver_call_is_known_to_run_on_until_it_ends():
     recipe must then leave by ``os._exit``: its C++ threads do not survive the runtime's teardown
     (an abort, status 134, in 2 of 6 tries). ``solver_running`` says so, though the thread's
     ``is_alive`` reads False once an interrupt has broken off the ``join``."""
-    import signal
     import subprocess
     import sys
 
@@ -357,8 +357,6 @@ def test_an_interrupted_solver_call_is_known_to_run_on_until_it_ends():
         capture_output=True,
         text=True,
         timeout=120,
-        # SIGINT handled by default in the child, even when this test runs in a background job,
-        # whose commands start with SIGINT ignored (and pass that on)
-        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+        preexec_fn=default_sigint,
     )
     assert r.stdout.split() == ["True", "False"], r.stdout + r.stderr

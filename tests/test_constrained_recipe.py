@@ -11,6 +11,7 @@ import time
 from pathlib import Path
 
 import pytest
+from conftest import default_sigint
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -293,9 +294,7 @@ def test_ctrl_c_stops_a_long_lp_at_once():
         text=True,
         timeout=300,
         cwd=ROOT,
-        # SIGINT handled by default in the child, even when this test runs in a background job,
-        # whose commands start with SIGINT ignored (and pass that on)
-        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+        preexec_fn=default_sigint,
     )
     word, seconds = r.stdout.split()
     assert word == "interrupted" and float(seconds) < 2.0, r.stdout + r.stderr

@@ -17,7 +17,7 @@ import gymnasium
 import numpy as np
 import pytest
 import torch
-from conftest import load
+from conftest import default_sigint, load
 from tensordict import TensorDict
 
 import irdrc  # noqa: F401 - registers irdrc/DFRC-v0
@@ -438,9 +438,7 @@ def test_ctrl_c_in_a_long_solve_is_one_line(tmp_path):
         stderr=subprocess.PIPE,
         text=True,
         cwd=ROOT,
-        # Ctrl-C at a terminal: SIGINT handled by default in the child, even when this test runs
-        # in a background job, whose commands start with SIGINT ignored (and pass that on)
-        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+        preexec_fn=default_sigint,  # Ctrl-C at a terminal
     )
     # wait for the first progress line of the sweeps (a fixed wait raced a slow start)
     seen: list[str] = []

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import statistics
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 from irdrc.core.checks import (
@@ -46,7 +46,8 @@ THRESHOLDS = (0.95, 0.99)
 
 @dataclass(frozen=True)
 class Config:
-    """The study's keys (``recipes/conf/study.yaml``)."""
+    """The study's keys (``recipes/conf/study.yaml``); ``planned``: each (learner, scenario)'s
+    typed config, composed and checked at load."""
 
     scenarios: tuple[str, ...] = ("paper", "multilevel", "large")
     learners: tuple[str, ...] = tuple(LEARNERS)
@@ -57,6 +58,7 @@ class Config:
     num_threads: int = 1
     device: str = "cpu"
     csv: str = "study.csv"
+    planned: dict = field(default_factory=dict, metadata={"keys": ()})
 
     def __post_init__(self) -> None:
         check_common(self)
@@ -83,6 +85,7 @@ def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
     bad one is refused before any run (one that sets the scenario too: each learner runs each of
     ``scenarios`` as it is, and is scored against that scenario's optimum)."""
     cfg = build(Config, composed.cfg)
+    planned = {}
     for learner in cfg.learners:
         extra = [str(o) for o in (cfg.overrides or {}).get(learner) or []]
         for o in extra:
@@ -92,8 +95,8 @@ def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
                     f"on each of scenarios={list(cfg.scenarios)} as it is"
                 )
         for scenario in cfg.scenarios:
-            learner_config(learner, scenario, extra)
-    return cfg
+            planned[learner, scenario] = learner_config(learner, scenario, extra)
+    return replace(cfg, planned=planned)
 
 
 def learner_config(learner: str, scenario: str, overrides: list[str]) -> Any:
@@ -160,12 +163,11 @@ def run_seeds(
     seeds: list[int],
     scorer: Any,
     evals: int,
-    overrides: list[str],
+    cfg: Any,
     device: str = "cpu",
 ) -> list[dict[str, Any]]:
-    """Train ``learner`` on ``scenario`` for each seed (one batched run for ``BATCHED`` learners);
-    one row of ``study.csv`` per seed."""
-    cfg = learner_config(learner, scenario, overrides)
+    """Train ``learner`` (its recipe's typed config ``cfg``) on ``scenario`` for each seed (one
+    batched run for ``BATCHED`` learners); one row of ``study.csv`` per seed."""
     params = cfg.params
     runs = [(seeds[0], len(seeds))] if learner in BATCHED else [(s, 1) for s in seeds]
     rows = []
@@ -279,14 +281,13 @@ def run(cfg: Config, run) -> int:
             flush=True,
         )
         for learner in cfg.learners:
-            extra = [str(o) for o in (cfg.overrides or {}).get(learner, [])]
             got = run_seeds(
                 learner,
                 scenario,
                 list(cfg.seeds),
                 scorer,
                 cfg.evals_of(scenario),
-                extra,
+                cfg.planned[learner, scenario],
                 cfg.device,
             )
             rows += got

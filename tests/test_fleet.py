@@ -377,3 +377,48 @@ def test_a_periodic_chain_and_a_failed_solve_still_give_the_stationary_law(monke
     monkeypatch.setattr(krylov, "krylov_solve", lambda *a, **k: (start, False, solve(*a, **k)[2]))
     mu, calls = krylov.stationary_krylov(step, start, tol=1e-14)
     assert torch.allclose(mu, want, atol=1e-12) and calls > 10
+
+
+@pytest.mark.parametrize("vehicles,access", [(2, "scheduled"), (3, "collision")])
+def test_the_factored_operators_are_the_joint_kernels(vehicles, access):
+    """``step`` and ``expect`` (each vehicle's kernel as its queue and other-component factors,
+    shared prefixes and merged parts) equal the joint kernels P_rw ⊗ K_1 ⊗ … ⊗ K_N written with
+    each vehicle's dense [X, X] kernel, per joint action and uplink outcome, on a random measure,
+    value and policy. The vehicles differ, so each vehicle's own factors must be used. Equal to
+    rounding: the sums run in another order."""
+    small = {"env.queue_capacity": 2}
+    per = tuple(
+        Params.from_overrides({**small, "env.p1.speed": s, "env.arrival_rate": r})
+        for s, r in [(0.1, 1.0), (1.0, 2.5), (0.5, 1.5)][:vehicles]
+    )
+    m = FleetModel(FleetSpec(vehicles=vehicles, channels=1, access=access, per_vehicle=per))
+    g = torch.Generator().manual_seed(0)
+    S, A = m.num_states, m.num_actions
+    x = torch.rand(m.shape(), generator=g, dtype=torch.float64)
+    V = torch.rand(m.shape(), generator=g, dtype=torch.float64)
+    probs = torch.rand(S, A, generator=g, dtype=torch.float64)
+    probs[:, 1] = 0.0  # an action never taken is skipped
+    probs = probs / probs.sum(1, keepdim=True)
+
+    def joint_kernel(W, names, forward):  # (P_rw ⊗ K_1 ⊗ … ⊗ K_N) one axis at a time
+        kernels = [m.P_rw] + [m.kernels[i].K[n] for i, n in enumerate(names)]
+        for axis, K in enumerate(kernels):
+            K = K if forward else K.T
+            W = torch.tensordot(K, W, dims=([0], [axis])).movedim(0, axis)
+        return W
+
+    step = torch.zeros(m.shape(), dtype=torch.float64)
+    expect = torch.zeros(A, *m.shape(), dtype=torch.float64)
+    for a in range(A):
+        for p, names, _ in m.joint[a]:
+            step += p * joint_kernel(x * probs[:, a].reshape(m.shape()), names, True)
+            expect[a] += p * joint_kernel(V, names, False)
+    close = {"rtol": 1e-12, "atol": 1e-15}
+    assert torch.allclose(m.step(x.reshape(-1), probs), step.reshape(-1), **close)
+    assert torch.allclose(m.expect(V), expect.reshape(A, -1), **close)
+    names = ["comm"] * vehicles
+    assert torch.allclose(m.push(x, names), joint_kernel(x, names, True), **close)
+    assert torch.allclose(m.expected_next(V, names), joint_kernel(V, names, False), **close)
+    if vehicles == 2:  # the axis-at-a-time reference is the Kronecker product
+        K = torch.kron(torch.kron(m.P_rw, m.kernels[0].K["comm"]), m.kernels[1].K["comm"])
+        assert torch.allclose(joint_kernel(x, names, True).reshape(-1), x.reshape(-1) @ K, **close)

@@ -8,27 +8,10 @@ phase). The joint state is
 significant, then vehicle 1 … N in the single-vehicle order of their components. The joint action
 a = Σ_i a_i·2^(i−1) (bit i − 1 is vehicle i's: 0 comm, 1 radar).
 
-The kernels come from the single-vehicle exact model (``irdrc.core.exact.build_model``), which is
-held to the simulator by its own tests: its transition factorises as P_rw(r′w′ | rw)·K_a(x′ | x)
-(road and weather follow their chains whatever the vehicle does), and K_a as the queue's
-Q_a(d′ | d, f) times the other components' F_a(f′ | f) — both checked when the model is built. A
-vehicle denied the uplink moves its queue as in radar mode (nothing sent) and its components as in
-comm mode (no radar reaction). Nothing here is an S × S matrix: the Bellman operator contracts the
-value tensor [RW, X, …, X] one axis at a time.
-
-Rewards, events and detection (per vehicle, given the joint action and who is granted):
-e = P(event | r, w, v_i, m_i); k_i = other vehicles in radar; q_i = 1 − (1 − share)^k_i the chance
-that another vehicle detects vehicle i's event (cooperative perception); P_d, P_fa the radar's.
-
-| a_i | outcome | reward | missed |
-|---|---|---|---|
-| radar | event, detected by itself (P_d) | r4·(b_i + 1) | 0 |
-| radar | event, not by itself, by another (q_i) | 0 | 0 |
-| radar | event, by nobody | −r3 | 1 |
-| radar | no event, false alarm (P_fa) | −r5 | 0 |
-| comm, granted | no event, or an event another vehicle detects | r_comm[c_i] | 0 |
-| comm, denied | no event, or an event another vehicle detects | 0 | 0 |
-| comm | event, by nobody | −r3 | 1 |
+Each vehicle's kernels and expectations are ``irdrc.fleet.vehicle.VehicleTables`` (the kernels
+from its single-vehicle exact model, the rewards table there). Nothing here is an S × S matrix:
+each vehicle's kernel is applied to the tensor [RW, X, …, X] on its own axis, as its queue factor
+and its other components' chain.
 """
 
 from __future__ import annotations
@@ -40,118 +23,11 @@ from collections.abc import Iterator, Mapping, Sequence
 import torch
 
 from irdrc.core.dynamics import decode_state
-from irdrc.core.exact import ExactMDP, build_model
+from irdrc.core.exact import ExactMDP
 from irdrc.core.exact.krylov import stationary_krylov
 from irdrc.core.params import Params
 from irdrc.fleet.spec import FLEET_STATE_LIMIT, FleetSpec, grants
-
-TERMS = (
-    "reward",
-    "missed",
-    "false_alarms",
-    "event",
-    "sent",
-    "dropped",
-    "capacity",
-    "radar",
-    "comm",
-    "denied",
-    "queue",
-)
-"""A vehicle's per-step expectations (``VehicleTables.terms``)."""
-
-
-class VehicleTables:
-    """One vehicle's kernels and expectations on the fleet's [RW, X] grid, from its single-vehicle
-    exact model (see the module docstring: the factorisations are checked here).
-
-    Attributes:
-        single: the vehicle's single-vehicle exact model.
-        P_rw: [RW, RW] the road and weather chain it implies.
-        K: {"comm", "radar", "denied"} → [X, X] the vehicle's kernel.
-    """
-
-    def __init__(self, params: Params, model: FleetModel) -> None:
-        single = build_model(params)
-        self.single = single
-        RW, X, F = model.RW, model.X, model.F
-        D1 = params.env.queue_capacity + 1
-        grid = model.index
-        P = single.P[:, grid.reshape(-1)][:, :, grid.reshape(-1)]
-        P = P.reshape(2, RW, X, RW, X)
-        self.P_rw = P[0, :, 0].sum(-1)  # [RW, RW′] from any x
-        kern = []
-        for a in (0, 1):
-            K = P[a, 0, :, :, :].sum(1)  # [X, X′] from rw = 0
-            want = self.P_rw[:, None, :, None] * K[None, :, None, :]
-            if not torch.allclose(P[a], want, atol=1e-12, rtol=0):
-                raise ValueError("the single-vehicle model does not factorise over (r, w)")
-            kern.append(K)
-        # queue × other components: K_a[(d, f), (d′, f′)] = Q_a[(d, f), d′]·F_a[f, f′]
-        split = [k.reshape(D1, F, D1, F) for k in kern]
-        Q = [k.sum(3) for k in split]  # [D1, F, D1′]
-        Fk = [k.sum(2)[0] for k in split]  # [F, F′] from d = 0
-        for k, q, f in zip(split, Q, Fk, strict=True):
-            if not torch.allclose(k, q[:, :, :, None] * f[None, :, None, :], atol=1e-12, rtol=0):
-                raise ValueError("the single-vehicle kernel does not factorise into queue × rest")
-        denied = (Q[1][:, :, :, None] * Fk[0][None, :, None, :]).reshape(X, X)
-        self.K = {"comm": kern[0], "radar": kern[1], "denied": denied}
-        cols = model.cols
-        self.event = single.event[grid]  # [RW, X]
-        env, rew = params.env, params.reward
-        b = (cols[:, 2] + cols[:, 3] + cols[:, 4] + cols[:, 5]).to(torch.float64)[grid]
-        channel = params.factor("channel")
-        self.r_comm = torch.tensor(channel.comm_reward, dtype=torch.float64)[cols[:, 1][grid]]
-        self.detect_reward = rew.r4 * (b + 1.0)
-        self.r3, self.r5 = float(rew.r3), float(rew.r5)
-        self.p_detect, self.p_alarm = float(env.detection_prob), float(env.false_alarm_prob)
-        self.sent = {"comm": single.sent[0][grid], "radar": single.sent[1][grid]}
-        self.dropped = {"comm": single.dropped[0][grid], "radar": single.dropped[1][grid]}
-        self.capacity = single.capacity[0][grid]
-        self.queue = single.queue.to(torch.float64)[grid]
-
-    def terms(
-        self, act: int, others_radar: int, granted: bool, share: float
-    ) -> dict[str, torch.Tensor]:
-        """The vehicle's expected reward, missed events, false alarms, events, sent, dropped,
-        capacity, radar, comm and denied steps per step ([RW, X]) given its action, how many others watch the road, whether
-        its uplink request is granted, and the fleet's ``share``."""
-        e = self.event
-        q = 1.0 - (1.0 - share) ** others_radar  # another vehicle detects the event
-        zero = torch.zeros_like(e)
-        if act == 1:
-            nobody = (1.0 - self.p_detect) * (1.0 - q)
-            reward = e * (self.p_detect * self.detect_reward - nobody * self.r3)
-            reward = reward - (1.0 - e) * self.p_alarm * self.r5
-            return {
-                "reward": reward,
-                "missed": e * nobody,
-                "false_alarms": (1.0 - e) * self.p_alarm,
-                "event": e,
-                "sent": self.sent["radar"],
-                "dropped": self.dropped["radar"],
-                "capacity": zero,
-                "radar": torch.ones_like(e),
-                "comm": zero,
-                "denied": zero,
-                "queue": self.queue,
-            }
-        r_ok = self.r_comm if granted else zero
-        reward = (1.0 - e) * r_ok + e * (q * r_ok - (1.0 - q) * self.r3)
-        key = "comm" if granted else "radar"  # a denied vehicle's queue moves as in radar mode
-        return {
-            "reward": reward,
-            "missed": e * (1.0 - q),
-            "false_alarms": zero,
-            "event": e,
-            "sent": self.sent[key],
-            "dropped": self.dropped[key],
-            "capacity": self.capacity if granted else zero,
-            "radar": zero,
-            "comm": torch.ones_like(e),
-            "denied": zero if granted else torch.ones_like(e),
-            "queue": self.queue,
-        }
+from irdrc.fleet.vehicle import TERMS, VehicleTables
 
 
 class FleetModel(ExactMDP):
@@ -209,7 +85,7 @@ class FleetModel(ExactMDP):
         built: dict[Params, VehicleTables] = {}
         for p in spec.vehicle_params:
             if p not in built:
-                built[p] = VehicleTables(p, self)
+                built[p] = VehicleTables(p, self.index, cols)
         self.kernels = [built[p] for p in spec.vehicle_params]
         self.P_rw = self.kernels[0].P_rw
         for i, t in enumerate(self.kernels):
@@ -298,12 +174,36 @@ class FleetModel(ExactMDP):
         view[1 + i] = self.X
         return t.reshape(view)
 
+    def _move(self, W: torch.Tensor, i: int, name: str, forward: bool) -> torch.Tensor:
+        """Vehicle ``i``'s kernel ``name`` applied on its axis of W [RW, X, …, X], as its two
+        factors (queue, then the other components): the next-step measure of W (``forward``) or
+        the expectation E[W(x′) | x]. This costs (D+1)·F·(D+1 + F) per entry of the other axes,
+        not X² = ((D+1)·F)²."""
+        Q, F = self.kernels[i].factors[name]
+        D1, Fn = Q.shape[0], Q.shape[1]
+        V = W.reshape(self.RW * self.X**i, D1, Fn, -1)
+        if forward and V.shape[0] <= V.shape[3]:
+            # few long rows (vehicle 1's axis): one batched product per row, over the components
+            # besides the queue, on strided views (no copy of W)
+            Qt = self.kernels[i].queue_by_rest[name]  # [F, D+1′, D+1]
+            T = torch.empty(V.shape[0], Fn, D1, V.shape[3], dtype=V.dtype)
+            for p in range(V.shape[0]):
+                torch.bmm(Qt, V[p].permute(1, 0, 2), out=T[p])
+            T = torch.matmul(F.T, T.reshape(V.shape[0], Fn, -1))  # [p, f′, (d′, rest)]
+            return T.reshape(V.shape[0], Fn, D1, -1).transpose(1, 2).reshape(W.shape)
+        if forward:
+            V = torch.einsum("pdfq,dfe->pefq", V, Q)
+            V = torch.einsum("pefq,fg->pegq", V, F)
+        else:
+            V = torch.einsum("fg,pegq->pefq", F, V)
+            V = torch.einsum("dfe,pefq->pdfq", Q, V)
+        return V.reshape(W.shape)
+
     def expected_next(self, V: torch.Tensor, names: list[str]) -> torch.Tensor:
         """E[V(s′) | s] for every joint state when vehicle i moves by kernel ``names[i]``."""
         W = torch.tensordot(self.P_rw, V, dims=([1], [0]))  # [RW, X, …]
         for i, name in enumerate(names):
-            W = torch.tensordot(self.kernels[i].K[name], W, dims=([1], [1 + i]))  # new axis first
-            W = W.movedim(0, 1 + i)
+            W = self._move(W, i, name, forward=False)
         return W
 
     def push(self, mu: torch.Tensor, names: list[str]) -> torch.Tensor:
@@ -311,7 +211,7 @@ class FleetModel(ExactMDP):
         with kernels ``names``."""
         W = torch.tensordot(self.P_rw, mu, dims=([0], [0]))
         for i, name in enumerate(names):
-            W = torch.tensordot(self.kernels[i].K[name], W, dims=([0], [1 + i])).movedim(0, 1 + i)
+            W = self._move(W, i, name, forward=True)
         return W
 
     # -- the ExactMDP interface -------------------------------------------------------------------
@@ -350,27 +250,60 @@ class FleetModel(ExactMDP):
         return torch.stack([self.reward(a).reshape(-1) for a in range(self.num_actions)])
 
     def expect(self, V: torch.Tensor) -> torch.Tensor:
-        """[A, S]: E[V(s′) | s, a] for every joint action."""
-        V = V.reshape(self.shape())
+        """[A, S]: E[V(s′) | s, a] for every joint action. The road and weather move first,
+        once; every prefix of the vehicles' kernels (``joint``'s names) is applied once and
+        shared by the joint actions and uplink outcomes that begin with it."""
+        V = torch.tensordot(self.P_rw, V.reshape(self.shape()), dims=([1], [0]))
+        done: dict[tuple[str, ...], torch.Tensor] = {(): V}
+
+        def moved(names: tuple[str, ...]) -> torch.Tensor:
+            if names not in done:
+                done[names] = self._move(moved(names[:-1]), len(names) - 1, names[-1], False)
+            return done[names]
+
         out = []
         for a in range(self.num_actions):
             W = torch.zeros_like(V)
             for p, names, _ in self.joint[a]:
-                W = W + p * self.expected_next(V, names)
+                W = W + p * moved(tuple(names))
             out.append(W.reshape(-1))
         return torch.stack(out)
 
-    def step(self, x: torch.Tensor, probs: torch.Tensor) -> torch.Tensor:
-        """x·P_π for ``probs`` [S, 2^N]."""
-        mu = x.reshape(self.shape())
-        nxt = torch.zeros_like(mu)
+    def weights(self, probs: torch.Tensor) -> dict[tuple[str, ...], torch.Tensor]:
+        """For ``probs`` [S, 2^N]: per tuple of the vehicles' kernel names, the probability
+        [RW, X, …, X] that a joint state's mass moves with those kernels (the joint actions'
+        probabilities times their uplink outcomes'); tuples that never occur are left out."""
+        out: dict[tuple[str, ...], torch.Tensor] = {}
         for a in range(self.num_actions):
-            part = mu * probs[:, a].reshape(self.shape())
-            if not bool(part.any()):
+            col = probs[:, a]
+            if not bool(col.any()):
                 continue
+            col = col.reshape(self.shape())
             for p, names, _ in self.joint[a]:
-                nxt = nxt + p * self.push(part, names)
-        return nxt.reshape(-1)
+                key = tuple(names)
+                out[key] = p * col if key not in out else out[key] + p * col
+        return out
+
+    def step(
+        self, x: torch.Tensor, probs: torch.Tensor | dict[tuple[str, ...], torch.Tensor]
+    ) -> torch.Tensor:
+        """x·P_π for ``probs`` [S, 2^N] (or its ``weights``, computed once for many steps). The
+        mass moving with the same kernels is summed before they apply; after vehicle i's kernel,
+        the parts that move alike from there on are summed again; the road and weather move last,
+        once."""
+        mu = x.reshape(self.shape())
+        weights = probs if isinstance(probs, dict) else self.weights(probs)
+        parts = {names: mu * w for names, w in weights.items()}
+        for i in range(self.N):
+            moved: dict[tuple[str, ...], torch.Tensor] = {}
+            for names, W in parts.items():
+                W = self._move(W, i, names[0], forward=True)
+                rest = names[1:]
+                moved[rest] = W if rest not in moved else moved[rest] + W
+            parts = moved
+        if not parts:
+            return torch.zeros_like(x)
+        return torch.tensordot(self.P_rw, parts[()], dims=([0], [0])).reshape(-1)
 
     def cycle(
         self, schedule: Sequence[torch.Tensor], tol: float = 1e-13, max_iter: int = 200_000
@@ -379,18 +312,19 @@ class FleetModel(ExactMDP):
         one period's chain by a linear solve (``irdrc.core.exact.krylov.stationary_krylov``; the
         joint queues mix slowly, so power iteration would need ten times the operator products),
         then stepped through the phases."""
+        phases = [self.weights(probs) for probs in schedule]
 
         def period(x: torch.Tensor) -> torch.Tensor:
-            for probs in schedule:
-                x = self.step(x, probs)
+            for w in phases:
+                x = self.step(x, w)
             return x
 
         start = torch.full((self.num_states,), 1.0 / self.num_states, dtype=torch.float64)
         mu, _ = stationary_krylov(period, start, tol=tol, max_iter=max_iter)
         path = []
-        for probs in schedule:
+        for w in phases:
             path.append(mu)
-            mu = self.step(mu, probs)
+            mu = self.step(mu, w)
             mu = mu / mu.sum()
         return path
 

@@ -76,7 +76,10 @@ class Chain:
         """The fleet's exact long-run average reward of ``tables`` (see the class docstring)."""
         model, pol = self.model, self.joint(tables)
         probs = torch.nn.functional.one_hot(pol, model.num_actions).to(torch.float64)
-        x, _ = stationary_krylov(lambda y: model.step(y, probs), self.x, tol=TOL, max_iter=max_iter)
+        weights = model.weights(probs)
+        x, _ = stationary_krylov(
+            lambda y: model.step(y, weights), self.x, tol=TOL, max_iter=max_iter
+        )
         self.x = x
         return float(x @ model.R.gather(0, pol[None])[0])
 

@@ -422,3 +422,31 @@ def test_the_factored_operators_are_the_joint_kernels(vehicles, access):
     if vehicles == 2:  # the axis-at-a-time reference is the Kronecker product
         K = torch.kron(torch.kron(m.P_rw, m.kernels[0].K["comm"]), m.kernels[1].K["comm"])
         assert torch.allclose(joint_kernel(x, names, True).reshape(-1), x.reshape(-1) @ K, **close)
+
+
+@pytest.mark.parametrize("vehicles", [1, 2, 3])
+def test_the_fleet_sums_are_those_of_its_tables(vehicles):
+    """``FleetModel.sums`` (each vehicle's terms against the occupancy's marginal on its own state)
+    equals ``expected_sums`` under the tables over the joint states, for the fleet and for each
+    vehicle: a random occupancy with one joint action never taken, vehicles that differ, and an
+    imperfect radar (false alarms and quiet radar time count)."""
+    from irdrc.core.exact.mdp import expected_sums
+
+    small = {"env.queue_capacity": 2, "env.false_alarm_prob": 0.1, "env.detection_prob": 0.8}
+    per = tuple(
+        Params.from_overrides({**small, "env.p1.speed": s, "reward.r4": r})
+        for s, r in [(0.1, 5.0), (1.0, 50.0), (0.5, 20.0)][:vehicles]
+    )
+    m = FleetModel(FleetSpec(vehicles=vehicles, channels=1, share=0.3, per_vehicle=per))
+    occ = torch.rand(m.num_actions, m.num_states, generator=torch.Generator().manual_seed(1))
+    occ = occ.to(torch.float64)
+    occ[0] = 0.0  # every vehicle in comm: never
+    occ = occ / occ.sum()
+    cases = [(m.sums(occ), m.fleet_tables())]
+    cases += [(m.sums(occ, i), m.vehicle_tables(i)) for i in range(vehicles)]
+    for got, tables in cases:
+        want = expected_sums(occ, tables)
+        assert set(got) == set(want)
+        for key in want:
+            assert got[key] == pytest.approx(want[key], rel=1e-12, abs=1e-15), key
+        assert got["false_alarms"] > 0 and got["quiet_radar"] > 0

@@ -362,4 +362,4 @@ def test_a_fleet_whose_exact_evaluations_are_slow_says_so_first():
     deep = FleetSpec(vehicle=Params.from_overrides({"env.queue_capacity": 60}), vehicles=2)
     model = FleetModel(deep)
     assert model.exact and model.num_states > SLOW_EXACT_STATES
-    assert "several seconds to about two minutes" in describe(deep, "own", model).splitlines()[1]
+    assert "several seconds to over a minute" in describe(deep, "own", model).splitlines()[1]

@@ -254,20 +254,18 @@ class FleetModel(ExactMDP):
         once; every prefix of the vehicles' kernels (``joint``'s names) is applied once and
         shared by the joint actions and uplink outcomes that begin with it."""
         V = torch.tensordot(self.P_rw, V.reshape(self.shape()), dims=([1], [0]))
-        done: dict[tuple[str, ...], torch.Tensor] = {(): V}
-
-        def moved(names: tuple[str, ...]) -> torch.Tensor:
-            if names not in done:
-                done[names] = self._move(moved(names[:-1]), len(names) - 1, names[-1], False)
-            return done[names]
-
-        out = []
+        moved: dict[tuple[str, ...], torch.Tensor] = {(): V}
         for a in range(self.num_actions):
-            W = torch.zeros_like(V)
+            for _, names, _ in self.joint[a]:
+                for i in range(self.N):
+                    key = tuple(names[: i + 1])
+                    if key not in moved:
+                        moved[key] = self._move(moved[key[:-1]], i, key[-1], forward=False)
+        out = torch.zeros(self.num_actions, *self.shape(), dtype=V.dtype)
+        for a in range(self.num_actions):
             for p, names, _ in self.joint[a]:
-                W = W + p * moved(tuple(names))
-            out.append(W.reshape(-1))
-        return torch.stack(out)
+                out[a] += p * moved[tuple(names)]
+        return out.reshape(self.num_actions, -1)
 
     def weights(self, probs: torch.Tensor) -> dict[tuple[str, ...], torch.Tensor]:
         """For ``probs`` [S, 2^N]: per tuple of the vehicles' kernel names, the probability
@@ -328,6 +326,37 @@ class FleetModel(ExactMDP):
             mu = mu / mu.sum()
         return path
 
+    def sums(self, occ: torch.Tensor, vehicle: int | None = None) -> dict[str, float]:
+        """The per-step expectations of a state-action occupancy ``occ`` [A, S]: those of
+        ``expected_sums`` under ``fleet_tables`` (or vehicle ``vehicle``'s ``vehicle_tables``),
+        without a table over the joint states. A vehicle's terms depend on its own state and the
+        road and weather alone, so each is summed against the occupancy's marginal on those."""
+        vehicles = range(self.N) if vehicle is None else [vehicle]
+        n = self.N if vehicle is None else 1
+        occ = occ.to(torch.float64).reshape(self.num_actions, *self.shape())
+        keys = ("reward", "missed", "false_alarms", "sent", "dropped", "capacity", "denied", "comm")
+        out = dict.fromkeys((*keys, "event", "radar", "quiet_radar", "queue"), 0.0)
+        own = self.joint[0][0][2]  # event and queue: the same under every action
+        for a in range(self.num_actions):
+            total = float(occ[a].sum())
+            if total == 0.0:
+                continue
+            marginal = {}
+            for i in vehicles:
+                others = [1 + j for j in range(self.N) if j != i]
+                marginal[i] = occ[a].sum(others) if others else occ[a]  # [RW, X]
+            events = _against(marginal, own, "event")
+            out["event"] += events
+            out["queue"] += _against(marginal, own, "queue") / n
+            radar = sum(self.actions_of(a)[i] for i in vehicles) / n
+            if radar:
+                out["radar"] += radar * total
+                out["quiet_radar"] += radar * (total - events)
+            for p, _, terms in self.joint[a]:
+                for key in keys:
+                    out[key] += p * _against(marginal, terms, key)
+        return out
+
     def vehicle_tables(self, i: int) -> Mapping[str, torch.Tensor]:
         """Vehicle ``i``'s per-step expectations ([A, S]; ``event`` and ``queue`` [S], ``radar``
         [A]), built when read."""
@@ -341,6 +370,13 @@ class FleetModel(ExactMDP):
     def tables(self) -> Mapping[str, torch.Tensor]:
         """The fleet's expectation tables (``fleet_tables``)."""
         return self.fleet_tables()
+
+
+def _against(
+    marginal: dict[int, torch.Tensor], terms: list[dict[str, torch.Tensor]], key: str
+) -> float:
+    """Σ over the vehicles i of ``marginal`` (i's occupancy on [RW, X]) times i's term ``key``."""
+    return sum(float((m * terms[i][key]).sum()) for i, m in marginal.items())
 
 
 class _Tables(Mapping):

@@ -8,7 +8,7 @@ from typing import Any
 import torch
 
 from irdrc.core.exact import DEFAULT_OPTIMUM_GAMMA, Scorer, as_schedule, stationary_occupancy
-from irdrc.core.exact.solve import expected_sums, metrics_from_occupancy
+from irdrc.core.exact.solve import metrics_from_sums
 from irdrc.core.metrics import Metrics, long_run_rates
 from irdrc.fleet.model import FleetModel
 from irdrc.fleet.policies import joint_policy
@@ -45,13 +45,14 @@ def fleet_metrics(model: FleetModel, policy: Any) -> tuple[Metrics, list[dict]]:
     occ = stationary_occupancy(model, as_schedule(policy, model.num_states, model.num_actions))
     per = []
     for i in range(model.N):
-        rates = long_run_rates(expected_sums(occ, model.vehicle_tables(i)))
+        rates = long_run_rates(model.sums(occ, i))
         rates.pop("false_alarm_rate", None)
         per.append({**rates, "vehicle": i + 1})
-    fleet = long_run_rates(expected_sums(occ, model.fleet_tables()))
+    sums = model.sums(occ)
+    fleet = long_run_rates(sums)
     fleet.pop("false_alarm_rate", None)
     per.append({"vehicle": "fleet", **fleet})
-    return metrics_from_occupancy(model, occ), per
+    return metrics_from_sums(model, sums), per
 
 
 class FleetScorer(Scorer):

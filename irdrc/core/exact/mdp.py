@@ -10,7 +10,7 @@ fleet's 2^N joint actions (MODEL.md § C).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import torch
@@ -95,6 +95,11 @@ class ExactMDP:
         names = (*EXPECTATIONS, "event", "queue", "radar")
         return {n: getattr(self, n) for n in names}
 
+    def sums(self, occ: torch.Tensor) -> dict[str, float]:
+        """The per-step expectations of a state-action occupancy ``occ`` [A, S] under this model's
+        tables (``expected_sums``); a model may compute them without building its tables."""
+        return expected_sums(occ, self.tables())
+
     def sparse(self, a: int):
         """P_a as a SciPy CSR matrix [S, S] (the LP of ``irdrc.core.cmdp``)."""
         raise NotImplementedError(f"{type(self).__name__} has no sparse transitions")
@@ -105,6 +110,43 @@ class ExactMDP:
         if radar.dim() == 1:
             radar = radar[:, None].expand(-1, self.num_states)
         return radar
+
+
+def expected_sums(occ: torch.Tensor, tables: Mapping[str, torch.Tensor]) -> dict[str, float]:
+    """Per-step expectations of a state-action occupancy ``occ`` [A, S] (summing to 1 over the
+    steps) under per-step expectation ``tables`` (``irdrc.core.exact.mdp.EXPECTATIONS`` [A, S],
+    ``event`` and ``queue`` [S], ``radar`` [A] or [A, S]; ``denied`` and ``comm`` [A, S] where a
+    fleet's uplink may deny): the sums ``irdrc.core.metrics.long_run_rates`` turns into rates."""
+    occ = occ.to(torch.float64)
+    per_state = occ.sum(0)
+    radar = tables["radar"]
+    if radar.dim() == 1:  # per action: weights of the per-action sums (exact for 0 / 1)
+        w = [float(r) for r in radar]
+
+        def weighted(x: torch.Tensor) -> float:
+            return sum(w[a] * float(x[a].sum()) for a in range(len(w)) if w[a] != 0.0)
+
+    else:
+
+        def weighted(x: torch.Tensor) -> float:
+            return float((x * radar).sum())
+
+    sums = {
+        "reward": float((occ * tables["R"]).sum()),
+        "event": float((per_state * tables["event"]).sum()),
+        "missed": float((occ * tables["missed"]).sum()),
+        "sent": float((occ * tables["sent"]).sum()),
+        "dropped": float((occ * tables["dropped"]).sum()),
+        "capacity": float((occ * tables["capacity"]).sum()),
+        "radar": weighted(occ),
+        "quiet_radar": weighted(occ * (1.0 - tables["event"])),
+        "false_alarms": float((occ * tables["false_alarms"]).sum()),
+        "queue": float((per_state * tables["queue"]).sum()),
+    }
+    for key in ("denied", "comm"):
+        if key in tables:
+            sums[key] = float((occ * tables[key]).sum())
+    return sums
 
 
 def as_probs(policy: Any, num_states: int, num_actions: int) -> torch.Tensor:

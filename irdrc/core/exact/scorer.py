@@ -10,8 +10,7 @@ import torch
 from irdrc.core.exact.mdp import ExactMDP
 from irdrc.core.exact.solve import (
     DEFAULT_OPTIMUM_GAMMA,
-    expected_sums,
-    metrics_from_occupancy,
+    metrics_from_sums,
     stationary_occupancy,
     value_iteration,
 )
@@ -35,9 +34,8 @@ class Scorer:
         self.optimal = value_iteration(model, gamma=gamma, tol=tol)
         self._cache: dict[tuple, Metrics] = {}
         self._sums: dict[tuple, dict[str, float]] = {}
-        occ = stationary_occupancy(model, self.optimal.policy)
-        self.optimal_metrics = metrics_from_occupancy(model, occ)
-        self.optimal_sums = expected_sums(occ, model.tables())
+        self.optimal_sums = model.sums(stationary_occupancy(model, self.optimal.policy))
+        self.optimal_metrics = metrics_from_sums(model, self.optimal_sums)
 
     def policy(self, table: torch.Tensor) -> Any:
         """The model's policy for a learner's ``table`` (here the table itself; the fleet's scorer
@@ -49,7 +47,7 @@ class Scorer:
         return self._cache[self._score(table)]
 
     def sums(self, table: torch.Tensor) -> dict[str, float]:
-        """The policy ``table``'s long-run expectations per step (``expected_sums``: ``reward``,
+        """The policy ``table``'s long-run expectations per step (``ExactMDP.sums``: ``reward``,
         ``event``, ``missed``, ``sent``, ``dropped`` …), the rates its metrics are made of."""
         return self._sums[self._score(table)]
 
@@ -58,9 +56,9 @@ class Scorer:
         t = torch.as_tensor(table).cpu()
         key = (str(t.dtype), tuple(t.shape), t.numpy().tobytes())
         if key not in self._cache:
-            occ = stationary_occupancy(self.model, self.policy(t))
-            self._cache[key] = metrics_from_occupancy(self.model, occ)
-            self._sums[key] = expected_sums(occ, self.model.tables())
+            sums = self.model.sums(stationary_occupancy(self.model, self.policy(t)))
+            self._cache[key] = metrics_from_sums(self.model, sums)
+            self._sums[key] = sums
         return key
 
     def ratio(self, table: torch.Tensor) -> float:

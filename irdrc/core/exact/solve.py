@@ -102,47 +102,15 @@ def greedy(Q: torch.Tensor) -> torch.Tensor:
     return (best - tie <= Q).to(torch.int8).argmax(0)
 
 
-def expected_sums(occ: torch.Tensor, tables: Mapping[str, torch.Tensor]) -> dict[str, float]:
-    """Per-step expectations of a state-action occupancy ``occ`` [A, S] (summing to 1 over the
-    steps) under per-step expectation ``tables`` (``irdrc.core.exact.mdp.EXPECTATIONS`` [A, S],
-    ``event`` and ``queue`` [S], ``radar`` [A] or [A, S]; ``denied`` and ``comm`` [A, S] where a
-    fleet's uplink may deny): the sums ``irdrc.core.metrics.long_run_rates`` turns into rates."""
-    occ = occ.to(torch.float64)
-    per_state = occ.sum(0)
-    radar = tables["radar"]
-    if radar.dim() == 1:  # per action: weights of the per-action sums (exact for 0 / 1)
-        w = [float(r) for r in radar]
-
-        def weighted(x: torch.Tensor) -> float:
-            return sum(w[a] * float(x[a].sum()) for a in range(len(w)) if w[a] != 0.0)
-
-    else:
-
-        def weighted(x: torch.Tensor) -> float:
-            return float((x * radar).sum())
-
-    sums = {
-        "reward": float((occ * tables["R"]).sum()),
-        "event": float((per_state * tables["event"]).sum()),
-        "missed": float((occ * tables["missed"]).sum()),
-        "sent": float((occ * tables["sent"]).sum()),
-        "dropped": float((occ * tables["dropped"]).sum()),
-        "capacity": float((occ * tables["capacity"]).sum()),
-        "radar": weighted(occ),
-        "quiet_radar": weighted(occ * (1.0 - tables["event"])),
-        "false_alarms": float((occ * tables["false_alarms"]).sum()),
-        "queue": float((per_state * tables["queue"]).sum()),
-    }
-    for key in ("denied", "comm"):
-        if key in tables:
-            sums[key] = float((occ * tables[key]).sum())
-    return sums
-
-
 def metrics_from_occupancy(mdp: ExactMDP, occ: torch.Tensor) -> Metrics:
     """The ``Metrics`` of a state-action occupancy [A, S] on ``mdp``; the false-alarm
     rate only where the scenario has false alarms (P_fa > 0)."""
-    r = long_run_rates(expected_sums(occ, mdp.tables()))
+    return metrics_from_sums(mdp, mdp.sums(occ))
+
+
+def metrics_from_sums(mdp: ExactMDP, sums: Mapping[str, float]) -> Metrics:
+    """The ``Metrics`` of an occupancy's per-step expectations on ``mdp`` (``ExactMDP.sums``)."""
+    r = long_run_rates(dict(sums))
     if mdp.params is not None and mdp.params.env.false_alarm_prob == 0.0:
         r["false_alarm_rate"] = math.nan
     return Metrics(

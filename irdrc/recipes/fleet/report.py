@@ -42,8 +42,8 @@ def differences(spec: FleetSpec) -> dict[str, list[Any]]:
 
 SLOW_EXACT_STATES = 500_000
 """Beyond this many joint states the description says that exact evaluations are slow (here one
-policy's exact metrics took 4 s at 430 336 joint states, 7 s at 518 400, 18 s at 952 576 and
-100 s at 1 982 464)."""
+policy's exact metrics took 3 s at 430 336 joint states, 5 s at 518 400, 14 s at 952 576 and
+79 s at 1 982 464)."""
 
 
 def describe(spec: FleetSpec, observe: str, model: FleetModel) -> str:
@@ -57,7 +57,7 @@ def describe(spec: FleetSpec, observe: str, model: FleetModel) -> str:
     )
     slow = (
         "\n[fleet] every exact evaluation, the optimum's first, is a stationary distribution over "
-        "these joint states (one linear solve): from several seconds to about two minutes each at "
+        "these joint states (one linear solve): from several seconds to over a minute each at "
         "this size"
         if model.exact and model.num_states > SLOW_EXACT_STATES
         else ""

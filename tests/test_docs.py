@@ -348,6 +348,17 @@ def test_a_choice_of_another_recipe_names_that_recipe(override: str, says: str) 
         load("dqn", override)
 
 
+@pytest.mark.parametrize("recipe", ["bench_online", "study", "bench_scale"])
+def test_a_group_a_recipe_without_groups_has_not_is_named(recipe: str) -> None:
+    """A recipe whose defaults choose no group answers a group's option as every recipe does (it
+    said "unknown key 'executor' …; did you mean executor?", the key it refused)."""
+    from irdrc.runs.compose import unknown_key
+
+    with pytest.raises(ValueError, match=f"{recipe} has no executor: executor= is for python "):
+        load(recipe, "executor=local")
+    assert "did you mean" not in unknown_key(recipe, "executor", {"executor", "seeds"})
+
+
 def test_citation_license_and_the_files_docs_name_exist() -> None:
     """CITATION.cff names the letter's four authors; LICENSE matches pyproject's MIT; the README
     carries the BibTeX entry."""

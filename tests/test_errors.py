@@ -134,6 +134,9 @@ def test_an_unquoted_list_of_overrides_is_answered_with_the_quoted_form():
     alone: "OverrideParseException: no viable alternative at input '[algo.episodes='")."""
     message = refused("sweep", "method=qlearning", "sweep.base=[algo.episodes=2, seed=3]")
     assert "\"sweep.base=['algo.episodes=2','seed=3']\"" in message, message
+    # the lists of a mapping too (a benchmark's candidates, scenarios)
+    message = refused("bench_robust", "candidates={a: [algo.lr=0.001, algo.gamma=0.9], b: []}")
+    assert "\"candidates={a: ['algo.lr=0.001','algo.gamma=0.9'], b: []}\"" in message, message
 
 
 def test_a_comma_separated_value_or_multirun_points_to_the_sweep():
@@ -493,3 +496,15 @@ def test_env_rows_are_bounded_by_this_machines_memory(monkeypatch):
         )
     monkeypatch.setattr(sections, "available_memory", lambda: None)
     load("dqn", *big)
+
+
+
+def test_a_list_for_a_mapping_and_a_mapping_for_a_list_are_named():
+    """``profiles=[dqn]`` (``profiles`` maps names to overrides) and ``seeds={a: 1}`` were Hydra's
+    "ConfigCompositionException: Error merging override …" alone; each answer names the key's
+    kind and how to write it."""
+    message = refused("bench_dqn", "profiles=[dqn]")
+    assert message.startswith("profiles is a mapping, not a list"), message
+    assert "profiles='{KEY: …}'" in message
+    assert refused("dqn", "env.p1=[1]").startswith("env.p1 is a mapping, not a list")
+    assert refused("bench_dqn", "seeds={a: 1}") == "seeds is a list, not a mapping: seeds='[…]'"

@@ -267,7 +267,7 @@ def _check_choices(config_name: str, args: list[str]) -> None:
         key = override_key(o)
         if "=" in o and o[0] not in "+~" and key in groups:
             value = o.split("=", 1)[1]
-            if mine and key not in mine:
+            if key not in mine:
                 users = sorted(p.stem for p in CONF_DIR.glob("*.yaml") if key in _groups_of(p.stem))
                 raise ValueError(
                     f"{config_name} has no {key}: {key}= is for "
@@ -295,17 +295,31 @@ def _explain(config_name: str, args: list[str], err: Exception) -> str:
             f"several runs over values: python recipes/sweep.py method=… "
             f"sweep.grid='{{{key}: [{value}]}}'"
         )
+    merging = re.search(r"Error merging override ([^=\s]+)=(.)", str(err))
+    if merging and "Cannot merge" in str(err.__cause__ or ""):  # a list for a mapping, or back
+        key, given = merging.groups()
+        if given == "[":
+            return (
+                f"{key} is a mapping, not a list: set one of its keys ({key}.KEY=…), or all of "
+                f"it as {key}='{{KEY: …}}'"
+            )
+        return f"{key} is a list, not a mapping: {key}='[…]'"
     if type(err).__name__ == "OverrideParseException":
         for arg in args:
             key, _, value = arg.partition("=")
-            if value.startswith("[") and value.endswith("]") and "=" in value:
-                items = [v.strip() for v in value[1:-1].split(",") if v.strip()]
-                quoted = ",".join(v if v[0] in "'\"" else f"'{v}'" for v in items)
+            if value[:1] in "[{" and value[-1:] in "]}" and "=" in value:
+                quoted = re.sub(r"\[([^\[\]]*)\]", lambda m: f"[{_quote_items(m.group(1))}]", value)
                 return (
                     f"{arg}: a list element that holds '=' is quoted, the whole argument too: "
-                    f'"{key}=[{quoted}]" ({text})'
+                    f'"{key}={quoted}" ({text})'
                 )
     return f"{type(err).__name__}: {text}"
+
+
+def _quote_items(items: str) -> str:
+    """A list's comma-separated ``items`` with each one that holds '=' in quotes."""
+    out = [v.strip() for v in items.split(",") if v.strip()]
+    return ",".join(v if v[0] in "'\"" or "=" not in v else f"'{v}'" for v in out)
 
 
 def unknown_key(config_name: str, key: str, known: set[str]) -> str:
@@ -328,7 +342,7 @@ def unknown_key(config_name: str, key: str, known: set[str]) -> str:
         near = siblings.get(closest(leaf, siblings) or "")
     else:
         near = closest(key, known)
-    hint = f"; did you mean {near}?" if near else ""
+    hint = f"; did you mean {near}?" if near and near != key else ""
     return f"unknown key {key!r} in {config_name}{hint} ({config_name}.yaml has no such key)"
 
 

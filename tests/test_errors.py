@@ -498,6 +498,29 @@ def test_env_rows_are_bounded_by_this_machines_memory(monkeypatch):
     load("dqn", *big)
 
 
+@pytest.mark.parametrize(
+    ("recipe", "override", "says"),
+    [
+        ("bench_online", "learners=[dqn,dqn]", "learners=['dqn', 'dqn'] repeats 'dqn'"),
+        ("bench_online", "safe_targets=[0.1,0.1]", "safe_targets=[0.1, 0.1] repeats 0.1"),
+        ("bench_timeshare", "learners=[sac,sac]", "learners=['sac', 'sac'] repeats 'sac'"),
+        ("bench_fleet", "vehicles=[3,3]", "vehicles=[3, 3] repeats 3"),
+        ("study", "learners=[dqn,dqn]", "learners=['dqn', 'dqn'] repeats 'dqn'"),
+        ("study", "scenarios=[paper,paper]", "scenarios=['paper', 'paper'] repeats 'paper'"),
+        ("bench_scale", "scenarios=[paper,paper]", "repeats 'paper'"),
+        ("tradeoff", "p1_speed=[0.1,0.1]", "p1_speed=[0.1, 0.1] repeats 0.1"),
+        ("bench_robust", "r4=[5,5]", "r4=[5, 5] repeats 5"),
+    ],
+)
+def test_a_list_that_makes_runs_refuses_a_repeat(recipe: str, override: str, says: str) -> None:
+    """A list whose items each make runs (learners, scenarios, sizes, targets) refuses a repeated
+    item by name: the same runs twice. Before, ``bench_online`` and ``tradeoff`` ran them twice,
+    ``study`` failed mid-run ("Converting a tensordict to boolean value is not permitted"),
+    ``bench_scale`` at its end (ZeroDivisionError), ``bench_timeshare`` and ``bench_fleet`` said
+    only "two planned points share an id"."""
+    message = refused(recipe, override)
+    assert says in message and "the same runs twice" in message, message
+
 
 def test_a_list_for_a_mapping_and_a_mapping_for_a_list_are_named():
     """``profiles=[dqn]`` (``profiles`` maps names to overrides) and ``seeds={a: 1}`` were Hydra's

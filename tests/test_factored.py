@@ -257,6 +257,11 @@ def test_growth_exponent_of_the_scale_table():
     assert 1.5 < g["k_fit"] < 3.0
     three = growth_exponents(rows[:3])[0]
     assert three["k_fit"] == pytest.approx(1.5) and three["k_last"] == pytest.approx(1.5)
+    # two rows of one state space (two requested sizes that build it) are one size: one size
+    # alone fits nothing (it divided by zero), and a repeat does not move the fit
+    assert growth_exponents([rows[0], rows[0]]) == []
+    again = growth_exponents([*rows[:3], rows[1]])[0]
+    assert again["k_fit"] == pytest.approx(1.5) and again["sizes"] == [1_000, 10_000, 100_000]
 
 
 def test_banded_stationary_is_exact_across_hundreds_of_orders_of_magnitude():

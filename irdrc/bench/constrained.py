@@ -45,8 +45,12 @@ class Config:
     def __post_init__(self) -> None:
         check_common(self)
         object.__setattr__(self, "seeds", seeds("seeds", self.seeds))
-        object.__setattr__(self, "p1_speed", check_list("p1_speed", self.p1_speed, numbers(0, 1)))
-        object.__setattr__(self, "targets", check_list("targets", self.targets, numbers(0, 1)))
+        object.__setattr__(
+            self, "p1_speed", check_list("p1_speed", self.p1_speed, numbers(0, 1), distinct=True)
+        )
+        object.__setattr__(
+            self, "targets", check_list("targets", self.targets, numbers(0, 1), distinct=True)
+        )
         object.__setattr__(self, "overrides", check_list("overrides", self.overrides, empty=True))
         for key in ("miss_tolerance", "objective_share"):
             object.__setattr__(self, key, check_number(key, getattr(self, key), 0, 1))

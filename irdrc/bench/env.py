@@ -185,10 +185,12 @@ class Config:
     def __post_init__(self) -> None:
         check_common(self)
         for key in ("sizes", "threads"):
-            value = check_list(key, getattr(self, key), numbers(1, 10**8, integer=True))
+            value = check_list(
+                key, getattr(self, key), numbers(1, 10**8, integer=True), distinct=True
+            )
             object.__setattr__(self, key, value)
         mode = lambda key, m: check_choice(key, m, MODES + SINGLE_MODES)  # noqa: E731
-        object.__setattr__(self, "modes", check_list("modes", self.modes, mode))
+        object.__setattr__(self, "modes", check_list("modes", self.modes, mode, distinct=True))
         check_numbers(
             self,
             "",

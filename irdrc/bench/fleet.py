@@ -102,7 +102,11 @@ class Config:
         )
         for key, item, empty in lists:
             object.__setattr__(
-                self, key, checks.check_list(key, getattr(self, key), item, empty=empty)
+                self,
+                key,
+                checks.check_list(
+                    key, getattr(self, key), item, empty=empty, distinct=key != "overrides"
+                ),
             )
         for key in ("seeds", "scale_seeds"):
             object.__setattr__(self, key, seeds(key, getattr(self, key), empty=True))

@@ -41,7 +41,7 @@ NAME = "bench_online"
 
 
 def _names(key: str, value: Any, allowed: list[str], empty: bool = False) -> tuple[str, ...]:
-    out = check_list(key, value, empty=empty)
+    out = check_list(key, value, empty=empty, distinct=True)
     for name in out:
         if name not in allowed:
             raise ValueError(f"{key}: {name!r} must be one of {', '.join(allowed)}")
@@ -86,7 +86,11 @@ class Config:
             one_vehicle_scenarios("safe_scenarios", self.safe_scenarios, True),
         )
         targets = check_list(
-            "safe_targets", self.safe_targets, numbers(0, 1, open_lo=True, open_hi=True), empty=True
+            "safe_targets",
+            self.safe_targets,
+            numbers(0, 1, open_lo=True, open_hi=True),
+            empty=True,
+            distinct=True,
         )
         object.__setattr__(self, "safe_targets", targets)
         check_numbers(

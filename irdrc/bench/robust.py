@@ -71,8 +71,10 @@ class Config:
             self, "seeds", seeds("seeds", default if self.seeds is None else self.seeds)
         )
         check_numbers(self, "", (("draws", 1, 100_000, INT), ("first_draw", 0, 10**9, INT)))
-        object.__setattr__(self, "p1_speed", check_list("p1_speed", self.p1_speed, numbers(0, 1)))
-        object.__setattr__(self, "r4", check_list("r4", self.r4, numbers(0, 1e9)))
+        object.__setattr__(
+            self, "p1_speed", check_list("p1_speed", self.p1_speed, numbers(0, 1), distinct=True)
+        )
+        object.__setattr__(self, "r4", check_list("r4", self.r4, numbers(0, 1e9), distinct=True))
         object.__setattr__(self, "overrides", check_list("overrides", self.overrides, empty=True))
         th = check_number("threshold", self.threshold, 0, 1, open_lo=True)
         object.__setattr__(self, "threshold", th)

@@ -128,7 +128,8 @@ def _child(scenario: str, queue: int, solver: str, device: str, tol: float, time
 
 def growth_exponents(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
     """Per (scenario, solver, device) measured at two sizes or more: k of time ∝ S^k, the
-    least-squares slope of log(median s) on log(S) over every size, and between the two largest."""
+    least-squares slope of log(median s) on log(S) over every size (rows of one size averaged in
+    the log), and between the two largest."""
     out = []
     keys = list(dict.fromkeys((r["scenario"], r["solver"], r["device"]) for r in rows))
     for key in keys:
@@ -137,10 +138,13 @@ def growth_exponents(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
             for r in rows
             if (r["scenario"], r["solver"], r["device"]) == key and r["median_seconds"] > 0
         )
-        if len(pts) < 2:
+        by_size: dict[int, list[float]] = {}
+        for S, t in pts:  # two requested sizes can build one state space
+            by_size.setdefault(S, []).append(math.log(t))
+        if len(by_size) < 2:
             continue
-        xs = [math.log(S) for S, _ in pts]
-        ys = [math.log(t) for _, t in pts]
+        xs = [math.log(S) for S in by_size]
+        ys = [statistics.fmean(ts) for ts in by_size.values()]
         mx, my = statistics.fmean(xs), statistics.fmean(ys)
         fit = sum((x - mx) * (y - my) for x, y in zip(xs, ys, strict=True)) / sum(
             (x - mx) ** 2 for x in xs
@@ -151,7 +155,7 @@ def growth_exponents(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
                 "scenario": key[0],
                 "solver": key[1],
                 "device": key[2],
-                "sizes": [S for S, _ in pts],
+                "sizes": list(by_size),
                 "k_fit": fit,
                 "k_last": last,
             }
@@ -176,7 +180,7 @@ class Config:
         object.__setattr__(self, "scenarios", one_vehicle_scenarios("scenarios", self.scenarios))
         checks.check_file_name("csv", self.csv)
         sizes = checks.check_list(
-            "states", self.states, checks.numbers(64, 32 * 10**6, integer=True)
+            "states", self.states, checks.numbers(64, 32 * 10**6, integer=True), distinct=True
         )
         object.__setattr__(self, "states", sizes)
         checks.check_numbers(

@@ -74,7 +74,9 @@ class Config:
     def __post_init__(self) -> None:
         check_common(self)
         item = lambda key, v: check_choice(key, v, tuple(LEARNERS))  # noqa: E731
-        object.__setattr__(self, "learners", check_list("learners", self.learners, item))
+        object.__setattr__(
+            self, "learners", check_list("learners", self.learners, item, distinct=True)
+        )
         default = (5,) if self.random else (5, 6, 7, 8, 9)
         object.__setattr__(
             self, "seeds", seeds("seeds", default if self.seeds is None else self.seeds)

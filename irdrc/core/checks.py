@@ -98,9 +98,11 @@ def check_list(
     *,
     empty: bool = False,
     length: int | None = None,
+    distinct: bool = False,
 ) -> tuple:
     """``value`` as a tuple if it is a list (non-empty unless ``empty``; of ``length`` items when
-    given), each item passed through ``item(f"{key}[{i}]", x)``; else a ``ValueError``."""
+    given; without a repeated item when ``distinct``: a list whose items each make runs), each
+    item passed through ``item(f"{key}[{i}]", x)``; else a ``ValueError``."""
     if not isinstance(value, list | tuple):
         hint = f" (one item: {key}=[{value}])" if isinstance(value, str | int | float) else ""
         raise ValueError(f"{key}={value!r} must be a list{hint}")
@@ -108,7 +110,12 @@ def check_list(
         raise ValueError(f"{key}={list(value)!r} must be a list of {length} values")
     if not value and not empty:
         raise ValueError(f"{key}={list(value)!r} must be a non-empty list")
-    return tuple(item(f"{key}[{i}]", x) if item else x for i, x in enumerate(value))
+    out = tuple(item(f"{key}[{i}]", x) if item else x for i, x in enumerate(value))
+    if distinct:
+        repeated = [x for i, x in enumerate(out) if x in out[:i]]
+        if repeated:
+            raise ValueError(f"{key}={list(value)!r} repeats {repeated[0]!r}: the same runs twice")
+    return out
 
 
 def numbers(lo: float = -math.inf, hi: float = math.inf, **kw: Any) -> Callable[[str, Any], Any]:

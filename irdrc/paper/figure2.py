@@ -74,7 +74,9 @@ class Config:
         object.__setattr__(self, "curve_p1_speed", prob("curve_p1_speed", self.curve_p1_speed))
         r4 = lambda key, x: check_number(key, x, 0, 1e9, open_lo=True)  # noqa: E731
         object.__setattr__(
-            self, "claim3_r4", check_list("claim3_r4", self.claim3_r4, r4, empty=True)
+            self,
+            "claim3_r4",
+            check_list("claim3_r4", self.claim3_r4, r4, empty=True, distinct=True),
         )
         check_numbers(self, "", (("smooth_episodes", 1, 10**6, INT),))
         every = self.eval.get("every_frames")
@@ -95,7 +97,9 @@ class Config:
             learners[name] = Learner(spec["method"], panels, overrides)
         object.__setattr__(self, "learners", learners)
         pick = lambda key, m: check_choice(key, m, tuple(learners))  # noqa: E731
-        object.__setattr__(self, "methods", check_list("methods", self.methods, pick))
+        object.__setattr__(
+            self, "methods", check_list("methods", self.methods, pick, distinct=True)
+        )
 
 
 def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:

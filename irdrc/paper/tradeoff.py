@@ -77,7 +77,9 @@ class Learned:
     overrides: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
-        r4 = check_list("dqn.r4", self.r4 or [], numbers(0, 1e9, open_lo=True), empty=True)
+        r4 = check_list(
+            "dqn.r4", self.r4 or [], numbers(0, 1e9, open_lo=True), empty=True, distinct=True
+        )
         object.__setattr__(self, "r4", r4)
         if r4:
             object.__setattr__(self, "seeds", seeds("dqn.seeds", self.seeds))
@@ -102,9 +104,11 @@ class Config:
 
     def __post_init__(self) -> None:
         check_common(self)
-        r4 = check_list("r4", self.r4, numbers(0, 1e9, open_lo=True))
+        r4 = check_list("r4", self.r4, numbers(0, 1e9, open_lo=True), distinct=True)
         object.__setattr__(self, "r4", tuple(sorted(set(r4))))
-        object.__setattr__(self, "p1_speed", check_list("p1_speed", self.p1_speed, numbers(0, 1)))
+        object.__setattr__(
+            self, "p1_speed", check_list("p1_speed", self.p1_speed, numbers(0, 1), distinct=True)
+        )
         check_speeds("p1_speed", self.p1_speed, self.params)
         if self.target_miss is not None:
             object.__setattr__(

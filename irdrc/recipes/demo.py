@@ -34,7 +34,9 @@ class Config:
     def __post_init__(self) -> None:
         check_common(self)
         item = lambda key, p: check_choice(key, p, POLICIES)  # noqa: E731
-        object.__setattr__(self, "policies", check_list("policies", self.policies, item))
+        object.__setattr__(
+            self, "policies", check_list("policies", self.policies, item, distinct=True)
+        )
         if not self.eval.mc_episodes or not self.eval.mc_num_envs:
             raise ValueError("eval.mc_num_envs and eval.mc_episodes must be >= 1")
 

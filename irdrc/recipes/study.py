@@ -65,7 +65,9 @@ class Config:
         known = list_scenarios()
         pick = lambda choices: lambda key, x: check_choice(key, x, choices)  # noqa: E731
         object.__setattr__(self, "scenarios", one_vehicle_scenarios("scenarios", self.scenarios))
-        object.__setattr__(self, "learners", check_list("learners", self.learners, pick(LEARNERS)))
+        object.__setattr__(
+            self, "learners", check_list("learners", self.learners, pick(LEARNERS), distinct=True)
+        )
         seeds = distinct_seeds("seeds", self.seeds)
         object.__setattr__(self, "seeds", seeds)
         reject_unknown_keys("evals.", self.evals, ("default", *known))

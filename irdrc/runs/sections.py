@@ -191,7 +191,7 @@ def one_vehicle_scenarios(key: str, value: Any, empty: bool = False) -> tuple[st
     fleet's recipes."""
     fleets = fleet_scenarios()
     allowed = [n for n in list_scenarios() if n not in fleets]
-    out = checks.check_list(key, value, empty=empty)
+    out = checks.check_list(key, value, empty=empty, distinct=True)
     for i, name in enumerate(out):
         if name in fleets:
             raise ValueError(

@@ -78,12 +78,16 @@ class FrontierGrid:
     def __post_init__(self) -> None:
         item = checks.numbers(0, 1)
         object.__setattr__(
-            self, "p1_speed", checks.check_list("frontier_grid.p1_speed", self.p1_speed, item)
+            self,
+            "p1_speed",
+            checks.check_list("frontier_grid.p1_speed", self.p1_speed, item, distinct=True),
         )
         object.__setattr__(
             self,
             "targets",
-            checks.check_list("frontier_grid.targets", self.targets, item, empty=True),
+            checks.check_list(
+                "frontier_grid.targets", self.targets, item, empty=True, distinct=True
+            ),
         )
         checks.check_numbers(self, "frontier_grid.", (("points", 2, 10_000, checks.INT),))
 

@@ -45,6 +45,9 @@ def refused(recipe: str, *overrides: str) -> str:
         ("solve", ["+foo=1"], "unknown key 'foo'"),
         ("dqn", ["algo.lrr=0.1"], "did you mean algo.lr"),
         ("dqn", ["env=nope"], "env='nope' is not a choice"),
+        # one stream is comm or radar: the radar share's recipes, for each of its action spaces
+        ("online", ["env.actions=continuous"], "recipes/sac.py (continuous)"),
+        ("online", ["env.actions=levels"], "recipes/dqn.py algo=dqn_levels (levels)"),
         # wrong types and ranges name the key
         ("dqn", ["optimum_gamma=1.0"], "optimum_gamma=1.0"),
         ("dqn", ["seed=abc"], "seed='abc'"),

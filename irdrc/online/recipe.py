@@ -77,7 +77,8 @@ def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
     if cfg.params.env.actions != "binary":
         raise ValueError(
             f"env.actions={cfg.params.env.actions}: a vehicle on one stream chooses comm or radar "
-            "each step (env.actions=binary); the radar share is learned by recipes/sac.py"
+            "each step (env.actions=binary); the radar share is learned by recipes/sac.py "
+            "(continuous), recipes/ppo.py, or recipes/dqn.py algo=dqn_levels (levels)"
         )
     if cfg.learner == "safe":
         from irdrc.core.sizes import dense_fit_states, fits_dense

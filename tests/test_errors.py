@@ -45,6 +45,13 @@ def refused(recipe: str, *overrides: str) -> str:
         ("solve", ["+foo=1"], "unknown key 'foo'"),
         ("dqn", ["algo.lrr=0.1"], "did you mean algo.lr"),
         ("dqn", ["env=nope"], "env='nope' is not a choice"),
+        # a W&B project W&B would refuse mid-run (a traceback after set-up), for every backend
+        (
+            "qlearning",
+            ["logger=wandb", "logger.project=a/b"],
+            "logger.project='a/b' must be a name",
+        ),
+        ("dqn", ["logger.project="], "logger.project='' must be a name"),
         # one stream is comm or radar: the radar share's recipes, for each of its action spaces
         ("online", ["env.actions=continuous"], "recipes/sac.py (continuous)"),
         ("online", ["env.actions=levels"], "recipes/dqn.py algo=dqn_levels (levels)"),

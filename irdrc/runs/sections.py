@@ -235,6 +235,10 @@ class Eval:
             )
 
 
+PROJECT_FORBIDS = tuple("/\\#?%:")
+"""Characters a W&B project name cannot hold (checked before any work, for every backend)."""
+
+
 @dataclass(frozen=True)
 class Logger:
     """``logger=csv|tensorboard|wandb|none`` (``logger.backend``), its W&B ``project`` and
@@ -247,6 +251,16 @@ class Logger:
     def __post_init__(self) -> None:
         checks.check_choice("logger.backend", self.backend, BACKENDS)
         checks.check_choice("logger.mode", self.mode, WANDB_MODES)
+        if isinstance(self.project, int) and not isinstance(self.project, bool):
+            object.__setattr__(self, "project", str(self.project))  # logger.project=2026
+        bad = sorted(set(str(self.project)) & set(PROJECT_FORBIDS))
+        if not isinstance(self.project, str) or not self.project.strip() or bad:
+            raise ValueError(
+                f"logger.project={self.project!r} must be a name (W&B's project: 1–128 "
+                f"characters, none of {' '.join(PROJECT_FORBIDS)})"
+            )
+        if len(self.project) > 128:
+            raise ValueError(f"logger.project={self.project[:20]!r}…: at most 128 characters")
 
 
 @dataclass(frozen=True)

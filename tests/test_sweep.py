@@ -107,6 +107,30 @@ def test_bad_grid_is_refused_before_ray_starts(overrides, msg):
         load("sweep", *overrides)  # plans (composes and checks every point) before any trial
 
 
+def test_a_cluster_address_that_nothing_answers_at_is_refused_at_once():
+    """``ray.address=HOST:PORT`` where nothing listens: Ray retried for minutes, printing warnings,
+    and the sweep ended INCOMPLETE without a word of why. The address is checked first (a
+    malformed one at load); an address that answers passes."""
+    import socket
+
+    from irdrc.sweeps.tune_runner import check_reachable
+
+    with pytest.raises(
+        ValueError, match=r"must be local .*, auto .*, HOST:PORT or ray://HOST:PORT"
+    ):
+        load("sweep", "sweep.grid={seed: [0]}", "ray.address=nowhere")
+    with socket.socket() as server:  # a port that listens, then a port that is closed
+        server.bind(("127.0.0.1", 0))
+        server.listen()
+        port = server.getsockname()[1]
+        check_reachable(f"127.0.0.1:{port}")
+        check_reachable(f"ray://127.0.0.1:{port}")
+    with pytest.raises(ValueError, match=rf"ray.address=127.0.0.1:{port}: nothing answers there"):
+        check_reachable(f"127.0.0.1:{port}", timeout=2.0)
+    check_reachable("local")  # Ray's own: nothing to check
+    check_reachable("auto")
+
+
 TINY_DQN = "sweep.base=['algo.num_envs=8','algo.frames_per_batch=32','algo.total_frames=640','algo.init_random_frames=128','algo.buffer_size=640','algo.batch_size=32','eval.every_frames=320','eval.mc_episodes=0']"
 
 

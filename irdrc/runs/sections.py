@@ -292,7 +292,8 @@ class Checkpoint:
 
 @dataclass(frozen=True)
 class Ray:
-    """``ray.address`` (local: a private Ray here | auto | HOST:PORT) and ``ray.num_cpus``."""
+    """``ray.address`` (local: a private Ray here | auto | HOST:PORT | ray://HOST:PORT) and
+    ``ray.num_cpus``."""
 
     address: str = "local"
     num_cpus: int | None = None
@@ -300,6 +301,17 @@ class Ray:
     def __post_init__(self) -> None:
         if self.num_cpus is not None:
             checks.check_numbers(self, "ray.", (("num_cpus", 1, 10**5, checks.INT),))
+        if ray_host_port(self.address) is None and self.address not in ("local", "auto"):
+            raise ValueError(
+                f"ray.address={self.address!r} must be local (a private Ray here), auto (the "
+                "cluster this machine belongs to), HOST:PORT or ray://HOST:PORT"
+            )
+
+
+def ray_host_port(address: Any) -> tuple[str, int] | None:
+    """The (host, port) of a cluster's Ray address (HOST:PORT or ray://HOST:PORT), else None."""
+    host, sep, port = str(address).removeprefix("ray://").rpartition(":")
+    return (host, int(port)) if sep and host and port.isdigit() else None
 
 
 EXECUTOR_KEYS = ("executor", "resume", "cpus_per_trial", "max_failures", "storage_path", "ray")

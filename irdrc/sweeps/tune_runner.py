@@ -7,15 +7,36 @@ from __future__ import annotations
 import logging
 import os
 import signal
+import socket
 import time
 from pathlib import Path
 from typing import Any
 
-from irdrc.runs.sections import Executor
+from irdrc.runs.sections import Executor, ray_host_port
 from irdrc.sweeps.point import last_line, progress_line, read_status, record, trial
+
+REACH_SECONDS = 10.0
+"""How long a cluster's address (``ray.address=HOST:PORT``) has to answer before the sweep starts
+(Ray itself retries for minutes, printing warnings)."""
+
+
+def check_reachable(address: str, timeout: float = REACH_SECONDS) -> None:
+    """Raise a ``ValueError`` when nothing answers at a cluster's Ray address."""
+    where = ray_host_port(address)
+    if where is None:  # local or auto: Ray answers for itself at once
+        return
+    try:
+        socket.create_connection(where, timeout=timeout).close()
+    except OSError as err:
+        raise ValueError(
+            f"ray.address={address}: nothing answers there within {timeout:g} s "
+            f"({err.strerror or err}); start the cluster's head there (ray start --head), or run "
+            "on this machine with ray.address=local"
+        ) from None
 
 
 def _ray_init(address: str, num_cpus: int | None) -> None:
+    check_reachable(address)
     import ray
 
     os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")

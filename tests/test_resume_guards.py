@@ -116,3 +116,20 @@ def test_a_scenario_changed_on_resume_is_named_in_a_few_keys():
     ):
         resumed_config(Path("c.pt"), saved, current, frozenset({"env"}))
     assert CLASHES_SHOWN == 3
+
+
+@pytest.mark.parametrize("verbatim", [False, True])
+def test_a_resumed_run_says_whether_it_is_the_uninterrupted_one(tmp_path, capsys, verbatim):
+    """A learner of the shared loop checkpoints no replay and no env rows, so its resumed run
+    differs from an uninterrupted one and says so; Q-learning and the one-stream learners, whose
+    checkpoints hold every random stream (``tests/test_resume.py``,
+    ``tests/test_online_learners.py``), resume verbatim and do not."""
+    path = write_checkpoint(tmp_path / "run")
+    state = {"frames": 64, "updates": 1, "wall_seconds": 0.1, "history": []}
+    composed = compose_recipe(dqn, [f"resume={path}", "progress=false"])
+    run = Run("dqn", composed, tmp_path / "run", resume_state=state)
+    with run.training(128, "dqn", verbatim=verbatim):
+        pass
+    out = capsys.readouterr().out
+    assert "resumed from" in out and "at 64 env steps" in out
+    assert ("differ from an uninterrupted run's" in out) is not verbatim

@@ -131,7 +131,9 @@ def run(cfg: Config, run) -> dict[str, Any]:
 
         greedy_scorer = ConstrainedScorer(scorer, cfg.algo.target_miss)
     learner = make_learner(cfg.learner, cfg.algo, cfg.params, cfg.seed)
-    with run.training(cfg.total_frames, cfg.algo.name, checkpoint=cfg.checkpoint) as hooks:
+    with run.training(
+        cfg.total_frames, cfg.algo.name, checkpoint=cfg.checkpoint, verbatim=True
+    ) as hooks:
         record = learn_on_stream(
             learner,
             cfg.params,

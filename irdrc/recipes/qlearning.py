@@ -109,7 +109,7 @@ def run(cfg: Config, run) -> dict[str, Any]:
     for scorer in scorers:
         require_ratio(scorer)
     total = cfg.algo.episodes * cfg.params.env.horizon
-    with run.training(total, cfg.algo.name, checkpoint=cfg.checkpoint) as hooks:
+    with run.training(total, cfg.algo.name, checkpoint=cfg.checkpoint, verbatim=True) as hooks:
         record = qlearning.train(
             scenarios,
             cfg.algo,

@@ -29,6 +29,13 @@ from irdrc.runs.signals import RunInterrupted, RunSignals, StopFlag, stop_on_sig
 BOOKKEEPING = (".hydra", ".lock", "config.yaml")
 """What the scaffold itself keeps in a run directory (besides the log)."""
 
+NOT_VERBATIM = (
+    "note: {name}'s checkpoint holds its networks, optimiser, counters and history, not the data "
+    "it learns from nor its env rows' states: the resumed run starts its rows afresh on a random "
+    "stream of its own, so its numbers differ from an uninterrupted run's"
+)
+"""What a resumed run of the shared training loop says (``Run.training``)."""
+
 
 class _Tee:
     """``sys.stdout`` for the length of a run: what is printed also goes to the run's log."""
@@ -255,12 +262,20 @@ class Run:
 
     @contextlib.contextmanager
     def training(
-        self, total: int, label: str, *, checkpoint: Any = None, unit: str = "env steps"
+        self,
+        total: int,
+        label: str,
+        *,
+        checkpoint: Any = None,
+        unit: str = "env steps",
+        verbatim: bool = False,
     ) -> Iterator[Any]:
         """The hooks a learner reports through while it trains: progress (a bar in a terminal,
         plain lines in a log) and the logger, a checkpoint as ``checkpoint`` (a
         ``sections.Checkpoint``; None: at the end only) paces it, and a stop after the current
-        batch on SIGINT/SIGTERM."""
+        batch on SIGINT/SIGTERM. A resumed run says where it goes on from, and, unless its
+        checkpoint holds everything it draws from (``verbatim``: Q-learning, the one-stream
+        learners), that its numbers differ from an uninterrupted run's (``NOT_VERBATIM``)."""
         from irdrc.agents.base import Hooks
         from irdrc.runs.progress import RunProgress
 
@@ -272,6 +287,8 @@ class Run:
                 f"files in {self.dir}",
                 flush=True,
             )
+            if not verbatim:
+                print(NOT_VERBATIM.format(name=label), flush=True)
         enabled = bool(self.composed.cfg.get("progress", True))
         progress = RunProgress(total, enabled, self.logger, label, unit)
         if self.resume_state is not None:

@@ -32,13 +32,6 @@ def load_as(config: type, composed: Composed, resume: dict[str, Any] | None) -> 
     return cfg
 
 
-NOT_RESTORED = (
-    "note: {name}'s checkpoint holds its networks, optimisers and counters, not its replay buffer; "
-    "the resumed run refills the replay, so its numbers differ from an uninterrupted run's"
-)
-"""What a resumed SAC run says it does not restore (PPO keeps no replay)."""
-
-
 def run_learner(cfg: Any, run, train: Any) -> dict[str, Any]:
     """Train with ``train`` (``irdrc.agents.sac.train``, ``ppo.train``), score the final shares
     exactly beside the optimum over ρ and binary's, and write ``checkpoint.pt``, ``metrics.csv``,
@@ -63,8 +56,6 @@ def run_learner(cfg: Any, run, train: Any) -> dict[str, Any]:
         f"per step (exact, within {scorer.optimal.value_bound:.0e} in value)",
         flush=True,
     )
-    if run.resume_state is not None and cfg.algo.name == "sac":
-        print(NOT_RESTORED.format(name=cfg.algo.name.upper()), flush=True)
     record = run.train(cfg, train, scorer)
     run.checkpoint(record.state)
     rho = record.greedy[0]

@@ -133,3 +133,19 @@ def test_a_resumed_run_says_whether_it_is_the_uninterrupted_one(tmp_path, capsys
     out = capsys.readouterr().out
     assert "resumed from" in out and "at 64 env steps" in out
     assert ("differ from an uninterrupted run's" in out) is not verbatim
+
+
+def test_a_run_directory_given_for_its_file_is_answered_with_the_files_path(tmp_path):
+    """``resume=DIR`` (and evaluate's ``checkpoint=DIR``, ``policy=DIR``) said "no such file" of
+    a directory that exists; the answer now names the file inside it, or says it holds none."""
+    from irdrc.core.checks import check_file
+
+    path = write_checkpoint(tmp_path / "run")
+    with pytest.raises(ValueError, match=rf"^resume={path.parent} is a directory: its checkpoint"):
+        prepare(dqn, [f"resume={path.parent}"])
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(ValueError, match=r"is a directory, and it holds no policy\.csv"):
+        check_file("policy", tmp_path / "empty", "policy.csv")
+    with pytest.raises(ValueError, match=r"^policy=.*/none\.csv: no such file$"):
+        check_file("policy", tmp_path / "none.csv", "policy.csv")
+    assert check_file("checkpoint", path, "checkpoint.pt") == path

@@ -19,6 +19,7 @@ from typing import Any
 
 import torch
 
+from irdrc.core.checks import check_file
 from irdrc.core.metrics import METRIC_NAMES, Metrics, first_reaching
 
 PROGRESS_FIELDS = (
@@ -221,9 +222,7 @@ def load_checkpoint(path: Path | str, key: str = "resume") -> dict[str, Any]:
         ValueError: one line naming ``key`` and the file when it is missing, truncated, corrupt
             or not a checkpoint of a learner of this package.
     """
-    path = Path(path)
-    if not path.is_file():
-        raise ValueError(f"{key}={path}: no such checkpoint file")
+    path = check_file(key, Path(path), "checkpoint.pt", "checkpoint file")
     data = path.read_bytes()
     digests = path.with_suffix(DIGEST_SUFFIX)
     if digests.is_file() and hashlib.sha256(data).hexdigest() not in digests.read_text().split():

@@ -13,6 +13,7 @@ import difflib
 import math
 import typing
 from collections.abc import Callable, Iterable, Mapping
+from pathlib import Path
 from typing import Any
 
 
@@ -89,6 +90,19 @@ def check_file_name(key: str, value: Any) -> str:
             "hydra.run.dir=DIR sets"
         )
     return value
+
+
+def check_file(key: str, path: Path, name: str, what: str = "file") -> Path:
+    """``path`` if it is a file, else a ``ValueError`` naming ``key``: a run directory that holds
+    ``name`` is answered with that file's path (``resume=DIR`` → ``resume=DIR/checkpoint.pt``)."""
+    if path.is_file():
+        return path
+    if path.is_dir():
+        inside = path / name
+        if inside.is_file():
+            raise ValueError(f"{key}={path} is a directory: its {name} is {key}={inside}")
+        raise ValueError(f"{key}={path} is a directory, and it holds no {name}")
+    raise ValueError(f"{key}={path}: no such {what}")
 
 
 def check_list(

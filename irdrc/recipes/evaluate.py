@@ -25,7 +25,7 @@ from pathlib import Path
 from typing import Any
 
 from irdrc.core import checks
-from irdrc.core.checks import build
+from irdrc.core.checks import build, check_file
 from irdrc.core.metrics import Metrics
 from irdrc.core.params import Params
 from irdrc.runs.compose import Composed
@@ -175,13 +175,9 @@ def load_source(cfg: Config) -> tuple[Any, str, str]:
     """
     params = cfg.params
     if cfg.checkpoint:
-        path = Path(str(cfg.checkpoint)).expanduser()
-        if not path.is_file():  # before torch loads
-            raise ValueError(f"checkpoint={path}: no such checkpoint file")
+        path = check_file("checkpoint", Path(str(cfg.checkpoint)).expanduser(), "checkpoint.pt")
         return network_table(path, params)
-    path = Path(str(cfg.policy)).expanduser()
-    if not path.is_file():
-        raise ValueError(f"policy={path}: no such file")
+    path = check_file("policy", Path(str(cfg.policy)).expanduser(), "policy.csv")
     header = path.open().readline()
     if "action1" in header:
         raise ValueError(

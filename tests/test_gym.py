@@ -57,6 +57,15 @@ def test_a_named_scenario_is_irdrc_scenario():
     assert env.unwrapped.params.env.num_states == 792
     with pytest.raises(ValueError, match=r"env='multilevel': .*irdrc\.scenario\('multilevel'\)"):
         gymnasium.make("irdrc/DFRC-v0", env="multilevel")
+    # scenario= was answered "name each key with its section (scenario → 'env.scenario')"
+    with pytest.raises(
+        ValueError, match=r"no scenario=: .* params=irdrc\.scenario\('multilevel'\)"
+    ):
+        gymnasium.make("irdrc/DFRC-v0", scenario="multilevel")
+    # overrides as keywords, as gymnasium.make and parallel_env take them (was a TypeError)
+    fast = irdrc.scenario("imperfect_radar", **{"env.p1.speed": 0.5, "reward.r4": 50})
+    assert fast == irdrc.scenario("imperfect_radar", {"env.p1.speed": 0.5, "reward.r4": 50})
+    assert fast.env.p1.speed == 0.5 and fast.reward.r4 == 50
     with pytest.raises(ValueError, match=r"env='paper': parallel_env is the fleet of envs/fleet"):
         parallel_env(env="paper")
     with pytest.raises(ValueError, match=r"'fleet' is a fleet of vehicles: irdrc\.fleet"):

@@ -125,6 +125,11 @@ def test_parallel_env_misuse_is_refused_clearly():
         env.step({"vehicle_1": 0})
     with pytest.raises(ValueError, match="unknown agent"):
         env.step({"vehicle_1": 0, "vehicle_2": 0, "vehicle_9": 1})
+    # a misspelt agent is named, not the agent it leaves without an action
+    with pytest.raises(
+        ValueError, match=r"unknown agent.*vehicle_0: this env's agents are vehicle_1"
+    ):
+        env.step({"vehicle_0": 0, "vehicle_2": 0})
     with pytest.raises(ValueError, match="action"):
         env.step({"vehicle_1": 2, "vehicle_2": 0})
     with pytest.raises(ValueError, match="joint state index"):

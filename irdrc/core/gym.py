@@ -52,6 +52,12 @@ def _params(params: Params | None, overrides: dict[str, Any]) -> Params:
         raise ValueError("pass either params or overrides, not both")
     if params is not None:
         return params
+    if "scenario" in overrides:
+        name = overrides["scenario"]
+        raise ValueError(
+            f"irdrc/DFRC-v0 takes no scenario=: a named scenario is params=irdrc.scenario({name!r}) "
+            f"(with overrides: irdrc.scenario({name!r}, **{{'env.p1.speed': 0.5}}))"
+        )
     bare = [k for k in overrides if k.split(".", 1)[0] not in ("env", "reward")]
     if bare:
         fixes = ", ".join(f"{k} → {full_key(k)!r}" for k in bare)

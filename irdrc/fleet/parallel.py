@@ -152,12 +152,15 @@ class FleetParallelEnv(ParallelEnv):
         truncations and infos per agent."""
         if self._states is None or not self.agents:
             raise RuntimeError("call reset() before step() (and after an episode's last step)")
+        unknown = [str(a) for a in actions if a not in self.agents]
+        if unknown:  # before the missing ones: a misspelt agent is the cause of both
+            raise ValueError(
+                f"unknown agent(s) {', '.join(unknown)}: this env's agents are "
+                f"{', '.join(self.agents)}"
+            )
         missing = [a for a in self.agents if a not in actions]
         if missing:
             raise ValueError(f"no action for {', '.join(missing)}: every vehicle acts every step")
-        unknown = [a for a in actions if a not in self.possible_agents]
-        if unknown:
-            raise ValueError(f"unknown agent(s) {', '.join(map(str, unknown))}")
         act = checked_actions(
             torch.tensor([int(np.asarray(actions[a]).reshape(())) for a in self.agents])
         ).reshape(1, -1)

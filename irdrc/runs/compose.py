@@ -51,10 +51,11 @@ def fleet_scenarios(envs_dir: Path = ENVS_DIR) -> list[str]:
     return [n for n in list_scenarios(envs_dir) if "vehicles" in load_scenario(n, envs_dir)]
 
 
-def scenario(name: str, overrides: Mapping[str, Any] | None = None) -> Params:
+def scenario(name: str, overrides: Mapping[str, Any] | None = None, /, **more: Any) -> Params:
     """The ``Params`` of the named scenario ``name`` (``envs/<name>.yaml``, one vehicle) with
-    ``overrides`` named as on the command line (``{"env.p1.speed": 0.5, "reward.r4": 50}``), the
-    paper's reward: ``irdrc.scenario("multilevel")``, for the gym id (``params=``) or any model.
+    ``overrides`` named as on the command line (``{"env.p1.speed": 0.5, "reward.r4": 50}``, as a
+    mapping or as keywords: ``**{"env.p1.speed": 0.5}``), the paper's reward:
+    ``irdrc.scenario("multilevel")``, for the gym id (``params=``) or any model.
 
     Raises:
         ValueError: an unknown scenario, a fleet (``irdrc.fleet.parallel_env`` and ``FleetSpec``
@@ -72,7 +73,7 @@ def scenario(name: str, overrides: Mapping[str, Any] | None = None) -> Params:
             "and irdrc.fleet.spec.FleetSpec build fleets"
         )
     merged: dict[str, Any] = {"env": env, "reward": {}}
-    apply_overrides(merged, overrides or {})
+    apply_overrides(merged, {**(overrides or {}), **more})
     return Params.from_config(merged, strict=False)
 
 

@@ -79,6 +79,13 @@ def test_stationary_distribution_and_schedules(paper):
     assert len(as_schedule("round_robin", 352)) == 2
     with pytest.raises(ValueError, match="shape"):
         as_schedule(torch.zeros(5, dtype=torch.long), 352)
+    # a table as a Python list (``tolist()``: S actions or S rows of probabilities) is one table,
+    # not a schedule of S one-number tables ("policy table has shape ()")
+    radar = torch.ones(352, dtype=torch.long)
+    assert len(as_schedule(radar.tolist(), 352)) == 1
+    probs = torch.nn.functional.one_hot(radar, 2).double()
+    assert torch.equal(as_schedule(probs.tolist(), 352)[0], probs)
+    assert len(as_schedule([torch.zeros_like(radar).tolist(), radar.tolist()], 352)) == 2
     # with the default chains each factor is bad w.p. 0.1 every step: P(c = 1) = 0.1 under
     # always-comm (no radar reaction), exactly
     c1 = mu.view(11, 2, 16)[:, 1].sum()

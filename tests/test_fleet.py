@@ -166,6 +166,13 @@ def test_bad_fleets_are_refused():
         FleetSpec(access="aloha")
     with pytest.raises(ValueError, match=r"env\.share"):
         FleetSpec(share=1.5)
+    # a mapping where a vehicle's Params belongs (was "'dict' object has no attribute 'env'")
+    with pytest.raises(
+        ValueError, match=r"FleetSpec\(vehicle=…\) takes a vehicle's Params, got dict"
+    ):
+        FleetSpec(vehicle={"env.p1.speed": 0.5})
+    with pytest.raises(ValueError, match=r"per_vehicle\[1\]=…\) takes a vehicle's Params"):
+        FleetSpec(vehicles=2, per_vehicle=(Params(), {"env.p1.speed": 0.5}))
     three = FleetModel(FleetSpec(vehicles=3))  # the simulator's tables exist at any N …
     assert not three.exact
     with pytest.raises(ValueError, match="joint states"):  # … the exact solver stops at 2·10⁶

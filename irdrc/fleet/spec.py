@@ -50,6 +50,13 @@ class FleetSpec:
         check_number("env.channels", self.channels, 1, 16, integer=True)
         check_choice("env.access", self.access, ACCESS)
         check_number("env.share", self.share, 0.0, 1.0)
+        for i, p in enumerate((self.vehicle, *(self.per_vehicle or ()))):
+            if not isinstance(p, Params):
+                which = "vehicle" if i == 0 else f"per_vehicle[{i - 1}]"
+                raise ValueError(
+                    f"FleetSpec({which}=…) takes a vehicle's Params, got {type(p).__name__}: "
+                    "Params.from_overrides({'env.p1.speed': 0.5}) or irdrc.scenario(NAME)"
+                )
         if self.vehicle.env.actions != "binary":
             raise ValueError(
                 f"env.actions={self.vehicle.env.actions}: a fleet's vehicles choose comm or radar "

@@ -249,6 +249,16 @@ def test_cli_lists_every_recipe_with_a_whole_summary():
     assert [n for n, what in known.items() if not what.endswith((".", "?"))] == []
 
 
+def test_cli_proposes_the_closest_recipe_and_prints_its_version(capsys):
+    from irdrc import __version__
+    from irdrc.runs.cli import main
+
+    assert main(["solv"]) == 2
+    assert "unknown recipe 'solv'; did you mean solve? recipes:" in capsys.readouterr().err
+    assert main(["xyz"]) == 2 and "did you mean" not in capsys.readouterr().err
+    assert main(["--version"]) == 0 and capsys.readouterr().out == f"irdrc {__version__}\n"
+
+
 @pytest.mark.e2e
 def test_cli_lists_and_dispatches(tmp_path):
     listing = subprocess.run(

@@ -7,6 +7,7 @@ import ast
 import subprocess
 import sys
 
+from irdrc.core.checks import closest
 from irdrc.runs.compose import ROOT, list_scenarios
 
 
@@ -27,15 +28,29 @@ def main(argv: list[str] | None = None) -> int:
     known = recipes()
     if not args or args[0] in ("-h", "--help", "list"):
         print("usage: irdrc RECIPE [overrides ...]   e.g. irdrc solve env.p1.speed=1.0")
-        print("       irdrc RECIPE --help            what it does, with examples\n")
+        print("       irdrc RECIPE --help            what it does, with examples")
+        print("       irdrc --version\n")
         width = max(map(len, known))
         for name, what in known.items():
             print(f"  {name:<{width}}  {what}")
         print(f"\nscenarios: {', '.join(list_scenarios())}  (env=NAME)")
         return 0
+    if args[0] in ("-V", "--version"):
+        from importlib.metadata import PackageNotFoundError, version
+
+        try:
+            print(f"irdrc {version('irdrc')}")
+        except PackageNotFoundError:  # run from a checkout that pip never installed
+            print("irdrc (not installed: pip install -e . installs it)")
+        return 0
     name = args[0].replace("-", "_")
     if name not in known:
-        print(f"irdrc: unknown recipe {args[0]!r}; recipes: {', '.join(known)}", file=sys.stderr)
+        near = closest(name, known)
+        hint = f"did you mean {near}? " if near else ""
+        print(
+            f"irdrc: unknown recipe {args[0]!r}; {hint}recipes: {', '.join(known)}",
+            file=sys.stderr,
+        )
         return 2
     return subprocess.call([sys.executable, str(ROOT / "recipes" / f"{name}.py"), *args[1:]])
 

@@ -67,6 +67,8 @@ def refused(recipe: str, *overrides: str) -> str:
         ("qlearning", ["num_learners=1000000"], "num_learners=1000000"),
         ("qlearning", ["batch_grid={}"], "batch_grid is empty"),
         ("qlearning", ["batch_grid={algo.alpha: [0.1]}"], "must be an env. or reward. key"),
+        # a list where the mapping belongs (was "'int' object has no attribute 'items'")
+        ("qlearning", ["batch_grid=[1,2]"], "must be a mapping of override key"),
         ("dqn", ["algo.alpha=inf"], "algo.alpha=inf"),
         ("solve", ["tol=nan"], "tol=nan"),
         ("tradeoff", ["search.lo=10", "search.hi=5"], "search.lo=10"),

@@ -59,7 +59,9 @@ class Config(Learning):
 
 def batch_points(grid: Any) -> list[dict[str, Any]]:
     """The scenario points of ``batch_grid`` (one point, no overrides, when it is unset)."""
-    if grid is None or isinstance(grid, list):
+    if grid is None:
+        return [{}]
+    if isinstance(grid, list) and all(isinstance(p, dict) for p in grid):  # its points already
         return grid or [{}]
     points = parse_grid(grid, "batch_grid")
     for key in points[0]:

@@ -150,3 +150,53 @@ def test_onlines_own_learner_example_runs_as_printed_and_prints_what_the_page_sa
         [sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True
     )
     assert out.stdout.strip() == shown
+
+
+def test_a_learner_of_ones_own_is_told_which_of_its_methods_went_wrong():
+    """``learn_on_stream`` is the door for a user's learner: an action that is neither comm nor
+    radar (was an IndexError of the stream's tables, or -1 read as radar), a table that is not a
+    policy, a method not written, no episodes, and a scorer of another scenario (whose ledger was
+    silently wrong) are each named."""
+    import torch
+
+    from irdrc.core.exact import exact_scorer
+    from irdrc.online.loop import StreamLearner, learn_on_stream
+
+    params = Params()
+    scorer = exact_scorer(params)
+    comm = torch.zeros(params.env.num_states, dtype=torch.long)
+
+    class Fixed(StreamLearner):
+        name = "fixed"
+
+        def __init__(self, action=0, behaviour=None, greedy=None):
+            self.action, self.table, self.deploy = action, behaviour, greedy
+
+        def act(self, state):
+            return self.action
+
+        def behaviour(self):
+            return (
+                torch.nn.functional.one_hot(comm, 2).double() if self.table is None else self.table
+            )
+
+        def greedy(self):
+            return comm if self.deploy is None else self.deploy
+
+    def run(learner, **kw):
+        return learn_on_stream(learner, kw.pop("params", params), scorer, episodes=1, **kw)
+
+    assert run(Fixed()).history[-1]["regret"] > 0
+    for action in (2, -1, None):
+        with pytest.raises(ValueError, match=rf"fixed\.act\(\d+\) returned {action}: .*0 \(comm"):
+            run(Fixed(action=action))
+    with pytest.raises(ValueError, match=r"fixed\.behaviour\(\): policy probabilities must"):
+        run(Fixed(behaviour=torch.full((params.env.num_states, 2), 0.3)))
+    with pytest.raises(ValueError, match=r"fixed\.greedy\(\): policy table has shape \(10,\)"):
+        run(Fixed(greedy=torch.zeros(10, dtype=torch.long)))
+    with pytest.raises(ValueError, match="scorer is another scenario's"):
+        run(Fixed(), params=Params.from_overrides({"env.queue_capacity": 5}))
+    with pytest.raises(ValueError, match="episodes=0 must be an integer >= 1"):
+        learn_on_stream(Fixed(), params, scorer, episodes=0)
+    with pytest.raises(NotImplementedError, match="StreamLearner must define greedy"):
+        run(StreamLearner())

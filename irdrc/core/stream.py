@@ -156,6 +156,8 @@ class VehicleStream:
         """One step of the current episode from ``state`` with ``action`` (0 comm, 1 radar)."""
         if self.steps_left <= 0:
             raise RuntimeError("the episode is over: call reset() first")
+        if action != 0 and action != 1:  # an index past the tables, or -1 read as radar
+            raise ValueError(f"action={action!r} must be 0 (communication) or 1 (radar)")
         out = self.steps.transition(self.state, action, self._u[self._t])
         self._t += 1
         self.steps_left -= 1

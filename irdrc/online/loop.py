@@ -51,7 +51,7 @@ class StreamLearner:
 
     def act(self, state: int) -> int:
         """The behaviour's action in ``state`` (exploration included)."""
-        raise NotImplementedError
+        raise NotImplementedError(f"{type(self).__name__} must define act(state) -> 0 or 1")
 
     def observe(self, state: int, action: int, step: Step) -> None:
         """What the step from ``state`` with ``action`` produced."""
@@ -62,12 +62,12 @@ class StreamLearner:
 
     def behaviour(self) -> torch.Tensor:
         """[S, A] the behaviour policy now: what ``act`` draws from."""
-        raise NotImplementedError
+        raise NotImplementedError(f"{type(self).__name__} must define behaviour() -> [S, A]")
 
     def greedy(self) -> torch.Tensor:
         """The policy it would deploy if learning stopped now: [S] actions or [S, A]
         probabilities."""
-        raise NotImplementedError
+        raise NotImplementedError(f"{type(self).__name__} must define greedy() -> [S] or [S, A]")
 
     def info(self) -> dict[str, Any]:
         """Facts worth reporting at the end (e.g. where its time went)."""
@@ -79,6 +79,15 @@ class StreamLearner:
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         """Restore ``state_dict``."""
+
+
+def _scored(score: Any, source: str, *args: Any) -> Any:
+    """``score(*args)`` (a scorer's ``metrics``, the ledger's ``add``), a table that is not a
+    policy of the scenario's states refused naming the learner's method that gave it."""
+    try:
+        return score(*args)
+    except ValueError as err:
+        raise ValueError(f"{source}: {err}") from err
 
 
 RESUME_KEYS = ("episode", "learner", "stream", "ledger", "history")
@@ -121,6 +130,14 @@ def learn_on_stream(
     """
     hooks = hooks or Hooks()
     greedy_scorer = greedy_scorer or scorer
+    scored = getattr(getattr(scorer, "model", None), "params", None)
+    if scored is not None and scored != params:
+        raise ValueError(
+            "the scorer is another scenario's: the ledger scores this stream on "
+            "exact_scorer(params), the model of the scenario it runs on"
+        )
+    if not isinstance(episodes, int) or episodes < 1:
+        raise ValueError(f"episodes={episodes!r} must be an integer >= 1")
     stream = VehicleStream(params, seed)
     T = stream.horizon
     every = int(eval_every_frames or T)
@@ -158,7 +175,7 @@ def learn_on_stream(
             done,
             time.perf_counter() - t0,
             learner.updates,
-            greedy_scorer.metrics(table),
+            _scored(greedy_scorer.metrics, f"{learner.name}.greedy()", table),
             optimum,
         )
         row.update(ledger.row())
@@ -200,7 +217,10 @@ def learn_on_stream(
             tally = Tally(steps=cut - t)
             for _ in range(cut - t):
                 a = act(s)
-                out = stream.step(a)
+                try:
+                    out = stream.step(a)
+                except ValueError as err:  # an action that is neither comm nor radar
+                    raise ValueError(f"{learner.name}.act({s}) returned {a!r}: {err}") from err
                 observe(s, a, out)
                 tally.reward += out.reward
                 tally.events += out.event
@@ -209,7 +229,7 @@ def learn_on_stream(
                 tally.dropped += out.dropped
                 s = out.state
             l0 = time.perf_counter()
-            ledger.add(behaviour, tally)
+            _scored(ledger.add, f"{learner.name}.behaviour()", behaviour, tally)
             scoring += time.perf_counter() - l0
             total += tally
             t = cut

@@ -137,6 +137,12 @@ def test_sac_resumes_to_a_longer_run():
     resumed = train_sac(p, longer, seed=0, eval_every_frames=160, resume=run.state)
     assert resumed.env_steps == 480 and steps(resumed) == [0, 160, 320, 480]
     assert scored(resumed.history[:3]) == scored(run.history)
+    # the actor goes on with its checkpoint's margin: one written without it spanned [0, 1]
+    from irdrc.agents.sac import SHARE_MARGIN
+
+    assert run.state["share_margin"] == resumed.state["share_margin"] == SHARE_MARGIN
+    older = {k: v for k, v in run.state.items() if k != "share_margin"}
+    assert train_sac(p, longer, seed=0, resume=older).state["share_margin"] == 0.0
 
 
 def test_ppo_resumes_to_a_longer_run():

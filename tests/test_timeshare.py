@@ -287,6 +287,38 @@ def test_sac_runs_scored_exactly_and_writes_its_shares(tmp_path):
     assert (out / "checkpoint.pt").is_file() and summary["interrupted"] is False
 
 
+def test_sacs_actor_reaches_the_ends_unsaturated_and_the_env_sees_shares_in_0_1():
+    """The actor's TanhNormal spans [−m, 1 + m] and is clipped to [0, 1]: a location where tanh is
+    0.85 (far from its saturation) is already the share 1, where on [0, 1] it is 0.925; the
+    critics and the collector see the clipped share; a checkpoint keeps its margin, one without
+    it (its actor spanned [0, 1]) is read with 0."""
+    from irdrc.agents.configs.continuous import SACConfig
+    from irdrc.agents.sac import SHARE_MARGIN, checkpoint_margin, make_actor, make_critic
+    from irdrc.agents.shares import ShareLadder, share_table
+    from irdrc.core.env import DFRCEnv
+
+    env = DFRCEnv(params(**{"env.actions": "continuous"}), batch_size=[1])
+    cfg = SACConfig()
+    shares = {}
+    for margin in (SHARE_MARGIN, 0.0):
+        actor = make_actor(env, cfg, margin)
+        last = [m for m in actor.modules() if isinstance(m, torch.nn.Linear)][-1]
+        with torch.no_grad():
+            last.weight.zero_()
+            last.bias.copy_(torch.tensor([float(torch.atanh(torch.tensor(0.85))), -3.0]))
+        shares[margin] = share_table(actor, env)
+    assert bool((shares[SHARE_MARGIN] == 1.0).all())
+    assert torch.allclose(shares[0.0], torch.full((352,), 0.925, dtype=torch.float64), atol=1e-6)
+    critic = make_critic(env, cfg)
+    obs = env.dynamics.obs[:4]
+    q = [critic(observation=obs, action=torch.full((4, 1), a)) for a in (1.0, 1.08, 0.0, -0.05)]
+    assert torch.equal(q[0], q[1]) and torch.equal(q[2], q[3])
+    out = ShareLadder(2, 0.0, 0.0)(torch.tensor([[1.07], [-0.02]]))
+    assert out.tolist() == [[1.0], [0.0]]
+    assert checkpoint_margin(None) == SHARE_MARGIN
+    assert checkpoint_margin({"share_margin": 0.1}) == 0.1 and checkpoint_margin({}) == 0.0
+
+
 def test_sac_refuses_a_discrete_action_space(tmp_path):
     r = run_recipe("recipes/sac.py", "env.actions=binary", f"hydra.run.dir={tmp_path / 'r'}")
     assert r.returncode == 2

@@ -73,12 +73,12 @@ def make_loss(actor: ProbabilisticActor, critic: ValueOperator, cfg: PPOConfig) 
     )
 
 
-def saved_shares(loss_state: dict[str, Any], cfg: PPOConfig, trained: Params, params: Params):
-    """The shares [S] of a checkpoint's actor (``loss_state``, trained on ``trained`` with
-    ``cfg``) on the states of ``params``: its networks rebuilt and loaded."""
+def saved_shares(state: dict[str, Any], cfg: PPOConfig, trained: Params, params: Params):
+    """The shares [S] of a checkpoint's actor (``state``, trained on ``trained`` with ``cfg``)
+    on the states of ``params``: its networks rebuilt and loaded."""
     train_env = DFRCEnv(trained, batch_size=[1])
     actor = make_actor(train_env, cfg)
-    make_loss(actor, make_critic(train_env, cfg), cfg).load_state_dict(loss_state)
+    make_loss(actor, make_critic(train_env, cfg), cfg).load_state_dict(state["loss"])
     return share_table(actor, DFRCEnv(params, batch_size=[1]))
 
 

@@ -3,9 +3,9 @@ at once on the off-policy loop every learner shares — top to bottom in TorchRL
 model (actor, critics) → exploration (the actor's own sampling) → collector → buffer → loss → target
 → optimiser → logger (the caller's hooks) → loop.
 
-The actor is a ``TanhNormal`` bounded to [0, 1] through ``ProbabilisticActor``; the rows explore
-beside it on DQN's ε ladder, replay is prioritised by the critics' TD error, and the policy is the
-Polyak-averaged actor. Every evaluation scores its deterministic share in every state *exactly*
+The actor is a ``TanhNormal`` on [−m, 1 + m] through ``ProbabilisticActor`` (``SHARE_MARGIN``),
+its shares clipped to [0, 1]; the rows explore beside it on DQN's ε ladder, replay is prioritised
+by the critics' TD error, and the policy is the Polyak-averaged actor. Every evaluation scores its deterministic share in every state *exactly*
 against the continuum's optimum
 (``irdrc.core.exact.continuum.ContinuumScorer``), which only scores, never steers.
 """
@@ -40,9 +40,17 @@ from irdrc.agents.shares import Critic, ShareLadder, share_run, share_table
 from irdrc.core.env import DFRCEnv
 from irdrc.core.params import Params
 
+SHARE_MARGIN = 0.1
+"""The actor's TanhNormal spans [−m, 1 + m], and its shares are clipped to [0, 1] (by the
+collector's ``ShareLadder``, at the critics' input, in ``share_table``). The shares 0 and 1 —
+radar the whole step, where the optimum of the riskiest states lies — are then reached at
+tanh ≈ ±0.83; on [0, 1] itself only in tanh's saturation, out of which the squashed entropy's
+Jacobian pushes the actor. A checkpoint records its margin (``share_margin``; a checkpoint
+without one spanned [0, 1])."""
 
-def make_actor(env: DFRCEnv, cfg: SACConfig) -> ProbabilisticActor:
-    """Scaled observation → MLP → (loc, scale) → TanhNormal on [0, 1]."""
+
+def make_actor(env: DFRCEnv, cfg: SACConfig, margin: float = SHARE_MARGIN) -> ProbabilisticActor:
+    """Scaled observation → MLP → (loc, scale) → TanhNormal on [−margin, 1 + margin]."""
     net = nn.Sequential(make_body(observation_top(env), cfg.network, 2), NormalParamExtractor())
     module = TensorDictModule(net, in_keys=["observation"], out_keys=["loc", "scale"])
     return ProbabilisticActor(
@@ -50,7 +58,7 @@ def make_actor(env: DFRCEnv, cfg: SACConfig) -> ProbabilisticActor:
         in_keys=["loc", "scale"],
         spec=env.action_spec_unbatched,
         distribution_class=TanhNormal,
-        distribution_kwargs={"low": 0.0, "high": 1.0},
+        distribution_kwargs={"low": -margin, "high": 1.0 + margin},
         default_interaction_type=ExplorationType.RANDOM,
     )
 
@@ -85,14 +93,20 @@ def policy_shares(loss: SACLoss, actor: ProbabilisticActor, env: DFRCEnv) -> tor
         return share_table(actor, env)
 
 
-def saved_shares(loss_state: dict[str, Any], cfg: SACConfig, trained: Params, params: Params):
-    """The shares [S] of a checkpoint's policy (``loss_state``, trained on ``trained`` with
-    ``cfg``) on the states of ``params``: its networks rebuilt and loaded."""
+def saved_shares(state: dict[str, Any], cfg: SACConfig, trained: Params, params: Params):
+    """The shares [S] of a checkpoint's policy (``state``, trained on ``trained`` with ``cfg``) on
+    the states of ``params``: its networks rebuilt with its margin and loaded."""
     train_env = DFRCEnv(trained, batch_size=[1])
-    actor = make_actor(train_env, cfg)
+    actor = make_actor(train_env, cfg, checkpoint_margin(state))
     loss = make_loss(actor, make_critic(train_env, cfg), cfg)
-    loss.load_state_dict(loss_state)
+    loss.load_state_dict(state["loss"])
     return policy_shares(loss, actor, DFRCEnv(params, batch_size=[1]))
+
+
+def checkpoint_margin(state: dict[str, Any] | None) -> float:
+    """The actor's margin a run goes on with: a fresh run's ``SHARE_MARGIN``, a checkpoint's own
+    (0 where it has none: its actor spanned [0, 1])."""
+    return SHARE_MARGIN if state is None else float(state.get("share_margin", 0.0))
 
 
 def train(
@@ -117,8 +131,9 @@ def train(
         params, cfg, seed=seed, device=device, scorer=scorer, resume=resume
     )
 
-    # 1. model: the actor (TanhNormal on [0, 1]) and a critic Q(observation, ρ)
-    actor = make_actor(env, cfg)
+    # 1. model: the actor (TanhNormal on [−m, 1 + m], clipped) and a critic Q(observation, ρ)
+    margin = checkpoint_margin(resume)
+    actor = make_actor(env, cfg, margin)
     critic = make_critic(env, cfg)
     # 2. exploration: the actor samples its own shares, and an ε ladder over the rows
     ladder = ShareLadder(cfg.num_envs, cfg.eps_max, cfg.eps_min)
@@ -157,7 +172,7 @@ def train(
         update=update,
         policy=policy,
         collected=lambda data: center.update(data.get(("next", "reward"))),
-        state=center.state,
+        state=lambda: {**center.state(), "share_margin": margin},
         load=center.load,
     )
     return loop.run(learner)

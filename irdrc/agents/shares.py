@@ -19,14 +19,15 @@ from irdrc.core.params import Params
 
 
 class Critic(nn.Module):
-    """Q(observation, ρ): the scaled observation and the share into one MLP."""
+    """Q(observation, ρ): the scaled observation and the share, clipped to [0, 1] (what the env
+    steps with, wherever the actor's samples lie), into one MLP."""
 
     def __init__(self, high: torch.Tensor, network: NetworkConfig) -> None:
         super().__init__()
         self.body = make_body(torch.cat([high, torch.ones(1)]), network, 1)
 
     def forward(self, observation: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
-        return self.body(torch.cat([observation, action], -1))
+        return self.body(torch.cat([observation, action.clamp(0.0, 1.0)], -1))
 
 
 class ShareBeta(torch.distributions.Beta):
@@ -61,14 +62,16 @@ class BetaConcentrations(nn.Module):
 
 
 class ShareLadder(nn.Module):
-    """Exploration of a share beside the actor's own: row i of the batch takes a uniformly random
-    share with probability ε_i (``eps_ladder``: log-uniform across rows, DQN's ladder)."""
+    """Exploration of a share beside the actor's own: the actor's share clipped to [0, 1], and row
+    i of the batch takes a uniformly random share with probability ε_i (``eps_ladder``:
+    log-uniform across rows, DQN's ladder)."""
 
     def __init__(self, rows: int, eps_max: float, eps_min: float) -> None:
         super().__init__()
         self.register_buffer("eps", eps_ladder(rows, eps_max, eps_min)[:, None])
 
     def forward(self, action: torch.Tensor) -> torch.Tensor:
+        action = action.clamp(0.0, 1.0)
         if action.shape[0] != self.eps.shape[0]:  # not the collector's batch: as the actor says
             return action
         explore = torch.rand_like(action) < self.eps

@@ -118,7 +118,7 @@ def network_table(path: Path, params: Params) -> tuple[Any, str, str]:
 
         learner, config = (sac, SACConfig) if recipe == "sac" else (ppo, PPOConfig)
         cfg = config.from_sections(saved["algo"], saved["network"])
-        rho = learner.saved_shares(state["loss"], cfg, trained, params)
+        rho = learner.saved_shares(state, cfg, trained, params)
         return rho, f"{recipe} radar shares {steps}", "rho"
     table, name = dqn_table(state, saved, trained, params)
     source = f"{name} {steps}"

@@ -26,15 +26,25 @@ from torchrl.objectives import ClipPPOLoss, ValueEstimators
 from irdrc.fleet import parallel_env
 
 
+def positive(text: str) -> int:
+    """An integer ≥ 1 (argparse's type)."""
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"{value} is not an integer >= 1")
+    return value
+
+
 def parse() -> argparse.Namespace:
     """The command line: budget, seed, output, and ``env.*`` / ``reward.*`` overrides."""
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--frames", type=int, default=40_000, help="fleet steps in all")
-    p.add_argument("--frames-per-batch", type=int, default=1_000, help="fleet steps a rollout")
+    p.add_argument("--frames", type=positive, default=40_000, help="fleet steps in all")
+    p.add_argument("--frames-per-batch", type=positive, default=1_000, help="fleet steps a rollout")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default=None, help="a JSON file for the result")
     p.add_argument("overrides", nargs="*", help="env.KEY=VALUE or reward.KEY=VALUE")
     args = p.parse_args()
+    if args.frames < args.frames_per_batch:
+        p.error(f"--frames={args.frames} is less than one rollout (--frames-per-batch)")
     if any("=" not in o for o in args.overrides):
         p.error(f"overrides are KEY=VALUE; got {[o for o in args.overrides if '=' not in o]}")
     args.overrides = {

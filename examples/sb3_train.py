@@ -28,11 +28,19 @@ import irdrc  # registers irdrc/DFRC-v0
 from irdrc.runs.tables import write_policy_csv
 
 
+def natural(text: str) -> int:
+    """An integer ≥ 0 (argparse's type)."""
+    value = int(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"{value} is not an integer >= 0")
+    return value
+
+
 def parse() -> argparse.Namespace:
     """The command line: learner, budget, seed, output folder, ``env.*`` / ``reward.*`` keys."""
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--algo", choices=("dqn", "sac"), default="dqn")
-    p.add_argument("--steps", type=int, default=50_000, help="env steps of training")
+    p.add_argument("--steps", type=natural, default=50_000, help="env steps of training")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default="outputs/sb3", help="folder for policy.csv and score.json")
     p.add_argument(

@@ -168,3 +168,20 @@ def test_readme_sb3_lines_run(tmp_path):
     assert "stable_baselines3" in block and ".learn(50_000)" in block
     printed = _run(["-c", block.replace(".learn(50_000)", ".learn(500)")], ROOT, tmp_path)
     assert "'ratio':" in printed
+
+
+@pytest.mark.e2e
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        # TorchRL's collector reads a negative budget as "run for ever": it never stopped
+        (["examples/fleet_mappo_pettingzoo.py", "--frames", "-3"], "-3 is not an integer >= 1"),
+        (["examples/fleet_mappo_pettingzoo.py", "--frames", "500"], "less than one rollout"),
+        (["examples/sb3_train.py", "--steps", "-5"], "-5 is not an integer >= 0"),
+    ],
+)
+def test_the_examples_refuse_a_budget_that_is_not_one(args, message):
+    done = subprocess.run(
+        [sys.executable, *args], cwd=ROOT, capture_output=True, text=True, timeout=120
+    )
+    assert done.returncode == 2 and message in done.stderr, done.stderr[-2000:]

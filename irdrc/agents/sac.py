@@ -5,8 +5,8 @@ model (actor, critics) → exploration (the actor's own sampling) → collector 
 
 The actor is a ``TanhNormal`` on [−m, 1 + m] through ``ProbabilisticActor`` (``SHARE_MARGIN``),
 its shares clipped to [0, 1]; the rows explore beside it on DQN's ε ladder, replay is prioritised
-by the critics' TD error, and the policy is the Polyak-averaged actor. Every evaluation scores its deterministic share in every state *exactly*
-against the continuum's optimum
+by the critics' TD error, and the policy is the Polyak-averaged actor. Every evaluation scores its
+deterministic share in every state *exactly* against the continuum's optimum
 (``irdrc.core.exact.continuum.ContinuumScorer``), which only scores, never steers.
 """
 

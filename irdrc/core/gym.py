@@ -55,8 +55,9 @@ def _params(params: Params | None, overrides: dict[str, Any]) -> Params:
     if "scenario" in overrides:
         name = overrides["scenario"]
         raise ValueError(
-            f"irdrc/DFRC-v0 takes no scenario=: a named scenario is params=irdrc.scenario({name!r}) "
-            f"(with overrides: irdrc.scenario({name!r}, **{{'env.p1.speed': 0.5}}))"
+            "irdrc/DFRC-v0 takes no scenario=: a named scenario is "
+            f"params=irdrc.scenario({name!r}) (with overrides: "
+            f"irdrc.scenario({name!r}, **{{'env.p1.speed': 0.5}}))"
         )
     bare = [k for k in overrides if k.split(".", 1)[0] not in ("env", "reward")]
     if bare:

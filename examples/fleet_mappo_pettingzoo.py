@@ -52,7 +52,9 @@ def parse() -> argparse.Namespace:
         for k, v in (o.split("=", 1) for o in args.overrides)
     }
     if args.overrides.pop("env", "fleet") != "fleet":
-        p.error("this example runs the fleet (envs/fleet.yaml): env=fleet, its keys on top")
+        p.error(
+            "this example runs the fleet (irdrc/scenarios/fleet.yaml): env=fleet, its keys on top"
+        )
     return args
 
 

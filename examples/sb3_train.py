@@ -44,7 +44,9 @@ def parse() -> argparse.Namespace:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default="outputs/sb3", help="folder for policy.csv and score.json")
     p.add_argument(
-        "overrides", nargs="*", help="env=SCENARIO (envs/), env.KEY=VALUE or reward.KEY=VALUE"
+        "overrides",
+        nargs="*",
+        help="env=SCENARIO (irdrc/scenarios/), env.KEY=VALUE or reward.KEY=VALUE",
     )
     args = p.parse_args()
     if any("=" not in o for o in args.overrides):
@@ -64,7 +66,8 @@ def main() -> None:
     overrides = dict(args.overrides)
     if args.algo == "sac":
         overrides["env.actions"] = "continuous"  # SAC acts on the radar share ρ ∈ [0, 1]
-    scenario = overrides.pop("env", "paper")  # a named scenario of envs/, these keys on top
+    # a named scenario of irdrc/scenarios/, these keys on top
+    scenario = overrides.pop("env", "paper")
     env = gymnasium.make("irdrc/DFRC-v0", params=irdrc.scenario(scenario, overrides))
     learner = DQN if args.algo == "dqn" else SAC
     out = Path(args.out)

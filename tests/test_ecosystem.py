@@ -185,3 +185,78 @@ def test_the_examples_refuse_a_budget_that_is_not_one(args, message):
         [sys.executable, *args], cwd=ROOT, capture_output=True, text=True, timeout=120
     )
     assert done.returncode == 2 and message in done.stderr, done.stderr[-2000:]
+
+
+@pytest.mark.e2e
+def test_the_built_wheel_runs_away_from_the_checkout(tmp_path):
+    """A wheel of irdrc (``pip wheel .``, what ``pip install`` builds) carries the named scenarios
+    and the recipes' configs: unpacked alone and run from another directory, ``irdrc.scenario``,
+    the gym id's ``params=`` and ``python -m irdrc solve`` work, and a recipe's resume hint names
+    ``-m irdrc``."""
+    import shutil
+    import zipfile
+
+    src, wheel_dir, site, work = (tmp_path / d for d in ("src", "wheel", "site", "work"))
+    # The sources alone, so that no build/ left by an earlier build can bring files back.
+    shutil.copytree(ROOT / "irdrc", src / "irdrc", ignore=shutil.ignore_patterns("__pycache__"))
+    for name in ("pyproject.toml", "README.md", "LICENSE"):
+        shutil.copy(ROOT / name, src / name)
+    build = subprocess.run(
+        [sys.executable, "-m", "pip", "wheel", str(src), "--no-deps", "-q", "-w", str(wheel_dir)],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        cwd=tmp_path,
+    )
+    assert build.returncode == 0, build.stderr
+    (wheel,) = wheel_dir.glob("irdrc-*.whl")
+    with zipfile.ZipFile(wheel) as z:
+        z.extractall(site)
+    work.mkdir()
+    env = {**os.environ, "PYTHONPATH": str(site)}  # ahead of the checkout's editable install
+    code = (
+        "import gymnasium, irdrc\n"
+        f"assert irdrc.__file__.startswith({str(site)!r}), irdrc.__file__\n"
+        "p = irdrc.scenario('multilevel')\n"
+        "env = gymnasium.make('irdrc/DFRC-v0', params=p)\n"
+        "print(p.env.num_states, env.unwrapped.params.env.num_states)\n"
+    )
+    lib = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, cwd=work, env=env
+    )
+    assert lib.returncode == 0, lib.stderr
+    assert lib.stdout.split() == ["792", "792"]
+    listing = subprocess.run(
+        [sys.executable, "-m", "irdrc"], capture_output=True, text=True, cwd=work, env=env
+    )
+    assert listing.returncode == 0 and "bench_online" in listing.stdout, listing.stderr
+    solve = subprocess.run(
+        [sys.executable, "-m", "irdrc", "solve", "env=multilevel", "eval.mc_episodes=0"],
+        capture_output=True,
+        text=True,
+        cwd=work,
+        env=env,
+        timeout=300,
+    )
+    assert solve.returncode == 0, solve.stderr
+    (summary,) = work.glob("outputs/*/*/summary.json")
+    assert json.loads(summary.read_text())["optimal"]["avg_reward"] > 0
+    irdrc_run = [sys.executable, "-m", "irdrc"]
+    ql = subprocess.run(
+        [*irdrc_run, "qlearning", "algo.episodes=2", "eval.mc_episodes=0", "hydra.run.dir=q"],
+        capture_output=True,
+        text=True,
+        cwd=work,
+        env=env,
+        timeout=300,
+    )
+    assert ql.returncode == 0, ql.stderr
+    wrong = subprocess.run(
+        [*irdrc_run, "dqn", "resume=q/checkpoint.pt"],
+        capture_output=True,
+        text=True,
+        cwd=work,
+        env=env,
+    )
+    assert wrong.returncode == 2
+    assert wrong.stderr.strip().endswith("-m irdrc qlearning resume=q/checkpoint.pt"), wrong.stderr

@@ -39,10 +39,10 @@ def test_overrides():
 
 def test_a_named_scenario_is_irdrc_scenario():
     """``irdrc.scenario(NAME, overrides)`` is the ``Params`` the recipes compose for ``env=NAME``
-    (every single-vehicle scenario of envs/), for the gym id's ``params=``. A scenario's name
-    given as a section (``env="multilevel"``) is answered with that call (it was "env must be a
-    mapping, got 'multilevel'"); the fleet's PettingZoo env, which is envs/fleet.yaml's fleet, says
-    so (it was "dictionary update sequence element #0 has length 1; 2 is required"); a fleet is
+    (every single-vehicle scenario of irdrc/scenarios/), for the gym id's ``params=``. A
+    scenario's name given as a section (``env="multilevel"``) is answered with that call (it was
+    "env must be a mapping, got 'multilevel'"); the fleet's PettingZoo env, which is
+    irdrc/scenarios/fleet.yaml's fleet, says so (it was "dictionary update sequence element #0 has length 1; 2 is required"); a fleet is
     not one vehicle."""
     from irdrc.fleet import parallel_env
     from irdrc.recipes import solve
@@ -66,7 +66,9 @@ def test_a_named_scenario_is_irdrc_scenario():
     fast = irdrc.scenario("imperfect_radar", **{"env.p1.speed": 0.5, "reward.r4": 50})
     assert fast == irdrc.scenario("imperfect_radar", {"env.p1.speed": 0.5, "reward.r4": 50})
     assert fast.env.p1.speed == 0.5 and fast.reward.r4 == 50
-    with pytest.raises(ValueError, match=r"env='paper': parallel_env is the fleet of envs/fleet"):
+    with pytest.raises(
+        ValueError, match=r"env='paper': parallel_env is the fleet of irdrc/scenarios/fleet"
+    ):
         parallel_env(env="paper")
     with pytest.raises(ValueError, match=r"'fleet' is a fleet of vehicles: irdrc\.fleet"):
         irdrc.scenario("fleet")

@@ -153,7 +153,7 @@ def recipe_modules():
 
 def test_every_recipe_is_one_module_with_a_typed_config():
     """Each ``recipes/<name>.py`` runs one module's ``run`` on its own frozen ``Config``, built by
-    its own ``load`` from the config file ``recipes/conf/<NAME>.yaml``; no central module knows
+    its own ``load`` from the config file ``irdrc/conf/<NAME>.yaml``; no central module knows
     every recipe's keys."""
     import dataclasses
     import inspect
@@ -161,7 +161,7 @@ def test_every_recipe_is_one_module_with_a_typed_config():
     names, modules = recipe_modules()
     assert set(modules) == set(names), set(names) - set(modules)
     for name, m in modules.items():
-        assert name == m.NAME and (PKG.parent / "recipes" / "conf" / f"{name}.yaml").is_file()
+        assert name == m.NAME and (PKG / "conf" / f"{name}.yaml").is_file()
         assert dataclasses.is_dataclass(m.Config) and m.Config.__dataclass_params__.frozen, name
         assert list(inspect.signature(m.load).parameters) == ["composed", "resume"], name
         assert list(inspect.signature(m.run).parameters) == ["cfg", "run"], name

@@ -104,7 +104,7 @@ def test_ppo_reaches_the_continuum_optimum_and_fails_without_the_sensing_curve()
 
 @pytest.mark.parametrize(("recipe", "config"), [("ppo", "PPOConfig"), ("sac", "SACConfig")])
 def test_the_recipe_yaml_is_the_code_defaults(recipe, config):
-    """recipes/conf/<recipe>.yaml states the learner's defaults: the composed profile is the
+    """irdrc/conf/<recipe>.yaml states the learner's defaults: the composed profile is the
     dataclass's (a default changed in one place only fails here)."""
     from conftest import load
 

@@ -1,4 +1,4 @@
-"""Every key a learner profile (``recipes/conf/algo/*.yaml``) sets acts on that profile's own run:
+"""Every key a learner profile (``irdrc/conf/algo/*.yaml``) sets acts on that profile's own run:
 no key is set where another key makes it do nothing (a priority exponent without prioritised
 replay, an exploration floor with one row, a schedule's start without a schedule, …)."""
 
@@ -13,7 +13,7 @@ from omegaconf import OmegaConf
 
 from irdrc.agents.configs import DQNConfig, QLearningConfig
 
-ALGO = Path(__file__).resolve().parents[1] / "recipes" / "conf" / "algo"
+ALGO = Path(__file__).resolve().parents[1] / "irdrc" / "conf" / "algo"
 
 INERT = {
     DQNConfig: {

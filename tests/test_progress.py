@@ -78,7 +78,7 @@ def test_a_run_below_the_threshold_is_told_the_override_to_try():
 
 
 def test_every_profile_a_learner_recipe_runs_is_told_an_override_that_exists():
-    """Each profile of ``recipes/conf/algo`` that ends through the learner report (all but the
+    """Each profile of ``irdrc/conf/algo`` that ends through the learner report (all but the
     constrained recipe's) has advice, and the advice starts with an override its recipe accepts:
     a profile that exists, or a key of the profile's config."""
     from dataclasses import fields
@@ -89,7 +89,7 @@ def test_every_profile_a_learner_recipe_runs_is_told_an_override_that_exists():
     from irdrc.agents.configs import DQNConfig, QLearningConfig
     from irdrc.runs.report import ADVICE
 
-    conf = Path(__file__).resolve().parents[1] / "recipes" / "conf" / "algo"
+    conf = Path(__file__).resolve().parents[1] / "irdrc" / "conf" / "algo"
     profiles = (yaml.safe_load(f.read_text()) for f in conf.glob("*.yaml"))
     names = {(data.get("algo") or data)["name"] for data in profiles}
     names.remove("dqn_lagrangian")  # the constrained recipe scores it against the LP, not here

@@ -249,6 +249,38 @@ def test_cli_lists_every_recipe_with_a_whole_summary():
     assert [n for n, what in known.items() if not what.endswith((".", "?"))] == []
 
 
+def test_cli_runs_the_module_each_script_runs_with_its_summary():
+    """``irdrc NAME`` runs, in its own process, the module ``recipes/NAME.py`` hands
+    ``app.main``: every script is in the command's registry with that module, and the registry's
+    one sentence is the first paragraph of that script's docstring."""
+    import ast
+
+    from conftest import recipe_module
+
+    from irdrc.runs.cli import RECIPES
+
+    scripts = {p.stem: p for p in (ROOT / "recipes").glob("*.py")}
+    assert set(RECIPES) == set(scripts)
+    for name, (module, what) in RECIPES.items():
+        assert recipe_module(name).__name__ == module, name
+        doc = ast.get_docstring(ast.parse(scripts[name].read_text())) or ""
+        assert " ".join(doc.strip().split("\n\n")[0].split()) == what, name
+
+
+def test_a_recipe_is_named_as_the_user_can_run_it(tmp_path, monkeypatch):
+    """Resume hints name ``recipes/NAME.py`` where the working directory is a checkout, and
+    ``-m irdrc NAME`` elsewhere (an installed package, or another directory)."""
+    from irdrc.runs.compose import recipe_call
+    from irdrc.runs.scaffold import resume_hint
+
+    monkeypatch.chdir(ROOT)
+    assert recipe_call("dqn") == "recipes/dqn.py"
+    monkeypatch.chdir(tmp_path)
+    assert recipe_call("dqn") == "-m irdrc dqn"
+    (tmp_path / "checkpoint.pt").write_bytes(b"")
+    assert resume_hint("sac", tmp_path).endswith(f"-m irdrc sac resume={tmp_path}/checkpoint.pt")
+
+
 def test_cli_proposes_the_closest_recipe_and_prints_its_version(capsys):
     from irdrc import __version__
     from irdrc.runs.cli import main

@@ -71,7 +71,7 @@ def test_a_checkpoint_of_another_recipe_names_it_and_the_command(tmp_path):
     path = write_checkpoint(tmp_path / "run", sac, ["env.actions=continuous"])
     with pytest.raises(
         ValueError,
-        match=r"is a checkpoint of recipes/sac\.py; go on with it with: .*recipes/sac\.py resume=",
+        match=r"is a checkpoint of the sac recipe; go on with it with: .*recipes/sac\.py resume=",
     ):
         prepare(dqn, [f"resume={path}"])
 

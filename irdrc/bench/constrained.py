@@ -26,7 +26,7 @@ NAME = "bench_constrained"
 
 @dataclass(frozen=True)
 class Config:
-    """The benchmark's keys (``recipes/conf/bench_constrained.yaml``); ``planned``: every run,
+    """The benchmark's keys (``irdrc/conf/bench_constrained.yaml``); ``planned``: every run,
     checked (``irdrc.sweeps.trials.plan``)."""
 
     seeds: tuple[int, ...] = tuple(range(10))

@@ -36,7 +36,7 @@ SUMMARY_KEYS = (
 
 @dataclass(frozen=True)
 class Config:
-    """The benchmark's keys (``recipes/conf/bench_dqn.yaml``); ``algos``: every profile's DQN
+    """The benchmark's keys (``irdrc/conf/bench_dqn.yaml``); ``algos``: every profile's DQN
     config, composed as ``recipes/dqn.py`` composes it, checked."""
 
     params: Params = field(default=None, metadata=ONE_VEHICLE)

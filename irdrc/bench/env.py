@@ -167,7 +167,7 @@ def _row(n: int, threads: int, mode: str, iters: int, repeats: int, times: list[
 
 @dataclass(frozen=True)
 class Config:
-    """The benchmark's keys (``recipes/conf/bench_env.yaml``)."""
+    """The benchmark's keys (``irdrc/conf/bench_env.yaml``)."""
 
     params: Params = field(default=None, metadata=ONE_VEHICLE)
     sizes: tuple[int, ...] = (1, 64, 1024, 16384, 65536)

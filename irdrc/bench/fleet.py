@@ -68,7 +68,7 @@ def observe_of(learner: str) -> str:
 
 @dataclass(frozen=True)
 class Config:
-    """The benchmark's keys (``recipes/conf/bench_fleet.yaml``); ``planned``: every run, checked
+    """The benchmark's keys (``irdrc/conf/bench_fleet.yaml``); ``planned``: every run, checked
     (``irdrc.sweeps.trials.plan``), and ``part``: each run's part and learner."""
 
     learners: tuple[str, ...] = FLEET_LEARNERS

@@ -50,7 +50,7 @@ def _names(key: str, value: Any, allowed: list[str], empty: bool = False) -> tup
 
 @dataclass(frozen=True)
 class Config:
-    """The benchmark's keys (``recipes/conf/bench_online.yaml``)."""
+    """The benchmark's keys (``irdrc/conf/bench_online.yaml``)."""
 
     scenarios: tuple[str, ...] = ("paper", "multilevel", "imperfect_radar")
     seeds: tuple[int, ...] = tuple(range(10, 20))

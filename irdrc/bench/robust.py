@@ -42,7 +42,7 @@ SCENARIO_SETS = ("grid", "random")
 
 @dataclass(frozen=True)
 class Config:
-    """The benchmark's keys (``recipes/conf/bench_robust.yaml``); ``planned``: every run, checked
+    """The benchmark's keys (``irdrc/conf/bench_robust.yaml``); ``planned``: every run, checked
     (``irdrc.sweeps.trials.plan``), and ``owner``: each run's candidate."""
 
     scenarios: str = "grid"

@@ -165,7 +165,7 @@ def growth_exponents(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
 
 @dataclass(frozen=True)
 class Config:
-    """The benchmark's keys (``recipes/conf/bench_scale.yaml``)."""
+    """The benchmark's keys (``irdrc/conf/bench_scale.yaml``)."""
 
     scenarios: tuple[str, ...] = ("paper", "large")
     states: tuple[int, ...] = (1000, 10_000, 100_000, 1_000_000)

@@ -54,7 +54,7 @@ THRESHOLDS = (0.95, 0.99)
 
 @dataclass(frozen=True)
 class Config:
-    """The benchmark's keys (``recipes/conf/bench_timeshare.yaml``); ``planned``: every run, checked
+    """The benchmark's keys (``irdrc/conf/bench_timeshare.yaml``); ``planned``: every run, checked
     (``irdrc.sweeps.trials.plan``), and ``owner``: each run's (learner, scenario)."""
 
     learners: tuple[str, ...] = tuple(LEARNERS)

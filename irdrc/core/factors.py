@@ -132,7 +132,7 @@ class FactorSpec:
         return len(self.transition)
 
     def as_config(self) -> dict[str, Any]:
-        """The config mapping (without ``name``), as written in an ``envs/`` file."""
+        """The config mapping (without ``name``), as written in an ``irdrc/scenarios/`` file."""
         out: dict[str, Any] = {
             "levels": list(self.levels),
             "transition": [list(r) for r in self.transition],

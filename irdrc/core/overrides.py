@@ -34,7 +34,7 @@ def apply_overrides(merged: dict[str, Any], overrides: Mapping[str, Any]) -> Non
         if len(parts) == 1 and not isinstance(value, Mapping):
             raise ValueError(
                 f"{key}={value!r}: a section is a mapping of its keys ({key}={{'p1': {{'speed': "
-                f"0.5}}}} or **{{'{key}.p1.speed': 0.5}}); a named scenario of envs/ is "
+                f"0.5}}}} or **{{'{key}.p1.speed': 0.5}}); a named scenario of irdrc/scenarios/ is "
                 f"irdrc.scenario({value!r}), a Params"
             )
         target = merged

@@ -133,7 +133,8 @@ _ENV_NUMBERS = (
 
 @dataclass(frozen=True)
 class EnvParams:
-    """The environment of MODEL.md. Defaults are the paper scenario (``envs/paper.yaml``).
+    """The environment of MODEL.md. Defaults are the paper scenario
+    (``irdrc/scenarios/paper.yaml``).
 
     Attributes:
         queue_capacity: D, packets the data queue holds (paper: 10).

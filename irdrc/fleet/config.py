@@ -1,7 +1,7 @@
-"""The fleet's configuration in the recipes' style: ``env=fleet`` (``envs/fleet.yaml``, the paper's
-vehicle plus the fleet keys) with ``env.vehicles``, ``env.channels``, ``env.access``, ``env.share``
-and ``env.observe`` beside every single-vehicle ``env.*`` / ``reward.*`` key, validated before any
-work."""
+"""The fleet's configuration in the recipes' style: ``env=fleet``
+(``irdrc/scenarios/fleet.yaml``, the paper's vehicle plus the fleet keys) with ``env.vehicles``,
+``env.channels``, ``env.access``, ``env.share`` and ``env.observe`` beside every single-vehicle
+``env.*`` / ``reward.*`` key, validated before any work."""
 
 from __future__ import annotations
 

@@ -51,8 +51,8 @@ def fleet_spec(overrides: Mapping[str, Any]) -> tuple[FleetSpec, str]:
     nested), on top of ``env=fleet``'s defaults (two of the paper's vehicles)."""
     if isinstance(overrides.get("env"), str):
         raise ValueError(
-            f"env={overrides['env']!r}: parallel_env is the fleet of envs/fleet.yaml, overrides on "
-            "top of it (**{'env.vehicles': 4, 'env.share': 0.5}); a FleetSpec as spec= builds any "
+            f"env={overrides['env']!r}: parallel_env is the fleet of irdrc/scenarios/fleet.yaml, "
+            "overrides on top of it (**{'env.vehicles': 4, 'env.share': 0.5}); a FleetSpec as spec= builds any "
             "other"
         )
     merged = Params().to_dict()

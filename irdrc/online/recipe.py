@@ -40,7 +40,7 @@ SAFE_END_THRESHOLD = 0.95
 a warning (it is read against the LP at its ``target_miss``, not the unconstrained optimum)."""
 
 DEFAULT_LEARNER = "posterior"
-"""``learner=`` when none is given (``recipes/conf/online.yaml`` says the same)."""
+"""``learner=`` when none is given (``irdrc/conf/online.yaml`` says the same)."""
 
 
 def _algo(data: Any, prefix: str) -> Any:
@@ -49,7 +49,7 @@ def _algo(data: Any, prefix: str) -> Any:
 
 @dataclass(frozen=True)
 class Config(Learning):
-    """The keys of ``recipes/conf/online.yaml``."""
+    """The keys of ``irdrc/conf/online.yaml``."""
 
     params: Params = field(default=None, metadata=ONE_VEHICLE)
     learner: str = DEFAULT_LEARNER

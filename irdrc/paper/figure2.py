@@ -43,7 +43,7 @@ class Learner:
 
 @dataclass(frozen=True)
 class Config:
-    """The figure's keys (``recipes/conf/figure2.yaml``); ``planned``: every training run, checked
+    """The figure's keys (``irdrc/conf/figure2.yaml``); ``planned``: every training run, checked
     (``plan_figure2``)."""
 
     params: Params = field(default=None, metadata=ONE_VEHICLE)

@@ -90,7 +90,7 @@ class Learned:
 
 @dataclass(frozen=True)
 class Config:
-    """The trade-off's keys (``recipes/conf/tradeoff.yaml``); ``planned``: DQN's runs, checked."""
+    """The trade-off's keys (``irdrc/conf/tradeoff.yaml``); ``planned``: DQN's runs, checked."""
 
     params: Params = field(default=None, metadata=ONE_VEHICLE)
     r4: tuple[float, ...] = (5.0, 10.0, 25.0, 50.0, 100.0, 200.0)

@@ -23,7 +23,7 @@ POLICIES = ("round_robin", "always_radar", "always_comm", "random")
 
 @dataclass(frozen=True)
 class Config:
-    """The demo's keys (``recipes/conf/demo.yaml``)."""
+    """The demo's keys (``irdrc/conf/demo.yaml``)."""
 
     params: Params = field(default=None, metadata=ONE_VEHICLE)
     eval: Eval = field(default_factory=Eval)

@@ -41,7 +41,7 @@ ELSEWHERE = {
 
 @dataclass(frozen=True)
 class Config(OneVehicleLearning):
-    """The main job's keys (``recipes/conf/dqn.yaml``)."""
+    """The main job's keys (``irdrc/conf/dqn.yaml``)."""
 
     algo: DQNConfig = algo_field(DQNConfig)
 

@@ -36,7 +36,7 @@ NAME = "evaluate"
 
 @dataclass(frozen=True)
 class Config:
-    """The evaluation's keys (``recipes/conf/evaluate.yaml``): exactly one of ``checkpoint`` and
+    """The evaluation's keys (``irdrc/conf/evaluate.yaml``): exactly one of ``checkpoint`` and
     ``policy``; ``target_miss`` (optional) reads a comm/radar policy against the LP at that
     target too."""
 

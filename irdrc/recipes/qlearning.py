@@ -37,7 +37,7 @@ TABLES_LIMIT_BYTES = 4 * 2**30
 
 @dataclass(frozen=True)
 class Config(Learning):
-    """Q-learning's keys (``recipes/conf/qlearning.yaml``)."""
+    """Q-learning's keys (``irdrc/conf/qlearning.yaml``)."""
 
     params: Params = field(default=None, metadata=ONE_VEHICLE)
     algo: QLearningConfig = field(default_factory=QLearningConfig)

@@ -43,7 +43,7 @@ and the stationary solve's steps (docs/SCALE.md: ``large`` takes 104 + 450 at ev
 
 @dataclass(frozen=True)
 class Config:
-    """The solve's keys (``recipes/conf/solve.yaml``)."""
+    """The solve's keys (``irdrc/conf/solve.yaml``)."""
 
     model: Any = field(default=None, metadata=ONE_OR_FLEET)
     eval: Eval = field(default_factory=Eval)

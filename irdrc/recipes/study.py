@@ -46,7 +46,7 @@ THRESHOLDS = (0.95, 0.99)
 
 @dataclass(frozen=True)
 class Config:
-    """The study's keys (``recipes/conf/study.yaml``); ``planned``: each (learner, scenario)'s
+    """The study's keys (``irdrc/conf/study.yaml``); ``planned``: each (learner, scenario)'s
     typed config, composed and checked at load."""
 
     scenarios: tuple[str, ...] = ("paper", "multilevel", "large")

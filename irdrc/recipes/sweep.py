@@ -43,7 +43,7 @@ class Grid:
 
 @dataclass(frozen=True)
 class Config:
-    """The sweep's keys (``recipes/conf/sweep.yaml``); ``planned``: every grid point, checked."""
+    """The sweep's keys (``irdrc/conf/sweep.yaml``); ``planned``: every grid point, checked."""
 
     method: str = "dqn"
     sweep: Grid = field(default_factory=Grid)

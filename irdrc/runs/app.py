@@ -21,9 +21,11 @@ from types import ModuleType
 from typing import Any
 
 from irdrc.runs.compose import (
+    CONF_DIR,
     Composed,
     _flat_keys,
     compose_recipe,
+    recipe_call,
     stored_overrides,
     unknown_key,
 )
@@ -79,8 +81,8 @@ def prepare(module: ModuleType, args: list[str]) -> Prepared:
         wrote = checkpoint_recipe(path, resume)
         if wrote is not None and wrote != module.NAME:
             raise ValueError(
-                f"resume={path} is a checkpoint of recipes/{wrote}.py; go on with it with: "
-                f"{python_command()} recipes/{wrote}.py resume={quoted(path)}"
+                f"resume={path} is a checkpoint of the {wrote} recipe; go on with it with: "
+                f"{python_command()} {recipe_call(wrote)} resume={quoted(path)}"
             )
         if edited := edited_config(path, resume["config"]):
             raise ValueError(
@@ -116,7 +118,7 @@ def _added_key(name: str, composed: Composed, args: list[str], err: ValueError) 
 def _help(module: ModuleType) -> None:
     print((module.__doc__ or module.NAME).strip())
     print(
-        f"\nkeys and their defaults: recipes/conf/{module.NAME}.yaml (every key: docs/CONFIG.md); "
+        f"\nkeys and their defaults: {CONF_DIR / module.NAME}.yaml (every key: docs/CONFIG.md); "
         "override any as key=value, the run directory as hydra.run.dir=DIR"
     )
 
@@ -180,10 +182,11 @@ def fail(message: str, code: int = EXIT_USAGE) -> int:
     return code
 
 
-def main(module: ModuleType) -> None:
-    """The entry point of ``recipes/<name>.py``: run the recipe on the command line, exit with
-    its status (by ``os._exit`` where an interrupted solver call still runs: ``solver_running``)."""
-    code = execute(module, sys.argv[1:])
+def main(module: ModuleType, args: list[str] | None = None) -> None:
+    """The entry point of ``recipes/<name>.py`` and of ``irdrc NAME``: run the recipe on the
+    command line (``args``, default ``sys.argv[1:]``), exit with its status (by ``os._exit``
+    where an interrupted solver call still runs: ``solver_running``)."""
+    code = execute(module, sys.argv[1:] if args is None else args)
     cmdp = sys.modules.get("irdrc.core.cmdp")
     if cmdp is not None and cmdp.solver_running():
         sys.stdout.flush()

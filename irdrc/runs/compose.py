@@ -1,5 +1,6 @@
-"""A recipe's config, composed once: Hydra's config groups (``recipes/conf``, scenarios in
-``envs/``) and its override grammar, one compose per run, turned into plain containers at once.
+"""A recipe's config, composed once: Hydra's config groups (``irdrc/conf``, scenarios in
+``irdrc/scenarios``, both shipped inside the package) and its override grammar, one compose per
+run, turned into plain containers at once.
 
 A scenario file holds the ``env`` keys of MODEL.md. It may start with ``defaults: [other]`` to take
 another scenario's values first and override some of them (``ref_impl.yaml`` does).
@@ -21,9 +22,11 @@ from irdrc.runs.grid import is_scenario_key, override_key
 if TYPE_CHECKING:
     from irdrc.core.params import Params
 
-ROOT = Path(__file__).resolve().parents[2]
-ENVS_DIR = ROOT / "envs"
-CONF_DIR = ROOT / "recipes" / "conf"
+PACKAGE = Path(__file__).resolve().parents[1]
+ENVS_DIR = PACKAGE / "scenarios"
+"""The scenarios (the config group ``env``), package data: an installed wheel has them too."""
+CONF_DIR = PACKAGE / "conf"
+"""The recipes' Hydra configs (``dqn.yaml``, ``algo/``, …), package data."""
 
 OPTIONAL_KEYS = (
     "env.factors",
@@ -40,21 +43,30 @@ OPTIONAL_KEYS = (
 one adds it (Hydra's ``++``); ``Params`` validates them."""
 
 
+def recipe_call(name: str) -> str:
+    """What follows ``python`` to run recipe ``name`` from the working directory: its script
+    (``recipes/NAME.py``) in a checkout of irdrc, else ``-m irdrc NAME`` (the installed package;
+    it works from any directory)."""
+    return (
+        f"recipes/{name}.py" if (Path("recipes") / f"{name}.py").is_file() else f"-m irdrc {name}"
+    )
+
+
 def list_scenarios(envs_dir: Path = ENVS_DIR) -> list[str]:
-    """Names of the scenarios in ``envs/``."""
+    """Names of the scenarios in ``irdrc/scenarios/``."""
     return sorted(p.stem for p in envs_dir.glob("*.yaml"))
 
 
 def fleet_scenarios(envs_dir: Path = ENVS_DIR) -> list[str]:
-    """Names of the scenarios in ``envs/`` that are fleets of vehicles (they set ``vehicles``,
-    themselves or through their defaults)."""
+    """Names of the scenarios in ``irdrc/scenarios/`` that are fleets of vehicles (they set
+    ``vehicles``, themselves or through their defaults)."""
     return [n for n in list_scenarios(envs_dir) if "vehicles" in load_scenario(n, envs_dir)]
 
 
 def scenario(name: str, overrides: Mapping[str, Any] | None = None, /, **more: Any) -> Params:
-    """The ``Params`` of the named scenario ``name`` (``envs/<name>.yaml``, one vehicle) with
-    ``overrides`` named as on the command line (``{"env.p1.speed": 0.5, "reward.r4": 50}``, as a
-    mapping or as keywords: ``**{"env.p1.speed": 0.5}``), the paper's reward:
+    """The ``Params`` of the named scenario ``name`` (``irdrc/scenarios/<name>.yaml``, one
+    vehicle) with ``overrides`` named as on the command line (``{"env.p1.speed": 0.5, "reward.r4":
+    50}``, as a mapping or as keywords: ``**{"env.p1.speed": 0.5}``), the paper's reward:
     ``irdrc.scenario("multilevel")``, for the gym id (``params=``) or any model.
 
     Raises:
@@ -199,7 +211,7 @@ def prepare_overrides(config_name: str, overrides: list[str]) -> list[str]:
 
 
 def _initialised():
-    """Hydra initialised on ``recipes/conf`` for one compose (global state restored after)."""
+    """Hydra initialised on ``irdrc/conf`` for one compose (global state restored after)."""
     from hydra import initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
 
@@ -222,7 +234,7 @@ def _initialised():
 
 
 def compose(config_name: str, overrides: list[str] | tuple = ()) -> Composed:
-    """Compose ``recipes/conf/<config_name>.yaml`` with command-line ``overrides`` — once — into
+    """Compose ``irdrc/conf/<config_name>.yaml`` with command-line ``overrides`` — once — into
     plain containers. ``hydra.*`` overrides set the run's own settings (``hydra.run.dir``).
 
     Raises:
@@ -272,7 +284,7 @@ def _check_choices(config_name: str, args: list[str]) -> None:
                 users = sorted(p.stem for p in CONF_DIR.glob("*.yaml") if key in _groups_of(p.stem))
                 raise ValueError(
                     f"{config_name} has no {key}: {key}= is for "
-                    + ", ".join(f"python recipes/{u}.py" for u in users)
+                    + ", ".join(f"python {recipe_call(u)}" for u in users)
                 )
             if value not in group_options(key):
                 options = ", ".join(group_options(key))

@@ -349,7 +349,7 @@ ADVICE = {
     "where this profile reached 0 of 5; docs/BENCHMARKS.md)",
 }
 """The one override most likely to help a learner that ends below the threshold, by profile (every
-profile the main job's and Q-learning's recipes run, ``recipes/conf/algo``)."""
+profile the main job's and Q-learning's recipes run, ``irdrc/conf/algo``)."""
 
 
 def end_warning(

@@ -21,7 +21,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-from irdrc.runs.compose import Composed
+from irdrc.runs.compose import Composed, recipe_call
 from irdrc.runs.results import atomic_write, atomic_write_text, write_summary
 from irdrc.runs.sections import Logger
 from irdrc.runs.signals import RunInterrupted, RunSignals, StopFlag, stop_on_signals
@@ -77,7 +77,7 @@ def resume_hint(recipe: str, directory: Path) -> str:
     path = directory / "checkpoint.pt"
     if not path.is_file():
         return ""
-    return f"; go on with: {python_command()} recipes/{recipe}.py resume={quoted(path)}"
+    return f"; go on with: {python_command()} {recipe_call(recipe)} resume={quoted(path)}"
 
 
 def quiet_libraries() -> None:
@@ -153,7 +153,7 @@ class Run:
             ) from None
         self._lock.seek(0)
         self._lock.truncate()
-        self._lock.write(f"process {os.getpid()} (python recipes/{self.recipe}.py)\n")
+        self._lock.write(f"process {os.getpid()} (python {recipe_call(self.recipe)})\n")
         self._lock.flush()
         self._record()
         self._log = open(self.dir / f"{self.recipe}.log", "a", encoding="utf-8")  # noqa: SIM115
@@ -368,7 +368,7 @@ class Run:
         if interrupted_at is not None:
             signum = (self.stop.signal if self.stop else None) or signal.SIGINT
             how = (
-                f"go on with: {python_command()} recipes/{self.recipe}.py resume="
+                f"go on with: {python_command()} {recipe_call(self.recipe)} resume="
                 f"{quoted(self.dir / 'checkpoint.pt')} (it goes on in the same directory with the "
                 "same configuration)"
             )

@@ -187,8 +187,8 @@ def check_speeds(key: str, speeds: tuple[float, ...], params: Params) -> None:
 
 
 def one_vehicle_scenarios(key: str, value: Any, empty: bool = False) -> tuple[str, ...]:
-    """A list of named scenarios (``envs/``) of one vehicle each: a fleet is refused, naming the
-    fleet's recipes."""
+    """A list of named scenarios (``irdrc/scenarios/``) of one vehicle each: a fleet is refused,
+    naming the fleet's recipes."""
     fleets = fleet_scenarios()
     allowed = [n for n in list_scenarios() if n not in fleets]
     out = checks.check_list(key, value, empty=empty, distinct=True)

@@ -23,7 +23,7 @@ from pathlib import Path
 from types import ModuleType
 from typing import Any
 
-from irdrc.runs.compose import SeededCompose
+from irdrc.runs.compose import SeededCompose, recipe_call
 from irdrc.runs.grid import (
     format_value,
     point_id,
@@ -152,7 +152,7 @@ def _kept(cfg: Executor, trial_dir: Path) -> bool:
 def go_on_command(out: Path, recipe: str = "sweep") -> str:
     """The command that goes on with the interrupted run in ``out``: its recipe with
     ``resume=true`` and the directory (the run's stored overrides come back on their own)."""
-    return f"python recipes/{recipe}.py resume=true hydra.run.dir={shell_quote(str(out))}"
+    return f"python {recipe_call(recipe)} resume=true hydra.run.dir={shell_quote(str(out))}"
 
 
 def _run_local(todo: list[dict], already: int, total: int, trials_dir: Path) -> None:

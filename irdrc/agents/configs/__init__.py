@@ -4,7 +4,7 @@ learner family.
 Pure Python (no torch): a recipe builds and checks its whole config — learner included — before
 anything heavy is imported, so a bad value is refused in well under a second. Each key is named as
 on the command line (``algo.lr``, ``network.hidden``); docs/DQN.md says why each default is what
-it is, and ``recipes/conf/algo/*.yaml`` holds the same values (a test holds the two together).
+it is, and ``irdrc/conf/algo/*.yaml`` holds the same values (a test holds the two together).
 """
 
 from irdrc.agents.configs.fleet import (

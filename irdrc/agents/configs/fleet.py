@@ -33,7 +33,7 @@ machinery (section ``algo``)."""
 
 @dataclass(frozen=True)
 class FleetPPOConfig(PPOConfig):
-    """PPO's keys for the fleet (section ``ppo`` of ``recipes/conf/fleet.yaml``), counted in fleets
+    """PPO's keys for the fleet (section ``ppo`` of ``irdrc/conf/fleet.yaml``), counted in fleets
     and fleet steps: ``num_envs`` fleets, ``frames_per_batch`` fleet steps a rollout."""
 
     num_envs: int = 500

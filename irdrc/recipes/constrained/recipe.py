@@ -103,7 +103,7 @@ def _lagrangian(data: Any, prefix: str) -> LagrangianConfig:
 
 @dataclass(frozen=True)
 class Config(Learning):
-    """The constrained recipe's keys (``recipes/conf/constrained.yaml``)."""
+    """The constrained recipe's keys (``irdrc/conf/constrained.yaml``)."""
 
     params: Params = field(default=None, metadata=ONE_VEHICLE)
     algo: LagrangianConfig = field(

@@ -70,7 +70,7 @@ def _learner(data: Any, prefix: str) -> FleetLearnerConfig:
 
 @dataclass(frozen=True)
 class Config(Learning):
-    """The fleet recipe's keys (``recipes/conf/fleet.yaml``)."""
+    """The fleet recipe's keys (``irdrc/conf/fleet.yaml``)."""
 
     fleet: Any = field(default=None, metadata=A_FLEET)
     learner: FleetLearnerConfig = field(

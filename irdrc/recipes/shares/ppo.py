@@ -25,7 +25,7 @@ RESUMABLE = True
 
 @dataclass(frozen=True)
 class Config(OneVehicleLearning):
-    """The PPO recipe's keys (``recipes/conf/ppo.yaml``)."""
+    """The PPO recipe's keys (``irdrc/conf/ppo.yaml``)."""
 
     algo: PPOConfig = algo_field(PPOConfig)
 

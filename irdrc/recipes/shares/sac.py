@@ -25,7 +25,7 @@ RESUMABLE = True
 
 @dataclass(frozen=True)
 class Config(OneVehicleLearning):
-    """The SAC recipe's keys (``recipes/conf/sac.yaml``)."""
+    """The SAC recipe's keys (``irdrc/conf/sac.yaml``)."""
 
     algo: SACConfig = algo_field(SACConfig)
 

@@ -221,42 +221,25 @@ def test_the_built_wheel_runs_away_from_the_checkout(tmp_path):
         "env = gymnasium.make('irdrc/DFRC-v0', params=p)\n"
         "print(p.env.num_states, env.unwrapped.params.env.num_states)\n"
     )
-    lib = subprocess.run(
-        [sys.executable, "-c", code], capture_output=True, text=True, cwd=work, env=env
-    )
+
+    def python(*args: str) -> subprocess.CompletedProcess:
+        return subprocess.run(
+            [sys.executable, *args], capture_output=True, text=True, cwd=work, env=env, timeout=300
+        )
+
+    lib = python("-c", code)
     assert lib.returncode == 0, lib.stderr
     assert lib.stdout.split() == ["792", "792"]
-    listing = subprocess.run(
-        [sys.executable, "-m", "irdrc"], capture_output=True, text=True, cwd=work, env=env
-    )
+    listing = python("-m", "irdrc")
     assert listing.returncode == 0 and "bench_online" in listing.stdout, listing.stderr
-    solve = subprocess.run(
-        [sys.executable, "-m", "irdrc", "solve", "env=multilevel", "eval.mc_episodes=0"],
-        capture_output=True,
-        text=True,
-        cwd=work,
-        env=env,
-        timeout=300,
-    )
+    solve = python("-m", "irdrc", "solve", "env=multilevel", "eval.mc_episodes=0")
     assert solve.returncode == 0, solve.stderr
     (summary,) = work.glob("outputs/*/*/summary.json")
     assert json.loads(summary.read_text())["optimal"]["avg_reward"] > 0
-    irdrc_run = [sys.executable, "-m", "irdrc"]
-    ql = subprocess.run(
-        [*irdrc_run, "qlearning", "algo.episodes=2", "eval.mc_episodes=0", "hydra.run.dir=q"],
-        capture_output=True,
-        text=True,
-        cwd=work,
-        env=env,
-        timeout=300,
+    ql = python(
+        "-m", "irdrc", "qlearning", "algo.episodes=2", "eval.mc_episodes=0", "hydra.run.dir=q"
     )
     assert ql.returncode == 0, ql.stderr
-    wrong = subprocess.run(
-        [*irdrc_run, "dqn", "resume=q/checkpoint.pt"],
-        capture_output=True,
-        text=True,
-        cwd=work,
-        env=env,
-    )
+    wrong = python("-m", "irdrc", "dqn", "resume=q/checkpoint.pt")
     assert wrong.returncode == 2
     assert wrong.stderr.strip().endswith("-m irdrc qlearning resume=q/checkpoint.pt"), wrong.stderr

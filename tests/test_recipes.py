@@ -267,6 +267,21 @@ def test_cli_runs_the_module_each_script_runs_with_its_summary():
         assert " ".join(doc.strip().split("\n\n")[0].split()) == what, name
 
 
+def test_cli_lists_every_scenario_with_its_purpose(capsys, tmp_path):
+    """``irdrc`` lists each named scenario with the first line of its file; a scenario file that
+    does not open with its purpose is named."""
+    from irdrc.runs.cli import main
+    from irdrc.runs.compose import scenario_purposes
+
+    assert main([]) == 0
+    out = capsys.readouterr().out.split("scenarios (env=NAME):\n", 1)[1]
+    assert "  multilevel       Speed low / medium / high and traffic density" in out
+    assert len(out.strip().splitlines()) == len(scenario_purposes()) >= 7
+    (tmp_path / "mine.yaml").write_text("queue_capacity: 5\n")
+    with pytest.raises(ValueError, match=r"mine\.yaml: its first line must say its purpose"):
+        scenario_purposes(tmp_path)
+
+
 def test_a_recipe_is_named_as_the_user_can_run_it(tmp_path, monkeypatch):
     """Resume hints name ``recipes/NAME.py`` where the working directory is a checkout, and
     ``-m irdrc NAME`` elsewhere (an installed package, or another directory)."""

@@ -9,7 +9,7 @@ import importlib
 import sys
 
 from irdrc.core.checks import closest
-from irdrc.runs.compose import list_scenarios
+from irdrc.runs.compose import scenario_purposes
 
 RECIPES: dict[str, tuple[str, str]] = {
     "dqn": (
@@ -134,7 +134,11 @@ def main(argv: list[str] | None = None) -> int:
         width = max(map(len, known))
         for name, what in known.items():
             print(f"  {name:<{width}}  {what}")
-        print(f"\nscenarios: {', '.join(list_scenarios())}  (env=NAME)")
+        print("\nscenarios (env=NAME):")
+        purposes = scenario_purposes()
+        width = max(map(len, purposes))
+        for name, purpose in purposes.items():
+            print(f"  {name:<{width}}  {purpose}")
         return 0
     if args[0] in ("-V", "--version"):
         from importlib.metadata import PackageNotFoundError, version

@@ -57,6 +57,21 @@ def list_scenarios(envs_dir: Path = ENVS_DIR) -> list[str]:
     return sorted(p.stem for p in envs_dir.glob("*.yaml"))
 
 
+def scenario_purposes(envs_dir: Path = ENVS_DIR) -> dict[str, str]:
+    """Each named scenario with its purpose: the first line of its file, a comment.
+
+    Raises:
+        ValueError: a scenario file whose first line is not a comment.
+    """
+    out = {}
+    for name in list_scenarios(envs_dir):
+        first = (envs_dir / f"{name}.yaml").read_text().split("\n", 1)[0]
+        if not first.startswith("#"):
+            raise ValueError(f"{envs_dir / name}.yaml: its first line must say its purpose (# …)")
+        out[name] = first.lstrip("#").strip()
+    return out
+
+
 def fleet_scenarios(envs_dir: Path = ENVS_DIR) -> list[str]:
     """Names of the scenarios in ``irdrc/scenarios/`` that are fleets of vehicles (they set
     ``vehicles``, themselves or through their defaults)."""

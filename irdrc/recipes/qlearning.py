@@ -100,14 +100,14 @@ def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
 def run(cfg: Config, run) -> dict[str, Any]:
     """Train every learner, evaluate, finish the run directory (``irdrc.runs.report``)."""
     from irdrc.agents import qlearning
-    from irdrc.core.exact import Scorer, build_model, require_ratio
+    from irdrc.core.exact import exact_scorer, require_ratio
     from irdrc.runs.report import LearnerRun, finish_learner
     from irdrc.runs.tracking import log_scalars
 
     run.threads(cfg.num_threads)
     logger = run.make_logger(cfg.logger, cfg.algo.name)
     scenarios = cfg.scenarios
-    scorers = [Scorer(build_model(p), cfg.optimum_gamma) for p in scenarios]
+    scorers = [exact_scorer(p, cfg.optimum_gamma) for p in scenarios]  # dense, or factored
     for scorer in scorers:
         require_ratio(scorer)
     total = cfg.algo.episodes * cfg.params.env.horizon

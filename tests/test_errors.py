@@ -87,6 +87,9 @@ def refused(recipe: str, *overrides: str) -> str:
         ("qlearning", ["env.queue_capacity=400000"], "GiB"),
         ("dqn", ["env.queue_capacity=400000"], "GiB"),
         ("tradeoff", ["search.resolution=0.001"], "exact solves"),
+        # the frontier's dense models: at load, with the largest queue that fits (it was the
+        # dense builder's advice to use an operator no key reaches)
+        ("constrained", ["frontier=true", "env.queue_capacity=300"], "env.queue_capacity ≤ 180"),
         ("sweep", ["sweep.grid={}"], "sweep.grid is empty"),
         ("sweep", ["method=sarsa", "sweep.grid={seed: [0]}"], "method='sarsa'"),
         ("dqn", ["algo=qlearning_paper"], "recipes/qlearning.py algo=qlearning_paper"),

@@ -182,8 +182,8 @@ def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
 
         check_shares_fit(cfg.params)
         check_share_lp(cfg.params)
-    if cfg.learner == "dqn_lagrangian":
-        check_dense(cfg.params)  # the learner's exact scorer needs the dense model
+    if cfg.learner == "dqn_lagrangian" or cfg.frontier:
+        check_dense(cfg.params)  # the learner's exact scorer and the frontier's LPs: dense models
     if resume is not None:
         total = cfg.algo.dqn.total_frames
         refuse_finished(cfg.resume, int(resume["frames"]), total, "algo.total_frames", total)

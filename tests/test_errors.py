@@ -90,6 +90,9 @@ def refused(recipe: str, *overrides: str) -> str:
         # the frontier's dense models: at load, with the largest queue that fits (it was the
         # dense builder's advice to use an operator no key reaches)
         ("constrained", ["frontier=true", "env.queue_capacity=300"], "env.queue_capacity ≤ 180"),
+        ("tradeoff", ["env.queue_capacity=300"], "env.queue_capacity ≤ 180"),
+        # … and the figure's exact references, built after its hours of training
+        ("figure2", ["env.queue_capacity=300"], "env.queue_capacity ≤ 180"),
         ("sweep", ["sweep.grid={}"], "sweep.grid is empty"),
         ("sweep", ["method=sarsa", "sweep.grid={seed: [0]}"], "method='sarsa'"),
         ("dqn", ["algo=qlearning_paper"], "recipes/qlearning.py algo=qlearning_paper"),

@@ -23,7 +23,7 @@ from irdrc.recipes.constrained.frontier import optimal_at, ref_params
 from irdrc.runs.compose import Composed
 from irdrc.runs.grid import format_value, parse_grid
 from irdrc.runs.results import atomic_write_text, write_rows_csv
-from irdrc.runs.sections import EXECUTOR, ONE_VEHICLE, Executor, check_common
+from irdrc.runs.sections import EXECUTOR, ONE_VEHICLE, Executor, check_common, check_dense
 from irdrc.sweeps.trials import execute, plan
 
 NAME = "figure2"
@@ -105,6 +105,7 @@ class Config:
 def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
     """The typed config; every training run composed and checked before any work."""
     cfg = build(Config, composed.cfg)
+    check_dense(cfg.params)  # the exact references, after the training: refused before it
     return replace(cfg, planned=tuple(plan_figure2(cfg, composed.scenario_overrides)))
 
 

@@ -33,6 +33,7 @@ from irdrc.runs.sections import (
     ONE_VEHICLE,
     Executor,
     check_common,
+    check_dense,
     check_speeds,
     seeds,
 )
@@ -128,6 +129,7 @@ class Config:
 def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
     """The typed config; DQN's runs composed and checked before any work."""
     cfg = build(Config, composed.cfg)
+    check_dense(cfg.params)  # the exact curves' models, before any work
     if not cfg.dqn.r4:
         return cfg
     base = [

@@ -173,6 +173,9 @@ def test_bad_fleets_are_refused():
         FleetSpec(vehicle={"env.p1.speed": 0.5})
     with pytest.raises(ValueError, match=r"per_vehicle\[1\]=…\) takes a vehicle's Params"):
         FleetSpec(vehicles=2, per_vehicle=(Params(), {"env.p1.speed": 0.5}))
+    big = Params.from_overrides({"env.queue_capacity": 300})  # S = 9 632 per vehicle
+    with pytest.raises(ValueError, match=r"env.queue_capacity=300: a fleet's vehicle .*≤ 255"):
+        FleetModel(FleetSpec(vehicle=big))
     three = FleetModel(FleetSpec(vehicles=3))  # the simulator's tables exist at any N …
     assert not three.exact
     with pytest.raises(ValueError, match="joint states"):  # … the exact solver stops at 2·10⁶

@@ -228,6 +228,7 @@ def test_solve_env_fleet_prints_what_cooperation_is_worth(tmp_path):
         ("fleet.py", ["env.p1.speed=[0.1,1.5]"], "vehicle 2: env.p1.speed"),
         ("fleet.py", ["env.horizon=-1"], "env.horizon"),
         ("solve.py", ["env=fleet", "env.vehicles=3"], "joint states"),
+        ("fleet.py", ["env.queue_capacity=300"], "env.queue_capacity ≤ 255 here"),
         ("dqn.py", ["env=fleet"], "recipes/fleet.py"),
         ("qlearning.py", ["env=fleet"], "recipes/fleet.py"),
     ],

@@ -26,9 +26,12 @@ that another vehicle detects vehicle i's event (cooperative perception); P_d, P_
 
 from __future__ import annotations
 
+import math
+
 import torch
 
 from irdrc.core.exact import build_model
+from irdrc.core.exact.dense import DENSE_MAX_STATES
 from irdrc.core.params import Params
 
 TERMS = (
@@ -63,6 +66,14 @@ class VehicleTables:
     def __init__(self, params: Params, grid: torch.Tensor, cols: torch.Tensor) -> None:
         """``grid`` [RW, X]: the single-vehicle state at each (road and weather, own components);
         ``cols`` [S, 6 or 7]: each single-vehicle state's components (d, c, r, w, v, m[, phase])."""
+        S = params.env.num_states
+        if S > DENSE_MAX_STATES:
+            top = DENSE_MAX_STATES // math.prod(params.env.factor_levels) - 1
+            raise ValueError(
+                f"env.queue_capacity={params.env.queue_capacity}: a fleet's vehicle is built from "
+                f"its single-vehicle dense model, at most {DENSE_MAX_STATES} states "
+                f"(env.queue_capacity ≤ {top} here); this one has S = {S}"
+            )
         single = build_model(params)
         self.single = single
         RW, X = grid.shape

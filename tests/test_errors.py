@@ -130,6 +130,24 @@ def test_bad_input_is_refused_naming_the_key(recipe, overrides, named):
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="a CUDA device is present")
+def test_a_sweep_on_ray_without_ray_says_how_to_get_it(monkeypatch):
+    """Without Ray (an install without the sweep extra) a recipe that runs on Ray is refused at
+    load, saying how to install it or to run without it; ``executor=local`` goes on (it was an
+    ImportError traceback once the sweep started)."""
+    from irdrc.runs import sections
+
+    monkeypatch.setattr(sections, "ray_installed", lambda: False)
+    for recipe, args in (
+        ("sweep", ["sweep.grid={seed: [0]}"]),
+        ("figure2", []),
+        ("bench_robust", []),
+    ):
+        message = refused(recipe, *args)
+        assert message.startswith("executor=ray needs Ray Tune, which is not installed"), recipe
+        assert "pip install 'irdrc[sweep]'" in message and "executor=local" in message
+    assert load("sweep", "sweep.grid={seed: [0]}", "executor=local").executor.executor == "local"
+
+
 def test_an_unknown_key_with_no_near_name_gets_no_guess():
     """``progress`` is a key of the learning recipes, not of evaluate.py: no guess (it was
     'did you mean target_miss?')."""

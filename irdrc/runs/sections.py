@@ -6,6 +6,7 @@ check a CUDA device, when one is asked for).
 
 from __future__ import annotations
 
+import importlib.util
 import math
 from dataclasses import dataclass, field
 from typing import Any
@@ -317,6 +318,11 @@ def ray_host_port(address: Any) -> tuple[str, int] | None:
 EXECUTOR_KEYS = ("executor", "resume", "cpus_per_trial", "max_failures", "storage_path", "ray")
 
 
+def ray_installed() -> bool:
+    """Whether Ray can be imported here (found, not imported: the check costs nothing)."""
+    return importlib.util.find_spec("ray") is not None
+
+
 @dataclass(frozen=True)
 class Executor:
     """How a recipe's many runs execute (the ``executor`` group): on Ray Tune or one after another
@@ -331,6 +337,12 @@ class Executor:
 
     def __post_init__(self) -> None:
         checks.check_choice("executor", self.executor, ("ray", "local"))
+        if self.executor == "ray" and not ray_installed():
+            raise ValueError(
+                "executor=ray needs Ray Tune, which is not installed: pip install 'irdrc[sweep]' "
+                "(in a checkout: bash ci/setup.sh sweep), or executor=local runs the points one "
+                "after another in this process"
+            )
         checks.check_bool("resume", self.resume)
         checks.check_numbers(
             self,

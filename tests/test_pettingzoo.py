@@ -166,3 +166,16 @@ def test_torchrl_pettingzoo_wrapper_reads_it():
     assert td["next", "agents", "observation"].shape == (20, 2, 6)
     assert td["next", "state"].shape == (20, 10)
     assert bool(td["next", "truncated"][-1]) and not bool(td["next", "truncated"][:-1].any())
+
+
+def test_without_pettingzoo_the_error_says_how_to_install_it(monkeypatch):
+    """The fleet's PettingZoo door names the extra that brings PettingZoo (it was Python's bare
+    "No module named 'pettingzoo'")."""
+    import sys
+
+    import irdrc.fleet
+
+    monkeypatch.setitem(sys.modules, "pettingzoo", None)  # an import of it now fails
+    monkeypatch.delitem(sys.modules, "irdrc.fleet.parallel", raising=False)
+    with pytest.raises(ModuleNotFoundError, match=r"pip install 'irdrc\[pettingzoo\]'"):
+        irdrc.fleet.parallel_env()

@@ -23,7 +23,19 @@ and ``irdrc.core``. Nothing from
 
 def parallel_env(*args, **kwargs):
     """The fleet as a PettingZoo ``ParallelEnv`` (``irdrc.fleet.parallel.parallel_env``; imports
-    PettingZoo only when called)."""
-    from irdrc.fleet.parallel import parallel_env as make
+    PettingZoo only when called).
 
+    Raises:
+        ModuleNotFoundError: PettingZoo is not installed (saying how to install it).
+    """
+    try:
+        from irdrc.fleet.parallel import parallel_env as make
+    except ModuleNotFoundError as err:
+        if err.name != "pettingzoo":
+            raise
+        raise ModuleNotFoundError(
+            "irdrc.fleet.parallel_env needs PettingZoo: pip install 'irdrc[pettingzoo]' "
+            "(pettingzoo==1.24.3)",
+            name="pettingzoo",
+        ) from err
     return make(*args, **kwargs)

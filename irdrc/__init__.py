@@ -35,7 +35,7 @@ _LAZY = {
     "EnvParams": "irdrc.core.params",
     "Params": "irdrc.core.params",
     "RewardParams": "irdrc.core.params",
-    "scenario": "irdrc.runs.compose",
+    "scenario": "irdrc.runs.scenarios",
 }
 
 __all__ = sorted(_LAZY)

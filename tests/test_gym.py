@@ -46,7 +46,8 @@ def test_a_named_scenario_is_irdrc_scenario():
     not one vehicle."""
     from irdrc.fleet import parallel_env
     from irdrc.recipes import solve
-    from irdrc.runs.compose import compose, fleet_scenarios, list_scenarios
+    from irdrc.runs.compose import compose
+    from irdrc.runs.scenarios import fleet_scenarios, list_scenarios
 
     assert fleet_scenarios() == ["fleet"]
     for name in list_scenarios():

@@ -7,7 +7,7 @@ from omegaconf import OmegaConf
 
 from irdrc import EnvParams, Params, RewardParams
 from irdrc.core.params import as_dict
-from irdrc.runs.compose import list_scenarios, load_scenario
+from irdrc.runs.scenarios import list_scenarios, load_scenario
 
 
 def test_defaults_are_model_md():

@@ -297,7 +297,7 @@ def test_cli_lists_every_scenario_with_its_purpose(capsys, tmp_path):
     """``irdrc`` lists each named scenario with the first line of its file; a scenario file that
     does not open with its purpose is named."""
     from irdrc.runs.cli import main
-    from irdrc.runs.compose import scenario_purposes
+    from irdrc.runs.scenarios import scenario_purposes
 
     assert main([]) == 0
     out = capsys.readouterr().out.split("scenarios (env=NAME):\n", 1)[1]

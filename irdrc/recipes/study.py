@@ -26,8 +26,9 @@ from irdrc.core.checks import (
 )
 from irdrc.core.metrics import Metrics, first_reaching
 from irdrc.recipes import solve
-from irdrc.runs.compose import Composed, compose, compose_recipe, list_scenarios
+from irdrc.runs.compose import Composed, compose, compose_recipe
 from irdrc.runs.grid import is_scenario_key, override_key
+from irdrc.runs.scenarios import list_scenarios
 from irdrc.runs.sections import check_common, one_vehicle_scenarios
 from irdrc.runs.sections import seeds as distinct_seeds
 

@@ -1,7 +1,7 @@
 """The run machinery every recipe uses: from a command line to a run directory.
 
-- ``compose``: scenarios (``irdrc/scenarios/``) and the one Hydra composition of a run; ``grid``:
-  the command line's grammar (an override's key, ``{key: [values]}`` grids, values as typed);
+- ``scenarios``: the named scenarios (``irdrc/scenarios/``); ``compose``: the one Hydra
+  composition of a run; ``grid``: the command line's grammar (an override's key, ``{key: [values]}`` grids, values as typed);
 - ``app``: what every recipe does around its run (composed once, checked before any work, one-line
   errors); ``cli``: the ``irdrc`` command;
 - ``sections``: the config sections recipes share (scenario, eval, logger, checkpoint, executor …);

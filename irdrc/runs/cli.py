@@ -9,7 +9,7 @@ import importlib
 import sys
 
 from irdrc.core.checks import closest
-from irdrc.runs.compose import scenario_purposes
+from irdrc.runs.scenarios import scenario_purposes
 
 RECIPES: dict[str, tuple[str, str]] = {
     "dqn": (

@@ -15,7 +15,7 @@ from irdrc.core import checks, sizes
 from irdrc.core.params import Params
 from irdrc.fleet.config import fleet_from_config, is_fleet
 from irdrc.fleet.spec import FleetSpec
-from irdrc.runs.compose import fleet_scenarios, list_scenarios
+from irdrc.runs.scenarios import fleet_scenarios, list_scenarios
 
 BACKENDS = ("none", "csv", "tensorboard", "wandb")
 WANDB_MODES = ("auto", "online", "offline", "disabled")

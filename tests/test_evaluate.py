@@ -317,3 +317,32 @@ def test_a_table_of_another_state_space_says_what_must_match(tmp_path):
     write_policy_csv(tmp_path / "r.csv", rho, longer.env.factor_levels, shares=())
     with pytest.raises(ValueError, match=r"S = 352 states \(a table fits the state space"):
         read_share_csv(tmp_path / "r.csv", 352)
+
+
+@pytest.mark.parametrize("kind", ["policy", "share"])
+def test_a_table_that_is_not_text_is_refused_with_its_name(tmp_path, kind):
+    """A policy file that is not UTF-8 text is refused with its path. The policy reader's message
+    asked the decode error for an OSError's ``strerror`` and died with an AttributeError; the
+    share reader and ``evaluate.py``'s header check let the bare decode error through."""
+    from irdrc.runs.tables import read_policy_csv, read_share_csv
+
+    path = tmp_path / "policy.csv"
+    path.write_bytes(b"d,c,r,w,v,m,action,p_radar\n\xff\xfe\x00\n")
+    read = read_policy_csv if kind == "policy" else lambda p: read_share_csv(p, 352)
+    with pytest.raises(ValueError, match=r"policy\.csv: not a text table \(byte \d+"):
+        read(path)
+    with pytest.raises(ValueError, match="not a readable file"):
+        read(tmp_path / "absent.csv")
+
+
+def test_evaluate_refuses_a_table_that_is_not_text(tmp_path, capsys):
+    """``evaluate.py policy=`` on a binary file names the file (it printed the decode error
+    alone)."""
+    from irdrc.recipes import evaluate
+    from irdrc.runs.app import execute
+
+    path = tmp_path / "policy.csv"
+    path.write_bytes(b"\xff\xfe" * 64)
+    out = [f"hydra.run.dir={tmp_path / 'e'}", "eval.mc_episodes=0"]
+    assert execute(evaluate, [f"policy={path}", *out]) == 2
+    assert f"{path}: not a text table" in capsys.readouterr().err

@@ -178,16 +178,16 @@ def load_source(cfg: Config) -> tuple[Any, str, str]:
         path = check_file("checkpoint", Path(str(cfg.checkpoint)).expanduser(), "checkpoint.pt")
         return network_table(path, params)
     path = check_file("policy", Path(str(cfg.policy)).expanduser(), "policy.csv")
-    header = path.open().readline()
+    from irdrc.runs.tables import read_csv_rows, read_policy_csv, read_share_csv
+
+    header = read_csv_rows(path)[0]
     if "action1" in header:
         raise ValueError(
             f"policy={path}: a fleet run's policy.csv (one joint action per joint state); evaluate "
             "scores single-vehicle policies — a fleet's are scored by recipes/fleet.py and "
             "recipes/solve.py env=fleet"
         )
-    from irdrc.runs.tables import read_policy_csv, read_share_csv
-
-    if "rho" in header.strip().split(","):
+    if "rho" in header:
         rho = read_share_csv(path, params.env.num_states)
         return rho, f"radar-share policy table {path}", "rho"
     policy = read_policy_csv(path, num_states=params.env.num_states, probabilities=True)

@@ -53,6 +53,14 @@ def test_scenario_files():
         load_scenario("nope")
 
 
+def test_a_scenario_file_that_is_a_list_is_refused_by_name(tmp_path):
+    """A scenario file holding a YAML list (not a mapping of env keys) is refused with its path
+    (it failed inside OmegaConf, asking a list for its ``defaults``)."""
+    (tmp_path / "listed.yaml").write_text("# a list\n- queue_capacity: 5\n")
+    with pytest.raises(ValueError, match=r"listed\.yaml: a scenario file holds a mapping"):
+        load_scenario("listed", tmp_path)
+
+
 BAD = [
     ("env.queue_capacity", 0),
     ("env.queue_capacity", 2.5),

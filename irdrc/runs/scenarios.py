@@ -11,9 +11,11 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, cast
 
 if TYPE_CHECKING:
+    from omegaconf import DictConfig
+
     from irdrc.core.params import Params
 
 ENVS_DIR = Path(__file__).resolve().parents[1] / "scenarios"
@@ -61,7 +63,7 @@ def scenario(name: str, overrides: Mapping[str, Any] | None = None, /, **more: A
     from irdrc.core.overrides import apply_overrides
     from irdrc.core.params import Params
 
-    env = OmegaConf.to_container(load_scenario(name), resolve=True)
+    env = cast(dict[str, Any], OmegaConf.to_container(load_scenario(name), resolve=True))
     if "vehicles" in env:
         raise ValueError(
             f"scenario {name!r} is a fleet of vehicles: irdrc.fleet.parallel_env(**overrides) "
@@ -72,13 +74,13 @@ def scenario(name: str, overrides: Mapping[str, Any] | None = None, /, **more: A
     return Params.from_config(merged, strict=False)
 
 
-def load_scenario(name: str, envs_dir: Path = ENVS_DIR, _seen: tuple[str, ...] = ()):
+def load_scenario(name: str, envs_dir: Path = ENVS_DIR, _seen: tuple[str, ...] = ()) -> DictConfig:
     """The ``env`` config of scenario ``name`` (an OmegaConf node), its ``defaults`` resolved.
 
     Raises:
-        ValueError: unknown scenario, or a cycle in ``defaults``.
+        ValueError: unknown scenario, a file that is not a mapping, or a cycle in ``defaults``.
     """
-    from omegaconf import OmegaConf
+    from omegaconf import DictConfig, OmegaConf
 
     path = envs_dir / f"{name}.yaml"
     if not path.is_file():
@@ -88,12 +90,14 @@ def load_scenario(name: str, envs_dir: Path = ENVS_DIR, _seen: tuple[str, ...] =
     if name in _seen:
         raise ValueError(f"scenario defaults form a cycle: {' -> '.join((*_seen, name))}")
     node = OmegaConf.load(path)
+    if not isinstance(node, DictConfig):
+        raise ValueError(f"{path}: a scenario file holds a mapping of env keys, not a list")
     bases = node.pop("defaults", [])
-    merged = OmegaConf.create()
+    merged: Any = OmegaConf.create()
     for base in bases:
         if base != "_self_":
             merged = OmegaConf.merge(merged, load_scenario(str(base), envs_dir, (*_seen, name)))
-    return OmegaConf.merge(merged, node)
+    return cast(DictConfig, OmegaConf.merge(merged, node))
 
 
 _REGISTERED: set[str] = set()

@@ -15,7 +15,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import torch
 
@@ -39,6 +39,57 @@ PROGRESS_FIELDS = (
 
 EPISODE_FIELDS = ("learner", "episode", "env_steps", "reward")
 """One finished training episode (exploration included): the columns of ``episode_rewards.csv``."""
+
+
+class BatchSchedule(Protocol):
+    """What the shared training loop, its collector and its optimiser read of a learner's
+    hyperparameters (``OffPolicyConfig``, ``SACConfig``, ``PPOConfig``, ``FleetPPOConfig``)."""
+
+    @property
+    def name(self) -> str: ...
+
+    @property
+    def num_envs(self) -> int: ...
+
+    @property
+    def frames_per_batch(self) -> int: ...
+
+    @property
+    def total_frames(self) -> int: ...
+
+    @property
+    def init_random_frames(self) -> int: ...
+
+    @property
+    def batch_size(self) -> int: ...
+
+    @property
+    def updates_per_batch(self) -> int: ...
+
+    @property
+    def prioritized(self) -> bool: ...
+
+    @property
+    def lr(self) -> float: ...
+
+    @property
+    def lr_end(self) -> float: ...
+
+
+class ReplayConfig(Protocol):
+    """What replay is built from (``OffPolicyConfig``, ``SACConfig``)."""
+
+    @property
+    def buffer_size(self) -> int: ...
+
+    @property
+    def prioritized(self) -> bool: ...
+
+    @property
+    def alpha(self) -> float: ...
+
+    @property
+    def batch_size(self) -> int: ...
 
 
 @dataclass
@@ -83,6 +134,11 @@ class Hooks:
             self._last_checkpoint = time.monotonic()
         return due
 
+    def checkpoint(self, state: dict[str, Any]) -> None:
+        """Call ``on_checkpoint`` with the resumable ``state`` if set."""
+        if self.on_checkpoint is not None:
+            self.on_checkpoint(state)
+
     def stop_requested(self) -> bool:
         """Whether the caller asked the learner to stop after this batch (e.g. on SIGTERM)."""
         return self.should_stop is not None and self.should_stop()
@@ -98,7 +154,6 @@ class Hooks:
             self.on_batch(info)
 
 
-@dataclass
 class RunContext:
     """How a learner's run is watched and continued — what every learner takes beside its model and
     hyperparameters, passed down as one.
@@ -110,15 +165,18 @@ class RunContext:
         resume: a checkpoint (a ``RunRecord.state``) to go on from, or None.
     """
 
-    scorer: Any
-    eval_every_frames: int
-    hooks: Hooks = field(default_factory=Hooks)
-    resume: dict[str, Any] | None = None
-
-    def __post_init__(self) -> None:
-        if self.eval_every_frames < 1:
-            raise ValueError(f"eval.every_frames={self.eval_every_frames!r} must be >= 1")
-        self.hooks = self.hooks or Hooks()
+    def __init__(
+        self,
+        scorer: Any,
+        eval_every_frames: int,
+        hooks: Hooks | None = None,
+        resume: dict[str, Any] | None = None,
+    ) -> None:
+        if eval_every_frames < 1:
+            raise ValueError(f"eval.every_frames={eval_every_frames!r} must be >= 1")
+        self.scorer, self.eval_every_frames = scorer, eval_every_frames
+        self.hooks = hooks or Hooks()
+        self.resume = resume
 
 
 @dataclass

@@ -16,6 +16,8 @@ from irdrc.fleet.env import GROUP, FleetEnv, fleet_observation, fleet_observatio
 class AgentIndex(nn.Module):
     """Appends each agent's one-hot index to its observation ([..., N, W] → [..., N, W + N])."""
 
+    eye: torch.Tensor
+
     def __init__(self, n_agents: int) -> None:
         super().__init__()
         self.register_buffer("eye", torch.eye(n_agents))

@@ -75,6 +75,8 @@ class TwoHeads(nn.Module):
 class Lagrangian(nn.Module):
     """Q_J − μ·Q_C per action, μ a buffer the dual ascent sets: the acting network's values."""
 
+    mu: torch.Tensor
+
     def __init__(self, heads: TwoHeads, mu: float) -> None:
         super().__init__()
         self.heads = heads
@@ -285,6 +287,10 @@ def train(
         multiplier.trace.append({"env_steps": loop.frames, **scalars})
         return scalars
 
+    def load(resume: dict[str, Any]) -> None:
+        center.load(resume)
+        multiplier.load(resume)
+
     signals = (("next", objective_key), ("next", "missed"), ("next", "event"))
     run = RunContext(scorer, eval_every_frames, hooks, resume)
     loop = TrainingLoop(
@@ -303,7 +309,7 @@ def train(
         collected=collected,
         after_batch=after_batch,
         state=lambda: {**center.state(), **multiplier.state()},
-        load=lambda resume: (center.load(resume), multiplier.load(resume)),
+        load=load,
     )
     record = loop.run(learner)
     record.info["mu_trace"] = multiplier.trace
@@ -311,14 +317,14 @@ def train(
         return record
     # The final policy, from measurements on a separate batch of envs (counted in env_steps and
     # in the run's wall time).
-    start = time.perf_counter()
+    measuring = time.perf_counter()
     with policy_view(loss, dq):
         q = heads_table(heads, env)
     mu = float(combined.mu)
     probs, facts = final_policy(q, params, mu, cfg, seed)
     record.measurement_env_steps = int(facts["measure_env_steps"])
     record.env_steps += record.measurement_env_steps
-    record.wall_seconds += time.perf_counter() - start
+    record.wall_seconds += time.perf_counter() - measuring
     record.policy = probs[None]
     record.greedy = (probs[:, 1] > 0.5).long()[None]
     record.q = (q[:, 0] - mu * q[:, 1]).float()[None]

@@ -23,8 +23,7 @@ from torch import nn
 from torchrl.collectors import Collector
 from torchrl.data import TensorDictReplayBuffer
 
-from irdrc.agents.base import RunContext, RunRecord, progress_record
-from irdrc.agents.configs.value import OffPolicyConfig
+from irdrc.agents.base import BatchSchedule, RunContext, RunRecord, progress_record
 from irdrc.agents.offpolicy import STORED_KEYS, EpisodeTracker, anneal
 
 
@@ -95,7 +94,7 @@ class TrainingLoop:
 
     def __init__(
         self,
-        cfg: OffPolicyConfig,
+        cfg: BatchSchedule,
         collector: Collector,
         buffer: TensorDictReplayBuffer,
         sampler: Any,
@@ -249,8 +248,10 @@ class TrainingLoop:
             before = self.frames - data.numel()
             if learner.learn_batch is not None:
                 learned = self.learn_on_policy(learner.learn_batch, data)
-            else:
+            elif learner.update is not None:
                 learned = self.learn(learner.update)
+            else:
+                raise ValueError("a learner has update or learn_batch")
             extra = learner.after_batch(data, learned) if learner.after_batch else {}
             self.hooks.batch(self.scalars(**extra))
             stop = self.hooks.stop_requested()
@@ -258,7 +259,7 @@ class TrainingLoop:
                 self.evaluate(learner)
                 next_eval = (self.frames // every + 1) * every
             if self.hooks.checkpoint_due(before, self.frames) and self.frames < total:
-                self.hooks.on_checkpoint(self.state(learner))
+                self.hooks.checkpoint(self.state(learner))
             if stop:
                 self.record.interrupted = True
                 break

@@ -135,7 +135,8 @@ def train_idqn(model: FleetModel, cfg: OffPolicyConfig, run: RunContext, *, seed
     )
     record.history = [per_fleet(r) for r in record.history]
     record.env_steps //= N
-    record.state = fleet_state(record.state, N)
+    if record.state is not None:
+        record.state = fleet_state(record.state, N)
     return record
 
 

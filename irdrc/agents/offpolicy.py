@@ -25,9 +25,9 @@ from torchrl.data.replay_buffers.samplers import RandomSampler
 from torchrl.envs.transforms import Compose, Transform
 from torchrl.envs.utils import ExplorationType, exploration_type
 from torchrl.modules import MLP, QValueActor
-from torchrl.objectives import SoftUpdate
+from torchrl.objectives import LossModule, SoftUpdate
 
-from irdrc.agents.base import RunRecord
+from irdrc.agents.base import BatchSchedule, ReplayConfig, RunRecord
 from irdrc.agents.configs.value import NetworkConfig, OffPolicyConfig
 from irdrc.agents.levels import DistinctRows
 from irdrc.agents.replay import PackedStorage, make_prioritized_sampler
@@ -51,6 +51,8 @@ STORED_KEYS = (
 
 class Scale(nn.Module):
     """Divides observations by their upper bounds, so every input lies in [0, 1]."""
+
+    inv: torch.Tensor
 
     def __init__(self, high: torch.Tensor) -> None:
         super().__init__()
@@ -169,19 +171,19 @@ class LadderExploration(TensorDictModuleBase):
             random = torch.randint_like(action, self.num_actions)
             tensordict.set(self.action_key, torch.where(explore, random, action))
             return tensordict
-        if self.remaining is None or self.remaining.shape != action.shape:
-            self.remaining = torch.zeros(action.shape, dtype=torch.long, device=action.device)
-            self.held = torch.zeros_like(action)
-        start = (self.remaining == 0) & (torch.rand(action.shape, device=action.device) < eps)
+        remaining, held = self.remaining, self.held
+        if remaining is None or held is None or remaining.shape != action.shape:
+            remaining = torch.zeros(action.shape, dtype=torch.long, device=action.device)
+            held = torch.zeros_like(action)
+        start = (remaining == 0) & (torch.rand(action.shape, device=action.device) < eps)
         k = int(start.sum())
         if k:
-            self.remaining[start] = torch.multinomial(self.duration_p, k, replacement=True) + 1
-            self.held[start] = torch.randint(
+            remaining[start] = torch.multinomial(self.duration_p, k, replacement=True) + 1
+            held[start] = torch.randint(
                 0, self.num_actions, (k,), dtype=action.dtype, device=action.device
             )
-        exploring = self.remaining > 0
-        tensordict.set(self.action_key, torch.where(exploring, self.held, action))
-        self.remaining = (self.remaining - 1).clamp(min=0)
+        tensordict.set(self.action_key, torch.where(remaining > 0, held, action))
+        self.remaining, self.held = (remaining - 1).clamp(min=0), held
         return tensordict
 
 
@@ -200,7 +202,7 @@ def make_exploration(env: Any, cfg: OffPolicyConfig) -> LadderExploration:
 
 
 def make_collector(
-    env: Any, policy: TensorDictSequential, cfg: OffPolicyConfig, seed: int, start: int = 0
+    env: Any, policy: TensorDictSequential, cfg: BatchSchedule, seed: int, start: int = 0
 ) -> Collector:
     """TorchRL's collector over the batched env: ``frames_per_batch`` env steps per batch, shaped
     [rows, steps], to ``total_frames``; the first ``init_random_frames`` with random actions. A run
@@ -225,7 +227,7 @@ def make_collector(
 
 
 def make_buffer(
-    cfg: OffPolicyConfig, transforms: Sequence[Transform] = ()
+    cfg: ReplayConfig, transforms: Sequence[Transform] = ()
 ) -> tuple[TensorDictReplayBuffer, Any]:
     """Replay: prioritised (``irdrc.agents.replay``: TorchRL's sampler where its extension loads,
     else ours) or uniform, ``batch_size`` per sample, each transition one row of a
@@ -262,7 +264,7 @@ class PolyakUpdate(SoftUpdate):
         torch._foreach_lerp_(self._target_list, self._source_list, self._weight)
 
 
-def make_optimizer(loss: nn.Module, cfg: OffPolicyConfig) -> torch.optim.Adam:
+def make_optimizer(loss: nn.Module, cfg: BatchSchedule) -> torch.optim.Adam:
     """Adam over the loss's trainable parameters (one ``foreach`` kernel per step)."""
     return torch.optim.Adam(loss.parameters(), lr=cfg.lr, foreach=True)
 
@@ -337,7 +339,7 @@ class CenteredRewards(Transform):
         return tensordict
 
 
-def anneal(cfg: OffPolicyConfig, optimizer: torch.optim.Optimizer, frames: int) -> None:
+def anneal(cfg: BatchSchedule, optimizer: torch.optim.Optimizer, frames: int) -> None:
     """The learning rate, ``lr`` → ``lr_end`` linearly in env steps."""
     progress = min(1.0, frames / cfg.total_frames)
     for group in optimizer.param_groups:
@@ -377,7 +379,7 @@ class EpisodeTracker:
         # in time order; a row that ends several episodes in one batch subtracts, at each end,
         # its sum up to the previous one
         ends = sorted(done.nonzero().tolist(), key=lambda e: (e[1], e[0]))
-        last_end = {}
+        last_end: dict[int, int] = {}
         for row, t in ends:
             start_sum = running[row, last_end[row]] if row in last_end else 0.0
             self.record.episode_rewards.append(
@@ -396,7 +398,7 @@ class EpisodeTracker:
 
 
 @contextlib.contextmanager
-def policy_view(loss: nn.Module, cfg: OffPolicyConfig) -> Iterator[None]:
+def policy_view(loss: LossModule, cfg: OffPolicyConfig) -> Iterator[None]:
     """Inside, the loss's value network holds the parameters of ``cfg.policy_network``: the
     target network's (swapped in, and back on exit) or its own."""
     if cfg.policy_network == "target":

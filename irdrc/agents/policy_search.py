@@ -189,6 +189,7 @@ class FinalPolicySearch:
             )
             self.steps += ev.steps
             sums = ev.by_state
+            assert sums is not None  # measured by_state
             for k, total in self.pool[fresh].items():
                 total += sums[k]
             self.visits[key] = sums["visits"]

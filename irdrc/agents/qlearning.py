@@ -173,7 +173,7 @@ def train(
             evaluate(done)
             next_eval = (done * T // eval_every_frames + 1) * eval_every_frames
         if hooks.checkpoint_due((done - 1) * T, done * T) and done < cfg.episodes:
-            hooks.on_checkpoint(state(done))
+            hooks.checkpoint(state(done))
         if stop:
             record.interrupted = True
             break
@@ -212,11 +212,10 @@ def _episode(
         nbase = row + res.state * 2
         target = res.reward + cfg.gamma * torch.maximum(q[nbase], q[nbase + 1])
         idx = base + action
+        alpha: torch.Tensor | float = cfg.alpha
         if cfg.alpha_schedule == "count":
             visits[idx] += 1
             alpha = (cfg.alpha / visits[idx] ** cfg.alpha_power).clamp(min=cfg.alpha_min)
-        else:
-            alpha = cfg.alpha
         q[idx] += alpha * (target - q[idx])
         total += res.reward
         state = res.state

@@ -299,6 +299,8 @@ class PackedStorage(LazyTensorStorage):
         packed = packed.reshape(-1, packed.shape[-1])
         rows = packed.shape[0]
         out = TensorDict(batch_size=[rows])
+        if self._layout is None:
+            raise RuntimeError("PackedStorage: nothing was stored yet")
         for key, dtype, shape, start, stop in self._layout:
             leaf = packed[:, start:stop].clone(memory_format=torch.contiguous_format)
             out.set(key, leaf.view(dtype).reshape(rows, *shape))  # a fresh copy: aligned

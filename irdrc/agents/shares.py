@@ -66,6 +66,8 @@ class ShareLadder(nn.Module):
     i of the batch takes a uniformly random share with probability ε_i (``eps_ladder``:
     log-uniform across rows, DQN's ladder)."""
 
+    eps: torch.Tensor
+
     def __init__(self, rows: int, eps_max: float, eps_min: float) -> None:
         super().__init__()
         self.register_buffer("eps", eps_ladder(rows, eps_max, eps_min)[:, None])

@@ -18,7 +18,7 @@ from irdrc.core.params import Params
 from irdrc.runs.compose import Composed, compose_recipe
 from irdrc.runs.grid import candidate_overrides
 from irdrc.runs.results import md_table
-from irdrc.runs.sections import ONE_VEHICLE, Eval, check_common
+from irdrc.runs.sections import Eval, check_common, scenario_field
 from irdrc.runs.sections import seeds as distinct_seeds
 
 NAME = "bench_dqn"
@@ -39,7 +39,7 @@ class Config:
     """The benchmark's keys (``irdrc/conf/bench_dqn.yaml``); ``algos``: every profile's DQN
     config, composed as ``recipes/dqn.py`` composes it, checked."""
 
-    params: Params = field(default=None, metadata=ONE_VEHICLE)
+    params: Params = scenario_field()
     profiles: dict = field(default_factory=lambda: {"dqn": ["algo=dqn"]})
     seeds: tuple[int, ...] = (0, 1, 2)
     overrides: tuple[str, ...] = ()
@@ -90,7 +90,7 @@ def run(cfg: Config, run) -> int:
                 algo,
                 seed=seed,
                 device=cfg.device,
-                eval_every_frames=cfg.eval.every_frames,
+                eval_every_frames=cfg.eval.every_frames or dqn.DEFAULT_EVAL_EVERY_FRAMES,
                 scorer=scorer,
             )
             rows.append(_speed_row(name, seed, rec))

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import statistics
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import gymnasium
@@ -23,7 +23,7 @@ from irdrc.core.env import DFRCEnv
 from irdrc.core.params import Params
 from irdrc.runs.compose import Composed
 from irdrc.runs.results import md_table, write_rows_csv, write_table_md
-from irdrc.runs.sections import ONE_VEHICLE, check_common
+from irdrc.runs.sections import check_common, scenario_field
 
 NAME = "bench_env"
 
@@ -169,7 +169,7 @@ def _row(n: int, threads: int, mode: str, iters: int, repeats: int, times: list[
 class Config:
     """The benchmark's keys (``irdrc/conf/bench_env.yaml``)."""
 
-    params: Params = field(default=None, metadata=ONE_VEHICLE)
+    params: Params = scenario_field()
     sizes: tuple[int, ...] = (1, 64, 1024, 16384, 65536)
     threads: tuple[int, ...] = (1, 2)
     modes: tuple[str, ...] = (*SINGLE_MODES, *MODES)

@@ -149,6 +149,13 @@ class Job:
         tail = f"__m{self.target:g}" if self.target is not None else ""
         return f"{self.learner}__{self.scenario.replace(' ', '')}__{self.seed}{tail}"
 
+    @property
+    def target_miss(self) -> float:
+        """The miss-detection target of a constrained learner's run."""
+        if self.target is None:
+            raise ValueError(f"{self.learner} runs at a target_miss: give the job one")
+        return self.target
+
 
 def scenario_params(job: Job) -> Any:
     """The job's ``Params``: a named scenario with the paper's reward, or a random draw's keys."""
@@ -192,7 +199,7 @@ def run_job(job: Job, gamma: float) -> dict[str, Any]:
         )
         lagrangian.train(
             params,
-            LagrangianConfig(target_miss=job.target, search=quick),
+            LagrangianConfig(target_miss=job.target_miss, search=quick),
             seed=job.seed,
             scorer=scorer,
             hooks=hooks,
@@ -206,6 +213,7 @@ def run_job(job: Job, gamma: float) -> dict[str, Any]:
     from irdrc.online.configs import learner_config
     from irdrc.online.learners import make_learner
     from irdrc.online.loop import learn_on_stream
+    from irdrc.online.safe import SafeLearner
 
     algo = {"episodes": job.episodes, **({"target_miss": job.target} if job.target else {})}
     cfg = learner_config(job.learner, algo)
@@ -213,7 +221,7 @@ def run_job(job: Job, gamma: float) -> dict[str, Any]:
     if job.learner == "safe":
         from irdrc.online.safe import ConstrainedScorer
 
-        greedy_scorer = ConstrainedScorer(scorer, job.target)
+        greedy_scorer = ConstrainedScorer(scorer, job.target_miss)
     learner = make_learner(job.learner, cfg, params, job.seed)
     record = learn_on_stream(
         learner, params, scorer, episodes=job.episodes, seed=job.seed, greedy_scorer=greedy_scorer
@@ -224,7 +232,9 @@ def run_job(job: Job, gamma: float) -> dict[str, Any]:
         "seconds_learning": record.info["seconds_act_and_learn"]
         + record.info["seconds_episode_end"],
         "lp_throughput": greedy_scorer.lp.value if greedy_scorer is not None else None,
-        "plan_confidence": learner.plan_confidence() if job.learner == "safe" else None,
+        "plan_confidence": (
+            learner.plan_confidence() if isinstance(learner, SafeLearner) else None
+        ),
     }
 
 

@@ -184,7 +184,8 @@ def kept_draws(
 ) -> list:
     """The first ``count`` draws from index ``first`` up that ``keep`` returns (not None);
     ``progress(kept, tried)`` after each draw."""
-    out, index = [], first
+    out: list[Any] = []
+    index = first
     while len(out) < count:
         draw = keep(index)
         if draw is not None:

@@ -83,11 +83,11 @@ class Config:
     def grid(self) -> dict[str, list]:
         """The grid every candidate runs: p^v_1 × r4 × seed (with random draws: seed)."""
         if self.scenarios == "random":
-            return {"seed": list(self.seeds)}
+            return {"seed": list(self.seeds or ())}
         return {
             "env.p1.speed": list(self.p1_speed),
             "reward.r4": list(self.r4),
-            "seed": list(self.seeds),
+            "seed": list(self.seeds or ()),
         }
 
 
@@ -161,7 +161,7 @@ def run(cfg: Config, run) -> int:
         if cfg.scenarios == "random"
         else parse_grid({k: v for k, v in cfg.grid.items() if k != "seed"})
     )
-    table = robust_table(rows, candidates, scenarios, th, len(cfg.seeds))
+    table = robust_table(rows, candidates, scenarios, th, len(cfg.seeds or ()))
     if cfg.scenarios == "random":
         last = max((r["draw"] for r in rows), default=cfg.first_draw)
         table += (

@@ -93,11 +93,11 @@ def measure_once(scenario: str, queue: int, solver: str, device: str, tol: float
         m = stationary_metrics(model, sol.policy)
         sweeps, steps = sol.iterations, 0
     else:
-        model = build_factored(params, device=device)
-        sol = value_iteration(model, tol=tol)
-        mu, steps = stationary_distribution_factored(model, sol.policy)
-        probs = as_probs(sol.policy, model.num_states, model.num_actions).to(mu.device)
-        m = metrics_from_occupancy(model, (mu[:, None] * probs).T.contiguous())
+        factored = build_factored(params, device=device)
+        sol = value_iteration(factored, tol=tol)
+        mu, steps = stationary_distribution_factored(factored, sol.policy)
+        probs = as_probs(sol.policy, factored.num_states, factored.num_actions).to(mu.device)
+        m = metrics_from_occupancy(factored, (mu[:, None] * probs).T.contiguous())
         sweeps = sol.iterations
         if device != "cpu":
             torch.cuda.synchronize()

@@ -155,7 +155,7 @@ def run(cfg: Config, run) -> int:
             hist = read_csv_rows(tdir / "metrics.csv")
             rows.append(run_row(learner, scenario, p["point"]["seed"], tdir, hist, cfg.threshold))
     write_rows_csv(out / cfg.csv, rows)
-    table = timeshare_table(rows, cfg.learners, list(cfg.scenario_overrides), cfg.threshold)
+    table = timeshare_table(rows, list(cfg.learners), list(cfg.scenario_overrides), cfg.threshold)
     if cfg.random:
         table = random_summary(rows, cfg) + "\n\n" + table
     print("\n" + table)
@@ -185,7 +185,7 @@ def random_summary(rows: list[dict[str, Any]], cfg: Config) -> str:
         f"{len(cfg.drawn)} random time-sharing scenarios (draws {first}–{last} of "
         "`irdrc.bench.random_scenarios.share_draws`: every model key, κ, the sensing curve and the "
         "levels, kept where the optimum over ρ earns ≥ 1.02 × the binary optimum) × seeds "
-        f"{', '.join(map(str, cfg.seeds))}:\n\n" + "\n".join(lines)
+        f"{', '.join(map(str, cfg.seeds or ()))}:\n\n" + "\n".join(lines)
     )
 
 

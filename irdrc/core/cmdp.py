@@ -19,6 +19,7 @@ import dataclasses
 import math
 import threading
 import warnings
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -165,7 +166,7 @@ def transitions(model: ExactMDP) -> list:
     return [model.sparse(a) for a in range(model.num_actions)]
 
 
-def solve_lp(P: Any, objective: torch.Tensor, constraints: list[Constraint] = ()) -> LPResult:
+def solve_lp(P: Any, objective: torch.Tensor, constraints: Sequence[Constraint] = ()) -> LPResult:
     """The average-criterion LP over occupation measures for transitions ``P`` (a dense [A, S, S]
     tensor or A SciPy sparse matrices) and a per-(action, state) ``objective`` [A, S], maximised
     subject to ``constraints``. A state the optimum never visits gets the last action (radar).
@@ -242,7 +243,7 @@ def _check_bound(key: str, value: float | None, hi: float = 1.0) -> float | None
 
 def build_constraints(
     model: ExactMDP,
-    target_miss: float,
+    target_miss: float | None,
     max_drop: float | None = None,
     min_radar: float | None = None,
 ) -> list[Constraint]:

@@ -108,7 +108,7 @@ class StepResult:
     dropped: torch.Tensor  # int64, packets lost to overflow
     capacity: torch.Tensor  # int64, ν: link capacity of this step (0 in radar mode)
     arrivals: torch.Tensor  # int64, A
-    false_alarm: torch.Tensor | None = None  # bool: radar without an event raised an alarm
+    false_alarm: torch.Tensor  # bool: radar without an event raised an alarm
     phase: torch.Tensor | None = None  # int64: the traffic phase of the step (bursty arrivals)
 
 

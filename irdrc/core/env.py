@@ -144,7 +144,8 @@ class DFRCEnv(EnvBase):
             zeros = torch.zeros(b, dtype=torch.int64, device=self.device)
             falses = torch.zeros(b, dtype=torch.bool, device=self.device)
             event = missed = false_alarm = falses
-            sent = dropped = capacity = phase = zeros
+            sent = dropped = capacity = zeros
+            phase: torch.Tensor | None = zeros
         else:
             event, missed = info.event.view(b), info.missed.view(b)
             sent, dropped, capacity = info.sent.view(b), info.dropped.view(b), info.capacity.view(b)
@@ -188,7 +189,8 @@ class DFRCEnv(EnvBase):
             raise ValueError("DFRCEnv.step needs an 'action': 0 (communication) or 1 (radar)")
         state = state.reshape(-1)
         rho = None if self.params.env.actions == "binary" else self._shares(action.reshape(-1))
-        action = checked_actions(action.reshape(-1)) if rho is None else None
+        if rho is None:  # the modes, checked before the states
+            action = checked_actions(action.reshape(-1))
         if state.dtype.is_floating_point or bool(
             ((state < 0) | (state >= self.dynamics.num_states)).any()
         ):

@@ -102,7 +102,7 @@ def evaluate(policy, env: DFRCEnv, episodes: int | None = None) -> Evaluation:
     rounds = 1 if episodes is None else max(1, math.ceil(episodes / n))
     horizon = env.params.env.horizon
     keys = _KEYS
-    per_episode = {k: [] for k in keys}
+    per_episode: dict[str, list[torch.Tensor]] = {k: [] for k in keys}
     shares = env.params.env.shares  # the radar share of each action (binary: 0, 1)
     share = None if shares is None else torch.tensor(shares, dtype=torch.float64, device=env.device)
     for _ in range(rounds):

@@ -101,9 +101,9 @@ def _fmt(x: float) -> str:
 
 
 def format_table(
-    rows: dict[str, Metrics | dict[str, float]],
+    rows: Mapping[str, Metrics | dict[str, float]],
     names: tuple[str, ...] | None = None,
-    errors: dict[str, dict[str, float]] | None = None,
+    errors: Mapping[str, dict[str, float]] | None = None,
 ) -> str:
     """Side-by-side table: one row per method, one column per metric.
 

@@ -69,7 +69,7 @@ class EventProbs:
 
     def as_tuple(self) -> tuple[float, float, float, float]:
         """Values in state order (road, weather, speed, object)."""
-        return tuple(getattr(self, n) for n in EVENT_FACTORS)  # type: ignore[return-value]
+        return tuple(getattr(self, n) for n in EVENT_FACTORS)
 
 
 @dataclass(frozen=True)
@@ -91,7 +91,7 @@ class StayProbs:
 
     def as_tuple(self) -> tuple[float, float, float, float, float]:
         """Values in state order (channel, road, weather, speed, object)."""
-        return tuple(getattr(self, n) for n in MARKOV_FACTORS)  # type: ignore[return-value]
+        return tuple(getattr(self, n) for n in MARKOV_FACTORS)
 
 
 def _p0() -> EventProbs:

@@ -44,6 +44,8 @@ class _Random(nn.Module):
 
 
 class _Table(nn.Module):
+    actions: torch.Tensor
+
     def __init__(self, actions: torch.Tensor) -> None:
         super().__init__()
         self.register_buffer("actions", torch.as_tensor(actions, dtype=torch.int64).clone())
@@ -53,6 +55,8 @@ class _Table(nn.Module):
 
 
 class _ShareTable(nn.Module):
+    rho: torch.Tensor
+
     def __init__(self, rho: torch.Tensor) -> None:
         super().__init__()
         self.register_buffer("rho", torch.as_tensor(rho, dtype=torch.float32).clone())
@@ -71,6 +75,8 @@ def share_table_policy(rho: torch.Tensor) -> TensorDictModule:
 
 
 class _RandomTable(nn.Module):
+    p_radar: torch.Tensor
+
     def __init__(self, p_radar: torch.Tensor, seed: int | None) -> None:
         super().__init__()
         self.register_buffer("p_radar", torch.as_tensor(p_radar, dtype=torch.float64).clone())

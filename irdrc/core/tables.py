@@ -16,6 +16,7 @@ from __future__ import annotations
 import functools
 import math
 from dataclasses import dataclass
+from typing import cast
 
 import torch
 
@@ -128,10 +129,10 @@ def model_tables(params: Params) -> ModelTables:
     # Events (MODEL.md step 1), levels of (r, w, v, m).
     per = [_f64(specs[1 + j].event)[lv[1 + j]] for j in range(len(EVENT_FACTORS))]
     if env.event_model == "noisy_or":
-        event = 1.0 - math.prod(1.0 - p for p in per)
+        event = 1.0 - cast(torch.Tensor, math.prod(1.0 - p for p in per))
     else:
-        event = torch.clamp(sum(per), max=1.0)
-    b = sum(lv[1 + j].to(torch.float64) for j in range(len(EVENT_FACTORS)))
+        event = torch.clamp(cast(torch.Tensor, sum(per)), max=1.0)
+    b = cast(torch.Tensor, sum(lv[1 + j].to(torch.float64) for j in range(len(EVENT_FACTORS))))
     comm_reward = _f64(specs[c_i].comm_reward)[lv[c_i]]
     detect_reward = rw.r4 * (b + 1.0)
     pd, pfa = env.detection_prob, env.false_alarm_prob

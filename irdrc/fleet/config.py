@@ -82,7 +82,7 @@ def fleet_from_config(cfg: Mapping) -> tuple[FleetSpec, str]:
         return FleetSpec(
             vehicle=Params.from_config({"env": env, "reward": reward}), **fleet
         ), observe
-    n = fleet.get("vehicles")
+    n = fleet["vehicles"]
     sizes = {k: len(list_at(env, reward, k)) for k in lists}
     wrong = {k: m for k, m in sizes.items() if m != n}
     if wrong:

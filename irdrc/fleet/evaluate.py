@@ -13,6 +13,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 
@@ -120,7 +121,9 @@ def simulate(
     per_fleet_reward = sums["reward"].sum(1) / steps
     ci = 1.96 * float(per_fleet_reward.std()) / math.sqrt(fleets)
     n = fleets * steps
-    per = [long_run_rates({k: float(v[:, i].sum()) / n for k, v in sums.items()}) for i in range(N)]
+    per: list[dict[str, Any]] = [
+        long_run_rates({k: float(v[:, i].sum()) / n for k, v in sums.items()}) for i in range(N)
+    ]
     total = {k: float(v.sum()) / n for k, v in sums.items()}
     fleet = long_run_rates(total)
     for i, r in enumerate(per):

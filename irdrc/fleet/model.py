@@ -217,12 +217,12 @@ class FleetModel(ExactMDP):
     # -- the ExactMDP interface -------------------------------------------------------------------
 
     @property
-    def params(self) -> Params:  # type: ignore[override]
+    def params(self) -> Params:
         """Vehicle 1's model (horizon and false-alarm settings every vehicle shares)."""
         return self.spec.vehicle
 
     @property
-    def num_actions(self) -> int:  # type: ignore[override]
+    def num_actions(self) -> int:
         """2^N joint actions."""
         return 2**self.N
 

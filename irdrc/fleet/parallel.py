@@ -128,14 +128,12 @@ class FleetParallelEnv(ParallelEnv):
             for i, agent in enumerate(self.possible_agents):
                 self.action_spaces[agent].seed(int(seed) + i)
         start = (options or {}).get("state")
-        if start is None:
-            self._states = self.sim.start(1, self.rng)
-        else:
-            self._states = self._joint_state(start)
+        states = self.sim.start(1, self.rng) if start is None else self._joint_state(start)
+        self._states = states
         self._steps = 0
         self.agents = list(self.possible_agents)
         zeros = dict.fromkeys(INFO_KEYS, 0)
-        return self._observations(), self._infos(dict.fromkeys(self.agents, zeros))
+        return self._observations(states), self._infos(states, dict.fromkeys(self.agents, zeros))
 
     def _joint_state(self, start: Any) -> torch.Tensor:
         """[1, N] the vehicles' states of the exact model's joint index ``start``."""
@@ -180,7 +178,7 @@ class FleetParallelEnv(ParallelEnv):
             "dropped": res.dropped,
         }
         per = {a: {k: int(v[0, i]) for k, v in signals.items()} for i, a in enumerate(self.agents)}
-        obs, infos = self._observations(), self._infos(per)
+        obs, infos = self._observations(res.state), self._infos(res.state, per)
         rewards = {a: float(reward[i]) for i, a in enumerate(self.agents)}
         truncated = self._steps >= self.horizon
         terminations = dict.fromkeys(self.agents, False)
@@ -189,14 +187,14 @@ class FleetParallelEnv(ParallelEnv):
             self.agents = []
         return obs, rewards, terminations, truncations, infos
 
-    def _observations(self) -> dict[str, np.ndarray]:
-        single = self.sim.dyn.obs[self._states.reshape(-1)]  # [N, W]
+    def _observations(self, states: torch.Tensor) -> dict[str, np.ndarray]:
+        single = self.sim.dyn.obs[states.reshape(-1)]  # [N, W]
         obs = fleet_observation(single, self.own, self.observe).numpy().astype(np.float32)
         return {a: obs[i] for i, a in enumerate(self.possible_agents)}
 
-    def _infos(self, per: dict[str, dict]) -> dict[str, dict]:
-        states = self._states[0]
-        joint = int(self.sim.fleet_index(self._states)[0]) if self.model.exact else -1
+    def _infos(self, joint_states: torch.Tensor, per: dict[str, dict]) -> dict[str, dict]:
+        states = joint_states[0]
+        joint = int(self.sim.fleet_index(joint_states)[0]) if self.model.exact else -1
         return {
             a: {**per[a], "state": int(states[i]), "joint_index": joint}
             for i, a in enumerate(self.possible_agents)

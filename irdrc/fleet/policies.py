@@ -3,6 +3,8 @@ states, each vehicle's single-vehicle optimum, and MODEL.md § C's baselines."""
 
 from __future__ import annotations
 
+from typing import cast
+
 import torch
 
 from irdrc.core.exact import value_iteration
@@ -34,7 +36,8 @@ def joint_policy(model: FleetModel, table: torch.Tensor) -> torch.Tensor:
             f"{table.numel()}"
         )
     per = table.reshape(model.N, S)  # vehicle i's own table (agent_index)
-    return sum((joint_from_single(model, per[i]) >> i & 1) << i for i in range(model.N))
+    bits = ((joint_from_single(model, per[i]) >> i & 1) << i for i in range(model.N))
+    return cast(torch.Tensor, sum(bits))
 
 
 def single_optima(model: FleetModel, gamma: float = 0.99) -> torch.Tensor:

@@ -43,7 +43,7 @@ def fleet_metrics(model: FleetModel, policy: Any) -> tuple[Metrics, list[dict]]:
     queue averaged over them) and each vehicle's, then the fleet's, as dicts of ``FLEET_METRICS``."""
     model.check_exact()
     occ = stationary_occupancy(model, as_schedule(policy, model.num_states, model.num_actions))
-    per = []
+    per: list[dict[str, Any]] = []
     for i in range(model.N):
         rates = long_run_rates(model.sums(occ, i))
         rates.pop("false_alarm_rate", None)
@@ -59,6 +59,8 @@ class FleetScorer(Scorer):
     """The scorer of the fleet's decentralised policies against the centralised optimum: a table
     [S] over the single-vehicle states every vehicle applies to its own state, one such table per
     vehicle [N·S] (vehicle-major), or a joint action per joint state [S_fleet]."""
+
+    model: FleetModel
 
     def __init__(self, model: FleetModel, gamma: float = DEFAULT_OPTIMUM_GAMMA) -> None:
         model.check_exact()

@@ -104,17 +104,13 @@ class FleetDynamics:
         if len(self.dyns) == 1:
             flat = states.reshape(-1)
             res = self.dyn.step(flat, torch.full_like(flat, action), gen)
-            out = {k: getattr(res, k) for k in keys}
-            if out["false_alarm"] is None:
-                out["false_alarm"] = torch.zeros_like(out["event"])
-            return {k: v.reshape(n, N) for k, v in out.items()}
-        out: dict = {}
+            return {k: getattr(res, k).reshape(n, N) for k in keys}
+        out: dict[str, torch.Tensor] = {}
         for dyn, idx in zip(self.dyns, self.groups, strict=True):
             flat = states[:, idx].reshape(-1)
             res = dyn.step(flat, torch.full_like(flat, action), gen)
             for k in keys:
                 v = getattr(res, k)
-                v = torch.zeros_like(res.event) if v is None else v
                 if k not in out:
                     out[k] = torch.empty((n, N), dtype=v.dtype)
                 out[k][:, idx] = v.reshape(n, len(idx))

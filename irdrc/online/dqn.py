@@ -185,7 +185,7 @@ class StreamDQN(StreamLearner):
             self.seconds["replay_sample"] += t1 - t0
             self.seconds["update"] += time.perf_counter() - t1
         recent = torch.tensor([r[0] for r in self.log[-cfg.update_every :]])
-        if self.full:  # the values of the last update's pass (one step behind: no extra pass)
+        if self.last_values is not None:  # full: the last update's pass (one step behind)
             values = self.last_values
             self.table = values.argmax(-1).tolist()
             recent_values = values[recent]

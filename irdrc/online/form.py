@@ -180,7 +180,7 @@ class FormCounts:
                 out = np.stack([rng.dirichlet(row) for row in x])
             return torch.from_numpy(out)
 
-        def beta(k: np.ndarray, n: np.ndarray) -> np.ndarray:
+        def beta(k: np.ndarray | np.float64, n: np.ndarray | np.float64) -> np.ndarray | float:
             a, b = k + a0, n - k + a0
             return a / (a + b) if rng is None else rng.beta(a, b)
 
@@ -239,11 +239,12 @@ class FormCounts:
         # the mean: draws from a copy of the chain, on a generator fixed by the data (so that it
         # is the same whenever it is asked for)
         local = np.random.default_rng([int(n.sum()), int(k.sum())])
-        fire, total = [f.copy() for f in self.fire], 0.0
+        fire = [f.copy() for f in self.fire]
+        total: np.ndarray | float = 0.0
         for _ in range(self.GIBBS_MEAN_DRAWS):
             fire = self._gibbs(fire, k, n, local)
             total = total + self._combined(fire)
-        return total / self.GIBBS_MEAN_DRAWS
+        return np.asarray(total / self.GIBBS_MEAN_DRAWS)
 
     def _combined(self, fire: list[np.ndarray]) -> np.ndarray:
         """[combinations] 1 − Π (1 − p_i[level]): noisy-or's event probabilities."""

@@ -252,7 +252,7 @@ def learn_on_stream(
             evaluate(done)
             next_eval = (done * T // every + 1) * every
         if hooks.checkpoint_due((done - 1) * T, done * T) and done < episodes:
-            hooks.on_checkpoint(state(done))
+            hooks.checkpoint(state(done))
         if stop:
             record.interrupted = True
             break

@@ -48,7 +48,7 @@ class PosteriorSampling(StreamLearner):
         self.coin = random.Random(seed)
         self.num_states = params.env.num_states
         self.updates = 0
-        self._greedy: tuple[int, torch.Tensor] | None = None
+        self._greedy: torch.Tensor | None = None
 
     def _solve(self, est) -> torch.Tensor:
         model = self.counts.model(est)

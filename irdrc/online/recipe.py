@@ -20,7 +20,7 @@ from irdrc.core.params import Params
 from irdrc.online.configs import LEARNERS, learner_config
 from irdrc.runs.compose import Composed
 from irdrc.runs.resume import refuse_finished
-from irdrc.runs.sections import ONE_VEHICLE, Learning, Plot, check_eval_period, check_exact
+from irdrc.runs.sections import Learning, Plot, check_eval_period, check_exact, scenario_field
 
 NAME = "online"
 RESUMABLE = True
@@ -51,7 +51,7 @@ def _algo(data: Any, prefix: str) -> Any:
 class Config(Learning):
     """The keys of ``irdrc/conf/online.yaml``."""
 
-    params: Params = field(default=None, metadata=ONE_VEHICLE)
+    params: Params = scenario_field()
     learner: str = DEFAULT_LEARNER
     algo: Any = field(default=None, metadata={"keys": ("algo",), "build": _algo})
     plot: Plot = field(default_factory=Plot)
@@ -119,6 +119,7 @@ def run(cfg: Config, run) -> dict[str, Any]:
     from irdrc.online.figures import plot_run
     from irdrc.online.learners import make_learner
     from irdrc.online.loop import learn_on_stream
+    from irdrc.online.safe import SafeLearner
     from irdrc.runs.report import LearnerRun, end_warning, finish_learner
 
     run.threads(cfg.num_threads)
@@ -184,7 +185,8 @@ def run(cfg: Config, run) -> dict[str, Any]:
             "miss_detection": greedy_scorer.lp.metrics.miss_detection,
         }
         summary["lp_ratio"] = ledger["lp_ratio"]
-        summary["plan_confidence"] = learner.plan_confidence()
+        if isinstance(learner, SafeLearner):
+            summary["plan_confidence"] = learner.plan_confidence()
     print_ledger(ledger, summary, cfg)
     run.finish(summary, interrupted_at=record.env_steps if record.interrupted else None)
     return summary

@@ -23,7 +23,7 @@ from irdrc.recipes.constrained.frontier import optimal_at, ref_params
 from irdrc.runs.compose import Composed
 from irdrc.runs.grid import format_value, parse_grid
 from irdrc.runs.results import atomic_write_text, write_rows_csv
-from irdrc.runs.sections import EXECUTOR, ONE_VEHICLE, Executor, check_common, check_dense
+from irdrc.runs.sections import EXECUTOR, Executor, check_common, check_dense, scenario_field
 from irdrc.sweeps.trials import execute, plan
 
 NAME = "figure2"
@@ -46,7 +46,7 @@ class Config:
     """The figure's keys (``irdrc/conf/figure2.yaml``); ``planned``: every training run, checked
     (``plan_figure2``)."""
 
-    params: Params = field(default=None, metadata=ONE_VEHICLE)
+    params: Params = scenario_field()
     seeds: tuple[int, ...] = (0, 1, 2, 3, 4)
     p1_speed: tuple[float, ...] = (0.1, 0.5, 1.0)
     curve_p1_speed: float = 0.1
@@ -115,12 +115,12 @@ def plan_figure2(cfg: Config, scenario: list[str]) -> list[dict[str, Any]]:
     planned: list[dict[str, Any]] = []
     for name in cfg.methods:
         spec = cfg.learners[name]
-        values = set()
+        chosen: set[float] = set()
         if "a" in spec.panels:
-            values.add(curve_p)
+            chosen.add(curve_p)
         if "bcd" in spec.panels:
-            values.update(ps)
-        values = sorted(values)
+            chosen.update(ps)
+        values = sorted(chosen)
         common = [
             *scenario,
             *[str(o) for o in spec.overrides],

@@ -30,11 +30,11 @@ from irdrc.runs.progress import Ticker
 from irdrc.runs.results import write_rows_csv
 from irdrc.runs.sections import (
     EXECUTOR,
-    ONE_VEHICLE,
     Executor,
     check_common,
     check_dense,
     check_speeds,
+    scenario_field,
     seeds,
 )
 from irdrc.sweeps.trials import execute, plan
@@ -93,7 +93,7 @@ class Learned:
 class Config:
     """The trade-off's keys (``irdrc/conf/tradeoff.yaml``); ``planned``: DQN's runs, checked."""
 
-    params: Params = field(default=None, metadata=ONE_VEHICLE)
+    params: Params = scenario_field()
     r4: tuple[float, ...] = (5.0, 10.0, 25.0, 50.0, 100.0, 200.0)
     p1_speed: tuple[float, ...] = (0.1, 1.0)
     optimum_gamma: float = 0.99
@@ -189,7 +189,7 @@ def run(cfg: Config, run) -> int:
     r4s, ps, target = list(cfg.r4), list(cfg.p1_speed), cfg.target_miss
     rows = _exact_curves(cfg.params, ps, r4s, cfg.optimum_gamma)
     write_rows_csv(out / "tradeoff.csv", rows)
-    found, scan_rows = ({}, []) if target is None else _smallest_r4_each(cfg, ps)
+    found, scan_rows = ({}, []) if target is None else _smallest_r4_each(cfg, ps, target)
     if scan_rows:
         write_rows_csv(out / "r4_scan.csv", scan_rows)
     code, learned_rows = _dqn_points(cfg, run, ps[0])
@@ -233,10 +233,13 @@ def _exact_curves(base: Params, ps: list[float], r4s: list[float], gamma: float)
     return rows
 
 
-def _smallest_r4_each(cfg: Config, ps: list[float]) -> tuple[dict[str, Any], list[dict]]:
-    """For each p^v_1, the smallest r4 on the search grid meeting ``target_miss`` (bisection, then
-    optionally every grid point below it); returns (answers by p^v_1, the points solved)."""
-    base, gamma, target = cfg.params, cfg.optimum_gamma, cfg.target_miss
+def _smallest_r4_each(
+    cfg: Config, ps: list[float], target: float
+) -> tuple[dict[str, Any], list[dict]]:
+    """For each p^v_1, the smallest r4 on the search grid meeting ``target`` (``target_miss``:
+    bisection, then optionally every grid point below it); returns (answers by p^v_1, the points
+    solved)."""
+    base, gamma = cfg.params, cfg.optimum_gamma
     found: dict[str, Any] = {}
     scan_rows: list[dict] = []
     lo, hi, res = cfg.search.lo, cfg.search.hi, cfg.search.resolution

@@ -14,7 +14,7 @@ from typing import Any
 from irdrc.core.checks import build, check_choice, check_list
 from irdrc.core.params import Params
 from irdrc.runs.compose import Composed
-from irdrc.runs.sections import ONE_VEHICLE, Eval, check_common
+from irdrc.runs.sections import Eval, check_common, scenario_field
 
 NAME = "demo"
 POLICIES = ("round_robin", "always_radar", "always_comm", "random")
@@ -25,7 +25,7 @@ POLICIES = ("round_robin", "always_radar", "always_comm", "random")
 class Config:
     """The demo's keys (``irdrc/conf/demo.yaml``)."""
 
-    params: Params = field(default=None, metadata=ONE_VEHICLE)
+    params: Params = scenario_field()
     eval: Eval = field(default_factory=Eval)
     policies: tuple[str, ...] = POLICIES
     seed: int = 0

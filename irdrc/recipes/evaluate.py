@@ -29,7 +29,7 @@ from irdrc.core.checks import build, check_file
 from irdrc.core.metrics import Metrics
 from irdrc.core.params import Params
 from irdrc.runs.compose import Composed
-from irdrc.runs.sections import ONE_VEHICLE, Eval, check_common
+from irdrc.runs.sections import Eval, check_common, scenario_field
 
 NAME = "evaluate"
 
@@ -40,7 +40,7 @@ class Config:
     ``policy``; ``target_miss`` (optional) reads a comm/radar policy against the LP at that
     target too."""
 
-    params: Params = field(default=None, metadata=ONE_VEHICLE)
+    params: Params = scenario_field()
     checkpoint: str | None = None
     policy: str | None = None
     target_miss: float | None = None
@@ -192,8 +192,8 @@ def load_source(cfg: Config) -> tuple[Any, str, str]:
         return rho, f"radar-share policy table {path}", "rho"
     policy = read_policy_csv(path, num_states=params.env.num_states, probabilities=True)
     if bool(((policy[:, 1] == 0) | (policy[:, 1] == 1)).all()):
-        table, rho = fit_actions(policy[:, 1].long(), (0.0, 1.0), params, f"policy table {path}")
-        return table, f"policy table {path}", "rho" if rho else "policy"
+        table, as_rho = fit_actions(policy[:, 1].long(), (0.0, 1.0), params, f"policy table {path}")
+        return table, f"policy table {path}", "rho" if as_rho else "policy"
     source = f"randomised policy table {path}"
     return fit_actions(policy, (0.0, 1.0), params, source)[0], source, "policy"
 
@@ -281,7 +281,7 @@ def run(cfg: Config, run) -> dict[str, Any]:
     if dense:
         rows[f"{name} (exact, episodic)"] = episodic_metrics(model, policy)
     if cfg.eval.mc_episodes:
-        env = DFRCEnv(params, batch_size=[int(cfg.eval.mc_num_envs)], seed=cfg.seed)
+        env = DFRCEnv(params, batch_size=[cfg.eval.mc_batch], seed=cfg.seed)
         acting = table_policy(policy, seed=cfg.seed, num_actions=model.num_actions)
         ev = evaluate(acting, env, episodes=int(cfg.eval.mc_episodes))
         label = f"{name} (Monte-Carlo, episodic)"
@@ -382,7 +382,7 @@ def score_shares(cfg: Config, run, rho: Any, source: str, t0: float) -> dict[str
     rows = {"policy (exact, long run)": learned}
     errs: dict[str, dict[str, float]] = {}
     if cfg.eval.mc_episodes:
-        env = DFRCEnv(continuous, batch_size=[int(cfg.eval.mc_num_envs)], seed=cfg.seed)
+        env = DFRCEnv(continuous, batch_size=[cfg.eval.mc_batch], seed=cfg.seed)
         ev = evaluate(share_table_policy(rho), env, episodes=int(cfg.eval.mc_episodes))
         label = "policy (Monte-Carlo, episodic)"
         rows[label], errs[label] = ev.metrics, ev.ci95

@@ -18,10 +18,10 @@ from irdrc.runs.compose import Composed
 from irdrc.runs.grid import is_scenario_key, parse_grid
 from irdrc.runs.resume import refuse_finished
 from irdrc.runs.sections import (
-    ONE_VEHICLE,
     Learning,
     Plot,
     check_eval_period,
+    scenario_field,
 )
 
 NAME = "qlearning"
@@ -39,7 +39,7 @@ TABLES_LIMIT_BYTES = 4 * 2**30
 class Config(Learning):
     """Q-learning's keys (``irdrc/conf/qlearning.yaml``)."""
 
-    params: Params = field(default=None, metadata=ONE_VEHICLE)
+    params: Params = scenario_field()
     algo: QLearningConfig = field(default_factory=QLearningConfig)
     plot: Plot = field(default_factory=Plot)
     num_learners: int = 1
@@ -119,7 +119,7 @@ def run(cfg: Config, run) -> dict[str, Any]:
             seed=cfg.seed,
             device=cfg.device,
             scorers=scorers,
-            eval_every_frames=cfg.eval.every_frames,
+            eval_every_frames=cfg.eval.every_frames or qlearning.DEFAULT_EVAL_EVERY_FRAMES,
             hooks=hooks,
             resume=run.resume_state,
         )

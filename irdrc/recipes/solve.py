@@ -25,6 +25,7 @@ from irdrc.runs.sections import (
     Eval,
     available_memory,
     check_common,
+    scenario_field,
 )
 
 NAME = "solve"
@@ -45,7 +46,7 @@ and the stationary solve's steps (docs/SCALE.md: ``large`` takes 104 + 450 at ev
 class Config:
     """The solve's keys (``irdrc/conf/solve.yaml``)."""
 
-    model: Any = field(default=None, metadata=ONE_OR_FLEET)
+    model: Any = scenario_field(ONE_OR_FLEET)
     eval: Eval = field(default_factory=Eval)
     optimum_gamma: float = 0.99
     tol: float = 1e-9
@@ -161,7 +162,7 @@ def solve_dense(cfg: Config, run) -> dict[str, Any]:
     opt = rows["optimal (stationary)"] = stationary_metrics(model, sol.policy)
     rows["optimal (episodic)"] = episodic_metrics(model, sol.policy)
     if cfg.eval.mc_episodes:
-        env = DFRCEnv(params, batch_size=[int(cfg.eval.mc_num_envs)], seed=cfg.seed)
+        env = DFRCEnv(params, batch_size=[cfg.eval.mc_batch], seed=cfg.seed)
         acting = table_policy(sol.policy, num_actions=model.num_actions)
         ev = evaluate(acting, env, episodes=int(cfg.eval.mc_episodes))
         rows["optimal (Monte-Carlo)"], errs["optimal (Monte-Carlo)"] = ev.metrics, ev.ci95

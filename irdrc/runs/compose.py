@@ -9,7 +9,7 @@ import dataclasses
 import re
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 from irdrc.core.checks import closest
 from irdrc.runs.grid import is_scenario_key, override_key
@@ -92,7 +92,7 @@ def _primary(config_name: str) -> dict[str, Any]:
 
     path = CONF_DIR / f"{config_name}.yaml"
     node = OmegaConf.to_container(OmegaConf.load(path), resolve=False) if path.is_file() else {}
-    return node if isinstance(node, dict) else {}
+    return cast(dict[str, Any], node) if isinstance(node, dict) else {}
 
 
 def _select(node: Any, key: str) -> Any:
@@ -172,7 +172,7 @@ def compose(config_name: str, overrides: list[str] | tuple = ()) -> Composed:
     run_dir = str(hydra.run.dir)
     with open_dict(cfg):
         del cfg["hydra"]
-    plain = OmegaConf.to_container(cfg, resolve=True)
+    plain = cast(dict[str, Any], OmegaConf.to_container(cfg, resolve=True))
     return Composed(config_name, plain, choices, task, run_dir)
 
 
@@ -263,6 +263,7 @@ def unknown_key(config_name: str, key: str, known: set[str]) -> str:
         or leaf.endswith("_" + name)
     ]
     siblings = {k.rpartition(".")[2]: k for k in known if k.rpartition(".")[0] == parent}
+    near: str | None = None
     if len(same) == 1:
         near = same[0]
     elif parent and siblings:  # a known section: only its own keys, by their names

@@ -143,6 +143,8 @@ class RunProgress:
         )
 
     def _postfix(self) -> None:
+        if self.bar is None:
+            return
         post = {"opt": f"{self.ratio:.4f}"}
         if not math.isnan(self.min_ratio):
             post["min"] = f"{self.min_ratio:.4f}"

@@ -164,7 +164,7 @@ def final_rows(lr: LearnerRun, greedy) -> tuple[dict[str, Metrics], dict[str, di
     mc = int(lr.eval.mc_episodes or 0)
     episodic = mc > 0 and isinstance(model, DenseModel)
     if mc:
-        env = DFRCEnv(lr.scenarios[0], batch_size=[int(lr.eval.mc_num_envs)], seed=lr.seed + 1)
+        env = DFRCEnv(lr.scenarios[0], batch_size=[lr.eval.mc_batch], seed=lr.seed + 1)
         ev = evaluate(
             table_policy(greedy, seed=lr.seed + 2, num_actions=model.num_actions), env, episodes=mc
         )

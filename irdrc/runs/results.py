@@ -32,7 +32,7 @@ FILE_MODE = 0o666 & ~_umask()
 file is created 0600, so it is set explicitly)."""
 
 
-def atomic_write(path: Path, write: Callable[[BinaryIO], None]) -> None:
+def atomic_write(path: Path, write: Callable[[BinaryIO], object]) -> None:
     """Write ``path`` all at once or not at all: ``write`` fills a temporary file beside it, which
     is flushed, fsynced and renamed over ``path``. On any error (a full disk, a signal) the
     temporary file is removed and ``path`` keeps its previous content.

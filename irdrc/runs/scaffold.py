@@ -19,7 +19,7 @@ import signal
 import sys
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
+from typing import Any, TextIO
 
 from irdrc.runs.compose import Composed, recipe_call
 from irdrc.runs.results import atomic_write, atomic_write_text, write_summary
@@ -107,9 +107,9 @@ class Run:
         self.resume_state = resume_state
         self.stop: StopFlag | None = None
         self.logger = None
-        self._lock = None
-        self._log = None
-        self._stdout = None
+        self._lock: TextIO | None = None
+        self._log: TextIO | None = None
+        self._stdout: TextIO | None = None
         self._created: list[Path] = []
         self.signals = RunSignals()
         self._had: set[str] = set()
@@ -133,32 +133,33 @@ class Run:
         self._had = {p.name for p in self.dir.iterdir()} if self.dir.is_dir() else set()
         try:
             self.dir.mkdir(parents=True, exist_ok=True)
-            self._lock = open(self.dir / ".lock", "a+")  # noqa: SIM115 - held for the run's life
+            lock = open(self.dir / ".lock", "a+")  # noqa: SIM115 - held for the run's life
         except OSError as err:
             raise ValueError(
                 f"hydra.run.dir={self.dir}: cannot create the run directory there "
                 f"({err.strerror or err}); choose another with hydra.run.dir=…"
             ) from None
         self._created = fresh
+        self._lock = lock
         try:
-            fcntl.flock(self._lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError:
-            self._lock.seek(0)
-            holder = self._lock.read().strip() or "another process"
-            self._lock.close()
+            lock.seek(0)
+            holder = lock.read().strip() or "another process"
+            lock.close()
             self._lock = None
             raise ValueError(
                 f"hydra.run.dir={self.dir} is in use by {holder}: two runs would mix their files; "
                 "wait for it to finish or choose another hydra.run.dir"
             ) from None
-        self._lock.seek(0)
-        self._lock.truncate()
-        self._lock.write(f"process {os.getpid()} (python {recipe_call(self.recipe)})\n")
-        self._lock.flush()
+        lock.seek(0)
+        lock.truncate()
+        lock.write(f"process {os.getpid()} (python {recipe_call(self.recipe)})\n")
+        lock.flush()
         self._record()
-        self._log = open(self.dir / f"{self.recipe}.log", "a", encoding="utf-8")  # noqa: SIM115
-        self._stdout = sys.stdout
-        sys.stdout = _Tee(self._stdout, self._log)
+        log = open(self.dir / f"{self.recipe}.log", "a", encoding="utf-8")  # noqa: SIM115
+        self._log, self._stdout = log, sys.stdout
+        sys.stdout = _Tee(sys.stdout, log)
         quiet_libraries()
         self.signals.install()
         return self

@@ -61,8 +61,14 @@ def a_fleet(data: Any, prefix: str = "") -> tuple[FleetSpec, str]:
 ONE_VEHICLE = {"keys": ("env", "reward"), "build": one_vehicle}
 ONE_OR_FLEET = {"keys": ("env", "reward"), "build": one_or_fleet}
 A_FLEET = {"keys": ("env", "reward"), "build": a_fleet}
-"""Metadata of a config field built from the ``env`` and ``reward`` sections:
-``params: Params = field(default=None, metadata=ONE_VEHICLE)``."""
+"""Metadata of a config field built from the ``env`` and ``reward`` sections (``scenario_field``)."""
+
+
+def scenario_field(metadata: dict[str, Any] = ONE_VEHICLE) -> Any:
+    """A config field built from the ``env`` and ``reward`` sections when the config is loaded
+    (``metadata``: ``ONE_VEHICLE``, ``ONE_OR_FLEET`` or ``A_FLEET``):
+    ``params: Params = scenario_field()``. Before that it holds None."""
+    return field(default=None, metadata=metadata)
 
 
 def check_dense(params: Params) -> None:
@@ -223,11 +229,16 @@ class Eval:
             if getattr(self, key) is not None:
                 checks.check_numbers(self, "eval.", ((key, lo, hi, checks.INT),))
 
+    @property
+    def mc_batch(self) -> int:
+        """Envs per Monte-Carlo batch: ``mc_num_envs`` (1 in a recipe without the key)."""
+        return self.mc_num_envs or 1
+
     def check_cost(self, params: Params) -> None:
         """Refuse a Monte-Carlo evaluation that would run for long (``MC_LIMIT_STEPS``)."""
         if not self.mc_episodes:
             return
-        steps = math.ceil(self.mc_episodes / (self.mc_num_envs or 1)) * params.env.horizon
+        steps = math.ceil(self.mc_episodes / self.mc_batch) * params.env.horizon
         if steps > MC_LIMIT_STEPS:
             raise ValueError(
                 f"eval.mc_episodes={self.mc_episodes} of env.horizon={params.env.horizon} steps: "
@@ -420,12 +431,12 @@ class OneVehicleLearning(Learning):
     """A single-vehicle learner's recipe keys (``dqn``, ``sac``): the scenario, its figures'
     format and the torch device, beside ``Learning``'s; a recipe's ``Config`` adds its ``algo``."""
 
-    params: Params = field(default=None, metadata=ONE_VEHICLE)
+    params: Params = scenario_field()
     plot: Plot = field(default_factory=Plot)
     device: str = "cpu"
 
 
-def algo_field(config: type) -> Any:
+def algo_field(config: Any) -> Any:
     """The ``algo`` field of a learner's recipe ``Config``: ``config`` (a learner's hyperparameter
     dataclass with ``from_sections``) built from the ``algo`` and ``network`` sections."""
     return field(

@@ -91,11 +91,11 @@ def write_share_policy_csv(
     cols = decode_state(torch.arange(policy.rho.shape[0]), levels)
     header = list(POLICY_COLUMNS[:6]) + (["phase"] if cols.shape[-1] == 7 else [])
     grid = None if shares is None else torch.as_tensor(shares, dtype=torch.float64)
-
-    def level(rho: torch.Tensor) -> list[int]:
-        return (rho[:, None] - grid[None]).abs().argmin(-1).tolist()
-
     if grid is not None:
+
+        def level(rho: torch.Tensor) -> list[int]:
+            return (rho[:, None] - grid[None]).abs().argmin(-1).tolist()
+
         header += ["action", "rho", "action_alt", "rho_alt", "p_alt"]
         fields = [level(policy.rho), policy.rho.tolist(), level(policy.rho_alt)]
         fields += [policy.rho_alt.tolist(), policy.p_alt.tolist()]

@@ -94,7 +94,7 @@ def record(tdir: Path, p: dict[str, Any], result: dict[str, Any] | None, error: 
         atomic_write_text(tdir / "summary.json", result["summary_json"] + "\n")
         for name, text in (result.get("files") or {}).items():
             atomic_write_text(tdir / name, text)
-        status = {"status": "DONE"}
+        status: dict[str, Any] = {"status": "DONE"}
     else:
         status = {"status": "ERROR", "error": [last_line(error)]}
     atomic_write_text(

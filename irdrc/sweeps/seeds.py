@@ -168,7 +168,7 @@ def plot_seed_curves(summary_csv: Path, trials_dir: Path, out: Path) -> Path | N
             series.append((dict(zip(keys, key, strict=True)), steps, curves))
     if not series:
         return None
-    series = [
+    labelled = [
         (label, steps, curves)
         for label, (_, steps, curves) in zip(
             series_labels([point for point, _, _ in series]), series, strict=True
@@ -176,7 +176,7 @@ def plot_seed_curves(summary_csv: Path, trials_dir: Path, out: Path) -> Path | N
     ]
     fig, ax = plt.subplots(figsize=(6.4, 4.0))
     colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
-    for i, (label, steps, curves) in enumerate(series):
+    for i, (label, steps, curves) in enumerate(labelled):
         color = colors[i % len(colors)]
         stats = [mean_ci([c[s] for c in curves]) for s in steps]
         mean = [m for m, _ in stats]

@@ -19,6 +19,7 @@ import json
 import tempfile
 import time
 import traceback
+from collections.abc import Sequence
 from pathlib import Path
 from types import ModuleType
 from typing import Any
@@ -48,7 +49,7 @@ def _matches(point_ov: list[str], fail_on: list[str]) -> bool:
 
 
 def plan(
-    module: ModuleType, points: list[dict[str, Any]], base: list[str], fail_on: list[str] = ()
+    module: ModuleType, points: list[dict[str, Any]], base: list[str], fail_on: Sequence[str] = ()
 ) -> list[dict[str, Any]]:
     """Compose and check every point's config for the recipe ``module`` on the driver (a bad key or
     value, in the base or in any grid value, fails here, naming the point, before Ray starts or
@@ -178,7 +179,9 @@ def _run_local(todo: list[dict], already: int, total: int, trials_dir: Path) -> 
                 result, error = None, f"{type(exc).__name__}: {exc}"
                 print(traceback.format_exc())
         record(tdir, p, result, error)
-        tail = f"ERROR: {last_line(error)}" if error else "DONE" + result.get("progress", "")
+        tail = (
+            f"ERROR: {last_line(error)}" if error else "DONE" + (result or {}).get("progress", "")
+        )
         progress_line(already + i + 1, total, already, t0, p, tail)
 
 

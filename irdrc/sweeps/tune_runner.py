@@ -148,7 +148,7 @@ def run_tune(
         results = tuner.fit()
         if asked["stop"]:
             raise KeyboardInterrupt
-        for result in results:
+        for result in (results[i] for i in range(len(results))):
             p = (result.config or {}).get("point")
             if p is not None and read_status(trials_dir / p["point_id"]) is None:
                 record(trials_dir / p["point_id"], p, result.metrics, result.error)

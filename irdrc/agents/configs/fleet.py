@@ -59,6 +59,26 @@ def check_fleet_learner(learner: str, model: Any, observe: str) -> None:
             model.check_exact()
 
 
+def fleet_dqn() -> OffPolicyConfig:
+    """The fleet's value learners' DQN profile (``FleetLearnerConfig.dqn``'s default)."""
+    return OffPolicyConfig(
+        # the shape the fleet's learners were measured at: 1 000 fleets, 500 000 fleet steps,
+        # 1 000 updates of 1 000 transitions on the sampled team rewards, 64-64
+        num_envs=1000,
+        frames_per_batch=2000,
+        total_frames=500_000,
+        batch_size=1000,
+        updates_per_batch=4,
+        reward_means=False,
+        network=DEFAULT_NETWORK,
+        prioritized=False,
+        double_dqn=False,
+        center_on="rewards",
+        lr=3e-3,
+        name="vdn",
+    )
+
+
 @dataclass(frozen=True)
 class FleetLearnerConfig:
     """A fleet learner's hyperparameters (``recipes/fleet.py``): the off-policy machinery's, counted
@@ -78,24 +98,7 @@ class FleetLearnerConfig:
     """
 
     learner: str = "vdn"
-    dqn: OffPolicyConfig = field(
-        default_factory=lambda: OffPolicyConfig(
-            # the shape the fleet's learners were measured at: 1 000 fleets, 500 000 fleet steps,
-            # 1 000 updates of 1 000 transitions on the sampled team rewards, 64-64
-            num_envs=1000,
-            frames_per_batch=2000,
-            total_frames=500_000,
-            batch_size=1000,
-            updates_per_batch=4,
-            reward_means=False,
-            network=DEFAULT_NETWORK,
-            prioritized=False,
-            double_dqn=False,
-            center_on="rewards",
-            lr=3e-3,
-            name="vdn",
-        )
-    )
+    dqn: OffPolicyConfig = field(default_factory=fleet_dqn)
     ppo: FleetPPOConfig = field(default_factory=FleetPPOConfig)
     mixing_embed_dim: int = 32
     agent_index: bool = True
@@ -157,6 +160,6 @@ class FleetLearnerConfig:
                 data[key] = not mixer
         data.setdefault("center_on", "rewards")  # DQN's own default follows its values
         data["name"] = learner
-        own_dqn = cls.__dataclass_fields__["dqn"].default_factory()  # type: ignore[misc]
+        own_dqn = fleet_dqn()
         dqn = OffPolicyConfig.from_sections(data, network, base=own_dqn)
         return cls(learner=learner, dqn=dqn, **own)

@@ -65,6 +65,25 @@ LAGRANGIAN_KEYS = ("mu_init", "mu_lr", "mu_min", "mu_max", "cost_window_frames")
 """The multiplier's ``algo.*`` keys (beside DQN's and the search's)."""
 
 
+def lagrangian_dqn() -> OffPolicyConfig:
+    """The Lagrangian learner's own DQN profile (``LagrangianConfig.dqn``'s default)."""
+    return OffPolicyConfig(
+        num_envs=8,
+        frames_per_batch=32,
+        total_frames=80_000,
+        init_random_frames=512,
+        buffer_size=20_000,
+        batch_size=256,
+        updates_per_batch=4,
+        reward_means=False,
+        lr=5e-4,
+        tau=0.01,
+        reward_centering=0.0,
+        network=DEFAULT_NETWORK,
+        name="dqn_lagrangian",
+    )
+
+
 @dataclass(frozen=True)
 class LagrangianConfig:
     """The Lagrangian DQN (``algo=dqn_lagrangian``): DQN's keys, the multiplier's and the search's.
@@ -82,23 +101,7 @@ class LagrangianConfig:
         search: how the final policy is searched (``SearchConfig``).
     """
 
-    dqn: OffPolicyConfig = field(
-        default_factory=lambda: OffPolicyConfig(
-            num_envs=8,
-            frames_per_batch=32,
-            total_frames=80_000,
-            init_random_frames=512,
-            buffer_size=20_000,
-            batch_size=256,
-            updates_per_batch=4,
-            reward_means=False,
-            lr=5e-4,
-            tau=0.01,
-            reward_centering=0.0,
-            network=DEFAULT_NETWORK,
-            name="dqn_lagrangian",
-        )
-    )
+    dqn: OffPolicyConfig = field(default_factory=lagrangian_dqn)
     target_miss: float = 0.05
     objective: str = "throughput"
     mu_init: float = 1.0
@@ -150,6 +153,6 @@ class LagrangianConfig:
         )
         own = {k: data.pop(k) for k in LAGRANGIAN_KEYS if k in data}
         search = build(SearchConfig, {k: data.pop(k) for k in search_keys if k in data}, "algo.")
-        own_dqn = cls.__dataclass_fields__["dqn"].default_factory()  # type: ignore[misc]
+        own_dqn = lagrangian_dqn()
         dqn = OffPolicyConfig.from_sections(data, network, base=own_dqn)
         return cls(dqn=dqn, target_miss=target_miss, objective=objective, search=search, **own)

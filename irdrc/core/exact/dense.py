@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, cast
 
 import torch
 
@@ -51,7 +51,7 @@ class DenseModel(ExactMDP):
     radar: torch.Tensor
 
     @property
-    def num_actions(self) -> int:  # type: ignore[override]
+    def num_actions(self) -> int:
         """A."""
         return int(self.P.shape[0])
 
@@ -66,7 +66,8 @@ class DenseModel(ExactMDP):
 
     def chain(self, probs: torch.Tensor) -> torch.Tensor:
         """[S, S] the transition matrix under action probabilities ``probs`` [S, A]."""
-        return sum(probs[:, a, None] * self.P[a] for a in range(self.num_actions))
+        terms = (probs[:, a, None] * self.P[a] for a in range(self.num_actions))
+        return cast(torch.Tensor, sum(terms))
 
     def step(self, x: torch.Tensor, probs: torch.Tensor) -> torch.Tensor:
         """x·P_π."""

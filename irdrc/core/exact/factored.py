@@ -14,7 +14,8 @@ from __future__ import annotations
 
 import functools
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import cast
 
 import torch
 
@@ -58,6 +59,12 @@ class FactoredModel(ExactMDP):
     dropped_q: torch.Tensor
     radar: torch.Tensor
     episode_steps: int | None = None
+    # derived in __post_init__: per action, (configurations, ν, pmf row) of each queue dynamics;
+    # each pmf row's probabilities without its padding zeros
+    cols: tuple[tuple[tuple[slice | torch.Tensor, int, int], ...], ...] = field(
+        init=False, repr=False
+    )
+    weights: tuple[tuple[float, ...], ...] = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
         # Per action, the configurations of each queue dynamics: a slice when contiguous (v1: the
@@ -82,14 +89,18 @@ class FactoredModel(ExactMDP):
         object.__setattr__(self, "weights", tuple(weights))
 
     @property
-    def num_actions(self) -> int:  # type: ignore[override]
+    def num_actions(self) -> int:
         """A."""
         return int(self.F.shape[0])
 
     @property
     def horizon(self) -> int:
         """Steps per episode (``env.horizon``, or ``episode_steps`` without a scenario)."""
-        return int(self.params.env.horizon) if self.params is not None else int(self.episode_steps)
+        if self.params is not None:
+            return int(self.params.env.horizon)
+        if self.episode_steps is None:
+            raise ValueError("a model without params needs episode_steps")
+        return int(self.episode_steps)
 
     @property
     def device(self) -> torch.device:
@@ -222,7 +233,8 @@ class FactoredModel(ExactMDP):
 
     def step_rows(self, X: torch.Tensor, probs: torch.Tensor) -> torch.Tensor:
         """One step on the first n queue lengths: X [n, F] the measure, ``probs`` [n, F, A]."""
-        return sum(self.push_rows(X * probs[..., a], a) for a in range(self.num_actions))
+        terms = (self.push_rows(X * probs[..., a], a) for a in range(self.num_actions))
+        return cast(torch.Tensor, sum(terms))
 
     def step(self, x: torch.Tensor, probs: torch.Tensor) -> torch.Tensor:
         """x·P_π for ``probs`` [S, A]."""

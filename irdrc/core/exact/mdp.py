@@ -11,7 +11,7 @@ fleet's 2^N joint actions (MODEL.md § C).
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch
 
@@ -33,8 +33,40 @@ class ExactMDP:
         horizon: steps per episode (for per-episode rewards).
     """
 
-    params: Any
-    num_actions: int
+    if TYPE_CHECKING:  # what every model provides, as attributes or (cached) properties
+
+        @property
+        def params(self) -> Any: ...
+
+        @property
+        def num_actions(self) -> int: ...
+
+        @property
+        def R(self) -> torch.Tensor: ...
+
+        @property
+        def missed(self) -> torch.Tensor: ...
+
+        @property
+        def false_alarms(self) -> torch.Tensor: ...
+
+        @property
+        def sent(self) -> torch.Tensor: ...
+
+        @property
+        def dropped(self) -> torch.Tensor: ...
+
+        @property
+        def capacity(self) -> torch.Tensor: ...
+
+        @property
+        def event(self) -> torch.Tensor: ...
+
+        @property
+        def queue(self) -> torch.Tensor: ...
+
+        @property
+        def radar(self) -> torch.Tensor: ...
 
     # -- what every model provides ----------------------------------------------------------------
 
@@ -90,7 +122,7 @@ class ExactMDP:
         """[A, S]: R + γ·E[V(s′)]."""
         return self.R + gamma * self.expect(V)
 
-    def tables(self) -> dict[str, torch.Tensor]:
+    def tables(self) -> Mapping[str, torch.Tensor]:
         """The per-step expectations (``EXPECTATIONS``, ``event``, ``queue``, ``radar``) by name."""
         names = (*EXPECTATIONS, "event", "queue", "radar")
         return {n: getattr(self, n) for n in names}

@@ -8,12 +8,15 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch
 
 from irdrc.core.exact.mdp import ExactMDP, as_schedule
 from irdrc.core.metrics import Metrics, long_run_rates
+
+if TYPE_CHECKING:
+    from irdrc.core.exact.dense import DenseModel
 
 DEFAULT_OPTIMUM_GAMMA = 0.99
 """The discount that defines the optimum every optimality ratio is read against (MODEL.md, ref
@@ -202,7 +205,7 @@ def episodic_metrics(mdp: ExactMDP, policy: Any, horizon: int | None = None) -> 
     return metrics_from_occupancy(mdp, episodic_occupancy(mdp, policy, horizon))
 
 
-def policy_evaluation(mdp: ExactMDP, policy: Any, gamma: float = DEFAULT_OPTIMUM_GAMMA):
+def policy_evaluation(mdp: DenseModel, policy: Any, gamma: float = DEFAULT_OPTIMUM_GAMMA):
     """Exact discounted values V^π of a stationary policy on a dense model: solves
     (I − γ P_π) V = R_π."""
     (table,) = as_schedule(policy, mdp.num_states, mdp.num_actions)

@@ -9,12 +9,15 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch
 
 from irdrc.core.exact.krylov import krylov_solve
-from irdrc.core.exact.mdp import ExactMDP, as_probs
+from irdrc.core.exact.mdp import as_probs
+
+if TYPE_CHECKING:
+    from irdrc.core.exact.factored import FactoredModel
 
 NEGLIGIBLE_MASS = 1e-30
 """Queue lengths holding less stationary mass than this (summed over the factors) are stepped by
@@ -35,7 +38,7 @@ IAD_MAX_ITER = 5000
 """``method="auto"``: aggregation-disaggregation rounds before plain power iteration takes over."""
 
 
-def _start_queue(model: ExactMDP, probs: torch.Tensor) -> int:
+def _start_queue(model: FactoredModel, probs: torch.Tensor) -> int:
     """Where the power iteration starts: the first queue length at which the policy's expected
     drift E[d′ − d] (averaged over the factor configurations as they occur) is ≤ 0 — where the
     queue settles — or D if it grows everywhere. A deep queue then need not be crossed step by
@@ -59,7 +62,7 @@ def _start_queue(model: ExactMDP, probs: torch.Tensor) -> int:
 
 
 def stationary_distribution_factored(
-    model: ExactMDP,
+    model: FactoredModel,
     policy: torch.Tensor,
     tol: float = 1e-13,
     max_iter: int = 1_000_000,
@@ -112,7 +115,7 @@ def stationary_distribution_factored(
     return mu, steps + calls + more
 
 
-def _initial(model: ExactMDP, probs: torch.Tensor, start: torch.Tensor | None):
+def _initial(model: FactoredModel, probs: torch.Tensor, start: torch.Tensor | None):
     """The iterate to start from: ``start``, or uniform over the factors where the queue settles."""
     D1, nf = probs.shape[:2]
     if start is not None:
@@ -135,7 +138,7 @@ def _advance(
 
 
 def _stationary_iad(
-    model: ExactMDP,
+    model: FactoredModel,
     probs: torch.Tensor,
     tol: float,
     max_iter: int,
@@ -236,7 +239,7 @@ def banded_stationary(src: Any, dst: Any, vals: Any, n: int) -> Any:
     return pi / pi.sum()
 
 
-def _stationary_gmres(model: ExactMDP, probs: torch.Tensor) -> tuple[torch.Tensor | None, int]:
+def _stationary_gmres(model: FactoredModel, probs: torch.Tensor) -> tuple[torch.Tensor | None, int]:
     S = model.num_states
     pc = probs.cpu().reshape(S, -1)
     start = _initial(model, probs.cpu(), None).reshape(-1)
@@ -256,7 +259,7 @@ def _stationary_gmres(model: ExactMDP, probs: torch.Tensor) -> tuple[torch.Tenso
 
 
 def _stationary_power(
-    model: ExactMDP,
+    model: FactoredModel,
     probs: torch.Tensor,
     tol: float,
     max_iter: int,

@@ -22,10 +22,10 @@ from irdrc.core.sizes import fits_dense
 from irdrc.runs.compose import Composed
 from irdrc.runs.resume import refuse_finished
 from irdrc.runs.sections import (
-    ONE_VEHICLE,
     Learning,
     check_dense,
     check_speeds,
+    scenario_field,
 )
 
 NAME = "constrained"
@@ -105,7 +105,7 @@ def _lagrangian(data: Any, prefix: str) -> LagrangianConfig:
 class Config(Learning):
     """The constrained recipe's keys (``irdrc/conf/constrained.yaml``)."""
 
-    params: Params = field(default=None, metadata=ONE_VEHICLE)
+    params: Params = scenario_field()
     algo: LagrangianConfig = field(
         default_factory=LagrangianConfig,
         metadata={"keys": ("algo", "network"), "build": _lagrangian},
@@ -342,7 +342,10 @@ def run_learned(cfg: Config, run) -> dict[str, Any]:
     write_metrics_csv(run.dir / "metrics.csv", record.history)
     write_rows_csv(run.dir / "mu.csv", mu_trace, MU_FIELDS)
     run.checkpoint(record.state)
-    learned = stationary_metrics(model, record.policy[0])
+    policy = record.policy
+    if policy is None:
+        raise RuntimeError("the Lagrangian DQN returned no final policy")
+    learned = stationary_metrics(model, policy[0])
     rows = {
         f"{config.name} (exact)": learned,
         "constrained optimum (LP)": sol.metrics,
@@ -358,7 +361,7 @@ def run_learned(cfg: Config, run) -> dict[str, Any]:
         f"{record.training_env_steps} training + {record.measurement_env_steps} measurement = "
         f"{record.env_steps} env steps, {record.wall_seconds:.0f} s"
     )
-    write_policy_csv(run.dir / "policy.csv", record.policy[0], cfg.params.env.factor_levels)
+    write_policy_csv(run.dir / "policy.csv", policy[0], cfg.params.env.factor_levels)
     log_scalars(
         logger,
         {"final/objective_ratio": ratio, "final/miss_detection": learned.miss_detection},

@@ -28,6 +28,7 @@ from irdrc.runs.sections import (
     A_FLEET,
     Learning,
     Plot,
+    scenario_field,
 )
 
 NAME = "fleet"
@@ -72,12 +73,12 @@ def _learner(data: Any, prefix: str) -> FleetLearnerConfig:
 class Config(Learning):
     """The fleet recipe's keys (``irdrc/conf/fleet.yaml``)."""
 
-    fleet: Any = field(default=None, metadata=A_FLEET)
+    fleet: Any = scenario_field(A_FLEET)
     learner: FleetLearnerConfig = field(
         default_factory=FleetLearnerConfig,
         metadata={"keys": ("learner", "algo", "network", "ppo"), "build": _learner},
     )
-    eval: FleetEval = field(default_factory=FleetEval)
+    eval: FleetEval = field(default_factory=FleetEval)  # type: ignore[assignment]  # fleet steps
     plot: Plot = field(default_factory=Plot)
 
     def __post_init__(self) -> None:

@@ -92,7 +92,7 @@ def format_rows(
     return "\n".join([*lines, *notes])
 
 
-def _cell(x: float) -> str:
+def _cell(x: float | None) -> str:
     """A table cell: 4 decimals, or — where the metric is undefined."""
     return "—" if x is None or (isinstance(x, float) and math.isnan(x)) else f"{x:.4f}"
 

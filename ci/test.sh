@@ -7,6 +7,7 @@ cd "$(dirname "$0")/.."
 bash ci/setup.sh sweep   # dev and sweep (Ray Tune) extras: the sweep tests run Ray
 .venv/bin/ruff check .
 .venv/bin/ruff format --check .
+.venv/bin/mypy   # the package's annotations ([tool.mypy] in pyproject.toml)
 source ci/pytest_args.sh
 mapfile -t args < <(pytest_args "$@")
 exec .venv/bin/python -m pytest "${args[@]}"

@@ -169,7 +169,9 @@ class TrainingLoop:
         self.seconds["learn"] += time.perf_counter() - t0
         return True
 
-    def learn_on_policy(self, learn_batch: Callable[[TensorDictBase], tuple[int, float]], data):
+    def learn_on_policy(
+        self, learn_batch: Callable[[TensorDictBase], tuple[int, float]], data: TensorDictBase
+    ) -> bool:
         """An on-policy learner's learning from the collected batch ``data``."""
         t0 = time.perf_counter()
         updates, self.last_loss = learn_batch(data)

@@ -73,7 +73,9 @@ def make_loss(actor: ProbabilisticActor, critic: ValueOperator, cfg: PPOConfig) 
     )
 
 
-def saved_shares(state: dict[str, Any], cfg: PPOConfig, trained: Params, params: Params):
+def saved_shares(
+    state: dict[str, Any], cfg: PPOConfig, trained: Params, params: Params
+) -> torch.Tensor:
     """The shares [S] of a checkpoint's actor (``state``, trained on ``trained`` with ``cfg``)
     on the states of ``params``: its networks rebuilt and loaded."""
     train_env = DFRCEnv(trained, batch_size=[1])

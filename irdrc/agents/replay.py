@@ -135,7 +135,7 @@ class TorchPrioritizedSampler(Sampler):
             self._least = (n, min(least, float(self._powered[start:n].min())))
         return self._least[1]
 
-    def sample(self, storage, batch_size: int) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    def sample(self, storage: Any, batch_size: int) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         """``batch_size`` indices drawn with replacement, and their normalised importance weights."""
         n = len(storage)
         if n == 0:
@@ -157,7 +157,7 @@ class TorchPrioritizedSampler(Sampler):
         return index, {"priority_weight": weight.to(torch.float32)}
 
     def update_priority(
-        self, index: int | torch.Tensor, priority: float | torch.Tensor, *, storage=None
+        self, index: int | torch.Tensor, priority: float | torch.Tensor, *, storage: Any = None
     ) -> None:
         """Set the raw priority of ``index`` (non-negative; NaN is rejected)."""
         index = torch.as_tensor(index, dtype=torch.long).reshape(-1)
@@ -183,7 +183,7 @@ class TorchPrioritizedSampler(Sampler):
             elif bool(inside.any()):
                 self._least = (n, min(least, float(self._powered[index[inside]].min())))
 
-    def mark_update(self, index: int | torch.Tensor, *, storage=None) -> None:
+    def mark_update(self, index: int | torch.Tensor, *, storage: Any = None) -> None:
         """Called by the buffer for newly written items: give them the largest priority."""
         self.update_priority(index, self.default_priority)
 
@@ -210,13 +210,13 @@ class TorchPrioritizedSampler(Sampler):
         self._eps = float(state_dict["eps"])
         self._refresh()
 
-    def dumps(self, path) -> None:
+    def dumps(self, path: str | Path) -> None:
         """Save to ``path/sampler.pt``."""
         path = Path(path)
         path.mkdir(parents=True, exist_ok=True)
         torch.save(self.state_dict(), path / "sampler.pt")
 
-    def loads(self, path) -> None:
+    def loads(self, path: str | Path) -> None:
         """Load from ``path/sampler.pt``."""
         self.load_state_dict(torch.load(Path(path) / "sampler.pt", weights_only=True))
 

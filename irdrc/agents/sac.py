@@ -93,7 +93,9 @@ def policy_shares(loss: SACLoss, actor: ProbabilisticActor, env: DFRCEnv) -> tor
         return share_table(actor, env)
 
 
-def saved_shares(state: dict[str, Any], cfg: SACConfig, trained: Params, params: Params):
+def saved_shares(
+    state: dict[str, Any], cfg: SACConfig, trained: Params, params: Params
+) -> torch.Tensor:
     """The shares [S] of a checkpoint's policy (``state``, trained on ``trained`` with ``cfg``) on
     the states of ``params``: its networks rebuilt with its margin and loaded."""
     train_env = DFRCEnv(trained, batch_size=[1])

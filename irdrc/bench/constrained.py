@@ -13,13 +13,16 @@ import statistics
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from irdrc.core.checks import build, check_list, check_number, numbers
 from irdrc.runs.compose import Composed
 from irdrc.runs.grid import parse_grid
 from irdrc.runs.results import md_table
 from irdrc.runs.sections import EXECUTOR, Executor, check_common, seeds
+
+if TYPE_CHECKING:
+    from irdrc.runs.scaffold import Run
 
 NAME = "bench_constrained"
 
@@ -83,7 +86,7 @@ def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
     return replace(cfg, planned=tuple(plan(constrained, parse_grid(cfg.grid), base)))
 
 
-def run(cfg: Config, run) -> int:
+def run(cfg: Config, run: Run) -> int:
     """Every (p^v_1, target, seed) of ``cfg`` as one ``recipes/constrained.py
     learner=dqn_lagrangian`` run through the sweep engine, scored exactly against the LP: per cell,
     the runs whose miss detection is ≤ target + ``miss_tolerance`` and those whose objective is

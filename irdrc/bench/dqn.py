@@ -11,7 +11,7 @@ from __future__ import annotations
 import statistics
 import time
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from irdrc.core.checks import build, check_list
 from irdrc.core.params import Params
@@ -20,6 +20,9 @@ from irdrc.runs.grid import candidate_overrides
 from irdrc.runs.results import md_table
 from irdrc.runs.sections import Eval, check_common, scenario_field
 from irdrc.runs.sections import seeds as distinct_seeds
+
+if TYPE_CHECKING:
+    from irdrc.runs.scaffold import Run
 
 NAME = "bench_dqn"
 SUMMARY_KEYS = (
@@ -73,7 +76,7 @@ def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
     return replace(cfg, algos=algos)
 
 
-def run(cfg: Config, run) -> int:
+def run(cfg: Config, run: Run) -> int:
     """Train every (profile, seed); ``bench_dqn.csv`` (a row per run) and ``bench_dqn.md``."""
     from irdrc.agents import dqn
     from irdrc.core.exact import Scorer, build_model

@@ -10,8 +10,9 @@ from __future__ import annotations
 
 import statistics
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import gymnasium
 import numpy as np
@@ -25,6 +26,9 @@ from irdrc.runs.compose import Composed
 from irdrc.runs.results import md_table, write_rows_csv, write_table_md
 from irdrc.runs.sections import check_common, scenario_field
 
+if TYPE_CHECKING:
+    from irdrc.runs.scaffold import Run
+
 NAME = "bench_env"
 
 MODES = ("dynamics", "step", "rollout", "gym_vec")
@@ -35,7 +39,9 @@ SINGLE_MODES = ("numpy_single", "gym")
 (the baseline), and ``gymnasium.make("irdrc/DFRC-v0")``."""
 
 
-def _runner(mode: str, params: Params, n: int, iters: int, device: str, seed: int):
+def _runner(
+    mode: str, params: Params, n: int, iters: int, device: str, seed: int
+) -> Callable[[], Any]:
     """A callable doing ``iters`` batched steps of ``mode`` (built once, outside the timing)."""
     gen = torch.Generator(device=device)
     gen.manual_seed(seed)
@@ -76,7 +82,7 @@ def _runner(mode: str, params: Params, n: int, iters: int, device: str, seed: in
     return run
 
 
-def _single_runner(mode: str, params: Params, iters: int, seed: int):
+def _single_runner(mode: str, params: Params, iters: int, seed: int) -> Callable[[], Any]:
     """A callable doing ``iters`` single-env steps of ``mode`` with random actions."""
     rng = np.random.default_rng(seed)
     actions = rng.integers(0, 2, iters).tolist()
@@ -102,7 +108,7 @@ def _single_runner(mode: str, params: Params, iters: int, seed: int):
     return run_np
 
 
-def numpy_single_env(params: Params, seed: int):
+def numpy_single_env(params: Params, seed: int) -> tuple[Callable[..., Any], Callable[..., Any]]:
     """The baseline: one env of the same MDP in plain numpy, from ``Dynamics``' tables (as a user
     would write it): ``(step(a) -> (obs, reward, terminated, truncated, info), reset())``."""
     dyn = Dynamics(params)
@@ -117,11 +123,11 @@ def numpy_single_env(params: Params, seed: int):
     rng = np.random.default_rng(seed)
     state = {"s": 0, "t": 0}
 
-    def reset():
+    def reset() -> tuple[np.ndarray, dict]:
         state["s"], state["t"] = int(rng.integers(S)), 0
         return obs_table[state["s"]].copy(), {}
 
-    def step(a: int):
+    def step(a: int) -> tuple[np.ndarray, float, bool, bool, dict]:
         s = state["s"]
         f = s & 31
         u = rng.random(7)
@@ -140,7 +146,7 @@ def numpy_single_env(params: Params, seed: int):
     return step, reset
 
 
-def _time(run, repeats: int) -> list[float]:
+def _time(run: Callable[[], Any], repeats: int) -> list[float]:
     """Seconds of ``repeats`` timed calls of ``run``, after one warm-up call."""
     run()  # warm-up (allocator, lazy init)
     times = []
@@ -209,7 +215,7 @@ def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
     return build(Config, composed.cfg)
 
 
-def run(cfg: Config, run) -> int:
+def run(cfg: Config, run: Run) -> int:
     """Print the throughput table (batched modes at every N and thread count; single-env modes
     with their ratio to the numpy baseline measured in the same run) and write it as CSV."""
     run_bench_env(cfg, run.dir)

@@ -20,11 +20,15 @@ import json
 import math
 import statistics
 import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import matplotlib
+
+if TYPE_CHECKING:
+    from irdrc.runs.scaffold import Run
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
@@ -89,7 +93,7 @@ class Config:
     part: dict = field(default_factory=dict, metadata={"keys": ()})
 
     def __post_init__(self) -> None:
-        def pick(choices):
+        def pick(choices: Sequence[str]) -> Callable[[str, Any], Any]:
             return lambda key, x: checks.check_choice(key, x, choices)
 
         lists = (
@@ -152,7 +156,7 @@ def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
     return replace(cfg, planned=tuple(planned), part=part)
 
 
-def run(cfg: Config, run) -> int:
+def run(cfg: Config, run: Run) -> int:
     """Run both parts, then write ``bench_fleet.csv`` (a row per run), ``bench_fleet.md`` (the
     tables) and ``fleet_frontier.<format>``."""
     from irdrc.sweeps.trials import execute, kept_points

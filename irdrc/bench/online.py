@@ -21,7 +21,7 @@ import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from irdrc.bench.online_tables import (
     calibration_note,
@@ -36,6 +36,9 @@ from irdrc.online.configs import LEARNERS, PROFILES
 from irdrc.runs.compose import Composed
 from irdrc.runs.grid import require_runs
 from irdrc.runs.sections import one_vehicle_scenarios, seeds
+
+if TYPE_CHECKING:
+    from irdrc.runs.scaffold import Run
 
 NAME = "bench_online"
 
@@ -308,7 +311,7 @@ def _clean(x: Any) -> Any:
     return x
 
 
-def run(cfg: Config, run) -> int:
+def run(cfg: Config, run: Run) -> int:
     """Every run, then ``bench_online.csv`` (a row per run), ``bench_online.md`` (the tables) and
     ``bench_online.png`` (each named scenario's learners against episodes)."""
     from irdrc.online.figures import plot_learners

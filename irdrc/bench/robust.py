@@ -17,7 +17,7 @@ import statistics
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from irdrc.bench.random_scenarios import REPORTING, command_line, contested_draws
 from irdrc.core.checks import (
@@ -33,6 +33,9 @@ from irdrc.runs.compose import Composed
 from irdrc.runs.grid import candidate_overrides, parse_grid
 from irdrc.runs.results import md_table
 from irdrc.runs.sections import EXECUTOR, Eval, Executor, check_common, seeds
+
+if TYPE_CHECKING:
+    from irdrc.runs.scaffold import Run
 
 NAME = "bench_robust"
 
@@ -134,7 +137,7 @@ def random_draws(cfg: Config) -> list:
     return contested_draws(cfg.first_draw, cfg.draws, cfg.optimum_gamma, say)
 
 
-def run(cfg: Config, run) -> int:
+def run(cfg: Config, run: Run) -> int:
     """Every (candidate, scenario, seed) as one DQN run through the sweep engine; per run and per
     (candidate, scenario): the final ratio, env steps and seconds to the threshold, and the share of
     evaluations after first reaching it that stay there. Writes ``bench_robust.csv`` (a row per

@@ -20,12 +20,16 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from irdrc.core import checks
 from irdrc.runs.compose import Composed, compose
 from irdrc.runs.results import md_table, write_rows_csv, write_table_md
 from irdrc.runs.sections import one_vehicle_scenarios
+
+if TYPE_CHECKING:
+    from irdrc.core.params import Params
+    from irdrc.runs.scaffold import Run
 
 NAME = "bench_scale"
 
@@ -54,7 +58,7 @@ def _queue_for(states: int, configs: int = 32) -> int:
     return max(1, math.ceil(states / configs) - 1)
 
 
-def scenario_params(scenario: str, queue: int | None = None):
+def scenario_params(scenario: str, queue: int | None = None) -> Params:
     """The model of a named scenario (its queue capacity set, when given)."""
     from irdrc.recipes import solve
 
@@ -113,7 +117,9 @@ def measure_once(scenario: str, queue: int, solver: str, device: str, tol: float
     }
 
 
-def _child(scenario: str, queue: int, solver: str, device: str, tol: float, timeout: float):
+def _child(
+    scenario: str, queue: int, solver: str, device: str, tol: float, timeout: float
+) -> dict[str, Any]:
     cmd = [
         sys.executable,
         "-m",
@@ -201,7 +207,7 @@ def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
     return checks.build(Config, composed.cfg)
 
 
-def run(cfg: Config, run) -> int:
+def run(cfg: Config, run: Run) -> int:
     """Every (scenario, S, solver[, device]): ``repeats`` fresh-process solves, median wall time,
     peak memory; the table printed and written as CSV and Markdown."""
     run_bench_scale(cfg, run.dir)

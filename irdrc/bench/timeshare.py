@@ -21,7 +21,7 @@ import sys
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from irdrc.bench.random_scenarios import command_line
 from irdrc.core.checks import INT, build, check_choice, check_list, check_numbers
@@ -29,6 +29,9 @@ from irdrc.runs.compose import Composed
 from irdrc.runs.grid import candidate_overrides, parse_grid
 from irdrc.runs.results import md_table
 from irdrc.runs.sections import EXECUTOR, Executor, check_common, seeds
+
+if TYPE_CHECKING:
+    from irdrc.runs.scaffold import Run
 
 NAME = "bench_timeshare"
 
@@ -137,7 +140,7 @@ def random_draws(cfg: Config) -> list:
     return share_draws(cfg.first_draw, cfg.draws, cfg.optimum_gamma, say)
 
 
-def run(cfg: Config, run) -> int:
+def run(cfg: Config, run: Run) -> int:
     """Every (learner, scenario, seed) as one run; writes ``bench_timeshare.csv`` (a row per run)
     and ``bench_timeshare.md`` (the table)."""
     from irdrc.runs.results import read_csv_rows, write_rows_csv, write_table_md

@@ -22,12 +22,15 @@ import math
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any, overload
 
 import torch
 
 from irdrc.core.params import Params
 from irdrc.core.tables import model_tables
+
+if TYPE_CHECKING:
+    from irdrc.core.tables import ModelTables
 
 # Bit of each Markov factor in the state index, in MARKOV_FACTORS order (c, r, w, v, m).
 FACTOR_BITS = (4, 3, 2, 1, 0)
@@ -39,7 +42,16 @@ def fresh_seed() -> int:
     return int.from_bytes(os.urandom(8), "little") % 2**62
 
 
-def state_index(d, c, r, w, v, m, phase=0, levels: Sequence[int] | None = None):
+def state_index(
+    d: Any,
+    c: Any,
+    r: Any,
+    w: Any,
+    v: Any,
+    m: Any,
+    phase: Any = 0,
+    levels: Sequence[int] | None = None,
+) -> Any:
     """State index of (d, c, r, w, v, m[, phase]); works on ints and integer tensors alike.
 
     ``levels``: L of (c, r, w, v, m, phase) (``Params.env.factor_levels``); None is v1 (two levels each,
@@ -53,7 +65,17 @@ def state_index(d, c, r, w, v, m, phase=0, levels: Sequence[int] | None = None):
     return s
 
 
-def decode_state(s, levels: Sequence[int] | None = None):
+@overload
+def decode_state(s: int, levels: Sequence[int] | None = None) -> tuple[int, ...]: ...
+
+
+@overload
+def decode_state(s: torch.Tensor, levels: Sequence[int] | None = None) -> torch.Tensor: ...
+
+
+def decode_state(
+    s: int | torch.Tensor, levels: Sequence[int] | None = None
+) -> tuple[int, ...] | torch.Tensor:
     """State indices → their components: an integer tensor [...] → [..., 6] (d, c, r, w, v, m), or
     [..., 7] with the traffic phase last when ``levels`` (L of c, r, w, v, m, phase) has several
     phases; a plain int → a tuple of ints (``decode_state(5)`` → (0, 0, 0, 1, 0, 1))."""
@@ -359,7 +381,7 @@ def step_shares(
     )
 
 
-def _scenario_tables(params: Params, t, nfac: int, lmax: int) -> dict:
+def _scenario_tables(params: Params, t: ModelTables, nfac: int, lmax: int) -> dict:
     """The flat look-up tables of one scenario (see ``Dynamics.step`` for their indexing)."""
     rw = params.reward
     nf = t.num_configs

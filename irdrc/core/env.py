@@ -3,6 +3,8 @@ dynamics of ``irdrc.core.dynamics`` (whose docstring gives the state index)."""
 
 from __future__ import annotations
 
+from typing import Any
+
 import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
@@ -166,13 +168,13 @@ class DFRCEnv(EnvBase):
             "terminated": torch.zeros_like(truncated),
             "truncated": truncated,
         }
-        if self.dynamics.num_phases > 1:
+        if self.dynamics.num_phases > 1 and phase is not None:
             out["phase"] = phase
         if reward is not None:
             out["reward"] = reward.view(*b, 1)
         return TensorDict(out, batch_size=b, device=self.device)
 
-    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDict:
+    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs: Any) -> TensorDict:
         # Fresh values for every row; torchrl keeps only the rows the "_reset" mask selects.
         state = self.dynamics.reset_states(self._n, self.rng)
         steps = torch.zeros(self._n, dtype=torch.int64, device=self.device)

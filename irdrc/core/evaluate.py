@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
 
 import torch
 from tensordict import TensorDictBase
@@ -11,6 +12,9 @@ from torchrl.envs.utils import step_mdp
 
 from irdrc.core.env import DFRCEnv
 from irdrc.core.metrics import METRIC_NAMES, Metrics
+
+if TYPE_CHECKING:
+    from irdrc.core.params import Params
 
 # Per-episode sums collected by ``evaluate``: numerator of each metric, and its denominator.
 _RATIOS = {
@@ -37,7 +41,9 @@ _KEYS = (
 )
 
 
-def _metrics(values: dict[str, float], ci: dict[str, float], params) -> tuple[Metrics, dict]:
+def _metrics(
+    values: dict[str, float], ci: dict[str, float], params: Params
+) -> tuple[Metrics, dict]:
     """The Metrics record (false alarms only where the scenario has them) and its CIs."""
     names = list(METRIC_NAMES)
     if params.env.false_alarm_prob > 0.0:
@@ -87,7 +93,7 @@ def ratio_ci(x: torch.Tensor, y: torch.Tensor, z: float = 1.959964) -> tuple[flo
 
 
 @torch.no_grad()
-def evaluate(policy, env: DFRCEnv, episodes: int | None = None) -> Evaluation:
+def evaluate(policy: Any, env: DFRCEnv, episodes: int | None = None) -> Evaluation:
     """Run full episodes of ``policy`` on the batched ``env`` and aggregate MODEL.md's metrics.
 
     Every batch row plays whole episodes of ``env.params.env.horizon`` steps from a reset, so
@@ -150,7 +156,7 @@ STATIONARITY_KEYS = ("miss_detection", "throughput", "mean_queue")
 
 @torch.no_grad()
 def long_run(
-    params,
+    params: Params,
     p_radar: torch.Tensor,
     *,
     envs: int = 256,
@@ -273,7 +279,7 @@ def long_run(
 
 @torch.no_grad()
 def chain_rewards(
-    params,
+    params: Params,
     tables: torch.Tensor,
     *,
     envs: int = 64,

@@ -280,7 +280,7 @@ class DFRCVectorEnv(VectorEnv):
         self._autoreset.zero_()
         return self.dynamics.obs[self._state].numpy(), {"state": self._state.numpy().copy()}
 
-    def step(self, actions: Any):
+    def step(self, actions: Any) -> tuple[Any, Any, Any, Any, dict[str, Any]]:
         """Step every env with ``actions`` (0 or 1 each, or radar shares: ``env.actions``)."""
         if self._state is None:
             raise gymnasium.error.ResetNeeded("call reset() before step()")

@@ -16,7 +16,7 @@ from __future__ import annotations
 import functools
 import math
 from dataclasses import dataclass
-from typing import cast
+from typing import Any, cast
 
 import torch
 
@@ -73,7 +73,7 @@ class ModelTables:
         return (f // self.radix[i]) % self.levels[i]
 
 
-def _f64(x) -> torch.Tensor:
+def _f64(x: Any) -> torch.Tensor:
     return torch.as_tensor(x, dtype=torch.float64)
 
 

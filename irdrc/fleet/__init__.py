@@ -20,8 +20,12 @@ and ``irdrc.core``. Nothing from
 ``irdrc.agents`` or any layer above it; nothing of Hydra, files or Ray.
 """
 
+from __future__ import annotations
 
-def parallel_env(*args, **kwargs):
+from typing import Any
+
+
+def parallel_env(*args: Any, **kwargs: Any) -> Any:
     """The fleet as a PettingZoo ``ParallelEnv`` (``irdrc.fleet.parallel.parallel_env``; imports
     PettingZoo only when called).
 

@@ -16,6 +16,8 @@ vehicle's single-vehicle state), ``step_count`` and ``done`` / ``terminated`` / 
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING, Any
+
 import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
@@ -26,11 +28,14 @@ from irdrc.fleet.model import FleetModel
 from irdrc.fleet.sim import FleetDynamics
 from irdrc.fleet.spec import OBSERVE, FleetSpec
 
+if TYPE_CHECKING:
+    from irdrc.core.params import Params
+
 GROUP = "agents"
 """The key of the agents' entries."""
 
 
-def own_columns(params) -> list[int]:
+def own_columns(params: Params) -> list[int]:
     """The single-vehicle observation's columns that are a vehicle's own (d, c, v, m[, phase])."""
     width = observation_high(params).shape[0]
     return [0, 1, *range(4, width)]
@@ -47,7 +52,7 @@ def fleet_observation(obs: torch.Tensor, own: list[int], observe: str) -> torch.
     return torch.cat([obs, *others], -1)
 
 
-def fleet_observation_high(params, n: int, observe: str) -> torch.Tensor:
+def fleet_observation_high(params: Params, n: int, observe: str) -> torch.Tensor:
     """[W′] the largest value of each entry of ``fleet_observation``."""
     high = observation_high(params)
     if observe == "own":
@@ -67,7 +72,7 @@ def critic_state(obs: torch.Tensor, own: list[int]) -> torch.Tensor:
     return torch.cat([shared, obs[..., own].flatten(-2)], -1)
 
 
-def critic_state_high(params, n: int) -> torch.Tensor:
+def critic_state_high(params: Params, n: int) -> torch.Tensor:
     """[2 + N·len(own)] the largest value of each entry of ``critic_state``."""
     high = observation_high(params)
     return torch.cat([high[shared_columns()], *([high[own_columns(params)]] * n)])
@@ -212,7 +217,7 @@ class FleetEnv(EnvBase):
     def _set_seed(self, seed: int | None) -> None:
         self.rng.manual_seed(int(seed if seed is not None else fresh_seed()))
 
-    def _out(self, states: torch.Tensor, steps: torch.Tensor, res=None) -> TensorDict:
+    def _out(self, states: torch.Tensor, steps: torch.Tensor, res: Any = None) -> TensorDict:
         B, N = self.batch_size[0], self.n_agents
         single = self.sim.dyn.obs[states.reshape(-1)].reshape(B, N, -1)
         obs = fleet_observation(single, self.own, self.observe)
@@ -255,7 +260,7 @@ class FleetEnv(EnvBase):
             return reward.sum(-1, keepdim=True).expand_as(reward)
         return reward
 
-    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDict:
+    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs: Any) -> TensorDict:
         B = self.batch_size[0]
         states = self.sim.start(B, self.rng)  # uniform over the joint states
         return self._out(states, torch.zeros(B, dtype=torch.int64))

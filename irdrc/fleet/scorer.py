@@ -3,7 +3,7 @@ against the centralised optimum (value iteration over the joint actions, ``irdrc
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch
 
@@ -12,6 +12,9 @@ from irdrc.core.exact.solve import metrics_from_sums
 from irdrc.core.metrics import Metrics, long_run_rates
 from irdrc.fleet.model import FleetModel
 from irdrc.fleet.policies import joint_policy
+
+if TYPE_CHECKING:
+    from irdrc.core.exact.solve import Solution
 
 FLEET_METRICS = (
     "avg_reward",
@@ -67,7 +70,7 @@ class FleetScorer(Scorer):
         super().__init__(model, gamma)
 
     @property
-    def fleet_optimum(self):
+    def fleet_optimum(self) -> Solution:
         """The centralised optimum (value iteration's ``Solution``)."""
         return self.optimal
 

@@ -141,7 +141,9 @@ class FleetRowsEnv(FleetView):
         (vehicle, state) pair (vehicle-major)."""
         return self.obs_table.shape[0]
 
-    def _out(self, states: torch.Tensor, steps: torch.Tensor, reward=None) -> TensorDict:
+    def _out(
+        self, states: torch.Tensor, steps: torch.Tensor, reward: torch.Tensor | None = None
+    ) -> TensorDict:
         return row_output(
             self._observe(states),
             states.reshape(-1),
@@ -158,7 +160,7 @@ class FleetRowsEnv(FleetView):
         vehicle = torch.arange(flat.shape[0]) % self.n_agents
         return self.obs_table[vehicle * self.dynamics.num_states + flat]
 
-    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDict:
+    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs: Any) -> TensorDict:
         # Fresh fleets for every row; torchrl keeps the rows the "_reset" mask selects, and a
         # fleet's rows always end together.
         m, B, N = self.model, self.fleets, self.n_agents
@@ -219,13 +221,15 @@ class FleetJointEnv(FleetView):
         obs = self.sim.dyn.obs[vehicle_states]  # [n, N, W]
         return fleet_observation(obs, self.own, "full")[:, 0]
 
-    def _out(self, states: torch.Tensor, steps: torch.Tensor, reward=None) -> TensorDict:
+    def _out(
+        self, states: torch.Tensor, steps: torch.Tensor, reward: torch.Tensor | None = None
+    ) -> TensorDict:
         joint = self.sim.fleet_index(states)
         return row_output(
             self.obs_table[joint], joint, steps, self.params.env.horizon, self.device, reward
         )
 
-    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDict:
+    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs: Any) -> TensorDict:
         joint = torch.randint(0, self.model.num_states, (self.fleets,), generator=self.rng)
         return self._out(self.vehicles[joint], torch.zeros(self.fleets, dtype=torch.int64))
 

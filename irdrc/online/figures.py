@@ -28,7 +28,7 @@ COLORS = {
 }
 
 
-def _axes(title: str):
+def _axes(title: str) -> tuple[Any, Any]:
     fig, axes = plt.subplots(1, 3, figsize=(13.5, 3.8))
     axes[0].set_ylabel("greedy policy / optimum (exact)")
     axes[1].set_ylabel("cumulative regret (reward)")

@@ -50,7 +50,7 @@ class PosteriorSampling(StreamLearner):
         self.updates = 0
         self._greedy: torch.Tensor | None = None
 
-    def _solve(self, est) -> torch.Tensor:
+    def _solve(self, est: Any) -> torch.Tensor:
         model = self.counts.model(est)
         return value_iteration(model, gamma=self.cfg.gamma, tol=self.cfg.tol).policy
 

@@ -13,7 +13,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field, replace
 from functools import partial
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from irdrc.core.checks import build
 from irdrc.core.params import Params
@@ -21,6 +21,9 @@ from irdrc.online.configs import LEARNERS, learner_config
 from irdrc.runs.compose import Composed
 from irdrc.runs.resume import refuse_finished
 from irdrc.runs.sections import Learning, Plot, check_eval_period, check_exact, scenario_field
+
+if TYPE_CHECKING:
+    from irdrc.runs.scaffold import Run
 
 NAME = "online"
 RESUMABLE = True
@@ -112,7 +115,7 @@ def convergence(history: list[dict[str, Any]]) -> dict[str, Any]:
     return {"episodes_to_95": first[0.95], "episodes_to_99": first[0.99], "stay_99": stay}
 
 
-def run(cfg: Config, run) -> dict[str, Any]:
+def run(cfg: Config, run: Run) -> dict[str, Any]:
     """Learn on the stream, then finish the run directory as every learner's (``finish_learner``)
     with the ledger beside it."""
     from irdrc.core.exact import exact_scorer, require_ratio

@@ -33,7 +33,7 @@ and the share of draws in which it is at or under m*.
 from __future__ import annotations
 
 import random
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
@@ -54,6 +54,9 @@ from irdrc.online.configs import SafeConfig
 from irdrc.online.form import FormCounts
 from irdrc.online.loop import StreamLearner
 from irdrc.online.qlearning import tuple_state
+
+if TYPE_CHECKING:
+    from irdrc.core.metrics import Metrics
 
 GIBBS_SWEEPS = 200
 """Sweeps of the noisy-or sampler before each plan (``FormCounts.advance``): from its cold start the
@@ -217,7 +220,7 @@ class ConstrainedScorer:
         self.lp = solve_cmdp(scorer.model, target_miss)
         self.optimal_metrics = scorer.optimal_metrics
 
-    def metrics(self, table: torch.Tensor):
+    def metrics(self, table: torch.Tensor) -> Metrics:
         """The exact metrics of ``table`` (``Scorer.metrics``)."""
         return self.scorer.metrics(table)
 

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from irdrc.core.checks import INT, build, check_choice, check_list, check_number, check_numbers
 from irdrc.core.params import Params
@@ -25,6 +25,9 @@ from irdrc.runs.grid import format_value, parse_grid
 from irdrc.runs.results import atomic_write_text, write_rows_csv
 from irdrc.runs.sections import EXECUTOR, Executor, check_common, check_dense, scenario_field
 from irdrc.sweeps.trials import execute, plan
+
+if TYPE_CHECKING:
+    from irdrc.runs.scaffold import Run
 
 NAME = "figure2"
 PANELS = ("a", "bcd")
@@ -153,7 +156,7 @@ def _cost(p: dict[str, Any]) -> float:
     return algo.total_frames / algo.frames_per_batch * max(1, algo.updates_per_batch)
 
 
-def run(cfg: Config, run) -> int:
+def run(cfg: Config, run: Run) -> int:
     """Run the figure: training runs, exact references, CSVs, PNGs, claims. Returns an exit code."""
     t_start = time.perf_counter()
     out = run.dir.resolve()

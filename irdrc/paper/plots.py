@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping, Sequence
 from pathlib import Path
+from typing import Any
 
 import matplotlib
 
@@ -36,7 +37,7 @@ def _series(rows: Sequence[Mapping]) -> dict[str, list[Mapping]]:
     return out
 
 
-def _draw_bands(ax, rows: Sequence[Mapping], marker: str | None = None) -> None:
+def _draw_bands(ax: Any, rows: Sequence[Mapping], marker: str | None = None) -> None:
     for name, rs in _series(rows).items():
         st = _style(name)
         xs = [float(r["x"]) for r in rs]
@@ -55,7 +56,7 @@ def _draw_bands(ax, rows: Sequence[Mapping], marker: str | None = None) -> None:
             ax.fill_between(xs, lo, hi, color=st.get("color"), alpha=0.2, linewidth=0)
 
 
-def _hline(ax, y: float, series: str, label: str | None = None) -> None:
+def _hline(ax: Any, y: float, series: str, label: str | None = None) -> None:
     st = _style(series)
     ax.axhline(
         y,
@@ -215,7 +216,7 @@ def plot_tradeoff(
     atomic_savefig(fig, path, dpi=DPI)
 
 
-def _learned_point(ax, r: Mapping, xkey: str) -> None:
+def _learned_point(ax: Any, r: Mapping, xkey: str) -> None:
     y = float(r["miss_detection"])
     ax.errorbar(
         [float(r[xkey])],

@@ -15,7 +15,7 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from irdrc.core.checks import build, check_bool, check_list, check_number, numbers
 from irdrc.core.metrics import Metrics
@@ -38,6 +38,9 @@ from irdrc.runs.sections import (
     seeds,
 )
 from irdrc.sweeps.trials import execute, plan
+
+if TYPE_CHECKING:
+    from irdrc.runs.scaffold import Run
 
 NAME = "tradeoff"
 SOLVES_LIMIT = 5_000
@@ -182,7 +185,7 @@ def smallest_r4(
     return round(lo + b * resolution, 10), calls
 
 
-def run(cfg: Config, run) -> int:
+def run(cfg: Config, run: Run) -> int:
     """Exact trade-off curves over r4, the bisection for ``target_miss``, DQN at a few points."""
     t0 = time.perf_counter()
     out = run.dir.resolve()
@@ -313,7 +316,7 @@ def _print_found(
     )
 
 
-def _dqn_points(cfg: Config, run, p: float) -> tuple[int, list[dict]]:
+def _dqn_points(cfg: Config, run: Run, p: float) -> tuple[int, list[dict]]:
     """DQN at ``dqn.r4`` (``dqn.seeds`` each) through the sweep engine: (exit code, mean rows)."""
     learned_rows: list[dict] = []
     if not cfg.planned:

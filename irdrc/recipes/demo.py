@@ -9,12 +9,15 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from irdrc.core.checks import build, check_choice, check_list
 from irdrc.core.params import Params
 from irdrc.runs.compose import Composed
 from irdrc.runs.sections import Eval, check_common, scenario_field
+
+if TYPE_CHECKING:
+    from irdrc.runs.scaffold import Run
 
 NAME = "demo"
 POLICIES = ("round_robin", "always_radar", "always_comm", "random")
@@ -48,7 +51,7 @@ def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
     return cfg
 
 
-def run(cfg: Config, run) -> int:
+def run(cfg: Config, run: Run) -> int:
     """Evaluate each policy of ``cfg.policies`` and print the side-by-side table."""
     from irdrc.core import policies
     from irdrc.core.env import DFRCEnv

@@ -10,7 +10,7 @@ by Monte-Carlo at the end, beside the optimum and the baselines.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from irdrc.agents.configs import DQNConfig
 from irdrc.core.checks import build
@@ -23,6 +23,9 @@ from irdrc.runs.sections import (
     check_exact,
     check_memory,
 )
+
+if TYPE_CHECKING:
+    from irdrc.runs.scaffold import Run
 
 NAME = "dqn"
 ALGO_KEYS = DQNConfig.keys()
@@ -70,7 +73,7 @@ def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
     return cfg
 
 
-def run(cfg: Config, run) -> dict[str, Any]:
+def run(cfg: Config, run: Run) -> dict[str, Any]:
     """Train, evaluate, finish the run directory (``irdrc.runs.report``)."""
     from irdrc.agents import dqn
     from irdrc.core.exact import exact_scorer, require_ratio

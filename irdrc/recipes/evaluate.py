@@ -22,7 +22,7 @@ import time
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from irdrc.core import checks
 from irdrc.core.checks import build, check_file
@@ -30,6 +30,9 @@ from irdrc.core.metrics import Metrics
 from irdrc.core.params import Params
 from irdrc.runs.compose import Composed
 from irdrc.runs.sections import Eval, check_common, scenario_field
+
+if TYPE_CHECKING:
+    from irdrc.runs.scaffold import Run
 
 NAME = "evaluate"
 
@@ -250,7 +253,7 @@ def against_optimum(learned: Metrics, opt: Metrics, what: str) -> str:
     )
 
 
-def run(cfg: Config, run) -> dict[str, Any]:
+def run(cfg: Config, run: Run) -> dict[str, Any]:
     """Score the policy of ``checkpoint=`` or ``policy=`` on the composed scenario; write
     summary.json and policy.csv (the policy on this scenario's states), print the table."""
     from irdrc.core.env import DFRCEnv
@@ -362,7 +365,7 @@ def against_lp(
     }
 
 
-def score_shares(cfg: Config, run, rho: Any, source: str, t0: float) -> dict[str, Any]:
+def score_shares(cfg: Config, run: Run, rho: Any, source: str, t0: float) -> dict[str, Any]:
     """A radar-share policy (``rho`` [S], MODEL.md § D) scored exactly against the optimum over
     ρ ∈ [0, 1] and the binary optimum, and by Monte-Carlo on ``env.actions=continuous``."""
     from irdrc.core.env import DFRCEnv

@@ -9,7 +9,7 @@ one batch — evaluated exactly, beside the optimum.
 from __future__ import annotations
 
 from dataclasses import dataclass, field, fields
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from irdrc.agents.configs import QLearningConfig
 from irdrc.core.checks import INT, build, check_numbers
@@ -23,6 +23,9 @@ from irdrc.runs.sections import (
     check_eval_period,
     scenario_field,
 )
+
+if TYPE_CHECKING:
+    from irdrc.runs.scaffold import Run
 
 NAME = "qlearning"
 ALGO_KEYS = frozenset(f.name for f in fields(QLearningConfig))
@@ -97,7 +100,7 @@ def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
     return cfg
 
 
-def run(cfg: Config, run) -> dict[str, Any]:
+def run(cfg: Config, run: Run) -> dict[str, Any]:
     """Train every learner, evaluate, finish the run directory (``irdrc.runs.report``)."""
     from irdrc.agents import qlearning
     from irdrc.core.exact import exact_scorer, require_ratio

@@ -14,7 +14,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from irdrc.core.checks import INT, build, check_number, check_numbers
 from irdrc.core.params import Params
@@ -27,6 +27,9 @@ from irdrc.runs.sections import (
     check_common,
     scenario_field,
 )
+
+if TYPE_CHECKING:
+    from irdrc.runs.scaffold import Run
 
 NAME = "solve"
 
@@ -107,7 +110,7 @@ def check_episodic_cost(params: Params, key: str = "env.horizon") -> None:
         )
 
 
-def run(cfg: Config, run) -> dict[str, Any]:
+def run(cfg: Config, run: Run) -> dict[str, Any]:
     """Solve, print the policy and the comparison table, write summary.json and policy.csv."""
     run.threads(1)
     if not isinstance(cfg.model, Params):
@@ -124,7 +127,7 @@ def run(cfg: Config, run) -> dict[str, Any]:
     return summary
 
 
-def solve_dense(cfg: Config, run) -> dict[str, Any]:
+def solve_dense(cfg: Config, run: Run) -> dict[str, Any]:
     """Value iteration on the dense model; the optimum's and the baselines' exact long-run and
     episodic metrics, and a Monte-Carlo check of the optimum."""
     from irdrc.core.env import DFRCEnv
@@ -180,7 +183,7 @@ def solve_dense(cfg: Config, run) -> dict[str, Any]:
     return optimum_files(cfg, run, sol.policy, rows, errs, wall, episodic=episodic)
 
 
-def solve_continuous(cfg: Config, run) -> dict[str, Any]:
+def solve_continuous(cfg: Config, run: Run) -> dict[str, Any]:
     """The optimum over ρ ∈ [0, 1] (MODEL.md § D) with its error bound, beside the binary optimum
     and the baselines, all exact and long-run; ``policy.csv`` holds each state's ``rho``."""
     import torch
@@ -236,7 +239,7 @@ def solve_continuous(cfg: Config, run) -> dict[str, Any]:
 
 def optimum_files(
     cfg: Config,
-    run,
+    run: Run,
     policy: Any,
     rows: dict[str, Any],
     errs: dict[str, Any],
@@ -297,7 +300,7 @@ def estimate(params: Params, model: Any) -> tuple[float, float]:
     return per * SWEEPS_GUESS, BYTES_PER_STATE * float(model.num_states)
 
 
-def solve_factored(cfg: Config, run) -> dict[str, Any]:
+def solve_factored(cfg: Config, run: Run) -> dict[str, Any]:
     """Value iteration (McQueen's bounds, ``tol``) and exact long-run metrics on the factored
     operator, beside always-comm, always-radar and random; refused past this machine's memory or
     ``max_minutes``, with progress while it runs."""

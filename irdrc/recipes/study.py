@@ -15,7 +15,7 @@ from __future__ import annotations
 import statistics
 import time
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from irdrc.core.checks import (
     build,
@@ -31,6 +31,10 @@ from irdrc.runs.grid import is_scenario_key, override_key
 from irdrc.runs.scenarios import list_scenarios
 from irdrc.runs.sections import check_common, one_vehicle_scenarios
 from irdrc.runs.sections import seeds as distinct_seeds
+
+if TYPE_CHECKING:
+    from irdrc.agents.base import RunRecord
+    from irdrc.runs.scaffold import Run
 
 NAME = "study"
 LEARNERS = {
@@ -132,7 +136,9 @@ class TimedScorer:
         return m
 
 
-def train(learner: str, cfg: Any, n: int, seed: int, device: str, scorer: Any, evals: int):
+def train(
+    learner: str, cfg: Any, n: int, seed: int, device: str, scorer: Any, evals: int
+) -> RunRecord:
     """One run of ``learner`` (its recipe's typed config ``cfg``), ``evals`` exact evaluations
     evenly over its budget."""
     from irdrc.agents import dqn, qlearning
@@ -254,7 +260,7 @@ def study_table(rows: list[dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
-def run(cfg: Config, run) -> int:
+def run(cfg: Config, run: Run) -> int:
     """Every (scenario, learner, seed); ``study.csv``, ``study.md`` and ``summary.json``."""
 
     from irdrc.core.exact import exact_scorer

@@ -8,7 +8,7 @@ Ray Tune or one after another here (the engine: ``irdrc.sweeps.trials``).
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from irdrc.core.checks import build, check_choice, check_list
 from irdrc.recipes import dqn, qlearning, solve
@@ -19,6 +19,9 @@ from irdrc.runs.compose import Composed
 from irdrc.runs.grid import parse_grid
 from irdrc.runs.sections import EXECUTOR, Executor
 from irdrc.sweeps.trials import execute, plan
+
+if TYPE_CHECKING:
+    from irdrc.runs.scaffold import Run
 
 NAME = "sweep"
 
@@ -68,6 +71,6 @@ def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
     return replace(cfg, planned=tuple(planned))
 
 
-def run(cfg: Config, run) -> int:
+def run(cfg: Config, run: Run) -> int:
     """Run the planned grid (``execute``)."""
     return execute(cfg.executor, list(cfg.planned), run.dir, run.recipe)

@@ -124,20 +124,20 @@ def prepare_overrides(config_name: str, overrides: list[str]) -> list[str]:
     return out
 
 
-def _initialised():
+def _initialised() -> Any:
     """Hydra initialised on ``irdrc/conf`` for one compose (global state restored after)."""
     from hydra import initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
 
     class _Scope:
-        def __enter__(self):
+        def __enter__(self) -> None:
             gh = GlobalHydra.instance()
             self.saved = gh.hydra if gh.is_initialized() else None
             gh.clear()
             self.ctx = initialize_config_dir(config_dir=str(CONF_DIR), version_base=None)
             self.ctx.__enter__()
 
-        def __exit__(self, *exc):
+        def __exit__(self, *exc: Any) -> None:
             self.ctx.__exit__(*exc)
             gh = GlobalHydra.instance()
             gh.clear()

@@ -90,7 +90,7 @@ class RunProgress:
     """
 
     def __init__(
-        self, total: int, enabled: bool, logger, label: str, unit: str = "env steps"
+        self, total: int, enabled: bool, logger: Any, label: str, unit: str = "env steps"
     ) -> None:
         self.total, self.enabled, self.logger, self.label = total, enabled, logger, label
         self.unit = unit

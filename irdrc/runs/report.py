@@ -14,7 +14,7 @@ import dataclasses
 import statistics
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from irdrc.agents.base import EPISODE_FIELDS, RunRecord
 from irdrc.core.env import DFRCEnv
@@ -30,6 +30,9 @@ from irdrc.runs.scaffold import Run
 from irdrc.runs.sections import Eval
 from irdrc.runs.signals import Signalled
 from irdrc.runs.tables import policy_differences, write_policy_csv
+
+if TYPE_CHECKING:
+    import torch
 
 
 @dataclass
@@ -97,7 +100,7 @@ class LearnerRun:
         )
 
     @property
-    def final_policy(self):
+    def final_policy(self) -> torch.Tensor:
         """Learner 0's final policy: its randomised [S, A] probabilities where it has them, else
         its greedy table [S]."""
         if self.record.policy is not None:
@@ -153,7 +156,7 @@ def finish_learner(run: Run, lr: LearnerRun) -> dict[str, Any]:
     return summary
 
 
-def final_rows(lr: LearnerRun, greedy) -> tuple[dict[str, Metrics], dict[str, dict]]:
+def final_rows(lr: LearnerRun, greedy: torch.Tensor) -> tuple[dict[str, Metrics], dict[str, dict]]:
     """The final table: the learned policy ``greedy`` ([S] actions or [S, A] probabilities)
     exactly (long run, and episodic beside the Monte-Carlo row), the optimum and round-robin;
     Monte-Carlo ± 95 % CI."""

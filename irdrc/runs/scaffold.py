@@ -102,7 +102,13 @@ class Run:
         resume_state: the checkpoint a resumed run goes on from (None: a fresh run).
     """
 
-    def __init__(self, recipe: str, composed: Composed, directory: Path, resume_state=None):
+    def __init__(
+        self,
+        recipe: str,
+        composed: Composed,
+        directory: Path,
+        resume_state: dict[str, Any] | None = None,
+    ) -> None:
         self.recipe, self.composed, self.dir = recipe, composed, Path(directory)
         self.resume_state = resume_state
         self.stop: StopFlag | None = None
@@ -307,9 +313,12 @@ class Run:
             )
             progress.close()
 
-    def checkpoint(self, state: dict[str, Any]) -> None:
+    def checkpoint(self, state: dict[str, Any] | None) -> None:
         """``checkpoint.pt`` (atomically), with the run's config and scenario, and its metrics and
-        episodes so far beside it (written first: once the checkpoint exists, they do too)."""
+        episodes so far beside it (written first: once the checkpoint exists, they do too); None
+        (a learner without a resumable state): nothing."""
+        if state is None:
+            return
         import torch
 
         from irdrc.agents.base import DIGEST_SUFFIX, EPISODE_FIELDS

@@ -30,7 +30,7 @@ class StopFlag:
     def __call__(self) -> bool:
         return self.signal is not None
 
-    def _handle(self, signum, frame) -> None:
+    def _handle(self, signum: int, frame: Any) -> None:
         if self.signal is not None and signum == signal.SIGINT:
             raise KeyboardInterrupt
         self.signal = signum
@@ -67,7 +67,7 @@ class RunSignals:
             signal.signal(s, handler)
         self.previous = {}
 
-    def _handle(self, signum, frame) -> None:
+    def _handle(self, signum: int, frame: Any) -> None:
         if self.signum is None:
             self.signum = signum
             raise Signalled(signum)

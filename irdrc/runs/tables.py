@@ -7,12 +7,15 @@ import csv
 import math
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch
 
 from irdrc.core.dynamics import decode_state
 from irdrc.runs.results import atomic_write_text
+
+if TYPE_CHECKING:
+    from irdrc.core.params import Params
 
 POLICY_COLUMNS = ("d", "c", "r", "w", "v", "m", "action", "p_radar")
 """``policy.csv``: one row per state in index order: the state's factors, ``action`` (the mode
@@ -224,7 +227,7 @@ def policy_table(model: Any, actions: torch.Tensor) -> str:
     return "\n".join(lines)
 
 
-def _config_labels(params) -> list[tuple[str, int]]:
+def _config_labels(params: Params) -> list[tuple[str, int]]:
     """Per factor configuration f: its levels as ``c r w v m[ phase]`` and b (MODEL.md § B.1)."""
     levels = params.env.factor_levels
     cols = decode_state(torch.arange(math.prod(levels)), levels)[:, 1:].tolist()

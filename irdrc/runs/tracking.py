@@ -63,7 +63,7 @@ def make_logger(
     project: str = "irdrc",
     mode: str = "auto",
     config: dict[str, Any] | None = None,
-):
+) -> Any:
     """A TorchRL logger (``CSVLogger``, ``TensorboardLogger`` or ``WandbLogger``), or None for
     ``backend="none"``.
 
@@ -106,7 +106,7 @@ def make_logger(
     return logger
 
 
-def log_scalars(logger, values: dict[str, float], step: int) -> None:
+def log_scalars(logger: Any, values: dict[str, float], step: int) -> None:
     """Log every finite scalar of ``values`` at ``step`` (no-op without a logger)."""
     if logger is None:
         return

@@ -86,11 +86,11 @@ def run_tune(
             return asked["stop"]
 
     class Progress(tune.Callback):
-        def _line(self, trial, status: str, extra: str = "") -> None:
+        def _line(self, trial: Any, status: str, extra: str = "") -> None:
             done["n"] += 1
             progress_line(done["n"], total, already, t0, trial.config["point"], status + extra)
 
-        def on_trial_start(self, iteration, trials, trial, **info) -> None:
+        def on_trial_start(self, iteration: int, trials: Any, trial: Any, **info: Any) -> None:
             p = trial.config["point"]
             label = (
                 " ".join([*p["base"], *p["overrides"]])
@@ -99,7 +99,7 @@ def run_tune(
             )
             print(f"[started] {label}  (elapsed {time.perf_counter() - t0:.0f} s)", flush=True)
 
-        def on_trial_complete(self, iteration, trials, trial, **info) -> None:
+        def on_trial_complete(self, iteration: int, trials: Any, trial: Any, **info: Any) -> None:
             # The trial's files are stored now, not when the sweep ends: a killed driver keeps them.
             result = trial.last_result or {}
             if "summary_json" not in result and asked["stop"]:
@@ -114,7 +114,7 @@ def run_tune(
             if asked["stop"]:
                 raise KeyboardInterrupt
 
-        def on_trial_error(self, iteration, trials, trial, **info) -> None:
+        def on_trial_error(self, iteration: int, trials: Any, trial: Any, **info: Any) -> None:
             if asked["stop"]:
                 return
             p = trial.config["point"]

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, fields
-from typing import Any, ClassVar
+from typing import Any, ClassVar, Self
 
 from irdrc.core import checks
 
@@ -176,7 +176,9 @@ class OffPolicyConfig:
         return {f.name for f in fields(cls) if f.name != "network"}
 
     @classmethod
-    def from_sections(cls, algo: Any, network: Any = None, *, base: Any = None, **extra: Any):
+    def from_sections(
+        cls, algo: Any, network: Any = None, *, base: Any = None, **extra: Any
+    ) -> Self:
         """From the ``algo`` mapping and the ``network`` mapping; unknown keys are refused, naming
         the closest valid one. A key the mappings leave out takes ``base``'s value (a learner's own
         default, e.g. the Lagrangian's), or this class's default without one."""

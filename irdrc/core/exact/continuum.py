@@ -119,7 +119,9 @@ def segments(params: Params, grid: int = GRID) -> Segments:
             for x in (lo, hi)
         )
 
-        def rescaled(t: torch.Tensor, lo=lo, hi=hi, ua=ua, ub=ub) -> torch.Tensor:
+        def rescaled(
+            t: torch.Tensor, lo: Any = lo, hi: Any = hi, ua: Any = ua, ub: Any = ub
+        ) -> torch.Tensor:
             if ub - ua < FLAT_REACTION:
                 return t
             u = reaction(lo + t * (hi - lo), env.sensing, env.dwell_gain)

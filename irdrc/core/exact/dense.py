@@ -10,6 +10,7 @@ indexing is the one of ``irdrc.core.dynamics``: s = d·F + f (v1: s = d·32 + c�
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, cast
 
@@ -73,7 +74,9 @@ class DenseModel(ExactMDP):
         """x·P_π."""
         return x @ self.chain(probs)
 
-    def cycle(self, schedule, tol: float = 1e-13, max_iter: int = 200_000) -> list[torch.Tensor]:
+    def cycle(
+        self, schedule: Sequence[torch.Tensor], tol: float = 1e-13, max_iter: int = 200_000
+    ) -> list[torch.Tensor]:
         """The stationary distribution at each phase of ``schedule``, exactly: that of the product
         of one period's chains, then stepped through the phases."""
         chains = [self.chain(p) for p in schedule]
@@ -87,7 +90,7 @@ class DenseModel(ExactMDP):
             mu = mu @ ch
         return path
 
-    def sparse(self, a: int):
+    def sparse(self, a: int) -> Any:
         """P_a as a SciPy CSR matrix."""
         from scipy import sparse
 
@@ -127,7 +130,9 @@ def _poisson_pmf(rate: float, k: int) -> float:
     return math.exp(k * math.log(rate) - rate - math.lgamma(k + 1))
 
 
-def _queue_tables(D: int, pairs: dict[tuple[int, float], int]):
+def _queue_tables(
+    D: int, pairs: dict[tuple[int, float], int]
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """For each (ν, λ): the distribution of d′ [D + 1, D + 1] and the expected sent and dropped
     [D + 1], summed over A = 0 … K−1 exactly plus a tail bucket A ≥ K, where K = D + max ν + 1 makes
     every tail outcome identical (sent = ν, d′ = D) except the drop, whose tail expectation is

@@ -15,7 +15,7 @@ from __future__ import annotations
 import functools
 import math
 from dataclasses import dataclass, field
-from typing import cast
+from typing import Any, cast
 
 import torch
 
@@ -241,11 +241,13 @@ class FactoredModel(ExactMDP):
         nf = self.num_configs
         return self.step_rows(x.reshape(-1, nf), probs.reshape(-1, nf, probs.shape[-1])).reshape(-1)
 
-    def stationary(self, probs: torch.Tensor, tol: float = 1e-13, max_iter: int = 1_000_000):
+    def stationary(
+        self, probs: torch.Tensor, tol: float = 1e-13, max_iter: int = 1_000_000
+    ) -> torch.Tensor:
         """[S] by aggregation-disaggregation over the queue (``stationary_distribution_factored``)."""
         return stationary_distribution_factored(self, probs, tol=tol, max_iter=max_iter)[0]
 
-    def sparse(self, a: int):
+    def sparse(self, a: int) -> Any:
         """P_a as a SciPy CSR matrix: P[(d, f), (d′, f′)] = Q(d′ | d, ν, λ)·F[a, f, f′], the queue's
         arrivals (``pmf``, tail folded into the last entry) clamped at 0 and D — O(S · fan-out)
         non-zeros, never S × S dense."""

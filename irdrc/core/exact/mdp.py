@@ -96,7 +96,9 @@ class ExactMDP:
         """Where the model's tensors live."""
         return self.R.device
 
-    def stationary(self, probs: torch.Tensor, tol: float = 1e-13, max_iter: int = 200_000):
+    def stationary(
+        self, probs: torch.Tensor, tol: float = 1e-13, max_iter: int = 200_000
+    ) -> torch.Tensor:
         """[S] the stationary distribution of ``probs`` [S, A] by power iteration from uniform
         (one recurrent class assumed, as every chain here whose factors mix)."""
         return self.cycle([probs], tol, max_iter)[0]
@@ -132,7 +134,7 @@ class ExactMDP:
         tables (``expected_sums``); a model may compute them without building its tables."""
         return expected_sums(occ, self.tables())
 
-    def sparse(self, a: int):
+    def sparse(self, a: int) -> Any:
         """P_a as a SciPy CSR matrix [S, S] (the LP of ``irdrc.core.cmdp``)."""
         raise NotImplementedError(f"{type(self).__name__} has no sparse transitions")
 

@@ -205,7 +205,9 @@ def episodic_metrics(mdp: ExactMDP, policy: Any, horizon: int | None = None) -> 
     return metrics_from_occupancy(mdp, episodic_occupancy(mdp, policy, horizon))
 
 
-def policy_evaluation(mdp: DenseModel, policy: Any, gamma: float = DEFAULT_OPTIMUM_GAMMA):
+def policy_evaluation(
+    mdp: DenseModel, policy: Any, gamma: float = DEFAULT_OPTIMUM_GAMMA
+) -> torch.Tensor:
     """Exact discounted values V^π of a stationary policy on a dense model: solves
     (I − γ P_π) V = R_π."""
     (table,) = as_schedule(policy, mdp.num_states, mdp.num_actions)

@@ -115,7 +115,7 @@ def stationary_distribution_factored(
     return mu, steps + calls + more
 
 
-def _initial(model: FactoredModel, probs: torch.Tensor, start: torch.Tensor | None):
+def _initial(model: FactoredModel, probs: torch.Tensor, start: torch.Tensor | None) -> torch.Tensor:
     """The iterate to start from: ``start``, or uniform over the factors where the queue settles."""
     D1, nf = probs.shape[:2]
     if start is not None:
@@ -267,7 +267,7 @@ def _stationary_power(
     partial: bool = False,
     progress: Callable[[int, float], None] | None = None,
     give_up: bool = False,
-):
+) -> tuple[Any, ...]:
     """Power iteration (see ``stationary_distribution_factored``). Returns (μ, steps), or with
     ``partial`` (μ, steps, converged) instead of raising when ``max_iter`` steps do not converge;
     with ``give_up`` (and ``partial``) it stops early when the change's decay over the last

@@ -9,7 +9,7 @@ from __future__ import annotations
 import time
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
@@ -21,6 +21,9 @@ from irdrc.core.params import Params
 from irdrc.recipes.constrained.region import binary_params, levels_lp_value, share_points
 from irdrc.runs.progress import Ticker
 from irdrc.runs.results import atomic_savefig, md_table, write_rows_csv, write_table_md
+
+if TYPE_CHECKING:
+    from irdrc.runs.scaffold import Run
 
 FRONTIER_COLUMNS = (
     "p1_speed",
@@ -164,7 +167,7 @@ def give_up_table(lp: list[dict], r4: list[dict], targets: list[float]) -> list[
     return out
 
 
-def run_frontier(cfg: Any, run) -> dict[str, Any]:
+def run_frontier(cfg: Any, run: Run) -> dict[str, Any]:
     """The LP frontier and the r4 route at each ``frontier_grid.p1_speed``: ``frontier.csv``,
     ``frontier_gap.csv``, ``frontier.png``, and the printed tables; returns the summary."""
     grid = cfg.frontier_grid

@@ -12,8 +12,9 @@ solved exactly by the LP of ``irdrc.core.cmdp`` beside the reward-optimal policy
 from __future__ import annotations
 
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from irdrc.agents.configs import OBJECTIVES, LagrangianConfig, OffPolicyConfig
 from irdrc.core import checks
@@ -27,6 +28,10 @@ from irdrc.runs.sections import (
     check_speeds,
     scenario_field,
 )
+
+if TYPE_CHECKING:
+    from irdrc.core.exact.mdp import ExactMDP
+    from irdrc.runs.scaffold import Run
 
 NAME = "constrained"
 ALGO_KEYS = OffPolicyConfig.keys()
@@ -190,7 +195,7 @@ def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
     return cfg
 
 
-def run(cfg: Config, run) -> dict[str, Any]:
+def run(cfg: Config, run: Run) -> dict[str, Any]:
     """One exact solve (and the learner, with ``learner=dqn_lagrangian``), or the frontier."""
     run.threads(cfg.num_threads)
     if cfg.frontier:
@@ -210,7 +215,7 @@ def run(cfg: Config, run) -> dict[str, Any]:
     return summary
 
 
-def lp_model(params: Params):
+def lp_model(params: Params) -> ExactMDP:
     """The exact model the LP runs on: dense while it fits, else factored (its transitions reach
     the LP as sparse matrices built from the factors)."""
     from irdrc.core.exact import build_factored, build_model
@@ -218,7 +223,7 @@ def lp_model(params: Params):
     return build_model(params) if fits_dense(params) else build_factored(params)
 
 
-def describe_randomised(sol: Any, levels=None) -> list[str]:
+def describe_randomised(sol: Any, levels: Sequence[int] | None = None) -> list[str]:
     """One line per randomised state: its factors and P(radar)."""
     from irdrc.runs.tables import state_label
 
@@ -229,7 +234,7 @@ def describe_randomised(sol: Any, levels=None) -> list[str]:
     ]
 
 
-def solve_lp(cfg: Config, run) -> dict[str, Any]:
+def solve_lp(cfg: Config, run: Run) -> dict[str, Any]:
     """Solve the constrained problem exactly; print it beside the reward-optimal policy; write
     ``policy.csv`` (with ``p_radar``); return the summary (the LP optimum's exact metrics under
     ``optimal`` and ``metrics``)."""
@@ -295,7 +300,7 @@ def objective_ratio(entries: list[dict[str, Any]], sol: Any) -> list[dict[str, A
     return entries
 
 
-def run_learned(cfg: Config, run) -> dict[str, Any]:
+def run_learned(cfg: Config, run: Run) -> dict[str, Any]:
     """Train the Lagrangian DQN and score its final policy exactly against the LP optimum:
     ``summary.json`` (the learned policy's exact metrics under ``metrics``, the LP's under
     ``optimal``, training and measurement env steps, μ), ``policy.csv`` (with ``p_radar``),

@@ -8,11 +8,14 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch
 
 from irdrc.core.params import Params
+
+if TYPE_CHECKING:
+    from irdrc.runs.scaffold import Run
 
 
 def binary_params(params: Params) -> Params:
@@ -106,7 +109,7 @@ def describe(policy: Any, levels: Any) -> list[str]:
     return lines
 
 
-def solve_shares(cfg: Any, run) -> dict[str, Any]:
+def solve_shares(cfg: Any, run: Run) -> dict[str, Any]:
     """Solve the constrained problem over shares at ``cfg.target_miss``; print it beside the binary
     modes' LP and the reward-optimal shares; write ``policy.csv`` (``SHARE_POLICY_COLUMNS``);
     return the summary (the feasible policy's exact metrics under ``metrics``)."""

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from irdrc.agents.configs import (
     FLEET_LEARNERS,
@@ -30,6 +30,11 @@ from irdrc.runs.sections import (
     Plot,
     scenario_field,
 )
+
+if TYPE_CHECKING:
+    from irdrc.agents.base import RunRecord
+    from irdrc.fleet.model import FleetModel
+    from irdrc.runs.scaffold import Run
 
 NAME = "fleet"
 ALGO_KEYS = OffPolicyConfig.keys()
@@ -105,7 +110,7 @@ def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
     cfg = build(Config, composed.cfg)
     spec, observe = cfg.fleet
 
-    def model():  # torch and the kernels: only for a learner on joint states
+    def model() -> FleetModel:  # torch and the kernels: only for a learner on joint states
         from irdrc.fleet.model import FleetModel
 
         return FleetModel(spec)
@@ -122,7 +127,7 @@ def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
     return cfg
 
 
-def run(cfg: Config, run) -> dict[str, Any]:
+def run(cfg: Config, run: Run) -> dict[str, Any]:
     """Train the learner on the fleet, finish its run directory (``finish_fleet``)."""
     from irdrc.agents import marl
     from irdrc.core.exact import require_ratio
@@ -182,7 +187,15 @@ def mc_keys(cfg: Config) -> dict[str, int]:
     }
 
 
-def finish_fleet(cfg: Config, run, model, observe: str, record, scorer, single) -> dict[str, Any]:
+def finish_fleet(
+    cfg: Config,
+    run: Run,
+    model: Any,
+    observe: str,
+    record: RunRecord,
+    scorer: Any,
+    single: Any,
+) -> dict[str, Any]:
     """Write a fleet run's files (checkpoint, metrics.csv, policy.csv, the learning curve), print
     its table, return its summary."""
     from irdrc.fleet.evaluate import baseline_rules
@@ -202,8 +215,7 @@ def finish_fleet(cfg: Config, run, model, observe: str, record, scorer, single) 
     from irdrc.runs.results import summary_dict, write_metrics_csv, write_rows_csv
 
     name = cfg.learner.learner
-    if record.state is not None:
-        run.checkpoint(record.state)
+    run.checkpoint(record.state)
     greedy = record.greedy[0].cpu()
     write_metrics_csv(run.dir / "metrics.csv", record.history)
     curve = run.dir / f"learning_curve.{cfg.plot.format}"

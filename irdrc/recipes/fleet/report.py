@@ -8,7 +8,7 @@ from __future__ import annotations
 import math
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch
 
@@ -19,6 +19,9 @@ from irdrc.fleet.policies import baselines, single_optima
 from irdrc.fleet.scorer import PRINTED, fleet_metrics
 from irdrc.fleet.spec import FleetSpec
 from irdrc.runs.results import atomic_write_text, clean_number, summary_dict
+
+if TYPE_CHECKING:
+    from irdrc.runs.scaffold import Run
 
 FLEET_ROW = (
     "fleet rows: reward, throughput and drops are sums over the vehicles per fleet step; miss "
@@ -141,7 +144,7 @@ def reference_policies(model: FleetModel, single_optimum: torch.Tensor) -> dict[
 
 
 def solve_fleet(
-    model_spec: tuple[FleetSpec, str], gamma: float, tol: float, max_iter: int, seed: int, run
+    model_spec: tuple[FleetSpec, str], gamma: float, tol: float, max_iter: int, seed: int, run: Run
 ) -> dict[str, Any]:
     """The fleet's centralised optimum (value iteration over the joint state and the 2^N joint
     actions), exact per-vehicle and fleet metrics beside the baselines, and what cooperation is

@@ -4,12 +4,15 @@ binary's, and written like every learner's run (``recipes/sac.py``, ``recipes/pp
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from irdrc.core.checks import build
 from irdrc.runs.compose import Composed
 from irdrc.runs.resume import refuse_finished
 from irdrc.runs.sections import check_eval_period, check_memory
+
+if TYPE_CHECKING:
+    from irdrc.runs.scaffold import Run
 
 
 def load_as(config: type, composed: Composed, resume: dict[str, Any] | None) -> Any:
@@ -32,7 +35,7 @@ def load_as(config: type, composed: Composed, resume: dict[str, Any] | None) -> 
     return cfg
 
 
-def run_learner(cfg: Any, run, train: Any) -> dict[str, Any]:
+def run_learner(cfg: Any, run: Run, train: Any) -> dict[str, Any]:
     """Train with ``train`` (``irdrc.agents.sac.train``, ``ppo.train``), score the final shares
     exactly beside the optimum over ρ and binary's, and write ``checkpoint.pt``, ``metrics.csv``,
     ``episode_rewards.csv``, ``policy.csv`` (``rho``), ``learning_curve.<format>`` and

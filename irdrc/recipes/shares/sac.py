@@ -10,12 +10,15 @@ scored exactly against the optimum over the continuum during and after training.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from irdrc.agents.configs.continuous import SACConfig
 from irdrc.recipes.shares.learning import load_as, run_learner
 from irdrc.runs.compose import Composed
 from irdrc.runs.sections import OneVehicleLearning, algo_field
+
+if TYPE_CHECKING:
+    from irdrc.runs.scaffold import Run
 
 NAME = "sac"
 SWEEP_DEFAULTS = ("progress=false", "logger=none")
@@ -36,7 +39,7 @@ def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
     return load_as(Config, composed, resume)
 
 
-def run(cfg: Config, run) -> dict[str, Any]:
+def run(cfg: Config, run: Run) -> dict[str, Any]:
     """Train SAC and finish the run (``run_learner``)."""
     from irdrc.agents import sac
 

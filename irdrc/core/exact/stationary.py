@@ -1,23 +1,62 @@
 """Stationary distributions on the factored operator (``irdrc.core.exact.factored``), fast for deep
 queues: power iteration over the queue lengths that hold mass, aggregation-disaggregation over the
 queue length, and GMRES. Every ``model`` here is a factored model
-(``irdrc.core.exact.factored.FactoredModel``, which calls in here): its ``push_rows`` and
-``num_configs`` are what these solvers use.
+(``irdrc.core.exact.factored.FactoredModel``, which calls in here); ``FactoredChain`` names what
+these solvers read of it.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 import torch
 
 from irdrc.core.exact.krylov import krylov_solve
 from irdrc.core.exact.mdp import as_probs
 
-if TYPE_CHECKING:
-    from irdrc.core.exact.factored import FactoredModel
+
+class FactoredChain(Protocol):
+    """What these solvers read of a factored model (``irdrc.core.exact.factored.FactoredModel``)."""
+
+    @property
+    def num_states(self) -> int: ...
+
+    @property
+    def num_actions(self) -> int: ...
+
+    @property
+    def num_configs(self) -> int: ...
+
+    @property
+    def device(self) -> torch.device: ...
+
+    @property
+    def F(self) -> torch.Tensor: ...
+
+    @property
+    def pmf(self) -> torch.Tensor: ...
+
+    @property
+    def per_config(self) -> dict: ...
+
+    @property
+    def group(self) -> torch.Tensor: ...
+
+    @property
+    def sent_q(self) -> torch.Tensor: ...
+
+    @property
+    def dropped_q(self) -> torch.Tensor: ...
+
+    @property
+    def cols(self) -> tuple: ...
+
+    def step(self, x: torch.Tensor, probs: torch.Tensor) -> torch.Tensor: ...
+
+    def step_rows(self, X: torch.Tensor, probs: torch.Tensor) -> torch.Tensor: ...
+
 
 NEGLIGIBLE_MASS = 1e-30
 """Queue lengths holding less stationary mass than this (summed over the factors) are stepped by
@@ -38,7 +77,7 @@ IAD_MAX_ITER = 5000
 """``method="auto"``: aggregation-disaggregation rounds before plain power iteration takes over."""
 
 
-def _start_queue(model: FactoredModel, probs: torch.Tensor) -> int:
+def _start_queue(model: FactoredChain, probs: torch.Tensor) -> int:
     """Where the power iteration starts: the first queue length at which the policy's expected
     drift E[d′ − d] (averaged over the factor configurations as they occur) is ≤ 0 — where the
     queue settles — or D if it grows everywhere. A deep queue then need not be crossed step by
@@ -62,7 +101,7 @@ def _start_queue(model: FactoredModel, probs: torch.Tensor) -> int:
 
 
 def stationary_distribution_factored(
-    model: FactoredModel,
+    model: FactoredChain,
     policy: torch.Tensor,
     tol: float = 1e-13,
     max_iter: int = 1_000_000,
@@ -115,7 +154,7 @@ def stationary_distribution_factored(
     return mu, steps + calls + more
 
 
-def _initial(model: FactoredModel, probs: torch.Tensor, start: torch.Tensor | None) -> torch.Tensor:
+def _initial(model: FactoredChain, probs: torch.Tensor, start: torch.Tensor | None) -> torch.Tensor:
     """The iterate to start from: ``start``, or uniform over the factors where the queue settles."""
     D1, nf = probs.shape[:2]
     if start is not None:
@@ -138,7 +177,7 @@ def _advance(
 
 
 def _stationary_iad(
-    model: FactoredModel,
+    model: FactoredChain,
     probs: torch.Tensor,
     tol: float,
     max_iter: int,
@@ -239,7 +278,7 @@ def banded_stationary(src: Any, dst: Any, vals: Any, n: int) -> Any:
     return pi / pi.sum()
 
 
-def _stationary_gmres(model: FactoredModel, probs: torch.Tensor) -> tuple[torch.Tensor | None, int]:
+def _stationary_gmres(model: FactoredChain, probs: torch.Tensor) -> tuple[torch.Tensor | None, int]:
     S = model.num_states
     pc = probs.cpu().reshape(S, -1)
     start = _initial(model, probs.cpu(), None).reshape(-1)
@@ -259,7 +298,7 @@ def _stationary_gmres(model: FactoredModel, probs: torch.Tensor) -> tuple[torch.
 
 
 def _stationary_power(
-    model: FactoredModel,
+    model: FactoredChain,
     probs: torch.Tensor,
     tol: float,
     max_iter: int,

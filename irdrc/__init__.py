@@ -30,8 +30,8 @@ __version__ = "0.1.0"
 _LAZY = {
     "DFRCEnv": "irdrc.core.env",
     "Dynamics": "irdrc.core.dynamics",
-    "decode_state": "irdrc.core.dynamics",
-    "state_index": "irdrc.core.dynamics",
+    "decode_state": "irdrc.core.states",
+    "state_index": "irdrc.core.states",
     "EnvParams": "irdrc.core.params",
     "Params": "irdrc.core.params",
     "RewardParams": "irdrc.core.params",

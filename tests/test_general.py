@@ -17,9 +17,9 @@ import torch
 from conftest import assert_chi2, assert_factored_equals_dense, one_step
 
 from irdrc import Params
-from irdrc.core.dynamics import decode_state, state_index
 from irdrc.core.exact import build_factored, build_model, stationary_metrics
 from irdrc.core.gym import DFRCGymEnv
+from irdrc.core.states import decode_state, state_index
 
 SPEED3 = {
     "levels": ["low", "medium", "high"],

@@ -13,11 +13,11 @@ from pathlib import Path
 import pytest
 import torch
 
-from irdrc.core.dynamics import decode_state
 from irdrc.core.exact import build_model, stationary_metrics, value_iteration
 from irdrc.core.exact.continuum import policy_model, solve_continuum
 from irdrc.core.params import Params
 from irdrc.core.share import breakpoints, capacity_split, reaction
+from irdrc.core.states import decode_state
 
 ROOT = Path(__file__).resolve().parents[1]
 

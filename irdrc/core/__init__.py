@@ -4,7 +4,8 @@
 - ``params``: validated model parameters (frozen dataclasses, config names as in MODEL.md), with
   ``factors`` (the Markov factors) and ``overrides`` (dotted keys onto nested mappings);
 - ``tables``: the per-(action, factors) tables the simulator and the exact models share;
-- ``dynamics``: ``Dynamics``, the step on integer state tensors, and the state index;
+- ``states``: the state index (``state_index``, ``decode_state``);
+- ``dynamics``: ``Dynamics``, the step on integer state tensors;
 - ``env``: ``DFRCEnv``, the batched TorchRL env; ``gym``: the gymnasium wrapper (``irdrc/DFRC-v0``);
 - ``exact``: everything exact on one interface generic over the number of actions (dense and
   factored models, one value iteration, stationary and episodic metrics, scorers);

@@ -22,10 +22,10 @@ from collections.abc import Iterator, Mapping, Sequence
 
 import torch
 
-from irdrc.core.dynamics import decode_state
 from irdrc.core.exact import ExactMDP
 from irdrc.core.exact.krylov import stationary_krylov
 from irdrc.core.params import Params
+from irdrc.core.states import decode_state
 from irdrc.fleet.spec import FLEET_STATE_LIMIT, FleetSpec, grants
 from irdrc.fleet.vehicle import TERMS, VehicleTables
 

@@ -16,7 +16,8 @@ from dataclasses import dataclass
 
 import torch
 
-from irdrc.core.dynamics import Dynamics, decode_state
+from irdrc.core.dynamics import Dynamics
+from irdrc.core.states import decode_state
 from irdrc.fleet.model import FleetModel
 
 

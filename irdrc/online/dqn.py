@@ -36,8 +36,9 @@ from torchrl.data import LazyTensorStorage, ReplayBuffer
 from torchrl.data.replay_buffers.samplers import RandomSampler
 
 from irdrc.agents.offpolicy import RewardCenter, make_body
-from irdrc.core.dynamics import decode_state, observation_high
+from irdrc.core.dynamics import observation_high
 from irdrc.core.params import Params
+from irdrc.core.states import decode_state
 from irdrc.core.stream import Step
 from irdrc.online.configs import StreamDQNConfig
 from irdrc.online.loop import StreamLearner

@@ -37,9 +37,9 @@ from typing import Any
 import numpy as np
 import torch
 
-from irdrc.core.dynamics import decode_state
 from irdrc.core.exact.factored import FactoredModel, factored_model
 from irdrc.core.params import Params
+from irdrc.core.states import decode_state
 from irdrc.core.stream import Step
 from irdrc.core.tables import ModelTables, squared_reward
 

@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING, Any
 
 import torch
 
-from irdrc.core.dynamics import decode_state
+from irdrc.core.states import decode_state
 from irdrc.runs.results import atomic_write_text
 
 if TYPE_CHECKING:

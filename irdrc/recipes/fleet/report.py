@@ -12,8 +12,8 @@ from typing import TYPE_CHECKING, Any
 
 import torch
 
-from irdrc.core.dynamics import decode_state
 from irdrc.core.exact import value_iteration
+from irdrc.core.states import decode_state
 from irdrc.fleet.model import FleetModel
 from irdrc.fleet.policies import baselines, single_optima
 from irdrc.fleet.scorer import PRINTED, fleet_metrics

@@ -187,6 +187,9 @@ class Multiplier:
         self.trace: list[dict[str, float]] = []
 
     def after_batch(self, data: TensorDictBase, learned: bool) -> dict[str, Any]:
+        """Fold a collected batch into the measured miss detection (greedy steps, over about
+        ``cost_window_frames``) and, once the learner learns, take one dual step; returns the
+        scalars to report."""
         keep = math.exp(-data.numel() / self.cfg.cost_window_frames)
         self.missed *= keep
         self.events *= keep
@@ -203,6 +206,7 @@ class Multiplier:
         return {"mu": float(self.mu), "measured_miss": self.measured, "cumulative_miss": cumulative}
 
     def state(self) -> dict[str, Any]:
+        """The multiplier's part of a checkpoint."""
         return {
             "mu": float(self.mu),
             "measured": [self.missed, self.events],
@@ -211,6 +215,7 @@ class Multiplier:
         }
 
     def load(self, resume: dict[str, Any]) -> None:
+        """Go on from a checkpoint's ``state``."""
         self.mu.fill_(float(resume["mu"]))
         self.missed, self.events = (float(x) for x in resume["measured"])
         self.total_missed, self.total_events = (int(x) for x in resume.get("cumulative", (0, 0)))

@@ -117,13 +117,16 @@ class Figure:
 
     @property
     def horizon(self) -> int:
+        """Steps per episode of the figure's scenario."""
         return self.base.env.horizon
 
     @property
     def methods(self) -> list[str]:
+        """The learners the figure shows, in order."""
         return list(self.cfg.methods)
 
     def runs(self, learner: str) -> list[tuple[dict, Path]]:
+        """Each finished run of ``learner``: its planned point and its trial directory."""
         return _runs_of(self.planned, self.out / "trials", learner)
 
 

@@ -110,10 +110,12 @@ class RunProgress:
             self.ratio, self.ratio_steps = mine[-1]["optimality_ratio"], mine[-1]["env_steps"]
 
     def on_start(self, info: dict[str, Any]) -> None:
+        """Print what the learner built (``Hooks.on_start``), a line per fact."""
         for key, value in info.items():
             print(f"{key.replace('_', ' ')}: {value}", flush=True)
 
     def on_batch(self, info: dict[str, Any]) -> None:
+        """After a batch (``Hooks.on_batch``): move the bar or print a line, log the scalars."""
         steps = info["env_steps"]
         if self.pending is not None:  # no evaluation came at the pending line's env step
             self._line(self.pending)
@@ -151,6 +153,7 @@ class RunProgress:
         self.bar.set_postfix(post, refresh=False)
 
     def on_eval(self, records: list[dict[str, Any]]) -> None:
+        """After an exact evaluation (``Hooks.on_eval``): show its ratio, log its metrics."""
         first = records[0]
         self.ratio = first["optimality_ratio"]
         if len(records) > 1:
@@ -170,6 +173,7 @@ class RunProgress:
         )
 
     def close(self) -> None:
+        """Print a line still pending and close the bar."""
         if self.pending is not None:
             self._line(self.pending)
         if self.bar is not None:

@@ -57,12 +57,14 @@ class RunSignals:
         self.previous: dict[int, Any] = {}
 
     def install(self) -> None:
+        """Take SIGINT and SIGTERM (in the main thread only), keeping the handlers before."""
         if threading.current_thread() is threading.main_thread():
             self.previous = {
                 s: signal.signal(s, self._handle) for s in (signal.SIGINT, signal.SIGTERM)
             }
 
     def restore(self) -> None:
+        """Give SIGINT and SIGTERM back to the handlers they had before ``install``."""
         for s, handler in self.previous.items():
             signal.signal(s, handler)
         self.previous = {}

@@ -106,11 +106,14 @@ def record(tdir: Path, p: dict[str, Any], result: dict[str, Any] | None, error: 
 
 
 def last_line(error: Any) -> str:
+    """The last non-empty line of an error (a traceback's message)."""
     lines = [line for line in str(error).strip().splitlines() if line.strip()]
     return lines[-1].strip() if lines else "unknown error"
 
 
 def progress_line(done: int, total: int, already: int, t0: float, p: dict, tail: str) -> None:
+    """Print one sweep progress line: points done of ``total``, the ETA, the point and ``tail``
+    (its status); ``already`` points were done before this run started at ``t0``."""
     elapsed = time.perf_counter() - t0
     ran = done - already
     eta = elapsed / ran * (total - done) if ran else float("nan")

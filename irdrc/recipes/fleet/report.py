@@ -124,6 +124,7 @@ def starvation(name: str, per: list[dict]) -> str | None:
 
 
 def clean_rows(rows: list[dict]) -> list[dict]:
+    """``rows`` with every float made JSON-safe (``clean_number``: NaN as None)."""
     return [
         {k: (clean_number(v) if isinstance(v, float) else v) for k, v in r.items()} for r in rows
     ]
@@ -197,6 +198,8 @@ def solve_fleet(
 
 
 def fleet_info(spec: FleetSpec, observe: str, model: FleetModel) -> dict[str, Any]:
+    """The fleet for a summary: its vehicles, channels, access, share, what each observes, its
+    joint states, whether it is exact, and how its vehicles differ."""
     return {
         "vehicles": spec.vehicles,
         "channels": spec.channels,

@@ -187,17 +187,13 @@ def test_the_examples_refuse_a_budget_that_is_not_one(args, message):
     assert done.returncode == 2 and message in done.stderr, done.stderr[-2000:]
 
 
-@pytest.mark.e2e
-def test_the_built_wheel_runs_away_from_the_checkout(tmp_path):
-    """A wheel of irdrc (``pip wheel .``, what ``pip install`` builds) carries the named scenarios
-    and the recipes' configs: unpacked alone and run from another directory, ``irdrc.scenario``,
-    the gym id's ``params=`` and ``python -m irdrc solve`` work, and a recipe's resume hint names
-    ``-m irdrc``."""
+def built_wheel(tmp_path: Path, site: Path) -> None:
+    """Build a wheel of irdrc from its sources alone (``pip wheel``, what ``pip install`` builds;
+    no build/ left by an earlier build can bring files back) and unpack it into ``site``."""
     import shutil
     import zipfile
 
-    src, wheel_dir, site, work = (tmp_path / d for d in ("src", "wheel", "site", "work"))
-    # The sources alone, so that no build/ left by an earlier build can bring files back.
+    src, wheel_dir = tmp_path / "src", tmp_path / "wheel"
     shutil.copytree(ROOT / "irdrc", src / "irdrc", ignore=shutil.ignore_patterns("__pycache__"))
     for name in ("pyproject.toml", "README.md", "LICENSE"):
         shutil.copy(ROOT / name, src / name)
@@ -212,6 +208,16 @@ def test_the_built_wheel_runs_away_from_the_checkout(tmp_path):
     (wheel,) = wheel_dir.glob("irdrc-*.whl")
     with zipfile.ZipFile(wheel) as z:
         z.extractall(site)
+
+
+@pytest.mark.e2e
+def test_the_built_wheel_runs_away_from_the_checkout(tmp_path):
+    """A wheel of irdrc (``pip wheel .``, what ``pip install`` builds) carries the named scenarios
+    and the recipes' configs: unpacked alone and run from another directory, ``irdrc.scenario``,
+    the gym id's ``params=`` and ``python -m irdrc solve`` work, and a recipe's resume hint names
+    ``-m irdrc``."""
+    site, work = tmp_path / "site", tmp_path / "work"
+    built_wheel(tmp_path, site)
     work.mkdir()
     env = {**os.environ, "PYTHONPATH": str(site)}  # ahead of the checkout's editable install
     code = (
@@ -243,3 +249,48 @@ def test_the_built_wheel_runs_away_from_the_checkout(tmp_path):
     wrong = python("-m", "irdrc", "dqn", "resume=q/checkpoint.pt")
     assert wrong.returncode == 2
     assert wrong.stderr.strip().endswith("-m irdrc qlearning resume=q/checkpoint.pt"), wrong.stderr
+
+
+TYPED_USE = """\
+import irdrc
+from irdrc.core.exact import build_model, stationary_metrics, value_iteration
+
+model = build_model(irdrc.scenario("multilevel"))
+ratio: float = stationary_metrics(model, value_iteration(model).policy).avg_reward
+"""
+
+
+@pytest.mark.e2e
+def test_a_type_checker_reads_the_installed_wheel(tmp_path):
+    """Installed from its wheel, irdrc's annotations reach a user's type checker (``py.typed``):
+    mypy accepts a correct use, flags a wrong one by irdrc's own signature, and without the
+    marker finds no types at all."""
+    pytest.importorskip("mypy")
+    import venv
+
+    env_dir = tmp_path / "v"
+    venv.create(env_dir, with_pip=False)
+    (site,) = env_dir.glob("lib/python*/site-packages")
+    built_wheel(tmp_path, site)
+    (tmp_path / "ok.py").write_text(TYPED_USE)
+    (tmp_path / "bad.py").write_text(TYPED_USE.replace("ratio: float", "ratio: str"))
+    (tmp_path / "mypy.ini").write_text("[mypy]\n")  # a user's own settings, not irdrc's
+
+    def mypy(*files: str) -> subprocess.CompletedProcess:
+        # torch, gymnasium, … are not in that environment: their names are Any there
+        args = ["--python-executable", str(env_dir / "bin" / "python"), "--no-incremental"]
+        return subprocess.run(
+            [sys.executable, "-m", "mypy", *args, "--config-file", "mypy.ini", *files],
+            capture_output=True,
+            text=True,
+            cwd=tmp_path,
+            timeout=300,
+        )
+
+    ok = mypy("ok.py")
+    assert ok.returncode == 0, ok.stdout
+    bad = mypy("bad.py")
+    assert 'expression has type "float", variable has type "str"' in bad.stdout, bad.stdout
+    (site / "irdrc" / "py.typed").unlink()
+    untyped = mypy("ok.py")
+    assert "module is installed, but missing library stubs or py.typed marker" in untyped.stdout

@@ -23,7 +23,17 @@ names below (``DFRCEnv`` …) load torch on first use.
 from __future__ import annotations
 
 import importlib
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:  # the lazy names below, as a type checker reads them
+    from irdrc.core.dynamics import Dynamics as Dynamics
+    from irdrc.core.env import DFRCEnv as DFRCEnv
+    from irdrc.core.params import EnvParams as EnvParams
+    from irdrc.core.params import Params as Params
+    from irdrc.core.params import RewardParams as RewardParams
+    from irdrc.core.states import decode_state as decode_state
+    from irdrc.core.states import state_index as state_index
+    from irdrc.runs.scenarios import scenario as scenario
 
 __version__ = "0.1.0"
 

@@ -255,7 +255,9 @@ TYPED_USE = """\
 import irdrc
 from irdrc.core.exact import build_model, stationary_metrics, value_iteration
 
-model = build_model(irdrc.scenario("multilevel"))
+params = irdrc.scenario("multilevel")
+states: int = params.env.num_states
+model = build_model(params)
 ratio: float = stationary_metrics(model, value_iteration(model).policy).avg_reward
 """
 
@@ -273,7 +275,8 @@ def test_a_type_checker_reads_the_installed_wheel(tmp_path):
     (site,) = env_dir.glob("lib/python*/site-packages")
     built_wheel(tmp_path, site)
     (tmp_path / "ok.py").write_text(TYPED_USE)
-    (tmp_path / "bad.py").write_text(TYPED_USE.replace("ratio: float", "ratio: str"))
+    bad_use = TYPED_USE.replace("ratio: float", "ratio: str").replace("states: int", "states: str")
+    (tmp_path / "bad.py").write_text(bad_use)
     (tmp_path / "mypy.ini").write_text("[mypy]\n")  # a user's own settings, not irdrc's
 
     def mypy(*files: str) -> subprocess.CompletedProcess:
@@ -291,6 +294,7 @@ def test_a_type_checker_reads_the_installed_wheel(tmp_path):
     assert ok.returncode == 0, ok.stdout
     bad = mypy("bad.py")
     assert 'expression has type "float", variable has type "str"' in bad.stdout, bad.stdout
+    assert 'expression has type "int", variable has type "str"' in bad.stdout, bad.stdout
     (site / "irdrc" / "py.typed").unlink()
     untyped = mypy("ok.py")
     assert "module is installed, but missing library stubs or py.typed marker" in untyped.stdout

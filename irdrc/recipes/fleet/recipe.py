@@ -83,7 +83,7 @@ class Config(Learning):
         default_factory=FleetLearnerConfig,
         metadata={"keys": ("learner", "algo", "network", "ppo"), "build": _learner},
     )
-    eval: FleetEval = field(default_factory=FleetEval)  # type: ignore[assignment]  # fleet steps
+    eval: FleetEval = field(default_factory=FleetEval)  # type: ignore[assignment]  # keys of its own
     plot: Plot = field(default_factory=Plot)
 
     def __post_init__(self) -> None:

@@ -181,9 +181,10 @@ def load_source(cfg: Config) -> tuple[Any, str, str]:
         path = check_file("checkpoint", Path(str(cfg.checkpoint)).expanduser(), "checkpoint.pt")
         return network_table(path, params)
     path = check_file("policy", Path(str(cfg.policy)).expanduser(), "policy.csv")
-    from irdrc.runs.tables import read_csv_rows, read_policy_csv, read_share_csv
+    from irdrc.runs.results import read_csv_table
+    from irdrc.runs.tables import read_policy_csv, read_share_csv
 
-    header = read_csv_rows(path)[0]
+    header = read_csv_table(path)[0]
     if "action1" in header:
         raise ValueError(
             f"policy={path}: a fleet run's policy.csv (one joint action per joint state); evaluate "

@@ -180,10 +180,28 @@ def _json_clean(value: Any) -> Any:
     return value
 
 
+def read_csv_table(path: Path) -> tuple[list[str], list[dict[str, str]]]:
+    """A CSV file's header and its rows as dicts of strings (what ``write_rows_csv`` wrote).
+
+    Raises:
+        ValueError: naming the file, if it cannot be read or is not UTF-8 text.
+    """
+    try:
+        with Path(path).open(newline="", encoding="utf-8") as f:
+            reader = csv.DictReader(f)
+            rows = list(reader)
+            return list(reader.fieldnames or []), rows
+    except OSError as err:
+        raise ValueError(f"{path}: not a readable file ({err.strerror or err})") from err
+    except UnicodeDecodeError as err:
+        raise ValueError(
+            f"{path}: not a text table (byte {err.start}: {err.reason} in UTF-8)"
+        ) from err
+
+
 def read_csv_rows(path: Path) -> list[dict[str, str]]:
-    """Rows of a CSV file as dicts of strings (what ``write_rows_csv`` wrote)."""
-    with Path(path).open(newline="") as f:
-        return list(csv.DictReader(f))
+    """Rows of a CSV file as dicts of strings (``read_csv_table``'s rows)."""
+    return read_csv_table(path)[1]
 
 
 def write_metrics_csv(path: Path, history: Sequence[dict[str, Any]]) -> None:

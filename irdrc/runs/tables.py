@@ -3,7 +3,6 @@ factor configuration and queue length, and where it differs from the optimum."""
 
 from __future__ import annotations
 
-import csv
 import math
 from collections.abc import Sequence
 from pathlib import Path
@@ -12,7 +11,7 @@ from typing import TYPE_CHECKING, Any
 import torch
 
 from irdrc.core.states import decode_state
-from irdrc.runs.results import atomic_write_text
+from irdrc.runs.results import atomic_write_text, read_csv_rows, read_csv_table
 
 if TYPE_CHECKING:
     from irdrc.core.params import Params
@@ -123,25 +122,6 @@ FITS = (
 """What a table of another number of states is told."""
 
 
-def read_csv_rows(path: Path) -> tuple[list[str], list[dict[str, str]]]:
-    """A CSV file's header and rows (as ``csv.DictReader`` reads them).
-
-    Raises:
-        ValueError: naming the file, if it cannot be read or is not UTF-8 text.
-    """
-    try:
-        with Path(path).open(encoding="utf-8") as f:
-            reader = csv.DictReader(f)
-            rows = list(reader)
-            return list(reader.fieldnames or []), rows
-    except OSError as err:
-        raise ValueError(f"{path}: not a readable file ({err.strerror or err})") from err
-    except UnicodeDecodeError as err:
-        raise ValueError(
-            f"{path}: not a text table (byte {err.start}: {err.reason} in UTF-8)"
-        ) from err
-
-
 def read_share_csv(path: Path, num_states: int) -> torch.Tensor:
     """The [S] radar shares of a deterministic ρ policy's ``policy.csv`` (``recipes/sac.py``,
     ``ppo.py``: a ``rho`` column).
@@ -150,7 +130,7 @@ def read_share_csv(path: Path, num_states: int) -> torch.Tensor:
         ValueError: naming the file: unreadable, another number of rows, a share outside [0, 1],
             or a randomised ρ policy (``p_alt`` > 0: scored by ``recipes/constrained.py``).
     """
-    rows = read_csv_rows(path)[1]
+    rows = read_csv_rows(path)
     if len(rows) != num_states:
         raise ValueError(
             f"{path}: {len(rows)} rows, the scenario has S = {num_states} states{FITS}"
@@ -178,7 +158,7 @@ def read_policy_csv(
     Raises:
         ValueError: naming the file, if it is not a policy table (of ``num_states`` rows).
     """
-    header, rows = read_csv_rows(path)
+    header, rows = read_csv_table(path)
     if "rho" in header:
         raise ValueError(
             f"{path}: a time-sharing policy (a radar share rho per state, MODEL.md § D): "

@@ -61,7 +61,7 @@ class Config:
     (``irdrc.sweeps.trials.plan``), and ``owner``: each run's (learner, scenario)."""
 
     learners: tuple[str, ...] = tuple(LEARNERS)
-    scenarios: dict | None = None
+    scenarios: dict | str | None = None  # or "random"
     seeds: tuple[int, ...] | None = None
     draws: int = 50
     first_draw: int = 0

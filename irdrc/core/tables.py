@@ -20,7 +20,8 @@ from typing import Any, cast
 
 import torch
 
-from irdrc.core.params import EVENT_FACTORS, MARKOV_FACTORS, Params
+from irdrc.core.factors import MARKOV_FACTORS
+from irdrc.core.params import EVENT_FACTORS, Params
 
 FACTOR_NAMES = (*MARKOV_FACTORS, "phase")
 """The configuration's factors in mixed-radix order (the traffic phase last)."""

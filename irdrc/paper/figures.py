@@ -15,7 +15,6 @@ import torch
 
 from irdrc.core.dynamics import Dynamics
 from irdrc.core.params import Params
-from irdrc.runs.results import read_csv_rows as read_csv  # noqa: F401 - re-exported
 
 # Two-sided 95 % quantiles of Student's t for 1 … 30 degrees of freedom (beyond: the normal's).
 _T975 = (

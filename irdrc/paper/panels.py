@@ -17,12 +17,12 @@ from irdrc.paper import plots
 from irdrc.paper.figures import (
     band_rows,
     moving_average,
-    read_csv,
     round_robin_episodes,
     same_value,
     to_float,
 )
 from irdrc.recipes.constrained.frontier import ref_params
+from irdrc.runs.results import read_csv_rows as read_csv
 from irdrc.runs.results import write_rows_csv
 
 

@@ -12,6 +12,7 @@ import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
+from matplotlib.lines import Line2D
 
 from irdrc.runs.results import atomic_savefig
 
@@ -208,7 +209,7 @@ def plot_tradeoff(
         ax.grid(alpha=0.3)
         handles, texts = ax.get_legend_handles_labels()
         if learned:
-            handles.append(plt.Line2D([], [], marker="s", color="tab:blue", linestyle=""))
+            handles.append(Line2D([], [], marker="s", color="tab:blue", linestyle=""))
             texts.append("DQN (ours), final greedy, 95 % band")
         ax.legend(handles, texts, fontsize=8)
     fig.suptitle("Radar vs communication: the exact optimum as the detection reward r4 varies")

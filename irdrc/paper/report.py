@@ -11,8 +11,9 @@ from typing import Any
 
 from irdrc.core.metrics import RESOLUTION
 from irdrc.paper.docs import replace_block
-from irdrc.paper.figures import read_csv, same_value
+from irdrc.paper.figures import same_value
 from irdrc.runs.results import atomic_write_text, md_table
+from irdrc.runs.results import read_csv_rows as read_csv
 
 FIGURES = ("panel_a.png", "panel_b.png", "panel_c.png", "panel_d.png")
 

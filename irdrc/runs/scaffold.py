@@ -112,7 +112,7 @@ class Run:
         self.recipe, self.composed, self.dir = recipe, composed, Path(directory)
         self.resume_state = resume_state
         self.stop: StopFlag | None = None
-        self.logger = None
+        self.logger: Any = None  # the tracking backend's logger (make_logger), once open
         self._lock: TextIO | None = None
         self._log: TextIO | None = None
         self._stdout: TextIO | None = None

@@ -148,4 +148,7 @@ def test_a_run_directory_given_for_its_file_is_answered_with_the_files_path(tmp_
         check_file("policy", tmp_path / "empty", "policy.csv")
     with pytest.raises(ValueError, match=r"^policy=.*/none\.csv: no such file$"):
         check_file("policy", tmp_path / "none.csv", "policy.csv")
+    # a path that exists but is not a file (it said "no such file" of /dev/null)
+    with pytest.raises(ValueError, match=r"^policy=/dev/null is not a regular file$"):
+        check_file("policy", Path("/dev/null"), "policy.csv")
     assert check_file("checkpoint", path, "checkpoint.pt") == path

@@ -102,6 +102,8 @@ def check_file(key: str, path: Path, name: str, what: str = "file") -> Path:
         if inside.is_file():
             raise ValueError(f"{key}={path} is a directory: its {name} is {key}={inside}")
         raise ValueError(f"{key}={path} is a directory, and it holds no {name}")
+    if path.exists():  # a device, a pipe, a socket
+        raise ValueError(f"{key}={path} is not a regular file")
     raise ValueError(f"{key}={path}: no such {what}")
 
 

@@ -336,3 +336,14 @@ def test_output_for_a_log_file_has_no_bar_frames(tmp_path):
     assert lines[0].startswith("replay sampler:")
     assert sum(line.startswith("[dqn] ") for line in lines) <= 10
     assert "Initialized LazyTensorStorage" not in r.stdout + r.stderr
+
+
+def test_a_learner_without_a_way_to_learn_is_refused_before_the_first_batch():
+    """The shared loop picks once, before it collects, what learns from each batch; a learner
+    with neither ``update`` nor ``learn_batch`` is refused there, by name (it failed inside the
+    loop with "'NoneType' object is not callable")."""
+    from irdrc.agents.loop import Learner, TrainingLoop
+
+    learner = Learner(loss=torch.nn.Linear(1, 1), update=None, policy=lambda: torch.zeros(1))
+    with pytest.raises(ValueError, match=r"needs update .* or learn_batch"):
+        TrainingLoop.learning(None, learner)  # type: ignore[arg-type]  # self is not read there

@@ -179,6 +179,20 @@ class TrainingLoop:
         self.seconds["learn"] += time.perf_counter() - t0
         return True
 
+    def learning(self, learner: Learner) -> Callable[[TensorDictBase], bool]:
+        """What learns from each collected batch: ``learn_on_policy`` with the learner's
+        ``learn_batch``, else ``learn`` with its ``update``.
+
+        Raises:
+            ValueError: the learner has neither.
+        """
+        learn_batch, update = learner.learn_batch, learner.update
+        if learn_batch is not None:
+            return lambda data: self.learn_on_policy(learn_batch, data)
+        if update is not None:
+            return lambda data: self.learn(update)
+        raise ValueError("a Learner needs update (off-policy) or learn_batch (on-policy)")
+
     def scalars(self, **extra: Any) -> dict[str, Any]:
         """What is reported after each batch: env steps, episodes, the last loss, the replay's
         size, and ``extra``."""
@@ -246,14 +260,10 @@ class TrainingLoop:
             self.evaluate(learner)
         total, every = self.cfg.total_frames, self.eval_every
         next_eval = (self.frames // every + 1) * every
+        learn = self.learning(learner)
         for data in self.batches():
             before = self.frames - data.numel()
-            if learner.learn_batch is not None:
-                learned = self.learn_on_policy(learner.learn_batch, data)
-            elif learner.update is not None:
-                learned = self.learn(learner.update)
-            else:
-                raise ValueError("a learner has update or learn_batch")
+            learned = learn(data)
             extra = learner.after_batch(data, learned) if learner.after_batch else {}
             self.hooks.batch(self.scalars(**extra))
             stop = self.hooks.stop_requested()

@@ -20,11 +20,13 @@ import time
 from pathlib import Path
 
 import gymnasium
+import numpy as np
 import torch
 from stable_baselines3 import DQN, SAC
 from stable_baselines3.common.logger import configure
 
 import irdrc  # registers irdrc/DFRC-v0
+from irdrc.core.gym import DFRCGymEnv
 from irdrc.runs.tables import write_policy_csv
 
 
@@ -78,12 +80,14 @@ def main() -> None:
     model.learn(args.steps)
     seconds = time.time() - start
 
-    def greedy(obs):
+    def greedy(obs: np.ndarray) -> np.ndarray:
         return model.predict(obs, deterministic=True)[0]
 
-    score = env.unwrapped.score(greedy)
-    table = env.unwrapped.policy_table(greedy)
-    params = env.unwrapped.params
+    base = env.unwrapped  # gymnasium types it as a plain Env: narrowed to irdrc's own
+    assert isinstance(base, DFRCGymEnv)
+    score = base.score(greedy)
+    table = base.policy_table(greedy)
+    params = base.params
     # comm/radar actions (binary), else the radar share of each state (levels: level / (G − 1))
     shares = None if params.env.actions == "binary" else ()
     write_policy_csv(out / "policy.csv", table, params.env.factor_levels, shares=shares)

@@ -4,10 +4,12 @@ from __future__ import annotations
 
 import csv
 import json
+import os
 import shlex
 import shutil
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 
 import pytest
@@ -306,12 +308,20 @@ def _sweep_popen(tmp_path: Path, *overrides: str) -> subprocess.Popen:
             f"hydra.run.dir={tmp_path}",
         ]
     )
+    # A killed driver cannot remove its temporary directories (Ray Tune imports wandb, which makes
+    # two): they go under the test's own folder. Ray keeps its session under the usual /tmp/ray,
+    # whose socket paths must stay short.
+    scratch = tmp_path.parent / f"{tmp_path.name}.tmp"
+    scratch.mkdir(exist_ok=True)
+    env = {**os.environ, "TMPDIR": str(scratch)}
+    env.setdefault("RAY_TMPDIR", tempfile.gettempdir())
     return subprocess.Popen(
         ["unshare", "-n", "sh", "-c", f"ip link set lo up; exec {cmd}"],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
         cwd=ROOT,
+        env=env,
         start_new_session=True,
     )
 
@@ -346,7 +356,6 @@ SLOW_GRID = (
 def test_driver_killed_mid_sweep_keeps_finished_trials_and_resume_runs_the_rest(tmp_path):
     """kill -9 of the driver after the first trial: its files are already stored (they are written
     when each trial finishes), and resume reruns only the others."""
-    import os
     import signal
 
     proc = _sweep_popen(tmp_path, *SLOW_GRID)
@@ -372,7 +381,6 @@ def test_driver_killed_mid_sweep_keeps_finished_trials_and_resume_runs_the_rest(
 @pytest.mark.e2e
 @needs_ray_netns
 def test_ctrl_c_leaves_a_valid_summary_with_incomplete_rows(tmp_path):
-    import os
     import signal
 
     proc = _sweep_popen(tmp_path, *SLOW_GRID)

@@ -6,6 +6,7 @@ import itertools
 
 import pytest
 import torch
+from tensordict import TensorDict
 from torchrl.envs.utils import check_env_specs
 
 from irdrc import DFRCEnv, Params, decode_state, state_index
@@ -223,3 +224,44 @@ def test_grouped_dynamics_reject_different_state_spaces():
 
     with pytest.raises(ValueError, match="queue_capacity"):
         Dynamics([Params(), Params.from_overrides({"env.queue_capacity": 5})])
+
+
+# -- misused: each mistake answered by name --------------------------------------------------------
+
+
+def _td(state, action, n=1):
+    return TensorDict(
+        {
+            "state": torch.as_tensor(state).reshape(n),
+            "action": torch.as_tensor(action).reshape(n),
+            "step_count": torch.zeros(n, 1, dtype=torch.int64),
+        },
+        batch_size=[n],
+    )
+
+
+@pytest.mark.parametrize("action", [-1, 2, 0.5, 1.7])
+def test_torchrl_env_refuses_actions_other_than_0_and_1(action):
+    env = DFRCEnv(Params(), batch_size=[1], seed=0)
+    with pytest.raises(ValueError, match="action must be 0"):
+        env.step(_td(0, action))
+
+
+def test_torchrl_env_accepts_float_zero_and_one():
+    env = DFRCEnv(Params(), batch_size=[2], seed=0)
+    out = env.step(_td([0, 0], torch.tensor([0.0, 1.0]), n=2))["next"]
+    assert out["capacity"].tolist() == [4, 0]
+
+
+@pytest.mark.parametrize("state", [-1, 352, 10**6])
+def test_torchrl_env_refuses_out_of_range_states(state):
+    env = DFRCEnv(Params(), batch_size=[1], seed=0)
+    with pytest.raises(ValueError, match=r"state must hold integer state indices in \[0, 352\)"):
+        env.step(_td(state, 0))
+
+
+def test_torchrl_env_step_before_reset_is_explained():
+    env = DFRCEnv(Params(), batch_size=[1], seed=0)
+    td = TensorDict({"action": torch.zeros(1, dtype=torch.int64)}, batch_size=[1])
+    with pytest.raises(ValueError, match=r"call env\.reset\(\) first"):
+        env.step(td)

@@ -159,3 +159,31 @@ def test_vector_env_matches_the_batched_dynamics_and_autoresets():
     assert not trunc.any() and (reward == 0).all() and not info["event"].any()
     with pytest.raises(ValueError, match="action must be 0"):
         venv.step(np.array([0, 2, 0]))
+
+
+# -- misused: each mistake answered by name --------------------------------------------------------
+
+
+@pytest.mark.parametrize("action", [0.5, 1.7, "1", 1.0, 2, -1, True, np.array([1])])
+def test_gym_env_refuses_anything_but_0_and_1(action):
+    env = gymnasium.make("irdrc/DFRC-v0")
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match=r"must be 0 \(communication\) or 1 \(radar\)"):
+        env.unwrapped.step(action)
+
+
+def test_gym_env_accepts_integer_scalars():
+    """Python ints, NumPy integers and 0-d arrays are actions: comm carries packets, radar none."""
+    env = gymnasium.make("irdrc/DFRC-v0").unwrapped
+    env.reset(seed=0)
+    for a in (0, 1, np.int64(1), np.array(0)):
+        obs, _, terminated, _, info = env.step(a)
+        assert env.observation_space.contains(obs) and not terminated
+        assert (info["capacity"] > 0) == (int(a) == 0)
+
+
+def test_gym_env_step_before_reset_is_refused():
+    with pytest.raises(gymnasium.error.ResetNeeded):
+        DFRCGymEnv().step(0)
+    with pytest.raises(gymnasium.error.ResetNeeded):
+        gymnasium.make_vec("irdrc/DFRC-v0", num_envs=2).step(np.array([0, 1]))

@@ -11,6 +11,7 @@ import time
 from pathlib import Path
 
 import pytest
+from conftest import default_sigint
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -89,3 +90,46 @@ def test_a_signal_during_the_final_evaluation_writes_the_files_and_says_so(tmp_p
     again = resume(run_dir)
     assert again.returncode == 0, again.stderr
     assert (run_dir / "summary.json").is_file() and (run_dir / "policy.csv").is_file()
+
+
+@pytest.mark.e2e
+def test_ctrl_c_in_a_long_solve_is_one_line(tmp_path):
+    """SIGINT while a 10⁶-state solve runs: its estimate and progress were shown, the answer is
+    one line, exit 130."""
+    import threading
+
+    out = tmp_path / "run"
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "recipes/solve.py",
+            "env=large",
+            "env.queue_capacity=6944",
+            f"hydra.run.dir={out}",
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=ROOT,
+        preexec_fn=default_sigint,  # Ctrl-C at a terminal
+    )
+    # wait for the first progress line of the sweeps (a fixed wait raced a slow start)
+    seen: list[str] = []
+    reader = threading.Thread(target=lambda: seen.extend(proc.stdout), daemon=True)
+    reader.start()
+    t0 = time.monotonic()
+    while not any("value iteration: sweep" in line for line in seen):
+        assert proc.poll() is None, proc.stderr.read()
+        assert time.monotonic() - t0 < 300, "no sweep progress line"
+        time.sleep(0.2)
+    proc.send_signal(signal.SIGINT)
+    proc.wait(timeout=60)
+    reader.join(timeout=60)
+    stdout, stderr = "".join(seen), proc.stderr.read()
+    assert proc.returncode == 130, stderr
+    assert "estimate here" in stdout and "[solve] value iteration: sweep" in stdout
+    assert "Traceback" not in stderr
+    assert (
+        stderr.strip().startswith("error: stopped by SIGINT; what the run wrote is in ")
+        and len(stderr.splitlines()) == 1
+    )

@@ -15,6 +15,7 @@ plain network's gradient, summed in another order.
 from __future__ import annotations
 
 import weakref
+from typing import Any
 
 import torch
 from torch import nn
@@ -56,7 +57,9 @@ class DistinctRows(nn.Sequential):
         self.radix = radix.to(high.device)
         self.top = high.round().to(torch.int64).to(high.device)
         self.codes = codes
-        self._last: tuple | None = None  # (weak reference to an input, its version, its answer)
+        self._last: tuple[Any, int, tuple[torch.Tensor, torch.Tensor]] | None = (
+            None  # (weak reference to an input, its version, its answer)
+        )
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         rows = x.shape[0] if x.dim() == 2 else 0

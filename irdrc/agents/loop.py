@@ -101,7 +101,7 @@ class TrainingLoop:
         optimizer: torch.optim.Optimizer,
         run: RunContext,
         *,
-        keys: tuple = STORED_KEYS,
+        keys: tuple[str | tuple[str, ...], ...] = STORED_KEYS,
         prepare: Callable[[TensorDictBase], TensorDictBase] | None = None,
     ) -> None:
         self.cfg, self.collector, self.buffer, self.sampler = cfg, collector, buffer, sampler

@@ -43,7 +43,7 @@ class Config:
     executor: Executor = field(default_factory=Executor, metadata=EXECUTOR)
     env: Any = None
     reward: Any = None
-    planned: tuple = field(default=(), metadata={"keys": ()})
+    planned: tuple[Any, ...] = field(default=(), metadata={"keys": ()})
 
     def __post_init__(self) -> None:
         check_common(self)
@@ -59,7 +59,7 @@ class Config:
             object.__setattr__(self, key, check_number(key, getattr(self, key), 0, 1))
 
     @property
-    def grid(self) -> dict[str, list]:
+    def grid(self) -> dict[str, list[Any]]:
         """p^v_1 × target × seed."""
         return {
             "env.p1.speed": list(self.p1_speed),
@@ -149,7 +149,7 @@ def _steps(n: float) -> str:
 
 
 def constrained_bench_table(
-    rows: list[dict[str, Any]], grid: dict[str, list], tol: float, share: float
+    rows: list[dict[str, Any]], grid: dict[str, list[Any]], tol: float, share: float
 ) -> str:
     """The benchmark's Markdown table: one line per (p^v_1, target) cell."""
     header = [

@@ -43,7 +43,7 @@ class Config:
     config, composed as ``recipes/dqn.py`` composes it, checked."""
 
     params: Params = scenario_field()
-    profiles: dict = field(default_factory=lambda: {"dqn": ["algo=dqn"]})
+    profiles: dict[str, Any] = field(default_factory=lambda: {"dqn": ["algo=dqn"]})
     seeds: tuple[int, ...] = (0, 1, 2)
     overrides: tuple[str, ...] = ()
     eval: Eval = field(default_factory=Eval)
@@ -51,7 +51,7 @@ class Config:
     num_threads: int = 1
     device: str = "cpu"
     csv: str = "bench_dqn.csv"
-    algos: dict = field(default_factory=dict, metadata={"keys": ()})
+    algos: dict[str, Any] = field(default_factory=dict, metadata={"keys": ()})
 
     def __post_init__(self) -> None:
         check_common(self)
@@ -113,7 +113,7 @@ def run(cfg: Config, run: Run) -> int:
     return 0
 
 
-def _fmt(values: list) -> str:
+def _fmt(values: list[float]) -> str:
     hit = [v for v in values if v is not None]
     if len(hit) < len(values):
         return f"{len(hit)}/{len(values)} reached" + (

@@ -123,11 +123,11 @@ def numpy_single_env(params: Params, seed: int) -> tuple[Callable[..., Any], Cal
     rng = np.random.default_rng(seed)
     state = {"s": 0, "t": 0}
 
-    def reset() -> tuple[np.ndarray, dict]:
+    def reset() -> tuple[np.ndarray, dict[str, Any]]:
         state["s"], state["t"] = int(rng.integers(S)), 0
         return obs_table[state["s"]].copy(), {}
 
-    def step(a: int) -> tuple[np.ndarray, float, bool, bool, dict]:
+    def step(a: int) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         s = state["s"]
         f = s & 31
         u = rng.random(7)
@@ -157,7 +157,9 @@ def _time(run: Callable[[], Any], repeats: int) -> list[float]:
     return times
 
 
-def _row(n: int, threads: int, mode: str, iters: int, repeats: int, times: list[float]) -> dict:
+def _row(
+    n: int, threads: int, mode: str, iters: int, repeats: int, times: list[float]
+) -> dict[str, Any]:
     rates = [n * iters / t for t in times]
     return {
         "num_envs": n,
@@ -230,7 +232,7 @@ def run_bench_env(cfg: Config, out: Any) -> None:
     rows = []
     print(f"{'N':>7} {'threads':>7} {'mode':>12} {'median M steps/s':>17} {'min':>7} {'max':>7}")
 
-    def show(row: dict) -> None:
+    def show(row: dict[str, Any]) -> None:
         rows.append(row)
         med, lo, hi = (
             row[k] / 1e6 for k in ("median_steps_per_s", "min_steps_per_s", "max_steps_per_s")
@@ -279,7 +281,7 @@ def run_bench_env(cfg: Config, out: Any) -> None:
     write_table_md(out / "bench_env.md", bench_env_table(rows), time.perf_counter() - start)
 
 
-def bench_env_table(rows: list[dict]) -> str:
+def bench_env_table(rows: list[dict[str, Any]]) -> str:
     """The benchmark as Markdown: batched modes in M steps/s (median over repeats) with N and
     threads as rows, then each single-env mode in k steps/s with its ratio to the numpy baseline
     of the same run."""

@@ -83,14 +83,14 @@ class Config:
     vehicles: tuple[int, ...] = (3, 4, 6, 8)
     scale_seeds: tuple[int, ...] = (0, 1)
     overrides: tuple[str, ...] = ()
-    eval: dict = field(default_factory=lambda: {"every_frames": 50_000})
+    eval: dict[str, Any] = field(default_factory=lambda: {"every_frames": 50_000})
     search: bool = True
     search_sweeps: int = 10
     plot: Plot = field(default_factory=Plot)
     csv: str = "bench_fleet.csv"
     executor: Executor = field(default_factory=Executor, metadata=EXECUTOR)
-    planned: tuple = field(default=(), metadata={"keys": ()})
-    part: dict = field(default_factory=dict, metadata={"keys": ()})
+    planned: tuple[Any, ...] = field(default=(), metadata={"keys": ()})
+    part: dict[str, Any] = field(default_factory=dict, metadata={"keys": ()})
 
     def __post_init__(self) -> None:
         def pick(choices: Sequence[str]) -> Callable[[str, Any], Any]:
@@ -236,12 +236,12 @@ def _to(hist: list[dict[str, str]], th: float) -> dict[str, Any]:
     }
 
 
-def _med(values: list, fmt: str = "{:.4f}") -> str:
+def _med(values: list[float], fmt: str = "{:.4f}") -> str:
     hit = [v for v in values if v is not None and not (isinstance(v, float) and math.isnan(v))]
     return fmt.format(statistics.median(hit)) if hit else "—"
 
 
-def _steps(values: list) -> str:
+def _steps(values: list[float]) -> str:
     hit = [v for v in values if v is not None]
     if not hit:
         return "—"

@@ -30,7 +30,7 @@ from irdrc.bench.online_tables import (
     run_row,
     safe_table,
 )
-from irdrc.bench.random_scenarios import REPORTING, contested_draws
+from irdrc.bench.random_scenarios import REPORTING, Draw, contested_draws
 from irdrc.core.checks import INT, build, check_bool, check_list, check_numbers, numbers
 from irdrc.online.configs import LEARNERS, PROFILES
 from irdrc.runs.compose import Composed
@@ -241,7 +241,7 @@ def run_job(job: Job, gamma: float) -> dict[str, Any]:
     }
 
 
-def plan(cfg: Config, draws: list) -> list[Job]:
+def plan(cfg: Config, draws: list[Draw]) -> list[Job]:
     """Every run of the benchmark."""
     jobs = []
     for scenario in cfg.scenarios:

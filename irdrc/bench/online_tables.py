@@ -69,7 +69,7 @@ def _nan(x: Any) -> bool:
     return x is None or (isinstance(x, float) and math.isnan(x))
 
 
-def _med(values: list) -> str:
+def _med(values: list[float]) -> str:
     values = [v for v in values if v is not None]
     return f"{statistics.median(values):.4g}" if values else "—"
 

@@ -16,7 +16,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
@@ -176,15 +176,18 @@ def contested_draws(
     return kept_draws(lambda i: contested(i, gamma), first, count, progress)
 
 
+Kept = TypeVar("Kept")
+
+
 def kept_draws(
-    keep: Callable[[int], Any],
+    keep: Callable[[int], Kept | None],
     first: int,
     count: int,
     progress: Callable[[int, int], None] | None = None,
-) -> list:
+) -> list[Kept]:
     """The first ``count`` draws from index ``first`` up that ``keep`` returns (not None);
     ``progress(kept, tried)`` after each draw."""
-    out: list[Any] = []
+    out: list[Kept] = []
     index = first
     while len(out) < count:
         draw = keep(index)

@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from irdrc.bench.random_scenarios import REPORTING, command_line, contested_draws
+from irdrc.bench.random_scenarios import REPORTING, Draw, command_line, contested_draws
 from irdrc.core.checks import (
     INT,
     build,
@@ -54,7 +54,7 @@ class Config:
     r4: tuple[float, ...] = (5.0, 50.0)
     draws: int = 100
     first_draw: int = REPORTING
-    candidates: dict | None = None
+    candidates: dict[str, Any] | None = None
     overrides: tuple[str, ...] = ()
     eval: Eval = field(default_factory=Eval)
     threshold: float = 0.99
@@ -63,8 +63,8 @@ class Config:
     executor: Executor = field(default_factory=Executor, metadata=EXECUTOR)
     env: Any = None
     reward: Any = None
-    planned: tuple = field(default=(), metadata={"keys": ()})
-    owner: dict = field(default_factory=dict, metadata={"keys": ()})
+    planned: tuple[Any, ...] = field(default=(), metadata={"keys": ()})
+    owner: dict[str, Any] = field(default_factory=dict, metadata={"keys": ()})
 
     def __post_init__(self) -> None:
         check_common(self)
@@ -83,7 +83,7 @@ class Config:
         object.__setattr__(self, "threshold", th)
 
     @property
-    def grid(self) -> dict[str, list]:
+    def grid(self) -> dict[str, list[Any]]:
         """The grid every candidate runs: p^v_1 × r4 × seed (with random draws: seed)."""
         if self.scenarios == "random":
             return {"seed": list(self.seeds or ())}
@@ -124,7 +124,7 @@ def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
     return replace(cfg, planned=tuple(planned), owner=owner)
 
 
-def random_draws(cfg: Config) -> list:
+def random_draws(cfg: Config) -> list[Draw]:
     """The ``draws`` contested draws from ``first_draw`` up, with a line as they are found."""
     import sys
 
@@ -192,7 +192,9 @@ def run(cfg: Config, run: Run) -> int:
     return code
 
 
-def run_row(cfg: Config, p: dict[str, Any], tdir: Path, hist: list[dict]) -> dict[str, Any]:
+def run_row(
+    cfg: Config, p: dict[str, Any], tdir: Path, hist: list[dict[str, Any]]
+) -> dict[str, Any]:
     """One run of the benchmark: its final ratio, when it first reached the threshold, and how
     many later evaluations stayed there."""
     th = cfg.threshold
@@ -228,7 +230,7 @@ def robust_table(
     its scenarios (medians over the runs; steps and seconds to the threshold over the runs that
     reached it; later evaluations pooled)."""
 
-    def med(values: list) -> str:
+    def med(values: list[float]) -> str:
         values = [v for v in values if v is not None]
         return f"{statistics.median(values):,.0f}".replace(",", " ") if values else "—"
 

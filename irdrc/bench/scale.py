@@ -71,7 +71,7 @@ def _configs(scenario: str) -> int:
     return math.prod(scenario_params(scenario).env.factor_levels)
 
 
-def measure_once(scenario: str, queue: int, solver: str, device: str, tol: float) -> dict:
+def measure_once(scenario: str, queue: int, solver: str, device: str, tol: float) -> dict[str, Any]:
     """One exact solve in this process (see the module docstring); what the child prints."""
     import resource
 

@@ -23,7 +23,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from irdrc.bench.random_scenarios import command_line
+from irdrc.bench.random_scenarios import ShareDraw, command_line
 from irdrc.core.checks import INT, build, check_choice, check_list, check_numbers
 from irdrc.runs.compose import Composed
 from irdrc.runs.grid import candidate_overrides, parse_grid
@@ -61,7 +61,7 @@ class Config:
     (``irdrc.sweeps.trials.plan``), and ``owner``: each run's (learner, scenario)."""
 
     learners: tuple[str, ...] = tuple(LEARNERS)
-    scenarios: dict | str | None = None  # or "random"
+    scenarios: dict[str, Any] | str | None = None  # or "random"
     seeds: tuple[int, ...] | None = None
     draws: int = 50
     first_draw: int = 0
@@ -70,9 +70,9 @@ class Config:
     optimum_gamma: float = 0.99
     csv: str = "bench_timeshare.csv"
     executor: Executor = field(default_factory=Executor, metadata=EXECUTOR)
-    planned: tuple = field(default=(), metadata={"keys": ()})
-    owner: dict = field(default_factory=dict, metadata={"keys": ()})
-    drawn: dict = field(default_factory=dict, metadata={"keys": ()})
+    planned: tuple[Any, ...] = field(default=(), metadata={"keys": ()})
+    owner: dict[str, Any] = field(default_factory=dict, metadata={"keys": ()})
+    drawn: dict[str, Any] = field(default_factory=dict, metadata={"keys": ()})
 
     def __post_init__(self) -> None:
         check_common(self)
@@ -129,7 +129,7 @@ def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
     return replace(cfg, planned=tuple(planned), owner=owner)
 
 
-def random_draws(cfg: Config) -> list:
+def random_draws(cfg: Config) -> list[ShareDraw]:
     """The ``draws`` kept time-sharing draws from ``first_draw`` up, with a line as they are found."""
     from irdrc.bench.random_scenarios import share_draws
 
@@ -193,7 +193,7 @@ def random_summary(rows: list[dict[str, Any]], cfg: Config) -> str:
 
 
 def run_row(
-    learner: str, scenario: str, seed: int, tdir: Path, hist: list[dict], th: float
+    learner: str, scenario: str, seed: int, tdir: Path, hist: list[dict[str, Any]], th: float
 ) -> dict[str, Any]:
     """One run: its final ratio to the optimum over ρ (and, over levels, to its own optimum), env
     steps and seconds to each of ``THRESHOLDS`` of the optimum over ρ, and its training speed (env
@@ -230,7 +230,7 @@ def timeshare_table(
     """The benchmark as Markdown: one row per (learner, scenario), medians over its seeds (steps
     and seconds to a threshold over the runs that reached it)."""
 
-    def med(values: list, fmt: str = ",.0f") -> str:
+    def med(values: list[float], fmt: str = ",.0f") -> str:
         values = [v for v in values if v is not None]
         return format(statistics.median(values), fmt).replace(",", " ") if values else "—"
 

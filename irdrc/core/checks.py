@@ -54,8 +54,11 @@ INT = {"integer": True}
 OPEN_HI = {"open_hi": True}
 """Keywords of ``check_number`` for the spec tables of ``check_numbers``."""
 
+NumberSpec = tuple[str, float, float, dict[str, bool]]
+"""One row of ``check_numbers``' specs: (field, low, high, ``check_number`` keywords)."""
 
-def check_numbers(obj: Any, prefix: str, specs: Iterable[tuple]) -> None:
+
+def check_numbers(obj: Any, prefix: str, specs: Iterable[NumberSpec]) -> None:
     """Check, and set as checked, the numeric fields of a frozen dataclass ``obj`` from its own
     ``__post_init__``: ``specs`` holds (field, low, high, ``check_number`` keywords) each; the key
     in messages is ``prefix`` + field."""
@@ -115,7 +118,7 @@ def check_list(
     empty: bool = False,
     length: int | None = None,
     distinct: bool = False,
-) -> tuple:
+) -> tuple[Any, ...]:
     """``value`` as a tuple if it is a list (non-empty unless ``empty``; of ``length`` items when
     given; without a repeated item when ``distinct``: a list whose items each make runs), each
     item passed through ``item(f"{key}[{i}]", x)``; else a ``ValueError``."""

@@ -160,7 +160,7 @@ def interruptible(fn: Any, *args: Any, **kwargs: Any) -> Any:
     return box["value"]
 
 
-def transitions(model: ExactMDP) -> list:
+def transitions(model: ExactMDP) -> list[Any]:
     """P_a of every action as SciPy sparse matrices (``ExactMDP.sparse``: dense, or built from a
     factored model's factors with O(S · fan-out) non-zeros)."""
     return [model.sparse(a) for a in range(model.num_actions)]
@@ -271,7 +271,7 @@ def build_constraints(
     return out
 
 
-def _explain_infeasible(P: list, constraints: list[Constraint], model: ExactMDP) -> str:
+def _explain_infeasible(P: list[Any], constraints: list[Constraint], model: ExactMDP) -> str:
     """Which constraint no policy can meet alone (for the miss target, the fewest events any
     policy misses; for the others, their best achievable value), or that they conflict only
     together."""
@@ -290,7 +290,7 @@ def _explain_infeasible(P: list, constraints: list[Constraint], model: ExactMDP)
     return f"the constraints {names} cannot all hold together (each alone can)"
 
 
-def fewest_missed(P: list, model: ExactMDP, tol: float = 1e-12) -> float:
+def fewest_missed(P: list[Any], model: ExactMDP, tol: float = 1e-12) -> float:
     """The least long-run miss detection (missed events over events) of any stationary policy:
     Dinkelbach's iteration on the ratio, one LP a step (each policy's ratio is below the last
     until none is)."""
@@ -362,7 +362,7 @@ def solve_cmdp(
 
 def _solve_once(
     model: ExactMDP,
-    P: list,
+    P: list[Any],
     table: torch.Tensor,
     objective: str,
     target_miss: float,

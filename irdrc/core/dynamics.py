@@ -316,7 +316,7 @@ def step_shares(
     )
 
 
-def _scenario_tables(params: Params, t: ModelTables, nfac: int, lmax: int) -> dict:
+def _scenario_tables(params: Params, t: ModelTables, nfac: int, lmax: int) -> dict[str, Any]:
     """The flat look-up tables of one scenario (see ``Dynamics.step`` for their indexing)."""
     rw = params.reward
     nf = t.num_configs

@@ -65,7 +65,7 @@ class DFRCEnv(EnvBase):
     def __init__(
         self,
         params: Params | None = None,
-        batch_size: int | torch.Size | tuple | list = (),
+        batch_size: int | torch.Size | tuple[int, ...] | list[int] = (),
         device: torch.device | str = "cpu",
         seed: int | None = None,
     ) -> None:

@@ -43,7 +43,7 @@ _KEYS = (
 
 def _metrics(
     values: dict[str, float], ci: dict[str, float], params: Params
-) -> tuple[Metrics, dict]:
+) -> tuple[Metrics, dict[str, float]]:
     """The Metrics record (false alarms only where the scenario has them) and its CIs."""
     names = list(METRIC_NAMES)
     if params.env.false_alarm_prob > 0.0:
@@ -242,7 +242,9 @@ def long_run(
             values[name], ci[name] = ratio_ci(sums[num], sums[den])
         return values, ci
 
-    def agree(a: tuple, b: tuple) -> bool:
+    def agree(
+        a: tuple[dict[str, float], dict[str, float]], b: tuple[dict[str, float], dict[str, float]]
+    ) -> bool:
         for k in STATIONARITY_KEYS:
             va, vb, ha, hb = a[0][k], b[0][k], a[1][k], b[1][k]
             if math.isnan(va) != math.isnan(vb):

@@ -65,7 +65,9 @@ def _matrix(key: str, value: Any, n: int | None = None) -> tuple[tuple[float, ..
     return rows
 
 
-def _vector(key: str, value: Any, n: int, lo: float, hi: float, *, integer: bool = False) -> tuple:
+def _vector(
+    key: str, value: Any, n: int, lo: float, hi: float, *, integer: bool = False
+) -> tuple[Any, ...]:
     """A list of ``n`` numbers in [lo, hi] as a tuple, else a ``ValueError`` naming ``key``."""
     value = _plain(value)
     if not isinstance(value, list | tuple) or len(value) != n:

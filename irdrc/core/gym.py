@@ -70,7 +70,7 @@ def _params(params: Params | None, overrides: dict[str, Any]) -> Params:
     return Params.from_overrides(overrides)
 
 
-def _action_space(params: Params) -> spaces.Space:
+def _action_space(params: Params) -> spaces.Space[Any]:
     """The gymnasium action space of ``env.actions``."""
     env = params.env
     if env.actions == "continuous":
@@ -221,7 +221,9 @@ class DFRCGymEnv(gymnasium.Env):
             )
         return score_summary(scorer, table)
 
-    def _step_shares(self, rho: torch.Tensor) -> tuple[np.ndarray, float, bool, bool, dict]:
+    def _step_shares(
+        self, rho: torch.Tensor
+    ) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         """One time-sharing step (MODEL.md § D) through ``step_shares``."""
         state = torch.tensor([self._state])
         res = step_shares(self.dynamics, state, rho, self._torch_rng)

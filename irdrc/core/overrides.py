@@ -45,7 +45,7 @@ def apply_overrides(merged: dict[str, Any], overrides: Mapping[str, Any]) -> Non
         deep_set(target, parts[-1], value)
 
 
-def deep_set(target: dict, key: str, value: Any) -> None:
+def deep_set(target: dict[str, Any], key: str, value: Any) -> None:
     """``target[key] = value``, merging mappings into mappings key by key."""
     if isinstance(value, Mapping) and isinstance(target.get(key), dict):
         for k, v in value.items():

@@ -24,7 +24,7 @@ EVENT_FACTORS = ("road", "weather", "speed", "object")
 EVENT_MODELS = ("noisy_or", "sum")
 
 
-def _check_keys(prefix: str, data: Mapping, cls: type, *, strict: bool) -> None:
+def _check_keys(prefix: str, data: Mapping[str, Any], cls: type, *, strict: bool) -> None:
     names = {f.name for f in fields(cls) if not f.name.startswith("_")}
     reject_unknown_keys(prefix, data, names)
     optional = {f.name for f in fields(cls) if f.metadata.get("optional")}

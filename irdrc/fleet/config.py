@@ -16,7 +16,7 @@ FLEET_KEYS = ("vehicles", "channels", "access", "share", "observe")
 """The ``env.*`` keys of a fleet (MODEL.md § C) beside the single vehicle's."""
 
 
-def is_fleet(cfg: Mapping | None) -> bool:
+def is_fleet(cfg: Mapping[str, Any] | None) -> bool:
     """Whether a config's ``env`` is a fleet (it has ``env.vehicles``)."""
     env = cfg.get("env", {}) if cfg is not None else {}
     return isinstance(env, Mapping) and "vehicles" in env
@@ -58,7 +58,7 @@ def _pick(node: Any, i: int, prefix: str) -> Any:
     return node[i] if _per_vehicle(prefix[:-1], node) else node
 
 
-def fleet_from_config(cfg: Mapping) -> tuple[FleetSpec, str]:
+def fleet_from_config(cfg: Mapping[str, Any]) -> tuple[FleetSpec, str]:
     """The fleet (``FleetSpec``) and what each vehicle observes (``env.observe``) from a config
     holding ``env`` (a fleet scenario) and ``reward``. Any single-vehicle key may be a list of one
     value per vehicle (``env.p1.speed=[0.1,1.0]``, ``reward.r4=[5,50]``) where they differ; a
@@ -101,7 +101,7 @@ def fleet_from_config(cfg: Mapping) -> tuple[FleetSpec, str]:
     return FleetSpec(vehicle=per[0], per_vehicle=tuple(per), **fleet), observe
 
 
-def list_at(env: Mapping, reward: Mapping, key: str) -> list:
+def list_at(env: Mapping[str, Any], reward: Mapping[str, Any], key: str) -> list[Any]:
     """The list at dotted ``key`` (``env.…`` or ``reward.…``)."""
     node: Any = {"env": env, "reward": reward}
     for part in key.split("."):

@@ -113,7 +113,7 @@ class FleetEnv(EnvBase):
     def __init__(
         self,
         spec: FleetSpec | FleetModel | None = None,
-        batch_size: int | tuple | list | torch.Size = (1,),
+        batch_size: int | tuple[int, ...] | list[int] | torch.Size = (1,),
         device: torch.device | str = "cpu",
         seed: int | None = None,
         observe: str = "own",

@@ -32,7 +32,7 @@ class SimulatedMetrics:
     fleet steps simulated (burn-in included)."""
 
     fleet: Metrics
-    per_vehicle: list[dict]
+    per_vehicle: list[dict[str, float]]
     ci95: float
     fleet_steps: int
 

@@ -379,7 +379,7 @@ def _against(
     return sum(float((m * terms[i][key]).sum()) for i, m in marginal.items())
 
 
-class _Tables(Mapping):
+class _Tables(Mapping[str, torch.Tensor]):
     """Expectation tables of some vehicles of a fleet (summed), each built when read."""
 
     def __init__(self, model: FleetModel, vehicles: list[int], mean: bool) -> None:

@@ -120,7 +120,7 @@ class FleetParallelEnv(ParallelEnv):
 
     def reset(
         self, seed: int | None = None, options: dict[str, Any] | None = None
-    ) -> tuple[dict[str, np.ndarray], dict[str, dict]]:
+    ) -> tuple[dict[str, np.ndarray], dict[str, dict[str, Any]]]:
         """Start an episode from a joint state drawn uniformly (as ``FleetEnv``), or from
         ``options={"state": s}`` (the exact model's joint index); ``seed`` reseeds."""
         if seed is not None:
@@ -145,7 +145,15 @@ class FleetParallelEnv(ParallelEnv):
             self._joint = self.model.vehicle_states()
         return self._joint[int(start)].reshape(1, -1)
 
-    def step(self, actions: dict[str, Any]) -> tuple[dict, dict, dict, dict, dict]:
+    def step(
+        self, actions: dict[str, Any]
+    ) -> tuple[
+        dict[str, np.ndarray],
+        dict[str, float],
+        dict[str, bool],
+        dict[str, bool],
+        dict[str, dict[str, Any]],
+    ]:
         """Every vehicle's action (0 comm, 1 radar) → observations, rewards, terminations,
         truncations and infos per agent."""
         if self._states is None or not self.agents:
@@ -192,7 +200,9 @@ class FleetParallelEnv(ParallelEnv):
         obs = fleet_observation(single, self.own, self.observe).numpy().astype(np.float32)
         return {a: obs[i] for i, a in enumerate(self.possible_agents)}
 
-    def _infos(self, joint_states: torch.Tensor, per: dict[str, dict]) -> dict[str, dict]:
+    def _infos(
+        self, joint_states: torch.Tensor, per: dict[str, dict[str, Any]]
+    ) -> dict[str, dict[str, Any]]:
         states = joint_states[0]
         joint = int(self.sim.fleet_index(joint_states)[0]) if self.model.exact else -1
         return {
@@ -211,7 +221,9 @@ class FleetParallelEnv(ParallelEnv):
     def close(self) -> None:
         """Nothing to release."""
 
-    def policy_table(self, policy: Callable[[dict[str, np.ndarray]], Mapping]) -> torch.Tensor:
+    def policy_table(
+        self, policy: Callable[[dict[str, np.ndarray]], Mapping[str, Any]]
+    ) -> torch.Tensor:
         """The decentralised table a ``policy`` acts by, as ``FleetScorer`` reads it.
 
         ``policy`` maps a batch of observations per agent (``{agent: [B, W] float32}``) to a batch
@@ -239,7 +251,7 @@ class FleetParallelEnv(ParallelEnv):
         return (act << torch.arange(n)).sum(1)
 
     def score(
-        self, policy: Callable[[dict[str, np.ndarray]], Mapping], gamma: float = 0.99
+        self, policy: Callable[[dict[str, np.ndarray]], Mapping[str, Any]], gamma: float = 0.99
     ) -> dict[str, float]:
         """A ``policy``'s exact long-run metrics against the centralised optimum (``FleetScorer``,
         the optimum at discount ``gamma``), as the fleet recipe scores its learners: ``ratio``

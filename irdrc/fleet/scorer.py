@@ -39,7 +39,7 @@ PRINTED = (
 """The columns of a printed fleet table."""
 
 
-def fleet_metrics(model: FleetModel, policy: Any) -> tuple[Metrics, list[dict]]:
+def fleet_metrics(model: FleetModel, policy: Any) -> tuple[Metrics, list[dict[str, float]]]:
     """Exact long-run metrics of a joint policy (stationary, or periodic as a list of per-phase
     policies, averaged over its phases): the fleet's ``Metrics`` (reward, throughput, drops and
     capacity summed over the vehicles; miss detection a ratio of sums; radar fraction and mean

@@ -96,7 +96,9 @@ class FleetDynamics:
         rank = score.argsort(1).argsort(1)  # 0 = the smallest score
         return comm & (rank < K)
 
-    def _dynamics(self, states: torch.Tensor, action: int, gen: torch.Generator) -> dict:
+    def _dynamics(
+        self, states: torch.Tensor, action: int, gen: torch.Generator
+    ) -> dict[str, torch.Tensor]:
         """Every vehicle's single-vehicle step from [n, N] ``states`` under one ``action``, by its
         own dynamics: ``state``, ``event``, ``missed``, ``false_alarm``, ``sent``, ``dropped``
         as [n, N]."""

@@ -83,7 +83,7 @@ class FleetSpec:
         return len(set(self.vehicle_params)) == 1
 
 
-def grants(comm: tuple[int, ...], channels: int, access: str) -> list[tuple[float, frozenset]]:
+def grants(comm: tuple[int, ...], channels: int, access: str) -> list[tuple[float, frozenset[int]]]:
     """The uplink's outcomes when the vehicles ``comm`` ask for it: (probability, granted set).
     At most ``channels`` requests are all granted; beyond, ``scheduled`` grants ``channels`` of
     them uniformly at random and ``collision`` none."""

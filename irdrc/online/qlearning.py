@@ -81,7 +81,7 @@ class StreamQLearning(StreamLearner):
         self.updates = int(state["updates"])
 
 
-def tuple_state(state: Any) -> tuple:
+def tuple_state(state: Any) -> Any:
     """A ``random.Random`` state as ``setstate`` takes it (a checkpoint may hold lists)."""
     if isinstance(state, list | tuple):
         return tuple(tuple_state(x) if isinstance(x, list | tuple) else x for x in state)

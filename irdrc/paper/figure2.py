@@ -54,13 +54,13 @@ class Config:
     p1_speed: tuple[float, ...] = (0.1, 0.5, 1.0)
     curve_p1_speed: float = 0.1
     methods: tuple[str, ...] = ("dqn", "qlearning")
-    learners: dict = field(default_factory=dict)
-    eval: dict = field(default_factory=lambda: {"every_frames": None})
+    learners: dict[str, Any] = field(default_factory=dict)
+    eval: dict[str, Any] = field(default_factory=lambda: {"every_frames": None})
     optimum_gamma: float = 0.99
     smooth_episodes: int = 10
     claim3_r4: tuple[float, ...] = (5.0, 50.0, 100.0)
     executor: Executor = field(default_factory=Executor, metadata=EXECUTOR)
-    planned: tuple = field(default=(), metadata={"keys": ()})
+    planned: tuple[Any, ...] = field(default=(), metadata={"keys": ()})
 
     def __post_init__(self) -> None:
         check_common(self)

@@ -64,7 +64,7 @@ def band_rows(
     xs: Sequence[float],
     per_seed: Sequence[Sequence[float]],
     bounds: tuple[float, float] | None = None,
-) -> list[dict]:
+) -> list[dict[str, Any]]:
     """Rows ``series, x, mean, lo, hi, n`` of curves given per seed on the same ``xs``.
 
     ``bounds``: the range every value of the metric lies in (e.g. [0, 1] for miss detection); the

@@ -46,11 +46,15 @@ def exact_reference(params: Params, gamma: float) -> Reference:
     )
 
 
-def _runs_of(planned: list[dict], trials: Path, learner: str) -> list[tuple[dict, Path]]:
+def _runs_of(
+    planned: list[dict[str, Any]], trials: Path, learner: str
+) -> list[tuple[dict[str, Any], Path]]:
     return [(p, trials / p["point_id"]) for p in planned if p["learner"] == learner]
 
 
-def _learners_at(runs: list[tuple[dict, Path]], p: float) -> list[tuple[Path, dict[str, str]]]:
+def _learners_at(
+    runs: list[tuple[dict[str, Any], Path]], p: float
+) -> list[tuple[Path, dict[str, str]]]:
     """Every learner (run directory, its ``learners.csv`` row) whose scenario has p^v_1 = ``p``: the
     row's own ``env.p1.speed`` (batched scenarios) or else its run's."""
     out = []
@@ -63,14 +67,14 @@ def _learners_at(runs: list[tuple[dict, Path]], p: float) -> list[tuple[Path, di
 
 
 def _curves(
-    runs: list[tuple[dict, Path]], p: float, horizon: int, window: int
+    runs: list[tuple[dict[str, Any], Path]], p: float, horizon: int, window: int
 ) -> tuple[list[float], list[list[float]], list[float], list[list[float]]]:
     """(episodes evaluated, greedy curves per learner, training episodes, smoothed training curves)
     of every learner at p^v_1 = ``p``; x in episodes of ``horizon`` steps."""
     greedy, training = [], []
     xs: list[float] = []
     txs: list[float] = []
-    files: dict[Path, tuple[list[dict], list[dict]]] = {}
+    files: dict[Path, tuple[list[dict[str, Any]], list[dict[str, Any]]]] = {}
     for tdir, row in _learners_at(runs, p):
         if tdir not in files:
             files[tdir] = (read_csv(tdir / "metrics.csv"), read_csv(tdir / "episode_rewards.csv"))
@@ -83,7 +87,7 @@ def _curves(
     return xs, greedy, txs, training
 
 
-def _finals(runs: list[tuple[dict, Path]], p: float) -> list[dict[str, float]]:
+def _finals(runs: list[tuple[dict[str, Any], Path]], p: float) -> list[dict[str, float]]:
     """Final greedy policies' exact metrics, one dict per learner, at p^v_1 = p."""
     return [
         {k: to_float(row.get(k)) for k in Metrics.__dataclass_fields__}
@@ -93,7 +97,7 @@ def _finals(runs: list[tuple[dict, Path]], p: float) -> list[dict[str, float]]:
 
 def _exact_rows(
     series: str | Sequence[str], xs: Sequence[float], values: Sequence[float]
-) -> list[dict]:
+) -> list[dict[str, Any]]:
     """Band rows of exact values (no replicates: ``lo`` = ``hi`` = ``mean``, ``n`` = 0)."""
     names = [series] * len(xs) if isinstance(series, str) else list(series)
     return [
@@ -125,7 +129,7 @@ class Figure:
         """The learners the figure shows, in order."""
         return list(self.cfg.methods)
 
-    def runs(self, learner: str) -> list[tuple[dict, Path]]:
+    def runs(self, learner: str) -> list[tuple[dict[str, Any], Path]]:
         """Each finished run of ``learner``: its planned point and its trial directory."""
         return _runs_of(self.planned, self.out / "trials", learner)
 
@@ -201,7 +205,7 @@ def value_bounds(env: Any) -> dict[str, tuple[float, float] | None]:
 def panels_bcd(fig: Figure) -> dict[str, dict[str, list[float]]]:
     """Panels (b)–(d): final policies against p^v_1. Returns subject → metric → mean per p^v_1."""
     ps, bounds = fig.ps, value_bounds(fig.base.env)
-    metric_rows: dict[str, list[dict]] = {m: [] for m in PANEL_METRICS}
+    metric_rows: dict[str, list[dict[str, Any]]] = {m: [] for m in PANEL_METRICS}
     sweep_means: dict[str, dict[str, list[float]]] = {}
     for name in [m for m in fig.methods if "bcd" in fig.cfg.learners[m].panels]:
         per_p = [_finals(fig.runs(name), p) for p in ps]

@@ -27,18 +27,18 @@ STYLE = {
 DPI = 80
 
 
-def _style(series: str) -> dict:
+def _style(series: str) -> dict[str, Any]:
     return STYLE.get(series, {"label": series})
 
 
-def _series(rows: Sequence[Mapping]) -> dict[str, list[Mapping]]:
-    out: dict[str, list[Mapping]] = {}
+def _series(rows: Sequence[Mapping[str, Any]]) -> dict[str, list[Mapping[str, Any]]]:
+    out: dict[str, list[Mapping[str, Any]]] = {}
     for r in rows:
         out.setdefault(str(r["series"]), []).append(r)
     return out
 
 
-def _draw_bands(ax: Any, rows: Sequence[Mapping], marker: str | None = None) -> None:
+def _draw_bands(ax: Any, rows: Sequence[Mapping[str, Any]], marker: str | None = None) -> None:
     for name, rs in _series(rows).items():
         st = _style(name)
         xs = [float(r["x"]) for r in rs]
@@ -69,8 +69,8 @@ def _hline(ax: Any, y: float, series: str, label: str | None = None) -> None:
 
 
 def plot_panel_a(
-    greedy: Sequence[Mapping],
-    training: Sequence[Mapping],
+    greedy: Sequence[Mapping[str, Any]],
+    training: Sequence[Mapping[str, Any]],
     optimum: float,
     optimum_training: float,
     round_robin: float,
@@ -124,7 +124,11 @@ def plot_panel_a(
 
 
 def plot_p_sweep(
-    panels: Sequence[tuple[str, str, Sequence[Mapping]]], path: Path, *, seeds: int, title: str
+    panels: Sequence[tuple[str, str, Sequence[Mapping[str, Any]]]],
+    path: Path,
+    *,
+    seeds: int,
+    title: str,
 ) -> None:
     """One panel per (title, y label, rows) against p^v_1 (rows' ``x``), side by side."""
     fig, axes = plt.subplots(
@@ -147,12 +151,12 @@ def plot_p_sweep(
 
 
 def plot_tradeoff(
-    rows: Sequence[Mapping],
-    learned: Sequence[Mapping],
+    rows: Sequence[Mapping[str, Any]],
+    learned: Sequence[Mapping[str, Any]],
     path: Path,
     *,
     target: float | None,
-    scan: Sequence[Mapping] = (),
+    scan: Sequence[Mapping[str, Any]] = (),
 ) -> None:
     """The optimal policy's miss detection against r4, throughput and link capacity.
 
@@ -217,7 +221,7 @@ def plot_tradeoff(
     atomic_savefig(fig, path, dpi=DPI)
 
 
-def _learned_point(ax: Any, r: Mapping, xkey: str) -> None:
+def _learned_point(ax: Any, r: Mapping[str, Any], xkey: str) -> None:
     y = float(r["miss_detection"])
     ax.errorbar(
         [float(r[xkey])],

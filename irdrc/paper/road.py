@@ -16,6 +16,7 @@ import statistics
 import sys
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 from irdrc.core.exact import exact_scorer, stationary_metrics
 from irdrc.core.params import Params
@@ -30,9 +31,9 @@ ORDER = ("posterior", "dqn", "dqn_paper", "qlearning", "qlearning_paper")
 """The learners drawn, in this order, where the benchmark ran them."""
 
 
-def paper_histories(bench_dir: Path) -> dict[str, list[list[dict]]]:
+def paper_histories(bench_dir: Path) -> dict[str, list[list[dict[str, Any]]]]:
     """Learner → the evaluation rows of each of its runs on the paper scenario."""
-    out: dict[str, list[list[dict]]] = {}
+    out: dict[str, list[list[dict[str, Any]]]] = {}
     for path in sorted((Path(bench_dir) / "runs").glob("*__paper__*.json")):
         learner = path.name.split("__")[0]
         if learner in ORDER and "__m" not in path.name:
@@ -40,7 +41,7 @@ def paper_histories(bench_dir: Path) -> dict[str, list[list[dict]]]:
     return {k: out[k] for k in ORDER if k in out}
 
 
-def verdicts(histories: dict[str, list[list[dict]]], params: Params) -> list[Verdict]:
+def verdicts(histories: dict[str, list[list[dict[str, Any]]]], params: Params) -> list[Verdict]:
     """Claim 1 on one vehicle: the learners' final greedy policies' episode rewards (mean over
     runs), the first episode at which their mean curve reaches 95 % of the optimum, against the
     optimum's and round-robin's exact episode rewards."""

@@ -104,7 +104,7 @@ class Config:
     search: Search = field(default_factory=Search)
     dqn: Learned = field(default_factory=Learned)
     executor: Executor = field(default_factory=Executor, metadata=EXECUTOR)
-    planned: tuple = field(default=(), metadata={"keys": ()})
+    planned: tuple[Any, ...] = field(default=(), metadata={"keys": ()})
 
     def __post_init__(self) -> None:
         check_common(self)
@@ -208,7 +208,9 @@ def run(cfg: Config, run: Run) -> int:
     return code
 
 
-def _exact_curves(base: Params, ps: list[float], r4s: list[float], gamma: float) -> list[dict]:
+def _exact_curves(
+    base: Params, ps: list[float], r4s: list[float], gamma: float
+) -> list[dict[str, Any]]:
     """The optimal policy's metrics at every (p^v_1, r4), printed as a table."""
     rows = []
     ticker = Ticker(len(ps) * len(r4s), "exact solves over r4")
@@ -238,19 +240,21 @@ def _exact_curves(base: Params, ps: list[float], r4s: list[float], gamma: float)
 
 def _smallest_r4_each(
     cfg: Config, ps: list[float], target: float
-) -> tuple[dict[str, Any], list[dict]]:
+) -> tuple[dict[str, Any], list[dict[str, Any]]]:
     """For each p^v_1, the smallest r4 on the search grid meeting ``target`` (``target_miss``:
     bisection, then optionally every grid point below it); returns (answers by p^v_1, the points
     solved)."""
     base, gamma = cfg.params, cfg.optimum_gamma
     found: dict[str, Any] = {}
-    scan_rows: list[dict] = []
+    scan_rows: list[dict[str, Any]] = []
     lo, hi, res = cfg.search.lo, cfg.search.hi, cfg.search.resolution
     for p in ps:
         params = ref_params(base, p)
         metrics_at: dict[float, Metrics] = {}
 
-        def miss_of(r: float, params: Params = params, memo: dict = metrics_at) -> float:
+        def miss_of(
+            r: float, params: Params = params, memo: dict[float, Metrics] = metrics_at
+        ) -> float:
             if r not in memo:
                 memo[r] = optimal_at(params, r, gamma)[1]
             return memo[r].miss_detection
@@ -316,9 +320,9 @@ def _print_found(
     )
 
 
-def _dqn_points(cfg: Config, run: Run, p: float) -> tuple[int, list[dict]]:
+def _dqn_points(cfg: Config, run: Run, p: float) -> tuple[int, list[dict[str, Any]]]:
     """DQN at ``dqn.r4`` (``dqn.seeds`` each) through the sweep engine: (exit code, mean rows)."""
-    learned_rows: list[dict] = []
+    learned_rows: list[dict[str, Any]] = []
     if not cfg.planned:
         return 0, learned_rows
     out, planned = run.dir, list(cfg.planned)

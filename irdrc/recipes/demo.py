@@ -69,9 +69,7 @@ def run(cfg: Config, run: Run) -> int:
     rows, errs = {}, {}
     t0 = time.perf_counter()
     for i, name in enumerate(cfg.policies):
-        env = DFRCEnv(
-            params, batch_size=[cfg.eval.mc_num_envs], device=cfg.device, seed=cfg.seed + i
-        )
+        env = DFRCEnv(params, batch_size=[cfg.eval.mc_batch], device=cfg.device, seed=cfg.seed + i)
         ev = evaluate(made[name]().to(env.device), env, episodes=cfg.eval.mc_episodes)
         rows[name], errs[name] = ev.metrics, ev.ci95
     steps = ev.steps * len(cfg.policies)

@@ -147,7 +147,7 @@ def check_observations(path: Path, trained: Params, params: Params) -> None:
 
 
 def dqn_table(
-    state: dict[str, Any], saved: dict, trained: Params, params: Params
+    state: dict[str, Any], saved: dict[str, Any], trained: Params, params: Params
 ) -> tuple[Any, str]:
     """A DQN checkpoint's greedy table on the states of ``params``, and its profile's name."""
     from torchrl.objectives import DQNLoss

@@ -57,13 +57,13 @@ class Config:
     scenarios: tuple[str, ...] = ("paper", "multilevel", "large")
     learners: tuple[str, ...] = tuple(LEARNERS)
     seeds: tuple[int, ...] = (100, 101, 102)
-    evals: dict = field(default_factory=lambda: {"default": 40, "large": 10})
-    overrides: dict = field(default_factory=dict)
+    evals: dict[str, Any] = field(default_factory=lambda: {"default": 40, "large": 10})
+    overrides: dict[str, Any] = field(default_factory=dict)
     optimum_gamma: float = 0.99
     num_threads: int = 1
     device: str = "cpu"
     csv: str = "study.csv"
-    planned: dict = field(default_factory=dict, metadata={"keys": ()})
+    planned: dict[tuple[str, str], Any] = field(default_factory=dict, metadata={"keys": ()})
 
     def __post_init__(self) -> None:
         check_common(self)

@@ -51,7 +51,7 @@ class Config:
     method: str = "dqn"
     sweep: Grid = field(default_factory=Grid)
     executor: Executor = field(default_factory=Executor, metadata=EXECUTOR)
-    planned: tuple = field(default=(), metadata={"keys": ()})
+    planned: tuple[Any, ...] = field(default=(), metadata={"keys": ()})
 
     def __post_init__(self) -> None:
         check_choice("method", self.method, tuple(METHODS))

@@ -147,7 +147,7 @@ def _initialised() -> Any:
     return _Scope()
 
 
-def compose(config_name: str, overrides: list[str] | tuple = ()) -> Composed:
+def compose(config_name: str, overrides: list[str] | tuple[str, ...] = ()) -> Composed:
     """Compose ``irdrc/conf/<config_name>.yaml`` with command-line ``overrides`` — once — into
     plain containers. ``hydra.*`` overrides set the run's own settings (``hydra.run.dir``).
 

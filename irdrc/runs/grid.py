@@ -71,7 +71,9 @@ def point_overrides(point: Mapping[str, Any]) -> list[str]:
     return [f"{k}={format_value(v)}" for k, v in point.items()]
 
 
-def point_id(point: Mapping[str, Any], method: str = "", base: list[str] | tuple = ()) -> str:
+def point_id(
+    point: Mapping[str, Any], method: str = "", base: list[str] | tuple[str, ...] = ()
+) -> str:
     """Stable id of a grid point: readable prefix + hash of its overrides (order-independent),
     of the method and of the base overrides (so two sweeps of one grid with different bases, or
     methods, never share a trial directory)."""

@@ -156,7 +156,9 @@ def finish_learner(run: Run, lr: LearnerRun) -> dict[str, Any]:
     return summary
 
 
-def final_rows(lr: LearnerRun, greedy: torch.Tensor) -> tuple[dict[str, Metrics], dict[str, dict]]:
+def final_rows(
+    lr: LearnerRun, greedy: torch.Tensor
+) -> tuple[dict[str, Metrics], dict[str, dict[str, float]]]:
     """The final table: the learned policy ``greedy`` ([S] actions or [S, A] probabilities)
     exactly (long run, and episodic beside the Monte-Carlo row), the optimum and round-robin;
     Monte-Carlo ± 95 % CI."""

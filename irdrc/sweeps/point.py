@@ -111,7 +111,9 @@ def last_line(error: Any) -> str:
     return lines[-1].strip() if lines else "unknown error"
 
 
-def progress_line(done: int, total: int, already: int, t0: float, p: dict, tail: str) -> None:
+def progress_line(
+    done: int, total: int, already: int, t0: float, p: dict[str, Any], tail: str
+) -> None:
     """Print one sweep progress line: points done of ``total``, the ETA, the point and ``tail``
     (its status); ``already`` points were done before this run started at ``t0``."""
     elapsed = time.perf_counter() - t0

@@ -64,15 +64,17 @@ def _num(x: Any) -> float | None:
     return v if math.isfinite(v) else None
 
 
-def group_rows(rows: list[dict[str, str]], keys: list[str]) -> dict[tuple, list[dict[str, str]]]:
+def group_rows(
+    rows: list[dict[str, str]], keys: list[str]
+) -> dict[tuple[str, ...], list[dict[str, str]]]:
     """``summary.csv`` rows grouped by their values of ``keys`` (the grid without ``seed``)."""
-    groups: dict[tuple, list[dict[str, str]]] = defaultdict(list)
+    groups: dict[tuple[str, ...], list[dict[str, str]]] = defaultdict(list)
     for r in rows:
         groups[tuple(r.get(k, "") for k in keys)].append(r)
     return dict(groups)
 
 
-def read_seed_grid(summary_csv: Path) -> tuple[list[str], list[str], list[dict]] | None:
+def read_seed_grid(summary_csv: Path) -> tuple[list[str], list[str], list[dict[str, str]]] | None:
     """``summary.csv``'s (columns, grid keys without ``seed``, rows); None when the grid has no
     ``seed`` key."""
     with Path(summary_csv).open() as f:

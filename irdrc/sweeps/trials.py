@@ -156,7 +156,7 @@ def go_on_command(out: Path, recipe: str = "sweep") -> str:
     return f"python {recipe_call(recipe)} resume=true hydra.run.dir={shell_quote(str(out))}"
 
 
-def _run_local(todo: list[dict], already: int, total: int, trials_dir: Path) -> None:
+def _run_local(todo: list[dict[str, Any]], already: int, total: int, trials_dir: Path) -> None:
     """Run the points one after another in this process (no Ray): same files, same statuses."""
     import torch
 
@@ -185,7 +185,7 @@ def _run_local(todo: list[dict], already: int, total: int, trials_dir: Path) -> 
         progress_line(already + i + 1, total, already, t0, p, tail)
 
 
-def write_summary_csv(path: Path, planned: list[dict], trials_dir: Path) -> int:
+def write_summary_csv(path: Path, planned: list[dict[str, Any]], trials_dir: Path) -> int:
     """``summary.csv``: one row per expected grid point (overrides, status, final metrics).
 
     Returns 0 if every point is DONE, else 1.

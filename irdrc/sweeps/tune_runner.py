@@ -55,7 +55,7 @@ def _ray_init(address: str, num_cpus: int | None) -> None:
 
 
 def run_tune(
-    cfg: Executor, out: Path, todo: list[dict], already: int, total: int, trials_dir: Path
+    cfg: Executor, out: Path, todo: list[dict[str, Any]], already: int, total: int, trials_dir: Path
 ) -> None:
     """Run the points ``todo`` as Tune trials (``already`` of ``total`` were done before), storing
     each one's results under ``trials_dir``; a Ctrl-C raises KeyboardInterrupt once Tune stops."""
@@ -79,7 +79,7 @@ def run_tune(
             raise KeyboardInterrupt
 
     class StopOnSigint(tune.stopper.Stopper):
-        def __call__(self, trial_id: str, result: dict) -> bool:
+        def __call__(self, trial_id: str, result: dict[str, Any]) -> bool:
             return asked["stop"]
 
         def stop_all(self) -> bool:

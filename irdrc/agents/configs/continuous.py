@@ -57,7 +57,7 @@ class ShareConfig:
     network: NetworkConfig = field(default_factory=NetworkConfig, metadata={"keys": ()})
     name: str = field(default="share", compare=False)
 
-    NUMBERS: ClassVar[tuple] = (
+    NUMBERS: ClassVar[tuple[checks.NumberSpec, ...]] = (
         ("num_envs", 1, 10**7, checks.INT),
         ("frames_per_batch", 1, 10**7, checks.INT),
         ("total_frames", 1, 10**12, checks.INT),
@@ -166,7 +166,7 @@ class PPOConfig:
     name: str = field(default="ppo", compare=False)
     _section: str = field(default="algo", compare=False, repr=False)
 
-    NUMBERS: ClassVar[tuple] = (
+    NUMBERS: ClassVar[tuple[checks.NumberSpec, ...]] = (
         ("num_envs", 1, 10**7, checks.INT),
         ("frames_per_batch", 1, 10**8, checks.INT),
         ("total_frames", 1, 10**12, checks.INT),

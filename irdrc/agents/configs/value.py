@@ -114,7 +114,7 @@ class OffPolicyConfig:
     network: NetworkConfig = field(default_factory=lambda: LARGE, metadata={"keys": ()})
     name: str = field(default="dqn", compare=False)
 
-    NUMBERS: ClassVar[tuple] = (
+    NUMBERS: ClassVar[tuple[checks.NumberSpec, ...]] = (
         # Sizes are capped where a larger value could only exhaust memory or time on any machine.
         ("num_envs", 1, 10**7, checks.INT),
         ("frames_per_batch", 1, 10**7, checks.INT),

@@ -52,7 +52,7 @@ class FactoredModel(ExactMDP):
     params: Params | None
     F: torch.Tensor
     pmf: torch.Tensor
-    per_config: dict
+    per_config: dict[str, torch.Tensor]
     group: torch.Tensor
     groups: tuple[tuple[int, int], ...]
     sent_q: torch.Tensor

@@ -232,7 +232,7 @@ def as_schedule(policy: Any, num_states: int, num_actions: int = 2) -> list[torc
     return [as_probs(policy, num_states, num_actions)]
 
 
-def _one_table(policy: Sequence, num_states: int, num_actions: int) -> bool:
+def _one_table(policy: Sequence[Any], num_states: int, num_actions: int) -> bool:
     """Whether a Python sequence is one table (S numbers, or S rows of A numbers: a ``tolist()``
     of a table) rather than a schedule of tables."""
     try:

@@ -18,6 +18,9 @@ from irdrc.core.metrics import Metrics
 from irdrc.core.params import Params
 from irdrc.core.sizes import fits_dense
 
+CacheKey = tuple[str, tuple[int, ...], bytes]
+"""A policy table's cache key: its dtype, shape and bytes."""
+
 
 class Scorer:
     """Exact stationary metrics of policy tables on one exact model, and its optimum.
@@ -32,8 +35,8 @@ class Scorer:
     def __init__(self, model: ExactMDP, gamma: float = DEFAULT_OPTIMUM_GAMMA, tol: float = 1e-9):
         self.model = model
         self.optimal = value_iteration(model, gamma=gamma, tol=tol)
-        self._cache: dict[tuple, Metrics] = {}
-        self._sums: dict[tuple, dict[str, float]] = {}
+        self._cache: dict[CacheKey, Metrics] = {}
+        self._sums: dict[CacheKey, dict[str, float]] = {}
         self.optimal_sums = model.sums(stationary_occupancy(model, self.optimal.policy))
         self.optimal_metrics = metrics_from_sums(model, self.optimal_sums)
 
@@ -51,7 +54,7 @@ class Scorer:
         ``event``, ``missed``, ``sent``, ``dropped`` …), the rates its metrics are made of."""
         return self._sums[self._score(table)]
 
-    def _score(self, table: torch.Tensor) -> tuple:
+    def _score(self, table: torch.Tensor) -> CacheKey:
         """The cache key of ``table``, its stationary occupancy scored once."""
         t = torch.as_tensor(table).cpu()
         key = (str(t.dtype), tuple(t.shape), t.numpy().tobytes())

@@ -50,7 +50,7 @@ def _lp_targets(params: Params, n: int, gamma: float, extra: list[float]) -> lis
 
 def _lp_points(
     params: Params, p: float, kwargs: dict[str, Any], targets: list[float], ticker: Ticker
-) -> list:
+) -> list[dict[str, Any]]:
     """LP optima at ``targets``."""
     model = build_model(params)
     rows = []
@@ -71,7 +71,9 @@ def _lp_points(
     return rows
 
 
-def _r4_points(params: Params, p: float, r4s: list[float], gamma: float, ticker: Ticker) -> list:
+def _r4_points(
+    params: Params, p: float, r4s: list[float], gamma: float, ticker: Ticker
+) -> list[dict[str, Any]]:
     rows = []
     for r4 in r4s:
         _, m = optimal_at(params, r4, gamma)
@@ -91,8 +93,8 @@ def _r4_points(params: Params, p: float, r4s: list[float], gamma: float, ticker:
 
 
 def share_table(
-    share: list[dict], gap: list[dict], levels: dict[tuple[float, float], float]
-) -> list[dict]:
+    share: list[dict[str, Any]], gap: list[dict[str, Any]], levels: dict[tuple[float, float], float]
+) -> list[dict[str, Any]]:
     """``gap`` rows with time-sharing's bounds at their target (``share``'s rows) and the LP over
     levels (``levels``: (p1_speed, target) → value)."""
     out = []
@@ -113,7 +115,7 @@ def share_table(
     return out
 
 
-def region_md(gap: list[dict], levels: int) -> str:
+def region_md(gap: list[dict[str, Any]], levels: int) -> str:
     """The trade-off region's table at the table's targets (``tradeoff_region.md``)."""
     rows = [
         [
@@ -141,7 +143,9 @@ def region_md(gap: list[dict], levels: int) -> str:
     return md_table(header, rows)
 
 
-def give_up_table(lp: list[dict], r4: list[dict], targets: list[float]) -> list[dict]:
+def give_up_table(
+    lp: list[dict[str, Any]], r4: list[dict[str, Any]], targets: list[float]
+) -> list[dict[str, Any]]:
     """At each target (solved exactly by the LP among ``lp``): the LP's throughput, the best throughput of an r4-route policy meeting the
     target (and its r4), and what the r4 route gives up."""
     out = []
@@ -175,8 +179,8 @@ def run_frontier(cfg: Any, run: Run) -> dict[str, Any]:
     r4s = grid.r4.values()
     kwargs = cfg.constraints
     t0 = time.perf_counter()
-    lp_rows: list[dict] = []
-    r4_rows: list[dict] = []
+    lp_rows: list[dict[str, Any]] = []
+    r4_rows: list[dict[str, Any]] = []
     shared = cfg.params.env.actions == "continuous"
     shares = {p: ref_params(cfg.params, p) for p in ps}
     scenarios = {p: binary_params(shares[p]) for p in ps}
@@ -192,7 +196,7 @@ def run_frontier(cfg: Any, run: Run) -> dict[str, Any]:
         lp_rows += _lp_points(scenarios[p], p, kwargs, lp_targets[p], ticker)
     for p in ps:
         r4_rows += _r4_points(scenarios[p], p, r4s, cfg.optimum_gamma, ticker)
-    share_rows: list[dict] = []
+    share_rows: list[dict[str, Any]] = []
     levels: dict[tuple[float, float], float] = {}
     if shared:
         from irdrc.core.share_cmdp import LEVELS
@@ -266,12 +270,12 @@ def optimal_at(params: Params, r4: float, gamma: float) -> tuple[torch.Tensor, M
 
 
 def plot_frontier(
-    lp: Sequence[Mapping],
-    r4: Sequence[Mapping],
+    lp: Sequence[Mapping[str, Any]],
+    r4: Sequence[Mapping[str, Any]],
     path: Path,
     *,
     targets: Sequence[float] = (),
-    share: Sequence[Mapping] = (),
+    share: Sequence[Mapping[str, Any]] = (),
 ) -> None:
     """Throughput against miss detection: the LP frontier (a line per p^v_1) and the reward-optimal
     deterministic policies over r4 (markers, same colour), with the targets as vertical lines; with

@@ -73,7 +73,7 @@ def describe(spec: FleetSpec, observe: str, model: FleetModel) -> str:
 
 
 def format_rows(
-    rows: dict[str, list[dict]], reference: float, reference_name: str = "reference"
+    rows: dict[str, list[dict[str, Any]]], reference: float, reference_name: str = "reference"
 ) -> str:
     """The per-vehicle table: one line per vehicle and one for the fleet with its ratio to
     ``reference`` (named ``reference_name``)."""
@@ -104,7 +104,7 @@ STARVED_THROUGHPUT = 1e-3
 """A vehicle whose throughput (packets per step) is below this never sends: starved."""
 
 
-def starvation(name: str, per: list[dict]) -> str | None:
+def starvation(name: str, per: list[dict[str, Any]]) -> str | None:
     """One line naming the vehicles of ``per`` (each vehicle's row, then the fleet's) that never
     send, with their throughput and drop rate; None when every vehicle sends."""
     starved = [r for r in per[:-1] if float(r["throughput"]) < STARVED_THROUGHPUT]
@@ -123,14 +123,14 @@ def starvation(name: str, per: list[dict]) -> str | None:
     )
 
 
-def clean_rows(rows: list[dict]) -> list[dict]:
+def clean_rows(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
     """``rows`` with every float made JSON-safe (``clean_number``: NaN as None)."""
     return [
         {k: (clean_number(v) if isinstance(v, float) else v) for k, v in r.items()} for r in rows
     ]
 
 
-def exact_rows(model: FleetModel, policies: dict[str, Any]) -> dict[str, list[dict]]:
+def exact_rows(model: FleetModel, policies: dict[str, Any]) -> dict[str, list[dict[str, Any]]]:
     """Each policy's exact per-vehicle and fleet metrics."""
     return {name: fleet_metrics(model, pol)[1] for name, pol in policies.items()}
 

@@ -202,3 +202,76 @@ def test_a_safe_run_is_warned_against_the_lp():
     assert warn([row(0.0, 0), row(1.2, 400, meets=0.0), row(0.97, 800)]) is None
     never = warn([row(1.2, 400, meets=0.0), row(0.9, 800, meets=0.0)])
     assert "none of its evaluations had meets_target" in never
+
+
+def test_the_safe_recipe_separates_the_targets_own_cost_from_the_price_of_learning(
+    tmp_path, capsys, paper_scorer
+):
+    """``learner=safe``: the LP's own shortfall from the optimum, (g* − g_LP) per step, is the part
+    of the regret no learner held to the target avoids; summary.json and the printout carry it over
+    the run's steps, and what learning under the target cost beside it (computed here by hand)."""
+    from irdrc.core.cmdp import solve_cmdp
+    from irdrc.online import recipe
+    from irdrc.runs import app
+
+    args = ["learner=safe", "algo.episodes=3", f"hydra.run.dir={tmp_path}", "logger=none"]
+    assert app.execute(recipe, [*args, "progress=false"]) == 0
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    lp = solve_cmdp(paper_scorer.model, summary["target_miss"])
+    per_step = paper_scorer.optimal_metrics.avg_reward - lp.metrics.avg_reward
+    assert per_step > 0.1  # the paper's optimum misses 0.289: the 0.05 target costs reward
+    assert summary["lp"]["regret"] == pytest.approx(per_step * 3 * 400, rel=1e-6)
+    learning = summary["ledger"]["regret"] - summary["lp"]["regret"]
+    out = capsys.readouterr().out
+    assert (
+        f"the LP itself pays {summary['lp']['regret']:.1f} of that regret over these steps "
+        f"(the target's own cost): learning under the target cost {learning:.1f}"
+    ) in out
+
+
+def test_a_safe_runs_figure_is_read_against_its_own_goal(monkeypatch, tmp_path):
+    """The learning curve of a safe run shows its plan's packets over the LP's (lines at 1 and
+    the end threshold), the LP's own regret beside the learner's, and its cumulative miss
+    detection under the target; another learner's shows the ratio to the optimum and the
+    missed events beside the optimum's floor."""
+    from irdrc.online import figures
+
+    drawn = {}
+    monkeypatch.setattr(figures, "atomic_savefig", lambda fig, path, dpi: drawn.update(fig=fig))
+    rows = [
+        {
+            "episodes": k,
+            "env_steps": 400 * k,
+            "optimality_ratio": 0.4 + 0.01 * k,
+            "behaviour_ratio": 0.3,
+            "regret": 200.0 * k,
+            "realised_regret": 190.0 * k,
+            "expected_missed": 1.0 * k,
+            "realised_missed": 1.0 * k,
+            "floor_missed": 5.0 * k,
+            "lp_ratio": 0.2 * k,
+            "cumulative_miss_detection": math.nan if k == 0 else 0.01 * k,
+        }
+        for k in range(5)
+    ]
+    record = type("Record", (), {"history": rows})()
+
+    def lines(ax):
+        return {ln.get_label(): list(ln.get_ydata()) for ln in ax.get_lines()}
+
+    figures.plot_run(record, tmp_path / "c.png", "t", 0.05, 0.95, lp_regret_per_step=0.5)
+    first, regret, miss = drawn["fig"].axes
+    assert first.get_ylabel() == "greedy plan's packets / the LP's at 0.05"
+    assert lines(first)["greedy plan"] == pytest.approx([0.0, 0.2, 0.4, 0.6, 0.8])
+    assert sorted(ln.get_ydata()[0] for ln in first.get_lines()[:2]) == [0.95, 1.0]
+    assert lines(regret)["the LP's (the target's own cost)"] == [0.0, 200.0, 400.0, 600.0, 800.0]
+    assert lines(miss)["missed / events so far"][1:] == [0.01, 0.02, 0.03, 0.04]
+    assert lines(miss)["target"][0] == 0.05 and "optimum (floor)" not in lines(miss)
+
+    figures.plot_run(record, tmp_path / "c.png", "t")
+    first, regret, miss = drawn["fig"].axes
+    assert first.get_ylabel() == "greedy policy / optimum (exact)"
+    assert lines(first)["greedy"][0] == 0.4 and "the LP's (the target's own cost)" not in lines(
+        regret
+    )
+    assert lines(miss)["optimum (floor)"] == [0.0, 5.0, 10.0, 15.0, 20.0]

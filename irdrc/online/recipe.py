@@ -156,7 +156,16 @@ def run(cfg: Config, run: Run) -> dict[str, Any]:
             record,
             scorer,
             advice=ADVICE[cfg.learner],
-            plot=plot_run,
+            plot=(
+                partial(
+                    plot_run,
+                    target_miss=cfg.algo.target_miss,
+                    lp_threshold=SAFE_END_THRESHOLD,
+                    lp_regret_per_step=lp_cost(scorer, greedy_scorer),
+                )
+                if greedy_scorer is not None
+                else plot_run
+            ),
             end_check=(
                 partial(
                     end_warning,
@@ -186,6 +195,7 @@ def run(cfg: Config, run: Run) -> dict[str, Any]:
         summary["lp"] = {
             "throughput": greedy_scorer.lp.value,
             "miss_detection": greedy_scorer.lp.metrics.miss_detection,
+            "regret": lp_cost(scorer, greedy_scorer) * record.env_steps,
         }
         summary["lp_ratio"] = ledger["lp_ratio"]
         if isinstance(learner, SafeLearner):
@@ -193,6 +203,12 @@ def run(cfg: Config, run: Run) -> dict[str, Any]:
     print_ledger(ledger, summary, cfg)
     run.finish(summary, interrupted_at=record.env_steps if record.interrupted else None)
     return summary
+
+
+def lp_cost(scorer: Any, constrained: Any) -> float:
+    """What the target itself costs per step: the optimum's long-run reward less the LP's. Over a
+    run's steps, the part of a safe learner's regret that no learner held to the target avoids."""
+    return float(scorer.optimal_metrics.avg_reward - constrained.lp.metrics.avg_reward)
 
 
 def lp_reference(lp: Any, target_miss: float) -> tuple[str, str, Any]:
@@ -233,6 +249,11 @@ def print_ledger(row: dict[str, Any], summary: dict[str, Any], cfg: Config) -> N
         print(
             f"  target_miss={cfg.algo.target_miss}: the greedy plan sends {row['lp_ratio']:.4f} of "
             f"the LP's packets, its long-run miss detection {row['miss_detection']:.4f}"
+        )
+        lp_regret = summary["lp"]["regret"]
+        print(
+            f"  the LP itself pays {lp_regret:.1f} of that regret over these steps (the target's "
+            f"own cost): learning under the target cost {row['regret'] - lp_regret:.1f}"
         )
         conf = summary["plan_confidence"]
         print(

@@ -83,17 +83,29 @@ def test_the_lagrangian_row_counts_evaluations_over_the_target_and_its_end():
 def test_the_safe_table_puts_the_lagrangian_training_beside_the_safe_learner():
     job = Job("safe", "paper", 10, 3, 0.05)
     conf = {"miss_mean": 0.05, "miss_sd": 0.001, "p_within_target": 0.4, "draws": 50}
+    # the target's own cost, 0.02 per step: 24 of the regret of 30 at the window (1 200 steps)
     within = run_row(
         job,
-        {"history": history([0, 0.5, 0.9, 0.95]), "wall_seconds": 1, "plan_confidence": conf},
+        {
+            "history": history([0, 0.5, 0.9, 0.95]),
+            "wall_seconds": 1,
+            "plan_confidence": conf,
+            "lp_cost": 0.02,
+        },
         3,
     )
-    over = run_row(job, {"history": history([0, 0.5, 0.9, 0.95], cum=0.06), "wall_seconds": 1}, 3)
+    over = run_row(
+        job,
+        {"history": history([0, 0.5, 0.9, 0.95], 20.0, cum=0.06), "wall_seconds": 1, "lp_cost": 0},
+        3,
+    )
+    assert within["learning_regret"] == pytest.approx(6.0) and over["learning_regret"] == 60.0
     trace = [{"env_steps": 400, "cumulative_miss": 0.3}, {"env_steps": 800, "cumulative_miss": 0.2}]
     lag = [lagrangian_row(Job("dqn_lagrangian", "paper", 10, 3, 0.05), {"trace": trace}, 400)]
     table = safe_table([within, over], lag, 3)
     assert "| 0.05 | paper | 1/2 | 0.0600 |" in table
     assert "0/1, worst 0.3000, at the end 0.2 |" in table
+    assert "| 0.9 (0.9000) | 33 (60) |" in table  # beyond the LP's own: 6 and 60
     # the one run with a stated confidence: P 0.4, sd 0.001 = 2 % of the target; then the safe
     # runs' wall time, 1 s each, before the Lagrangian DQN
     assert "| 2/2 | 0.40; 2.0 % | 1 | 0/1, worst" in table

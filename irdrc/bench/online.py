@@ -216,6 +216,7 @@ def run_job(job: Job, gamma: float) -> dict[str, Any]:
     from irdrc.online.configs import learner_config
     from irdrc.online.learners import make_learner
     from irdrc.online.loop import learn_on_stream
+    from irdrc.online.recipe import lp_cost
     from irdrc.online.safe import SafeLearner
 
     algo = {"episodes": job.episodes, **({"target_miss": job.target} if job.target else {})}
@@ -235,6 +236,7 @@ def run_job(job: Job, gamma: float) -> dict[str, Any]:
         "seconds_learning": record.info["seconds_act_and_learn"]
         + record.info["seconds_episode_end"],
         "lp_throughput": greedy_scorer.lp.value if greedy_scorer is not None else None,
+        "lp_cost": lp_cost(scorer, greedy_scorer) if greedy_scorer is not None else None,
         "plan_confidence": (
             learner.plan_confidence() if isinstance(learner, SafeLearner) else None
         ),

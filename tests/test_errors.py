@@ -93,6 +93,7 @@ def refused(recipe: str, *overrides: str) -> str:
         ("sweep", ["method=sarsa", "sweep.grid={seed: [0]}"], "method='sarsa'"),
         ("dqn", ["algo=qlearning_paper"], "recipes/qlearning.py algo=qlearning_paper"),
         ("dqn", ["algo.max_lr=1"], "did you mean algo.lr?"),
+        ("demo", ["eval.mc_num_envs=null"], "eval.mc_num_envs=null: the demo is a Monte-Carlo"),
         # a benchmark whose lists leave nothing to run, or an empty mapping read as the default
         ("bench_online", ["scenarios=[]", "random_draws=0", "safe_targets=[]"], "nothing to run"),
         ("bench_online", ["scenarios=[]", "random_learners=[]", "safe_targets=[]"], "nothing"),

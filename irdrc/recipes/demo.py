@@ -40,8 +40,14 @@ class Config:
         object.__setattr__(
             self, "policies", check_list("policies", self.policies, item, distinct=True)
         )
-        if not self.eval.mc_episodes or not self.eval.mc_num_envs:
-            raise ValueError("eval.mc_num_envs and eval.mc_episodes must be >= 1")
+        for key in ("mc_episodes", "mc_num_envs"):
+            value = getattr(self.eval, key)
+            if not value:
+                raise ValueError(
+                    f"eval.{key}={'null' if value is None else value}: the demo is a Monte-Carlo rollout of "
+                    "each policy, eval.mc_episodes episodes in batches of eval.mc_num_envs envs, "
+                    "so both must be >= 1 (the exact metrics of a baseline: recipes/solve.py)"
+                )
 
 
 def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:

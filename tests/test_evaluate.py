@@ -149,7 +149,7 @@ def test_a_radar_share_network_is_scored_as_its_run_did(recipe, tmp_path):
     (policy.csv) with the same exact ratio to the optimum over ρ; on another scenario they are
     scored against that scenario's optimum over ρ."""
     from test_ppo import TINY_PPO
-    from test_timeshare import TINY_SAC
+    from test_sac import TINY_SAC
 
     tiny = TINY_SAC if recipe == "sac" else TINY_PPO
     trained = tmp_path / "trained"

@@ -53,17 +53,20 @@ def test_a_run_row_reads_convergence_and_the_ledger_at_the_window():
 def test_the_learner_table_pools_random_draws_and_reports_medians_and_worst():
     runs = [
         run_row(
-            Job("posterior", f"draw {i}", 10, 4), {"history": history(r, s), "wall_seconds": w}, 3
+            Job("posterior", f"draw {i}", 10, 4),
+            {"history": history(r, s), "wall_seconds": w, "slowest_decision": d},
+            3,
         )
-        for i, (r, s, w) in enumerate(
-            [([0.5, 0.995, 1, 1], 10.0, 2.0), ([0.5, 0.9, 0.9, 0.9], 30.0, 5.0)]
+        for i, (r, s, w, d) in enumerate(
+            [([0.5, 0.995, 1, 1], 10.0, 2.0, 0.002), ([0.5, 0.9, 0.9, 0.9], 30.0, 5.0, 0.032)]
         )
     ]
     table = learner_table(runs, 3)
     assert "| posterior | random draws | 1/2 | 1 (1) |" in table
     assert "| 60 (90) |" in table  # regret at episode 3: 30 and 90, median 60, worst 90
-    assert "wall time per run, s (median) |" in table.splitlines()[0]
-    assert table.splitlines()[2].endswith("| 3.5 |")  # wall seconds 2 and 5: median 3.5
+    assert "slowest decision, ms, median (worst) | wall time" in table.splitlines()[0]
+    # slowest decisions 2 and 32 ms: median 17, worst 32; wall seconds 2 and 5: median 3.5
+    assert table.splitlines()[2].endswith("| 17 (32) | 3.5 |")
 
 
 def test_the_lagrangian_row_counts_evaluations_over_the_target_and_its_end():
@@ -107,8 +110,8 @@ def test_the_safe_table_puts_the_lagrangian_training_beside_the_safe_learner():
     assert "0/1, worst 0.3000, at the end 0.2 |" in table
     assert "| 0.9 (0.9000) | 33 (60) |" in table  # beyond the LP's own: 6 and 60
     # the one run with a stated confidence: P 0.4, sd 0.001 = 2 % of the target; then the safe
-    # runs' wall time, 1 s each, before the Lagrangian DQN
-    assert "| 2/2 | 0.40; 2.0 % | 1 | 0/1, worst" in table
+    # runs' slowest decisions and wall time, 1 s each, before the Lagrangian DQN
+    assert "| 2/2 | 0.40; 2.0 % | — | 1 | 0/1, worst" in table  # no decision timed: —
 
 
 def test_the_calibration_note_holds_each_plans_stated_spread_against_its_true_miss():

@@ -47,6 +47,9 @@ def test_the_recipe_writes_the_ledger_everywhere(tmp_path, capsys):
     assert (tmp_path / "checkpoint.pt").is_file() and (tmp_path / "learning_curve.png").is_file()
     out = capsys.readouterr().out
     assert "the price of learning over 3 episodes" in out and "where the optimum misses" in out
+    # the slowest decision, timed as the vehicle waits for it (irdrc.online.loop)
+    slowest = f"its slowest decision took {1e3 * summary['seconds_slowest_decision']:.1f} ms, "
+    assert slowest + f"{summary['decisions_over_1ms']} of 1200 over 1 ms" in out
     # nothing left to train at 3 episodes; a longer run goes on from the checkpoint
     resume = [f"resume={tmp_path / 'checkpoint.pt'}", "logger=none", "progress=false"]
     assert app.execute(recipe, resume) == 2
@@ -99,7 +102,8 @@ def test_the_printed_ledger_says_when_the_greedy_policy_first_reached_099(
 
     keys = ("regret", "realised_regret", "expected_missed", "realised_missed", "floor_missed")
     row = dict.fromkeys((*keys, "expected_sent", "realised_sent", "cumulative_miss_detection"), 1.0)
-    summary = {"episodes_to_99": first, "stay_99": stay, "episodes": 6, "env_steps_per_second": 1.0}
+    summary = {"episodes_to_99": first, "stay_99": stay, "episodes": 6, "env_steps": 2400}
+    summary.update(env_steps_per_second=1.0, seconds_slowest_decision=0.001, decisions_over_1ms=0)
     print_ledger(row, summary, SimpleNamespace(learner="posterior"))
     assert f"greedy policy: {words}\n" in capsys.readouterr().out
 

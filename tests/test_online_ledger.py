@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 import random
+import time
 
 import pytest
 import torch
@@ -139,3 +140,46 @@ def test_realised_counts_match_the_exact_episodic_expectation(paper_scorer):
     assert row["regret"] == pytest.approx(0.0, abs=1e-6)
     assert row["realised_regret"] == pytest.approx(g_star * K * T - row["realised_reward"])
     assert abs(row["realised_regret"] - (g_star - ep.avg_reward) * K * T) < 5 * se
+
+
+class Slow(Fixed):
+    """``Fixed`` with the learner's work slowed where a decision waits on it (an ``observe``, the
+    work between two episodes) and where it does not (the tables the exact scoring reads)."""
+
+    def __init__(self, table: torch.Tensor) -> None:
+        super().__init__(table)
+        self.seen = 0
+
+    def observe(self, state: int, action: int, step) -> None:
+        self.seen += 1
+        if self.seen == 10:
+            time.sleep(0.02)
+
+    def end_episode(self, episode: int) -> dict[str, float]:
+        time.sleep(0.01 if episode == 0 else 0.0)
+        return {}
+
+    def begin_episode(self, episode: int) -> None:
+        time.sleep(0.04 if episode == 1 else 0.0)
+
+    def behaviour(self) -> torch.Tensor:
+        time.sleep(0.1)
+        return super().behaviour()
+
+    def greedy(self) -> torch.Tensor:
+        time.sleep(0.1)
+        return super().greedy()
+
+
+def test_each_decision_is_timed_as_the_vehicle_waits_for_it(paper_scorer):
+    """The 10th step's ``observe`` (20 ms) delays one decision; the work between episodes 0 and 1
+    (10 + 40 ms) delays the first of episode 1: 50 ms, the slowest. The ``behaviour`` and
+    ``greedy`` tables the exact scoring reads (100 ms each) delay none: counted, the slowest would
+    be 150 ms (the bound below leaves 95 ms for a busy machine). A resumed run keeps the count."""
+    radar = torch.ones(PAPER.env.num_states, dtype=torch.int64)
+    rec = learn_on_stream(Slow(radar), PAPER, paper_scorer, episodes=2)
+    assert 0.05 <= rec.info["seconds_slowest_decision"] < 0.145
+    assert rec.info["decisions_over_1ms"] >= 2
+    on = learn_on_stream(Fixed(radar), PAPER, paper_scorer, episodes=3, resume=rec.state)
+    assert on.info["seconds_slowest_decision"] >= 0.05
+    assert on.info["decisions_over_1ms"] >= rec.info["decisions_over_1ms"]

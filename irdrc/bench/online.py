@@ -233,8 +233,10 @@ def run_job(job: Job, gamma: float) -> dict[str, Any]:
     return {
         "history": record.history,
         "wall_seconds": record.wall_seconds,
-        "seconds_learning": record.info["seconds_act_and_learn"]
+        "seconds_learning": record.info["seconds_episode_start"]
+        + record.info["seconds_act_and_learn"]
         + record.info["seconds_episode_end"],
+        "slowest_decision": record.info["seconds_slowest_decision"],
         "lp_throughput": greedy_scorer.lp.value if greedy_scorer is not None else None,
         "lp_cost": lp_cost(scorer, greedy_scorer) if greedy_scorer is not None else None,
         "plan_confidence": (

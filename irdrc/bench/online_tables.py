@@ -37,6 +37,7 @@ def run_row(job: Any, result: dict[str, Any], window: int) -> dict[str, Any]:
         "steps_per_second": steps / result["seconds_learning"]
         if result.get("seconds_learning")
         else None,
+        "slowest_decision": result.get("slowest_decision"),
         "wall_seconds": result["wall_seconds"],
     }
     if job.learner == "safe":
@@ -76,6 +77,12 @@ def _med(values: list[float]) -> str:
     return f"{statistics.median(values):.4g}" if values else "—"
 
 
+def _slowest(rows: list[dict[str, Any]]) -> str:
+    """The runs' slowest decisions in milliseconds: median (worst); "—" where none was timed."""
+    ms = [1e3 * r["slowest_decision"] for r in rows if r.get("slowest_decision") is not None]
+    return f"{statistics.median(ms):.3g} ({max(ms):.3g})" if ms else "—"
+
+
 def learner_table(rows: list[dict[str, Any]], window: int) -> str:
     """One row per (learner, scenario set): medians (worst) over its runs."""
     body = []
@@ -99,6 +106,7 @@ def learner_table(rows: list[dict[str, Any]], window: int) -> str:
                 f"{_med([r['expected_missed'] for r in mine])} ({max(r['expected_missed'] for r in mine):.4g})",
                 _med([r["floor_missed"] for r in mine]),
                 _med([r["steps_per_second"] for r in mine]),
+                _slowest(mine),
                 _med([r["wall_seconds"] for r in mine]),
             ]
         )
@@ -114,6 +122,7 @@ def learner_table(rows: list[dict[str, Any]], window: int) -> str:
             f"missed events over {window} episodes, median (worst)",
             "the optimum's (floor)",
             "env steps/s of training",
+            "slowest decision, ms, median (worst)",
             "wall time per run, s (median)",
         ],
         body,
@@ -141,6 +150,7 @@ def safe_table(rows: list[dict[str, Any]], lag: list[dict[str, Any]], window: in
                 f"{_med(beyond)} ({max(beyond):.4g})" if beyond else "—",
                 f"{sum(r['meets_target'] for r in mine)}/{len(mine)}",
                 _confidence(mine, target),
+                _slowest(mine),
                 _med([r["wall_seconds"] for r in mine]),
                 (
                     f"{sum(r['violations'] == 0 for r in theirs)}/{len(theirs)}, worst "
@@ -162,6 +172,7 @@ def safe_table(rows: list[dict[str, Any]], lag: list[dict[str, Any]], window: in
             f"regret over {window} episodes beyond the LP's own, median (worst)",
             "greedy plan's long-run miss ≤ target",
             "its posterior: P(plan's miss ≤ target), mean; the sd of its miss over the target, median",
+            "slowest decision, ms, median (worst)",
             "wall time per run, s (median)",
             "Lagrangian DQN's training: runs within the target throughout, worst, at the end "
             "(median)",

@@ -8,6 +8,13 @@ within-episode changes of its behaviour, ``StreamLearner.switches``), and, every
 ``eval_every_frames`` env steps, the greedy policy is scored exactly. Checkpoints fall between
 episodes: the learner's whole state (its replay included), the stream's generator and the ledger, so
 a resumed run goes on exactly as the uninterrupted one would.
+
+The loop also times every decision as a vehicle acting in real time would wait for it: the
+learner's work between one step's outcome and its next action (``observe``, then ``act``, and
+``switch``, ``end_episode`` and ``begin_episode`` where they fall between the two). The exact
+scoring (the ledger's, the greedy policy's, and the ``behaviour`` table the ledger reads) and the
+simulated step itself are left out. The run's slowest decision and the number of decisions over
+``SLOW_DECISION`` go into its ``info``.
 """
 
 from __future__ import annotations
@@ -93,6 +100,9 @@ def _scored(score: Any, source: str, *args: Any) -> Any:
 RESUME_KEYS = ("episode", "learner", "stream", "ledger", "history")
 """What a checkpoint of a run on one stream holds (besides the counters every learner's has)."""
 
+SLOW_DECISION = 1e-3
+"""A decision that took longer than this (seconds) is counted (``info["decisions_over_1ms"]``)."""
+
 
 def learn_on_stream(
     learner: StreamLearner,
@@ -150,6 +160,7 @@ def learn_on_stream(
         ("episode_start", "act_and_learn", "episode_end", "ledger", "evaluate"), 0.0
     )
     start = 0
+    worst, slow = 0.0, 0  # the slowest decision (s) and the decisions over SLOW_DECISION
     t0 = time.perf_counter()
     if resume is not None:
         missing = [k for k in RESUME_KEYS if k not in resume]
@@ -159,6 +170,8 @@ def learn_on_stream(
                 "learner on one stream"
             )
         start = int(resume["episode"])
+        timing = resume.get("decisions", {})  # absent from checkpoints written before it
+        worst, slow = float(timing.get("worst", 0.0)), int(timing.get("slow", 0))
         learner.load_state_dict(resume["learner"])
         stream.load_state_dict(resume["stream"])
         ledger.load_state_dict(resume["ledger"])
@@ -197,30 +210,42 @@ def learn_on_stream(
             "ledger": ledger.state_dict(),
             "history": list(record.history),
             "episode_rewards": list(record.episode_rewards),
+            "decisions": {"worst": worst, "slow": slow},
         }
 
     if resume is None:
         evaluate(0)
     next_eval = (start * T // every + 1) * every
-    act, observe = learner.act, learner.observe
+    act, observe, clock = learner.act, learner.observe, time.perf_counter
+    held = 0.0  # the learner's work towards the next decision, done outside the steps' loop
     for episode in range(start, episodes):
-        b0 = time.perf_counter()
+        b0 = clock()
         learner.begin_episode(episode)
-        behaviour = learner.behaviour()
         cuts = [*learner.switches(episode, T), T]
         if any(not 0 < c < d for c, d in itertools.pairwise(cuts)):
             raise ValueError(f"{learner.name}: switches {cuts[:-1]} must rise within (0, {T})")
-        a0 = time.perf_counter()
+        a0 = clock()
+        held += a0 - b0
+        behaviour = learner.behaviour()
+        scoring = clock() - a0
         s = stream.reset()
-        total, t, scoring = Tally(), 0, 0.0
+        total, t = Tally(), 0
+        since = clock()
         for cut in cuts:
             tally = Tally(steps=cut - t)
             for _ in range(cut - t):
                 a = act(s)
+                waited = clock() - since + held
+                held = 0.0
+                if waited > SLOW_DECISION:
+                    slow += 1
+                if waited > worst:
+                    worst = waited
                 try:
                     out = stream.step(a)
                 except ValueError as err:  # an action that is neither comm nor radar
                     raise ValueError(f"{learner.name}.act({s}) returned {a!r}: {err}") from err
+                since = clock()
                 observe(s, a, out)
                 tally.reward += out.reward
                 tally.events += out.event
@@ -228,20 +253,27 @@ def learn_on_stream(
                 tally.sent += out.sent
                 tally.dropped += out.dropped
                 s = out.state
-            l0 = time.perf_counter()
+            l0 = clock()
+            held += l0 - since
             _scored(ledger.add, f"{learner.name}.behaviour()", behaviour, tally)
-            scoring += time.perf_counter() - l0
             total += tally
             t = cut
             if cut < T:
+                w0 = clock()
+                scoring += w0 - l0
                 learner.switch(episode * T + cut)
+                l0 = clock()
+                held += l0 - w0
                 behaviour = learner.behaviour()
-        a1 = time.perf_counter()
+                since = clock()
+            scoring += clock() - l0
+        a1 = clock()
         scalars = learner.end_episode(episode)
+        held += clock() - a1
         seconds["episode_start"] += a0 - b0
         seconds["act_and_learn"] += a1 - a0 - scoring
         seconds["ledger"] += scoring
-        seconds["episode_end"] += time.perf_counter() - a1
+        seconds["episode_end"] += clock() - a1
         done = episode + 1
         record.episode_rewards.append(
             {"learner": 0, "episode": done, "env_steps": done * T, "reward": total.reward}
@@ -271,4 +303,6 @@ def learn_on_stream(
     record.info.update(learner.info())
     for phase, secs in seconds.items():
         record.info[f"seconds_{phase}"] = secs
+    record.info["seconds_slowest_decision"] = worst
+    record.info["decisions_over_1ms"] = slow
     return record

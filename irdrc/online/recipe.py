@@ -189,6 +189,7 @@ def run(cfg: Config, run: Run) -> dict[str, Any]:
     summary.update(convergence(record.history))
     summary["ledger"] = {k: v for k, v in record.info.pop("ledger").items()}
     summary.update({k: v for k, v in record.info.items() if k.startswith("seconds_")})
+    summary["decisions_over_1ms"] = record.info["decisions_over_1ms"]
     summary["env_steps_per_second"] = record.env_steps / max(record.wall_seconds, 1e-9)
     if greedy_scorer is not None:
         summary["target_miss"] = cfg.algo.target_miss
@@ -261,4 +262,8 @@ def print_ledger(row: dict[str, Any], summary: dict[str, Any], cfg: Config) -> N
             f"{conf['miss_sd']:.4f} (posterior mean ± sd), at or under the target with "
             f"probability {conf['p_within_target']:.2f}"
         )
-    print(f"  {summary['env_steps_per_second']:.0f} env steps/s of training (evaluations included)")
+    print(
+        f"  {summary['env_steps_per_second']:.0f} env steps/s of training (evaluations included); "
+        f"its slowest decision took {1e3 * summary['seconds_slowest_decision']:.1f} ms, "
+        f"{summary['decisions_over_1ms']} of {summary['env_steps']} over 1 ms"
+    )

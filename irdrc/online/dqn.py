@@ -21,7 +21,8 @@ most scenarios), so the parts are driven the way one stream allows:
 
 TorchRL's ``DQNLoss`` would do the same update through three parameter swaps of a functional copy of
 the network: about 5 ms a call here, which at one update every 16 env steps already holds a stream
-to ~1 500 env steps/s. Written out, an update costs a few tenths of a millisecond.
+to ~1 500 env steps/s. Written out, an update of 2 048 sampled transitions costs about a
+millisecond (``seconds_update`` over ``updates`` in a run's summary.json).
 """
 
 from __future__ import annotations

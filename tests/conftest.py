@@ -98,6 +98,19 @@ def load(recipe: str, *overrides: str):
     return prepare(recipe_module(recipe), list(overrides)).config
 
 
+def run_script(*args: str, timeout: int = 300):
+    """``python ARGS`` (a script and its arguments) in a fresh interpreter from the repository's
+    root, its output captured as text (a ``subprocess.CompletedProcess``)."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    return subprocess.run(
+        [sys.executable, *args], capture_output=True, text=True, cwd=root, timeout=timeout
+    )
+
+
 def run_recipe(recipe: str, run_dir, *overrides: str) -> int:
     """Run ``recipes/<recipe>.py`` in this process with ``overrides``, writing to ``run_dir``;
     returns its exit status."""

@@ -5,18 +5,14 @@ from __future__ import annotations
 
 import csv
 import json
-import subprocess
-import sys
-from pathlib import Path
 
 import pytest
 import torch
+from conftest import run_script
 
 from irdrc.core.exact import stationary_metrics
 from irdrc.core.exact.continuum import policy_model
 from irdrc.core.params import Params
-
-ROOT = Path(__file__).resolve().parents[1]
 
 
 def params(**over) -> Params:
@@ -38,16 +34,12 @@ TINY_SAC = [
 ]
 
 
-def run_recipe(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, *args], capture_output=True, text=True, cwd=ROOT, timeout=300
-    )
-
-
-@pytest.mark.e2e
-def test_sac_runs_scored_exactly_and_writes_its_shares(tmp_path):
-    out = tmp_path / "run"
-    r = run_recipe("recipes/sac.py", *TINY_SAC, f"hydra.run.dir={out}")
+def run_share_recipe(script: str, tiny: list[str], out) -> dict:
+    """Run a radar-share learner's recipe (``recipes/sac.py``, ``ppo.py``) on ``tiny`` settings
+    into ``out``: exit 0, the optimum over ρ printed, a share per state in policy.csv, an
+    evaluation every 1 000 env steps, and ``summary.json``'s learned metrics the exact metrics of
+    the shares policy.csv holds. Returns the summary."""
+    r = run_script(script, *tiny, f"hydra.run.dir={out}")
     assert r.returncode == 0, r.stderr[-2000:]
     assert r.stdout.startswith("scenario=paper: optimum over ρ ∈ [0, 1] 1.0586 per step")
     rows = list(csv.DictReader((out / "policy.csv").open()))
@@ -55,12 +47,18 @@ def test_sac_runs_scored_exactly_and_writes_its_shares(tmp_path):
     metrics = list(csv.DictReader((out / "metrics.csv").open()))
     assert [int(m["env_steps"]) for m in metrics] == [0, 1000, 2000]
     summary = json.loads((out / "summary.json").read_text())
-    assert summary["optimal"]["avg_reward"] == pytest.approx(1.0586, abs=5e-5)
-    # the summary's learned metrics are the exact metrics of the shares policy.csv holds
     rho = torch.tensor([float(x["rho"]) for x in rows], dtype=torch.float64)
     p = params(**{"env.actions": "continuous"})
     exact = stationary_metrics(policy_model(p, rho), torch.zeros(352, dtype=torch.int64))
     assert summary["metrics"]["avg_reward"] == pytest.approx(exact.avg_reward, abs=1e-6)
+    return summary
+
+
+@pytest.mark.e2e
+def test_sac_runs_scored_exactly_and_writes_its_shares(tmp_path):
+    out = tmp_path / "run"
+    summary = run_share_recipe("recipes/sac.py", TINY_SAC, out)
+    assert summary["optimal"]["avg_reward"] == pytest.approx(1.0586, abs=5e-5)
     assert (out / "checkpoint.pt").is_file() and summary["interrupted"] is False
 
 
@@ -97,7 +95,7 @@ def test_sacs_actor_reaches_the_ends_unsaturated_and_the_env_sees_shares_in_0_1(
 
 
 def test_sac_refuses_a_discrete_action_space(tmp_path):
-    r = run_recipe("recipes/sac.py", "env.actions=binary", f"hydra.run.dir={tmp_path / 'r'}")
+    r = run_script("recipes/sac.py", "env.actions=binary", f"hydra.run.dir={tmp_path / 'r'}")
     assert r.returncode == 2
     assert r.stderr.startswith("error: env.actions=binary: SAC acts on")
     assert len(r.stderr.splitlines()) == 1 and not (tmp_path / "r").exists()

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from conftest import run_script
 
 from irdrc.core.exact import build_model, stationary_metrics, value_iteration
 from irdrc.core.exact.continuum import policy_model, solve_continuum
@@ -247,12 +248,6 @@ def test_the_env_specs_hold_and_an_action_out_of_range_is_refused(actions):
         env.step(td)
 
 
-def run_recipe(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, *args], capture_output=True, text=True, cwd=ROOT, timeout=300
-    )
-
-
 @pytest.mark.e2e
 def test_dqn_over_levels_scores_against_both_optima(tmp_path):
     """``recipes/dqn.py env.actions=levels``: G actions, scored against the G-level optimum, read
@@ -260,7 +255,7 @@ def test_dqn_over_levels_scores_against_both_optima(tmp_path):
     from conftest import TINY_DQN
 
     out = tmp_path / "run"
-    r = run_recipe(
+    r = run_script(
         "recipes/dqn.py",
         *TINY_DQN,
         "env.actions=levels",
@@ -311,7 +306,7 @@ def test_the_levels_profile_is_dqn_over_levels_longer_and_wider():
 
 
 def test_dqn_refuses_continuous_shares(tmp_path):
-    r = run_recipe("recipes/dqn.py", "env.actions=continuous", f"hydra.run.dir={tmp_path / 'r'}")
+    r = run_script("recipes/dqn.py", "env.actions=continuous", f"hydra.run.dir={tmp_path / 'r'}")
     assert (
         r.returncode == 2 and "use env.actions=levels" in r.stderr and not (tmp_path / "r").exists()
     )

@@ -6,7 +6,7 @@ takes expectations and steps distributions.
 - ``stationary``: the factored model's fast stationary solvers;
 - ``krylov``: linear solves on operators never built as matrices (GMRES), and a stationary
   distribution as one such solve (the fleet's);
-- ``solve``: one value iteration, one occupancy → metrics routine, stationary and episodic metrics
+- ``solve``: one value iteration (to the end, or a few sweeps at a time), one occupancy → metrics routine, stationary and episodic metrics
   of any policy (stationary, randomised, periodic);
 - ``scorer``: a model's optimum and the exact metrics of any policy table against it.
 
@@ -20,6 +20,7 @@ from irdrc.core.exact.scorer import Scorer, exact_model, exact_scorer, require_r
 from irdrc.core.exact.solve import (
     DEFAULT_OPTIMUM_GAMMA,
     Solution,
+    ValueIteration,
     episodic_metrics,
     metrics_from_occupancy,
     one_step_spread,
@@ -38,6 +39,7 @@ __all__ = [
     "FactoredModel",
     "Scorer",
     "Solution",
+    "ValueIteration",
     "as_probs",
     "as_schedule",
     "build_factored",

@@ -49,6 +49,66 @@ def check_gamma(gamma: float) -> float:
     return float(gamma)
 
 
+class ValueIteration:
+    """Value iteration a few sweeps at a time: an anytime planner's (a vehicle that plans between
+    its steps), stopped by McQueen's bounds as ``value_iteration``, which runs it to the end.
+
+    Args:
+        mdp: the model.
+        gamma: the discount.
+        tol: stop when McQueen's bound on |V − V*| is below it.
+        values: [S] the start (default zeros): a neighbouring model's values start closer.
+    """
+
+    def __init__(
+        self,
+        mdp: ExactMDP,
+        gamma: float = DEFAULT_OPTIMUM_GAMMA,
+        tol: float = 1e-9,
+        values: torch.Tensor | None = None,
+    ) -> None:
+        check_gamma(gamma)
+        if tol <= 0:
+            raise ValueError(f"tol={tol!r} must be > 0")
+        self.mdp, self.gamma, self.tol = mdp, gamma, tol
+        R = mdp.R
+        if values is None:
+            self.values = torch.zeros(mdp.num_states, dtype=torch.float64, device=R.device)
+        elif values.shape != (mdp.num_states,):
+            raise ValueError(
+                f"values: shape {tuple(values.shape)}, the model has {mdp.num_states} states"
+            )
+        else:
+            self.values = values.to(dtype=torch.float64, device=R.device)
+        self.iterations = 0
+        self.bound = math.inf
+
+    def sweep(self, sweeps: int = 1, progress: Any = None) -> Solution | None:
+        """Up to ``sweeps`` more sweeps; the ``Solution`` once the bound is below ``tol``, else
+        None (``values`` then holds the latest iterate). ``progress`` as ``value_iteration``'s."""
+        gamma, mdp = self.gamma, self.mdp
+        scale = gamma / (1.0 - gamma)
+        V = self.values
+        for _ in range(sweeps):
+            V_new = (mdp.R + gamma * mdp.expect(V)).max(0).values
+            delta = V_new - V
+            lo, hi = float(delta.min()), float(delta.max())
+            V = V_new
+            self.iterations += 1
+            self.bound = scale * (hi - lo) / 2
+            if progress is not None:
+                progress(self.iterations, self.bound)
+            if self.bound < self.tol:
+                V = V + scale * (hi + lo) / 2
+                self.values = V
+                Q = mdp.R + gamma * mdp.expect(V)
+                return Solution(
+                    policy=greedy(Q), values=V, q=Q, iterations=self.iterations, bound=self.bound
+                )
+        self.values = V
+        return None
+
+
 def value_iteration(
     mdp: ExactMDP,
     gamma: float = DEFAULT_OPTIMUM_GAMMA,
@@ -69,27 +129,13 @@ def value_iteration(
     check_gamma(gamma)
     if tol <= 0 or max_iter < 1:
         raise ValueError("tol must be > 0 and max_iter >= 1")
-    R = mdp.R
-    V = torch.zeros(mdp.num_states, dtype=torch.float64, device=R.device)
-    scale = gamma / (1.0 - gamma)
-    bound = math.inf
-    for it in range(1, max_iter + 1):
-        V_new = (R + gamma * mdp.expect(V)).max(0).values
-        delta = V_new - V
-        lo, hi = float(delta.min()), float(delta.max())
-        V = V_new
-        bound = scale * (hi - lo) / 2
-        if progress is not None:
-            progress(it, bound)
-        if bound < tol:
-            V = V + scale * (hi + lo) / 2
-            break
-    else:
+    vi = ValueIteration(mdp, gamma, tol)
+    solution = vi.sweep(max_iter, progress)
+    if solution is None:
         raise RuntimeError(
-            f"value iteration did not reach tol {tol:g} in {max_iter} sweeps (bound {bound:.3g})"
+            f"value iteration did not reach tol {tol:g} in {max_iter} sweeps (bound {vi.bound:.3g})"
         )
-    Q = R + gamma * mdp.expect(V)
-    return Solution(policy=greedy(Q), values=V, q=Q, iterations=it, bound=bound)
+    return solution
 
 
 TIE_TOL = 1e-9

@@ -110,6 +110,34 @@ def test_the_ledger_scores_each_announced_period_with_its_policy(paper_scorer):
     assert sum(e["reward"] for e in rec.episode_rewards) == pytest.approx(row["realised_reward"])
 
 
+class Ready(Switching):
+    """The same change, made when a plan comes ready: ``observe`` says so after the 100th step,
+    without announcing it."""
+
+    def switches(self, episode: int, horizon: int) -> tuple[int, ...]:
+        return ()
+
+    def observe(self, state, action, step) -> bool | None:
+        self.seen = getattr(self, "seen", 0) + 1
+        if self.seen % 400 == 100:
+            self.switch(self.seen)
+            return True
+        return None
+
+
+def test_the_ledger_scores_a_change_the_learner_reports_when_it_happens(paper_scorer):
+    """Radar for 100 steps, then the optimum from the step after ``observe`` reported it, in each
+    of 3 episodes: the regret is 3·100·(g* − g_radar), as when it is announced. A loop that did not
+    read ``observe``'s return (the mutation) would score every episode as radar: 3·400·(…)."""
+    g_star = paper_scorer.optimal_metrics.avg_reward
+    g_radar = stationary_metrics(paper_scorer.model, "always_radar").avg_reward
+    rec = learn_on_stream(Ready(paper_scorer.optimal.policy), PAPER, paper_scorer, episodes=3)
+    row = rec.history[-1]
+    assert row["regret"] == pytest.approx(300 * (g_star - g_radar), rel=1e-12)
+    assert row["behaviour_ratio"] == pytest.approx(1.0, rel=1e-12)
+    assert row["realised_reward"] == pytest.approx(sum(e["reward"] for e in rec.episode_rewards))
+
+
 def test_switches_that_do_not_rise_within_the_episode_are_refused(paper_scorer):
     learner = Switching(paper_scorer.optimal.policy)
     learner.switches = lambda episode, horizon: (100, 50)

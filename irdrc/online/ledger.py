@@ -14,8 +14,9 @@ behaviour policy π_k:
   regret g*·n − Σ rewards: noisy, model-free, a check on the exact figures.
 
 A period is one episode, or a part of one where the learner announces a change of its behaviour
-policy (posterior sampling draws a new model whenever its data doubles); a change it does not
-announce (a gradient step of DQN) is scored with the policy of the period's start. Every learner's
+policy (posterior sampling draws a new model whenever its data doubles) or reports one as it
+happens (a plan made beside the acting comes ready); a change it does neither for (a gradient
+step of DQN) is scored with the policy of the period's start. Every learner's
 run reports the same ``Ledger``: it reads only the behaviour policy the learner exposes.
 """
 

@@ -4,7 +4,8 @@ Episodes of the paper's length follow one another on one ``VehicleStream``. At e
 acts on the state and sees what the step produced; at each episode's end it does its end-of-episode
 work, the ``Ledger`` adds the episode's periods (each with the behaviour policy in force and what
 the stream recorded in it: one period per episode, or more where the learner announces
-within-episode changes of its behaviour, ``StreamLearner.switches``), and, every
+within-episode changes of its behaviour, ``StreamLearner.switches``, or reports one from
+``observe``), and, every
 ``eval_every_frames`` env steps, the greedy policy is scored exactly. Checkpoints fall between
 episodes: the learner's whole state (its replay included), the stream's generator and the ledger, so
 a resumed run goes on exactly as the uninterrupted one would.
@@ -49,7 +50,7 @@ class StreamLearner:
         """Steps ``0 < t < horizon`` of the episode after which the behaviour policy changes
         (``switch`` is called there); the ledger scores each period between them with the policy
         in force. A change it does not announce (a gradient step) is scored with the policy of the
-        period's start."""
+        period's start, unless ``observe`` reports it."""
         return ()
 
     def switch(self, steps: int) -> None:
@@ -60,8 +61,11 @@ class StreamLearner:
         """The behaviour's action in ``state`` (exploration included)."""
         raise NotImplementedError(f"{type(self).__name__} must define act(state) -> 0 or 1")
 
-    def observe(self, state: int, action: int, step: Step) -> None:
-        """What the step from ``state`` with ``action`` produced."""
+    def observe(self, state: int, action: int, step: Step) -> bool | None:
+        """What the step from ``state`` with ``action`` produced. A true return says its
+        behaviour policy changes from the next step on (a plan made while it acted is ready):
+        the ledger scores the steps before and after with their own policies, as at an announced
+        switch."""
 
     def end_episode(self, episode: int) -> dict[str, float]:
         """After the episode's last step; returns scalars to log (``train/…``)."""
@@ -231,9 +235,11 @@ def learn_on_stream(
         s = stream.reset()
         total, t = Tally(), 0
         since = clock()
-        for cut in cuts:
-            tally = Tally(steps=cut - t)
-            for _ in range(cut - t):
+        cut = cuts.pop(0)
+        while t < T:
+            tally = Tally()
+            changed: bool | None = False
+            while t < cut and not changed:
                 a = act(s)
                 waited = clock() - since + held
                 held = 0.0
@@ -246,22 +252,25 @@ def learn_on_stream(
                 except ValueError as err:  # an action that is neither comm nor radar
                     raise ValueError(f"{learner.name}.act({s}) returned {a!r}: {err}") from err
                 since = clock()
-                observe(s, a, out)
+                changed = observe(s, a, out)
                 tally.reward += out.reward
                 tally.events += out.event
                 tally.missed += out.missed
                 tally.sent += out.sent
                 tally.dropped += out.dropped
                 s = out.state
+                t += 1
             l0 = clock()
             held += l0 - since
+            tally.steps = t - total.steps
             _scored(ledger.add, f"{learner.name}.behaviour()", behaviour, tally)
             total += tally
-            t = cut
-            if cut < T:
+            if t < T:
                 w0 = clock()
                 scoring += w0 - l0
-                learner.switch(episode * T + cut)
+                if t == cut:
+                    learner.switch(episode * T + cut)
+                    cut = cuts.pop(0)
                 l0 = clock()
                 held += l0 - w0
                 behaviour = learner.behaviour()

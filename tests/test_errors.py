@@ -51,6 +51,12 @@ def refused(recipe: str, *overrides: str) -> str:
         # one stream is comm or radar: the radar share's recipes, for each of its action spaces
         ("online", ["env.actions=continuous"], "recipes/sac.py (continuous)"),
         ("online", ["env.actions=levels"], "recipes/dqn.py algo=dqn_levels (levels)"),
+        ("online", ["algo.sweeps_per_step=-1"], "algo.sweeps_per_step=-1"),
+        (
+            "online",
+            ["learner=dqn", "algo.sweeps_per_step=1"],
+            "unknown key(s) algo.sweeps_per_step",
+        ),
         # wrong types and ranges name the key
         ("dqn", ["optimum_gamma=1.0"], "optimum_gamma=1.0"),
         ("dqn", ["seed=abc"], "seed='abc'"),

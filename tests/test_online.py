@@ -64,6 +64,29 @@ def test_the_recipe_writes_the_ledger_everywhere(tmp_path, capsys):
     assert [int(r["episodes"]) for r in rows] == [0, 1, 2, 3, 4, 5]
 
 
+def test_a_learner_planning_beside_its_acting_says_how_late_its_plans_came(tmp_path, capsys):
+    """``learner=posterior_anytime``: summary.json's ``planning`` and the printout's line give the
+    plans made beside the acting and the steps each took to come into force; the default learner,
+    which waits for its plans, writes neither."""
+    from irdrc.online import recipe
+    from irdrc.runs import app
+
+    args = ["algo.episodes=2", "logger=none", "progress=false"]
+    for learner, out_dir in (("posterior_anytime", tmp_path / "a"), ("posterior", tmp_path / "w")):
+        assert app.execute(recipe, [*args, f"learner={learner}", f"hydra.run.dir={out_dir}"]) == 0
+    plans = json.loads((tmp_path / "a" / "summary.json").read_text())["planning"]
+    assert plans["sweeps_per_step"] == 1 and plans["plans_made_beside_acting"] >= 2
+    assert 1 <= plans["plan_lag_steps_median"] <= plans["plan_lag_steps_max"]
+    line = (
+        f"it planned beside its acting, 1 sweep of value iteration a step: "
+        f"{plans['plans_made_beside_acting']} plans, in force a median of "
+        f"{plans['plan_lag_steps_median']} steps after their draw"
+    )
+    out = capsys.readouterr().out
+    assert out.count(line) == 1
+    assert "planning" not in json.loads((tmp_path / "w" / "summary.json").read_text())
+
+
 def test_a_stream_without_an_event_yet_writes_its_summary(tmp_path, capsys):
     """Two 7-step episodes with no event: the cumulative miss detection is undefined. The run
     ends well (it raised on writing summary.json), with null there and 'n/a' in the printout;

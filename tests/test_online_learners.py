@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import io
 import json
+from typing import Any
 
 import pytest
 import torch
@@ -29,6 +30,71 @@ def test_posterior_sampling_draws_again_whenever_its_data_doubles():
     assert [learner.switches(e, 400) for e in (1, 2, 3, 5)] == [(112,), (224,), (), (48,)]
 
 
+def test_a_plan_made_beside_the_acting_is_the_plan_waited_for_once_its_sweeps_are_done():
+    """The same stream and draws to two posterior samplers, one that waits for each plan and one
+    that makes it one sweep per step: the second acts on its coin until its first plan is ready,
+    ``observe`` reports that step alone, and the plan is the first one's, in force after as many
+    steps as its value iteration took sweeps. Its second plan, started from the first's values,
+    is again the first learner's. Restored from a checkpoint, between two plans or while one is
+    being made, it goes on as the original."""
+    from irdrc.core.exact import value_iteration
+    from irdrc.core.stream import VehicleStream
+
+    persistent = Params.from_overrides({"env.stay_good.channel": 0.95, "env.stay_bad.channel": 0.9})
+    wait = make_learner("posterior", configs.learner_config("posterior", {}), persistent, 3)
+    cfg = configs.learner_config("posterior_anytime", {})
+    beside = make_learner("posterior", cfg, persistent, 3)
+    stream, sweeps = VehicleStream(persistent, 0), []
+    solve = wait._solve
+
+    def counted(est: Any) -> torch.Tensor:
+        """The waiting learner's plan, the sweeps its value iteration took noted."""
+        sweeps.append(value_iteration(wait.counts.model(est), gamma=0.99, tol=1e-6).iterations)
+        return solve(est)
+
+    wait._solve = counted
+    s = stream.reset()
+
+    def run(steps: int, *more: Any) -> list[bool]:
+        """Radar steps shown to every learner; when each learner ``beside`` said a plan was ready."""
+        nonlocal s
+        said = []
+        for _ in range(steps):
+            out = stream.step(1)
+            wait.observe(s, 1, out)
+            said.append(bool(beside.observe(s, 1, out)))
+            assert all(bool(other.observe(s, 1, out)) == said[-1] for other in more)
+            s = out.state
+        return said
+
+    run(50)
+    wait.switch(50), beside.switch(50)
+    assert beside.plan is None and beside.behaviour().eq(0.5).all()
+    said = run(sweeps[0] + 5)
+    assert said.index(True) == sweeps[0] - 1 and said.count(True) == 1
+    assert beside.plan == wait.plan and beside.lags == [sweeps[0]] and sweeps[0] > 5
+
+    def restored() -> Any:
+        """A learner from ``beside``'s checkpoint (through torch.save, as a checkpoint file is)."""
+        buf = io.BytesIO()
+        torch.save(beside.state_dict(), buf)
+        buf.seek(0)
+        learner = make_learner("posterior", cfg, persistent, 3)
+        learner.load_state_dict(torch.load(buf, weights_only=True))
+        return learner
+
+    between = restored()  # no plan being made: the next starts from the last plan's values
+    wait.switch(100), beside.switch(100), between.switch(100)
+    making = restored()  # a plan being made
+    first = beside.plan
+    said = run(sweeps[1] + 5, between, making)
+    assert said.count(True) == 1 and beside.plan == wait.plan != first
+    for other in (between, making):
+        assert other.plan == beside.plan and other.info() == beside.info()
+    assert beside.info()["planning"]["plans_made_beside_acting"] == 2
+    assert beside.lags[1] < sweeps[1]  # it started from the first plan's values
+
+
 def test_a_gain_never_shown_is_planned_as_the_largest_reward_seen():
     """Radar steps only: no comm reward has shown, so each level's is planned as the largest
     |reward| seen (a detection's r4·(b + 1) or a miss); planned as 0 (the mutation), a learner
@@ -49,7 +115,7 @@ def test_a_gain_never_shown_is_planned_as_the_largest_reward_seen():
 
 
 def tiny(name: str) -> object:
-    base = {"episodes": 6}
+    base: dict[str, object] = {"episodes": 6}
     if name.startswith("dqn"):
         base.update(warmup_steps=100, batch_size=64, update_every=8, hidden=(16, 16))
     if name == "safe":
@@ -62,7 +128,9 @@ def numbers(rows: list[dict]) -> list[dict]:
     return [{k: v for k, v in r.items() if k != "wall_seconds"} for r in rows]
 
 
-@pytest.mark.parametrize("name", ["dqn", "dqn_paper", "posterior", "qlearning", "safe"])
+@pytest.mark.parametrize(
+    "name", ["dqn", "dqn_paper", "posterior", "posterior_anytime", "qlearning", "safe"]
+)
 def test_a_resumed_run_is_the_uninterrupted_run(paper_scorer, name):
     """Checkpointed after 3 of 6 episodes (through torch.save / weights_only load, as a checkpoint
     file is), a resumed run's evaluations are the uninterrupted run's, number for number."""
@@ -101,7 +169,9 @@ def test_a_resumed_run_is_the_uninterrupted_run(paper_scorer, name):
     assert resumed.episode_rewards == whole.episode_rewards
 
 
-@pytest.mark.parametrize("name", ["dqn", "dqn_paper", "posterior", "qlearning", "safe"])
+@pytest.mark.parametrize(
+    "name", ["dqn", "dqn_paper", "posterior", "posterior_anytime", "qlearning", "safe"]
+)
 def test_a_longer_run_begins_as_the_shorter_one(paper_scorer, name):
     """Every schedule counts episodes, not the run (DQN's learning rate anneals over
     ``lr_decay_episodes``, 4 here): the first 3 episodes of a 6-episode run are a 3-episode run's,

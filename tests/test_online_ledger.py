@@ -97,19 +97,6 @@ class Switching(Fixed):
         self.actions = self.table.tolist()
 
 
-def test_the_ledger_scores_each_announced_period_with_its_policy(paper_scorer):
-    """Radar for 100 steps then the optimum for 300, in each of 3 episodes: the regret is
-    3·100·(g* − g_radar), the optimum's periods costing nothing. Scoring each episode with its
-    start's policy (the mutation: switches ignored by the ledger) would give 3·400·(g* − g_radar)."""
-    g_star = paper_scorer.optimal_metrics.avg_reward
-    g_radar = stationary_metrics(paper_scorer.model, "always_radar").avg_reward
-    rec = learn_on_stream(Switching(paper_scorer.optimal.policy), PAPER, paper_scorer, episodes=3)
-    row = rec.history[-1]
-    assert row["regret"] == pytest.approx(300 * (g_star - g_radar), rel=1e-12)
-    assert row["behaviour_ratio"] == pytest.approx(1.0, rel=1e-12)
-    assert sum(e["reward"] for e in rec.episode_rewards) == pytest.approx(row["realised_reward"])
-
-
 class Ready(Switching):
     """The same change, made when a plan comes ready: ``observe`` says so after the 100th step,
     without announcing it."""
@@ -125,17 +112,20 @@ class Ready(Switching):
         return None
 
 
-def test_the_ledger_scores_a_change_the_learner_reports_when_it_happens(paper_scorer):
-    """Radar for 100 steps, then the optimum from the step after ``observe`` reported it, in each
-    of 3 episodes: the regret is 3·100·(g* − g_radar), as when it is announced. A loop that did not
-    read ``observe``'s return (the mutation) would score every episode as radar: 3·400·(…)."""
+@pytest.mark.parametrize("learner", [Switching, Ready], ids=["announced", "reported"])
+def test_the_ledger_scores_each_period_with_its_policy(paper_scorer, learner):
+    """Radar for 100 steps then the optimum for 300, in each of 3 episodes, the change announced
+    (``switches``) or reported as it happens (``observe`` returns True): the regret is
+    3·100·(g* − g_radar), the optimum's periods costing nothing. Scoring each episode with its
+    start's policy (the mutations: switches ignored by the ledger, or ``observe``'s return not
+    read by the loop) would give 3·400·(g* − g_radar)."""
     g_star = paper_scorer.optimal_metrics.avg_reward
     g_radar = stationary_metrics(paper_scorer.model, "always_radar").avg_reward
-    rec = learn_on_stream(Ready(paper_scorer.optimal.policy), PAPER, paper_scorer, episodes=3)
+    rec = learn_on_stream(learner(paper_scorer.optimal.policy), PAPER, paper_scorer, episodes=3)
     row = rec.history[-1]
     assert row["regret"] == pytest.approx(300 * (g_star - g_radar), rel=1e-12)
     assert row["behaviour_ratio"] == pytest.approx(1.0, rel=1e-12)
-    assert row["realised_reward"] == pytest.approx(sum(e["reward"] for e in rec.episode_rewards))
+    assert sum(e["reward"] for e in rec.episode_rewards) == pytest.approx(row["realised_reward"])
 
 
 def test_switches_that_do_not_rise_within_the_episode_are_refused(paper_scorer):

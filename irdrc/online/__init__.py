@@ -6,7 +6,8 @@ real time, and the exact price of their learning.
 - ``loop``: the one loop on one ``irdrc.core.stream.VehicleStream`` (what a learner supplies:
   ``StreamLearner``), evaluations, checkpoints, resume;
 - ``form``: what a structure-aware learner is told (the model's form) and what it counts;
-- the learners: ``posterior`` (posterior sampling on the form, planned on the exact core),
+- the learners: ``posterior`` (posterior sampling on the form, planned on the exact core between
+  steps, or beside the acting: ``posterior_anytime``),
   ``dqn`` (DQN from TorchRL parts), ``qlearning`` (tabular), ``safe`` (misses kept under a target
   while it learns); ``learners`` builds one by name, ``configs`` holds their profiles;
 - ``recipe``: ``recipes/online.py``; ``figures``: its curves against episodes (its benchmark is

@@ -167,6 +167,10 @@ class PosteriorConfig:
             events, detection, false alarms).
         gamma: the discount each sampled model is planned with (the optimum's, 0.99).
         tol: value iteration's tolerance on the sampled models.
+        sweeps_per_step: 0: each plan is made between two steps, the vehicle waiting for it;
+            k ≥ 1: beside the acting, k sweeps of value iteration after each step, the vehicle
+            acting on its last plan until the new one is ready (a draw made meanwhile restarts
+            the plan from where it stood).
         name: the profile's name.
     """
 
@@ -174,6 +178,7 @@ class PosteriorConfig:
     prior_count: float = 1.0
     gamma: float = 0.99
     tol: float = 1e-6
+    sweeps_per_step: int = 0
     name: str = field(default="posterior", compare=False)
 
     def __post_init__(self) -> None:
@@ -185,11 +190,16 @@ class PosteriorConfig:
                 ("prior_count", 0, 1e6, {"open_lo": True}),
                 ("gamma", 0, 1, checks.OPEN_HI),
                 ("tol", 0, 1, {"open_lo": True}),
+                ("sweeps_per_step", 0, 10**6, checks.INT),
             ),
         )
 
 
 POSTERIOR = PosteriorConfig()
+
+POSTERIOR_ANYTIME = PosteriorConfig(sweeps_per_step=1, name="posterior_anytime")
+"""Posterior sampling planning beside its acting, one sweep of value iteration a step: the vehicle
+never waits for a plan, only for a draw and a sweep."""
 
 
 @dataclass(frozen=True)
@@ -240,6 +250,7 @@ PROFILES: dict[str, Any] = {
     "dqn": DQN,
     "dqn_paper": DQN_PAPER,
     "posterior": POSTERIOR,
+    "posterior_anytime": POSTERIOR_ANYTIME,
     "qlearning": QLEARNING,
     "qlearning_paper": QLEARNING_PAPER,
     "safe": SAFE,

@@ -21,6 +21,7 @@ from irdrc.runs.results import atomic_savefig
 
 COLORS = {
     "posterior": "tab:green",
+    "posterior_anytime": "tab:olive",
     "dqn": "tab:blue",
     "dqn_paper": "tab:cyan",
     "qlearning": "tab:orange",

@@ -18,7 +18,7 @@ def make_learner(name: str, cfg: Any, params: Params, seed: int = 0) -> StreamLe
         from irdrc.online.qlearning import StreamQLearning
 
         return StreamQLearning(cfg, params.env.num_states, seed)
-    if name == "posterior":
+    if name in ("posterior", "posterior_anytime"):
         from irdrc.online.posterior import PosteriorSampling
 
         return PosteriorSampling(cfg, params, seed)

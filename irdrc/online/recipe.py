@@ -4,6 +4,7 @@ regret and the missed events of the policy it behaved by) every episode.
 
     python recipes/online.py                                 # posterior sampling on the model's form
     python recipes/online.py learner=dqn env=multilevel      # DQN on one stream, told nothing
+    python recipes/online.py learner=posterior_anytime       # it plans beside its acting
     python recipes/online.py learner=safe algo.target_miss=0.1
     python recipes/online.py learner=qlearning_paper algo.episodes=600
 """
@@ -11,13 +12,13 @@ regret and the missed events of the policy it behaved by) every episode.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 from functools import partial
 from typing import TYPE_CHECKING, Any
 
 from irdrc.core.checks import build
 from irdrc.core.params import Params
-from irdrc.online.configs import LEARNERS, learner_config
+from irdrc.online.configs import LEARNERS, PROFILES, learner_config
 from irdrc.runs.compose import Composed
 from irdrc.runs.resume import refuse_finished
 from irdrc.runs.sections import Learning, Plot, check_eval_period, check_exact, scenario_field
@@ -27,6 +28,10 @@ if TYPE_CHECKING:
 
 NAME = "online"
 RESUMABLE = True
+ALGO_KEYS = frozenset(
+    f.name for profile in PROFILES.values() for f in fields(profile) if f.name != "name"
+)
+"""Every ``algo.*`` key a learner on one stream reads (each learner checks its own)."""
 
 ADVICE = {
     "dqn": "learner=posterior (told the model's form, it needs far fewer episodes: docs/ONLINE.md)",
@@ -34,6 +39,7 @@ ADVICE = {
     "qlearning": "learner=posterior (docs/ONLINE.md) or algo.episodes=1200",
     "qlearning_paper": "learner=qlearning (step sizes 1/k: docs/ONLINE.md)",
     "posterior": "algo.episodes=600",
+    "posterior_anytime": "algo.episodes=600",
     "safe": "algo.episodes=600",
 }
 """What a run that ends below the optimum is told to try, per learner."""
@@ -267,3 +273,17 @@ def print_ledger(row: dict[str, Any], summary: dict[str, Any], cfg: Config) -> N
         f"its slowest decision took {1e3 * summary['seconds_slowest_decision']:.1f} ms, "
         f"{summary['decisions_over_1ms']} of {summary['env_steps']} over 1 ms"
     )
+    plans = summary.get("planning")
+    if plans is not None:
+        k, made = plans["sweeps_per_step"], plans["plans_made_beside_acting"]
+        when = (
+            f"{made} plans, in force a median of {plans['plan_lag_steps_median']} steps after "
+            f"their draw (at most {plans['plan_lag_steps_max']})"
+            if made
+            else "no plan in force yet"
+        )
+        print(
+            f"  it planned beside its acting, {k} sweep{'' if k == 1 else 's'} of value "
+            f"iteration a step: {when}; {plans['plans_superseded']} replaced by a newer draw "
+            "before they were ready"
+        )

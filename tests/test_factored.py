@@ -78,6 +78,24 @@ def test_a_link_that_carries_more_than_the_arrivals_can_bring(queue):
     assert_factored_equals_dense(params, queue)
 
 
+@pytest.mark.parametrize(("lam", "D", "nu"), [(1.7, 300, 600), (4.0, 700, 699), (0.5, 5, 300)])
+def test_queue_expectations_are_the_direct_sums_for_links_wider_than_a_block(lam, D, nu):
+    """Packets sent E[min(d + A, ν)] and dropped E[(d + A − ν − D)^+], A ~ Poisson(λ), for links
+    of hundreds of packets (a learner's optimistic plan sets ν to the whole queue), the sum over
+    capacities taken several ``SHORT_BLOCK``s at a time, against the sums written out."""
+    from irdrc.core.exact.factored import SHORT_BLOCK, _poisson, _queue_expectations
+
+    assert nu > SHORT_BLOCK
+    sent, dropped = _queue_expectations(lam, D, nu, nu)
+    a = torch.arange(D + nu + 200, dtype=torch.float64)
+    p = _poisson(lam, len(a))
+    d = torch.arange(D + 1, dtype=torch.float64)[:, None]
+    direct_sent = (torch.minimum(d + a, torch.tensor(float(nu))) * p).sum(1)
+    direct_dropped = ((d + a - nu - D).clamp(min=0) * p).sum(1)
+    assert torch.allclose(sent, direct_sent, rtol=0, atol=1e-12)
+    assert torch.allclose(dropped, direct_dropped, rtol=0, atol=1e-12)
+
+
 def test_deep_queue_is_solved_without_the_dense_matrix():
     """S = 100 000 (D = 3 124) in the paper's dynamics: the reward ignores the queue, so the
     optimal average reward is the D = 10 one; solved in seconds (the dense matrix would be 160 GB)."""

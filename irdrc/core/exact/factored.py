@@ -291,6 +291,10 @@ def _poisson(lam: float, n: int) -> torch.Tensor:
     return torch.exp(k * math.log(lam) - lam - torch.lgamma(k + 1))
 
 
+SHORT_BLOCK = 256
+"""Capacities k summed at once in ``_queue_expectations`` (memory ν·256 doubles at a time)."""
+
+
 def _queue_expectations(
     lam: float, D: int, n: int, nu_max: int
 ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -307,10 +311,13 @@ def _queue_expectations(
     T0 = torch.cat([T0[1:], T0.new_zeros(1)])
     T1 = torch.cat([T1[1:], T1.new_zeros(1)])
     d = torch.arange(D + 1)
-    short = torch.zeros(D + 1, dtype=torch.float64)
-    for kk in range(n):  # Σ_{k < ν − d} (ν − d − k)·p_k, only for d < ν
-        gap = (n - d - kk).clamp(min=0).to(torch.float64)
-        short += gap * p[kk]
+    short = torch.zeros(D + 1, dtype=torch.float64)  # Σ_{k < ν − d} (ν − d − k)·p_k: 0 for d ≥ ν
+    rows = min(n, D + 1)
+    for lo in range(0, n, SHORT_BLOCK):  # the sum over k in order, a block of k at a time
+        k_block = torch.arange(lo, min(n, lo + SHORT_BLOCK))
+        gap = (n - d[:rows, None] - k_block[None, :]).clamp(min=0).to(torch.float64)
+        terms = gap * p[lo : lo + len(k_block)]
+        short[:rows] = torch.cat([short[:rows, None], terms], 1).cumsum(1)[:, -1]
     m = D + n - d
     return n - short, T1[m] - m.to(torch.float64) * T0[m]
 

@@ -110,7 +110,8 @@ class PosteriorSampling(StreamLearner):
         solution = self.pending.sweep(self.cfg.sweeps_per_step)
         if solution is None:
             return None
-        self.plan, self.values, self.pending = solution.policy.tolist(), solution.values, None
+        self.plan, self.values = solution.policy.tolist(), solution.values
+        self.pending = self.pending_estimate = None
         self.lags.append(self.counts.steps - self.drawn_at)
         self.updates += 1
         return True

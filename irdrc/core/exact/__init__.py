@@ -6,8 +6,8 @@ takes expectations and steps distributions.
 - ``stationary``: the factored model's fast stationary solvers;
 - ``krylov``: linear solves on operators never built as matrices (GMRES), and a stationary
   distribution as one such solve (the fleet's);
-- ``solve``: one value iteration (to the end, or a few sweeps at a time), one occupancy → metrics routine, stationary and episodic metrics
-  of any policy (stationary, randomised, periodic);
+- ``solve``: one value iteration (to the end, or a few sweeps at a time), one occupancy → metrics
+  routine, stationary and episodic metrics of any policy (stationary, randomised, periodic);
 - ``scorer``: a model's optimum and the exact metrics of any policy table against it.
 
 The fleet's model (``irdrc.fleet.model``) is one more ``ExactMDP``, with 2^N joint actions.

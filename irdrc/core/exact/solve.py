@@ -126,10 +126,9 @@ def value_iteration(
     Raises:
         ValueError: on a bad argument; RuntimeError if ``max_iter`` sweeps do not reach ``tol``.
     """
-    check_gamma(gamma)
-    if tol <= 0 or max_iter < 1:
-        raise ValueError("tol must be > 0 and max_iter >= 1")
-    vi = ValueIteration(mdp, gamma, tol)
+    if max_iter < 1:
+        raise ValueError(f"max_iter={max_iter!r} must be >= 1")
+    vi = ValueIteration(mdp, gamma, tol)  # checks gamma and tol
     solution = vi.sweep(max_iter, progress)
     if solution is None:
         raise RuntimeError(

@@ -247,6 +247,25 @@ class FactoredModel(ExactMDP):
         """[S] by aggregation-disaggregation over the queue (``stationary_distribution_factored``)."""
         return stationary_distribution_factored(self, probs, tol=tol, max_iter=max_iter)[0]
 
+    def dense(self, a: int) -> Any:
+        """P_a as a dense NumPy [S, S] array (the ``sparse`` matrix's entries, written block by
+        block: for the small models whose chains are factorised)."""
+        import numpy as np
+
+        D1, nf = self.queue_capacity + 1, self.num_configs
+        F = self.F[a].cpu().numpy()
+        out = np.zeros((D1, nf, D1, nf))
+        d = np.arange(D1)
+        for sel, nu, prow in self.cols[a]:
+            pmf = self.pmf[prow].cpu().numpy()
+            keep = np.nonzero(pmf)[0]
+            dn = np.clip(d[:, None] + keep[None, :] - nu, 0, D1 - 1)  # [D + 1, K]
+            q = np.zeros((D1, D1))
+            np.add.at(q, (np.repeat(d, keep.size), dn.ravel()), np.tile(pmf[keep], D1))
+            fsel = np.arange(nf)[sel.cpu().numpy() if isinstance(sel, torch.Tensor) else sel]
+            out[:, fsel] = q[:, None, :, None] * F[fsel][None, :, None, :]
+        return out.reshape(D1 * nf, D1 * nf)
+
     def sparse(self, a: int) -> Any:
         """P_a as a SciPy CSR matrix: P[(d, f), (d′, f′)] = Q(d′ | d, ν, λ)·F[a, f, f′], the queue's
         arrivals (``pmf``, tail folded into the last entry) clamped at 0 and D — O(S · fan-out)

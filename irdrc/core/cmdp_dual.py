@@ -1,0 +1,267 @@
+"""The constrained problem of one constraint solved on its Lagrangian dual (MODEL.md § A), a little
+work at a time: the LP's optimum (``irdrc.core.cmdp.solve_lp``), for models small enough to hold
+their chains as dense matrices.
+
+For a multiplier λ ≥ 0, the policies that maximise the long-run average of J − λ·c (J the
+objective, c the constraint's coefficients less its bound) are found by average-reward policy
+iteration. The LP's optimum is min over λ of that maximum, which is convex and piecewise linear in
+λ, each piece a policy's line T − λ·C (T its objective, C its constraint, per step). The planner
+finds the best policy at λ = 0 (done, if it keeps the constraint), the one that keeps the
+constraint best (none keeps it: ``InfeasibleTarget``), and then walks to λ*, each time asking for
+the best policy where the lines of the best breaking one (C > 0) and the best keeping one (C ≤ 0)
+cross. When nothing beats their crossing there, both are optimal at λ*, and their occupation
+measures mixed so that the constraint binds are the LP's optimum: the policy
+π(a | s) = x(s, a) / Σ_a′ x(s, a′) randomises where the two differ, and takes radar (the last
+action) in states of zero occupancy, as the LP's policy does.
+
+Its unit of work is one policy evaluation: an LU factorisation of the S × S chain (``advance``).
+Policy iteration assumes every policy's chain has one recurrent class (the model's Poisson arrivals
+reach a full queue from every state); where a chain's system is singular it stops with
+``SolverFailed``.
+"""
+
+from __future__ import annotations
+
+import warnings
+from typing import Any
+
+import numpy as np
+import torch
+
+from irdrc.core.cmdp import Constraint, InfeasibleTarget, LPResult, SolverFailed
+from irdrc.core.exact import ExactMDP
+
+TIE_TOL = 1e-9
+"""Policy improvement keeps a state's action unless another's value beats it by more than this
+(relative to the largest value), so that ties cannot make it cycle."""
+
+KEEP_TOL = 1e-12
+"""A policy keeps the constraint when its C is at most this."""
+
+Line = tuple[np.ndarray, float, float, np.ndarray]
+"""A policy found on the way, with its objective T and constraint C per step (the bound taken off),
+and its stationary distribution."""
+
+MAX_EVALUATIONS = 10_000
+"""Policy evaluations one plan may take before ``SolverFailed`` (tens are usual)."""
+
+
+_BLAS: Any = None
+
+
+def one_blas_thread() -> Any:
+    """A context in which NumPy's and SciPy's BLAS run on one thread: an LU of a few hundred rows
+    split over threads takes longer at its slowest (10–15 ms on one thread, up to 100 ms on two of
+    a 2-core machine), and a vehicle waits for its slowest."""
+    global _BLAS
+    from threadpoolctl import ThreadpoolController
+
+    if _BLAS is None:
+        _BLAS = ThreadpoolController()
+    return _BLAS.limit(limits=1, user_api="blas")
+
+
+def dense_transitions(model: ExactMDP) -> np.ndarray:
+    """[A, S, S] P_a of every action as one dense array (a dense model's own; a factored model's
+    written from its factors)."""
+    if hasattr(model, "P"):
+        return np.asarray(model.P.to(torch.float64).cpu().numpy())
+    if hasattr(model, "dense"):
+        return np.stack([model.dense(a) for a in range(model.num_actions)])
+    return np.stack([model.sparse(a).toarray() for a in range(model.num_actions)])
+
+
+class DualPlanner:
+    """The LP's optimum of ``objective`` subject to ``constraint``, one policy evaluation at a time
+    (see the module docstring).
+
+    Args:
+        P: [A, S, S] the transitions (``dense_transitions``).
+        objective: [A, S] the per-step objective J (``irdrc.core.cmdp.objective_table``).
+        constraint: the one constraint Σ x·coef ≤ bound (``build_constraints``'s first).
+        start: [S] the policy the first policy iteration starts from (default: radar everywhere).
+    """
+
+    def __init__(
+        self,
+        P: np.ndarray,
+        objective: torch.Tensor,
+        constraint: Constraint,
+        start: torch.Tensor | np.ndarray | None = None,
+    ) -> None:
+        self.P = P
+        A, S = P.shape[0], P.shape[-1]
+        self.J = objective.to(torch.float64).cpu().numpy().reshape(A, S)
+        self.c = constraint.coef.to(torch.float64).cpu().numpy().reshape(A, S)
+        self.bound = float(constraint.bound)
+        self.policy = np.full(S, A - 1) if start is None else np.asarray(start, dtype=np.int64)
+        if self.policy.shape != (S,):
+            raise ValueError(f"start has shape {tuple(self.policy.shape)}, expected ({S},)")
+        self.stage = 0  # 0: the best at λ = 0; 1: the constraint kept best; 2: towards λ*
+        self.lam = 0.0
+        self.lo: Line | None = None  # the best breaking policy found
+        self.hi: Line | None = None  # the best keeping one
+        self.evaluations = 0
+
+    def _reward(self) -> np.ndarray:
+        if self.stage == 0:
+            return self.J
+        if self.stage == 1:
+            return -self.c
+        return self.J - self.lam * self.c
+
+    def _evaluate(self, r: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+        """Gain, bias (0 at state 0) and stationary distribution of the current policy for r."""
+        import scipy.linalg as sl
+
+        S = self.P.shape[-1]
+        idx = np.arange(S)
+        M = -self.P[self.policy, idx]  # I − P_π, one array
+        M[idx, idx] += 1.0
+        M[:, 0] = 1.0  # unknowns: the gain in place of h(0)
+        try:
+            with np.errstate(all="raise"), warnings.catch_warnings():
+                warnings.simplefilter("error", sl.LinAlgWarning)
+                lu = sl.lu_factor(M, overwrite_a=True, check_finite=False)
+                sol = sl.lu_solve(lu, r[self.policy, idx], check_finite=False)
+                e0 = np.zeros(S)
+                e0[0] = 1.0
+                mu = sl.lu_solve(lu, e0, trans=1, check_finite=False)
+        except (FloatingPointError, np.linalg.LinAlgError, ValueError, sl.LinAlgWarning):
+            sol = mu = np.full(S, np.nan)
+        if not (np.isfinite(sol).all() and np.isfinite(mu).all()):
+            raise SolverFailed(
+                "policy evaluation failed: a policy's chain has more than one recurrent class "
+                "(recipes/constrained.py solves such models as an LP)"
+            )
+        gain, h = float(sol[0]), sol.copy()
+        h[0] = 0.0
+        return gain, h, np.clip(mu, 0.0, None) / np.clip(mu, 0.0, None).sum()
+
+    def _line(self, pol: np.ndarray, mu: np.ndarray) -> Line:
+        idx = np.arange(len(pol))
+        T, C = float(mu @ self.J[pol, idx]), float(mu @ self.c[pol, idx]) - self.bound
+        return pol.copy(), T, C, mu
+
+    def _cross(self) -> None:
+        assert self.lo is not None and self.hi is not None
+        (_, tl, cl, _), (_, th, ch, _) = self.lo, self.hi
+        self.lam = max((tl - th) / (cl - ch), 0.0)
+        self.policy = self.lo[0].copy()
+
+    def _result(self, parts: list[tuple[float, np.ndarray, np.ndarray]]) -> LPResult:
+        """The mixture of (weight, policy, stationary distribution) parts as the LP's result."""
+        A, S = self.J.shape
+        x = np.zeros((A, S))
+        for w, pol, mu in parts:
+            x[pol, np.arange(S)] += w * mu
+        x /= x.sum()
+        occ = torch.from_numpy(x)
+        mass = occ.sum(0)
+        policy = torch.zeros(S, A, dtype=torch.float64)
+        visited = mass > 0
+        policy[visited] = (occ[:, visited] / mass[visited]).T
+        policy[~visited, -1] = 1.0
+        value = float((x * self.J).sum())
+        return LPResult(occupancy=occ, policy=policy, value=value, message="dual: optimal")
+
+    def step(self) -> LPResult | None:
+        """One policy evaluation (and improvement); the result once the optimum is reached.
+
+        Raises:
+            InfeasibleTarget: no policy keeps the constraint.
+            SolverFailed: a singular chain, or more than ``MAX_EVALUATIONS`` evaluations.
+        """
+        if self.evaluations >= MAX_EVALUATIONS:
+            raise SolverFailed(f"the dual planner took more than {MAX_EVALUATIONS} evaluations")
+        r = self._reward()
+        with one_blas_thread():
+            gain, h, mu = self._evaluate(r)
+            q = r + self.P @ h  # [A, S]
+        self.evaluations += 1
+        S = len(self.policy)
+        best = q.max(0)
+        keep = q[self.policy, np.arange(S)] >= best - TIE_TOL * max(1.0, float(np.abs(best).max()))
+        improved = np.where(keep, self.policy, q.argmax(0))
+        if not np.array_equal(improved, self.policy):
+            self.policy = improved
+            return None
+        line = self._line(self.policy, mu)
+        if self.stage == 0:
+            if line[2] <= KEEP_TOL:
+                return self._result([(1.0, self.policy, mu)])
+            self.lo, self.stage = line, 1
+            return None
+        if self.stage == 1:
+            if line[2] > KEEP_TOL:
+                raise InfeasibleTarget(
+                    f"no policy keeps the constraint: the least it reaches is {line[2]:.3g} over "
+                    "its bound"
+                )
+            self.hi, self.stage = line, 2
+            self._cross()
+            return None
+        assert self.lo is not None and self.hi is not None
+        (pl, tl, cl, ml), (ph, _, ch, mh) = self.lo, self.hi
+        crossing = tl - self.lam * cl
+        if gain <= crossing + TIE_TOL * max(1.0, abs(crossing)) or (
+            np.array_equal(self.policy, pl) or np.array_equal(self.policy, ph)
+        ):
+            # the weight of the breaking policy that makes C bind (C ≤ KEEP_TOL counts as kept)
+            w = min(max(-ch / (cl - ch), 0.0), 1.0)
+            return self._result([(w, pl, ml), (1.0 - w, ph, mh)])
+        if line[2] > KEEP_TOL:
+            self.lo = line
+        else:
+            self.hi = line
+        self._cross()
+        return None
+
+    def advance(self, evaluations: int) -> LPResult | None:
+        """Up to ``evaluations`` steps; the result as soon as it is reached, else None."""
+        for _ in range(evaluations):
+            out = self.step()
+            if out is not None:
+                return out
+        return None
+
+    def solve(self) -> LPResult:
+        """Every step to the end."""
+        while True:
+            out = self.step()
+            if out is not None:
+                return out
+
+    def state_dict(self) -> dict[str, Any]:
+        """Where it stands (the model is the caller's to keep)."""
+        return {
+            "policy": self.policy.tolist(),
+            "stage": self.stage,
+            "lam": self.lam,
+            "lo": None if self.lo is None else _line_state(self.lo),
+            "hi": None if self.hi is None else _line_state(self.hi),
+            "evaluations": self.evaluations,
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Go on from ``state_dict``'s point."""
+        self.policy = np.asarray(state["policy"], dtype=np.int64)
+        self.stage, self.lam = int(state["stage"]), float(state["lam"])
+        self.evaluations = int(state["evaluations"])
+
+        def line(v: Any) -> Line | None:
+            if v is None:
+                return None
+            return (np.asarray(v[0], dtype=np.int64), float(v[1]), float(v[2]), np.asarray(v[3]))
+
+        self.lo, self.hi = line(state["lo"]), line(state["hi"])
+
+
+def _line_state(line: Line) -> tuple[list[int], float, float, list[float]]:
+    return line[0].tolist(), line[1], line[2], line[3].tolist()
+
+
+def solve_dual(model: ExactMDP, objective: torch.Tensor, constraint: Constraint) -> LPResult:
+    """The LP's optimum of ``objective`` subject to ``constraint`` on ``model``, by
+    ``DualPlanner`` to the end."""
+    return DualPlanner(dense_transitions(model), objective, constraint).solve()

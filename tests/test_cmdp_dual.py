@@ -1,0 +1,148 @@
+"""The constrained problem on its Lagrangian dual (``irdrc.core.cmdp_dual``): the LP's optimum,
+against the LP and a hand-solved case, step by step as in one go, and resumed mid-way."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from irdrc.core import cmdp_dual
+from irdrc.core.cmdp import (
+    Constraint,
+    InfeasibleTarget,
+    build_constraints,
+    objective_table,
+    solve_lp,
+    transitions,
+)
+from irdrc.core.cmdp_dual import DualPlanner, dense_transitions, solve_dual
+from irdrc.core.exact import build_model, stationary_metrics
+from irdrc.core.params import Params
+
+PERSISTENT = {"env.stay_good.channel": 0.95, "env.stay_bad.channel": 0.9}
+
+
+@pytest.fixture(scope="module")
+def models():
+    return {
+        "paper": build_model(Params()),
+        "persistent": build_model(Params.from_overrides(PERSISTENT)),
+    }
+
+
+@pytest.mark.parametrize("name", ["paper", "persistent"])
+@pytest.mark.parametrize("target", [0.01, 0.05, 0.1])
+def test_the_dual_reaches_the_lps_optimum_and_its_policy_attains_it(models, name, target):
+    """The value equals the LP's to 1e-7 (relative: HiGHS's feasibility tolerance is 1e-9 on
+    occupancies summing to 1, and the two end at different optimal vertices' mixtures); the
+    policy's exact long-run packets are that value and its miss detection is the target (it
+    binds) to 1e-9."""
+    model = models[name]
+    obj, con = objective_table(model, "throughput"), build_constraints(model, target)
+    lp = solve_lp(transitions(model), obj, con)
+    dual = solve_dual(model, obj, con[0])
+    assert dual.value == pytest.approx(lp.value, rel=1e-7)
+    metrics = stationary_metrics(model, dual.policy)
+    assert metrics.throughput == pytest.approx(dual.value, rel=1e-9)
+    assert metrics.miss_detection == pytest.approx(target, abs=1e-9)
+
+
+def test_a_target_no_policy_meets_is_refused_as_the_lp_refuses_it():
+    """With an imperfect radar (P_d = 0.9) radar everywhere misses a tenth of the events: a 5 %
+    target is out of reach of both solvers."""
+    model = build_model(Params.from_overrides({"env.detection_prob": 0.9}))
+    obj, con = objective_table(model, "throughput"), build_constraints(model, 0.05)
+    with pytest.raises(InfeasibleTarget):
+        solve_lp(transitions(model), obj, con)
+    with pytest.raises(InfeasibleTarget, match="no policy keeps the constraint"):
+        solve_dual(model, obj, con[0])
+
+
+def test_the_hand_solved_two_state_problem():
+    """States A, B drawn afresh every step; comm sends a packet and misses the events (0.1 in A,
+    0.5 in B). At m* = 0.5 the budget 0.15 = 0.05 + 0.25·π_B: comm everywhere in A and with
+    probability 0.4 in B, throughput ½(1 + 0.4) = 0.7 (``tests/test_cmdp.py``'s LP case)."""
+    P = np.full((2, 2, 2), 0.5)
+    obj = torch.tensor([[1.0, 1.0], [0.0, 0.0]], dtype=torch.float64)
+    event = torch.tensor([0.1, 0.5], dtype=torch.float64)
+    missed = torch.stack([event, torch.zeros(2, dtype=torch.float64)])
+    out = DualPlanner(P, obj, Constraint("miss", missed - 0.5 * event[None], 0.0)).solve()
+    assert out.value == pytest.approx(0.7, abs=1e-12)
+    assert out.policy[:, 0].tolist() == pytest.approx([1.0, 0.4], abs=1e-12)
+
+
+def test_a_target_at_the_radars_own_floor_gives_a_policy_of_probabilities():
+    """The two-state problem with a radar that misses 70 % of the events, at m* = 0.7: only radar
+    everywhere keeps the target, and its C comes out 7e-18 over the bound in floating point. The
+    plan is a policy all the same (probabilities in [0, 1] summing to 1), radar everywhere; with
+    the mixing weight left unclamped (the mutation) one probability is −5e-16."""
+    P = np.full((2, 2, 2), 0.5)
+    obj = torch.tensor([[1.0, 1.0], [0.0, 0.0]], dtype=torch.float64)
+    event = torch.tensor([0.1, 0.5], dtype=torch.float64)
+    missed = torch.stack([event, event / (1 / 0.7)])
+    out = DualPlanner(P, obj, Constraint("miss", missed - 0.7 * event[None], 0.0)).solve()
+    assert (out.policy >= 0).all() and torch.allclose(
+        out.policy.sum(1), torch.ones(2, dtype=torch.float64)
+    )
+    assert out.policy[:, 1].tolist() == pytest.approx([1.0, 1.0]) and out.value == pytest.approx(0)
+
+
+def test_a_slack_target_gives_the_best_policy_of_the_objective(models):
+    """At m* = 1 the constraint cannot bind: the best throughput of any policy, with the first
+    policy iteration alone (the LP, a vertex to HiGHS's tolerance, is within 2e-7 of it)."""
+    model = models["paper"]
+    obj, con = objective_table(model, "throughput"), build_constraints(model, 1.0)
+    planner = DualPlanner(dense_transitions(model), obj, con[0])
+    out = planner.solve()
+    assert planner.stage == 0 and planner.lo is None
+    assert out.value == pytest.approx(solve_lp(transitions(model), obj).value, rel=1e-6)
+
+
+def test_step_by_step_and_resumed_midway_it_ends_where_one_solve_ends(models):
+    """``advance(1)`` until done gives the one-go result bit for bit, and a fresh planner loaded
+    from a mid-way ``state_dict`` ends there too, with the evaluations left; started again from
+    the saved policy alone (the mutation), it needs more."""
+    model = models["persistent"]
+    obj, con = objective_table(model, "throughput"), build_constraints(model, 0.05)
+    P = dense_transitions(model)
+    one_go = DualPlanner(P, obj, con[0])
+    whole = one_go.solve()
+    stepped, steps, saved = DualPlanner(P, obj, con[0]), 0, None
+    while (out := stepped.advance(1)) is None:
+        steps += 1
+        if stepped.stage == 2 and saved is None:
+            saved = stepped.state_dict()
+    assert torch.equal(out.policy, whole.policy) and out.value == whole.value
+    assert saved is not None and steps > 3
+
+    resumed = DualPlanner(P, obj, con[0])
+    resumed.load_state_dict(saved)
+    assert torch.equal(resumed.solve().policy, whole.policy)
+    assert resumed.evaluations == stepped.evaluations == one_go.evaluations
+    broken = DualPlanner(P, obj, con[0])
+    broken.load_state_dict({**saved, "lo": None, "hi": None, "stage": 0, "lam": 0.0})
+    broken.solve()
+    assert broken.evaluations > one_go.evaluations
+
+
+def test_a_factored_models_dense_chain_is_its_sparse_one():
+    """``FactoredModel.dense`` writes the entries ``sparse`` holds, for both actions, on a model
+    with bursty arrivals (several queue dynamics per action)."""
+    from irdrc.core.exact import build_factored
+
+    bursty = {"rates": [0.5, 3.0], "transition": [[0.95, 0.05], [0.15, 0.85]]}
+    model = build_factored(Params.from_overrides({"env.arrival_rate": None, "env.bursty": bursty}))
+    for a in range(model.num_actions):
+        assert np.array_equal(model.dense(a), model.sparse(a).toarray())
+    assert dense_transitions(model).shape == (2, model.num_states, model.num_states)
+
+
+def test_a_singular_chain_stops_the_planner():
+    """Two absorbing states (two recurrent classes under every policy): the evaluation's system is
+    singular, and the planner says so rather than return a policy."""
+    P = np.stack([np.eye(2), np.eye(2)])
+    obj = torch.ones(2, 2, dtype=torch.float64)
+    con = Constraint("c", torch.zeros(2, 2, dtype=torch.float64), 0.0)
+    with pytest.raises(cmdp_dual.SolverFailed, match="more than one recurrent class"):
+        DualPlanner(P, obj, con).solve()

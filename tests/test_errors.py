@@ -52,6 +52,12 @@ def refused(recipe: str, *overrides: str) -> str:
         ("online", ["env.actions=continuous"], "recipes/sac.py (continuous)"),
         ("online", ["env.actions=levels"], "recipes/dqn.py algo=dqn_levels (levels)"),
         ("online", ["algo.sweeps_per_step=-1"], "algo.sweeps_per_step=-1"),
+        ("online", ["learner=safe", "algo.evaluations_per_step=-1"], "evaluations_per_step=-1"),
+        (
+            "online",
+            ["learner=posterior", "algo.evaluations_per_step=1"],
+            "unknown key(s) algo.evaluations_per_step",
+        ),
         (
             "online",
             ["learner=dqn", "algo.sweeps_per_step=1"],

@@ -65,9 +65,9 @@ def test_the_recipe_writes_the_ledger_everywhere(tmp_path, capsys):
 
 
 def test_a_learner_planning_beside_its_acting_says_how_late_its_plans_came(tmp_path, capsys):
-    """``learner=posterior_anytime``: summary.json's ``planning`` and the printout's line give the
-    plans made beside the acting and the steps each took to come into force; the default learner,
-    which waits for its plans, writes neither."""
+    """``learner=posterior_anytime`` and ``learner=safe_anytime``: summary.json's ``planning`` and
+    the printout's line give the plans made beside the acting and the steps each took to come into
+    force; the default learner, which waits for its plans, writes neither."""
     from irdrc.online import recipe
     from irdrc.runs import app
 
@@ -85,6 +85,17 @@ def test_a_learner_planning_beside_its_acting_says_how_late_its_plans_came(tmp_p
     out = capsys.readouterr().out
     assert out.count(line) == 1
     assert "planning" not in json.loads((tmp_path / "w" / "summary.json").read_text())
+
+    safe = ["learner=safe_anytime", "algo.target_miss=0.1", f"hydra.run.dir={tmp_path / 's'}"]
+    assert app.execute(recipe, [*args, *safe]) == 0
+    plans = json.loads((tmp_path / "s" / "summary.json").read_text())["planning"]
+    assert plans["evaluations_per_step"] == 1 and plans["plans_made_beside_acting"] >= 2
+    line = (
+        "it planned beside its acting, 1 unit of work (a batch of sweeps, the model, or one "
+        f"policy evaluation of the LP's dual) a step: {plans['plans_made_beside_acting']} plans, "
+        f"in force a median of {plans['plan_lag_steps_median']} steps after their data"
+    )
+    assert capsys.readouterr().out.count(line) == 1
 
 
 def test_a_stream_without_an_event_yet_writes_its_summary(tmp_path, capsys):

@@ -118,7 +118,7 @@ def tiny(name: str) -> object:
     base: dict[str, object] = {"episodes": 6}
     if name.startswith("dqn"):
         base.update(warmup_steps=100, batch_size=64, update_every=8, hidden=(16, 16))
-    if name == "safe":
+    if name.startswith("safe"):
         base.update(target_miss=0.1)
     return configs.learner_config(name, base)
 
@@ -129,13 +129,14 @@ def numbers(rows: list[dict]) -> list[dict]:
 
 
 @pytest.mark.parametrize(
-    "name", ["dqn", "dqn_paper", "posterior", "posterior_anytime", "qlearning", "safe"]
+    "name",
+    ["dqn", "dqn_paper", "posterior", "posterior_anytime", "qlearning", "safe", "safe_anytime"],
 )
 def test_a_resumed_run_is_the_uninterrupted_run(paper_scorer, name):
     """Checkpointed after 3 of 6 episodes (through torch.save / weights_only load, as a checkpoint
     file is), a resumed run's evaluations are the uninterrupted run's, number for number."""
     cfg = tiny(name)
-    grader = ConstrainedScorer(paper_scorer, 0.1) if name == "safe" else None
+    grader = ConstrainedScorer(paper_scorer, 0.1) if name.startswith("safe") else None
     saved = {}
 
     def keep(state):
@@ -170,7 +171,8 @@ def test_a_resumed_run_is_the_uninterrupted_run(paper_scorer, name):
 
 
 @pytest.mark.parametrize(
-    "name", ["dqn", "dqn_paper", "posterior", "posterior_anytime", "qlearning", "safe"]
+    "name",
+    ["dqn", "dqn_paper", "posterior", "posterior_anytime", "qlearning", "safe", "safe_anytime"],
 )
 def test_a_longer_run_begins_as_the_shorter_one(paper_scorer, name):
     """Every schedule counts episodes, not the run (DQN's learning rate anneals over
@@ -181,7 +183,7 @@ def test_a_longer_run_begins_as_the_shorter_one(paper_scorer, name):
         cfg = dataclasses.replace(tiny(name), episodes=episodes)
         if name == "dqn":
             cfg = dataclasses.replace(cfg, lr_decay_episodes=4)
-        grader = ConstrainedScorer(paper_scorer, 0.1) if name == "safe" else None
+        grader = ConstrainedScorer(paper_scorer, 0.1) if name.startswith("safe") else None
         rec = learn_on_stream(
             make_learner(name, cfg, PAPER, 5),
             PAPER,

@@ -3,12 +3,14 @@ confidence, and the recipe's report of it."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 
 import pytest
 import torch
 
+from irdrc.core.cmdp import InfeasibleTarget
 from irdrc.core.params import Params
 from irdrc.online import configs
 from irdrc.online.learners import make_learner
@@ -275,3 +277,119 @@ def test_a_safe_runs_figure_is_read_against_its_own_goal(monkeypatch, tmp_path):
         regret
     )
     assert lines(miss)["optimum (floor)"] == [0.0, 5.0, 10.0, 15.0, 20.0]
+
+
+def test_beside_its_acting_the_safe_learner_adopts_the_lps_optimum_of_its_data(paper_scorer):
+    """``learner=safe_anytime`` on the paper scenario at m* = 0.1: each plan begun (before
+    episodes 0, 1, 2, 4) comes into force, ``observe`` saying so on that step alone, a batch of
+    sweeps, the model and its policy evaluations after its data; each is radar everywhere where the
+    LP on its model finds the target out of reach, and else attains the LP's optimum there (to
+    2e-7, HiGHS's tolerance) with the target met. Planned at the wrong target (the mutation), the
+    plans send more than that LP allows."""
+    from irdrc.core.cmdp import build_constraints, objective_table, solve_lp, transitions
+    from irdrc.core.exact import stationary_metrics
+
+    def run(mutate: bool) -> tuple[SafeLearner, list, list[bool]]:
+        cfg = configs.learner_config("safe_anytime", {"episodes": 5, "target_miss": 0.1})
+        learner = make_learner("safe_anytime", cfg, PAPER, 2)
+        assert isinstance(learner, SafeLearner)
+        made, said = [], []
+        begin, adopt, observe = learner._begin_planner, learner._adopt, learner.observe
+
+        def begin_planner(est):
+            made.append([est, None])
+            if mutate:
+                learner.cfg = dataclasses.replace(cfg, target_miss=0.3)
+            begin(est)
+            learner.cfg = cfg
+
+        def adopted(plan):
+            made[-1][1] = plan
+            adopt(plan)
+
+        def observed(*args):
+            out = observe(*args)
+            said.append(bool(out))
+            return out
+
+        learner._begin_planner, learner._adopt, learner.observe = begin_planner, adopted, observed
+        learn_on_stream(learner, PAPER, paper_scorer, episodes=5)
+        return learner, made, said
+
+    learner, made, said = run(False)
+    info = learner.info()["planning"]
+    assert info["plans_made_beside_acting"] == len(made) == sum(said) == 4
+    assert info["plans_superseded"] == 0 and info["plan_lag_steps_max"] < 100
+    feasible = 0
+    for est, plan in made:
+        model = learner.counts.model(est)
+        obj, con = objective_table(model, "throughput"), build_constraints(model, 0.1)
+        try:
+            lp = solve_lp(transitions(model), obj, con)
+        except InfeasibleTarget:
+            assert torch.equal(plan[:, 1], torch.ones(learner.num_states, dtype=torch.float64))
+            continue
+        feasible += 1
+        metrics = stationary_metrics(model, plan)
+        assert metrics.throughput == pytest.approx(lp.value, rel=2e-7)
+        assert metrics.miss_detection <= 0.1 + 1e-9
+    assert feasible >= 2
+
+    mutant, made, _ = run(True)
+    est, plan = made[-1]
+    assert stationary_metrics(mutant.counts.model(est), plan).miss_detection > 0.1 + 1e-6
+
+
+@pytest.mark.parametrize("mid", [3, 12], ids=["sweeping", "evaluating"])
+def test_a_safe_learner_restored_while_it_plans_goes_on_as_the_original(mid):
+    """Checkpointed ``mid`` steps into the plan begun before episode 1 (among its batches of
+    sweeps; among its policy evaluations), a restored ``safe_anytime`` learner acts, reports and adopts
+    its plans as the original, step for step; restored without the plan being made (the
+    mutation), it does not."""
+    import io
+
+    from irdrc.core.stream import VehicleStream
+
+    cfg = configs.learner_config("safe_anytime", {"episodes": 3, "target_miss": 0.1})
+
+    def restored(original: SafeLearner, keep_pending: bool) -> SafeLearner:
+        buf = io.BytesIO()
+        state = original.state_dict()
+        if not keep_pending:
+            state["pending"] = None
+        torch.save(state, buf)
+        buf.seek(0)
+        copy = make_learner("safe_anytime", cfg, PAPER, 4)
+        copy.load_state_dict(torch.load(buf, weights_only=True))
+        assert isinstance(copy, SafeLearner)
+        return copy
+
+    def follow(keep_pending: bool) -> bool:
+        a = make_learner("safe_anytime", cfg, PAPER, 4)
+        assert isinstance(a, SafeLearner)
+        stream = VehicleStream(PAPER, 4)
+        s = stream.reset()
+        a.begin_episode(0)
+        for steps in (400, mid):
+            for _ in range(steps):
+                action = a.act(s)
+                out = stream.step(action)
+                a.observe(s, action, out)
+                s = out.state
+            if steps == 400:
+                s = stream.reset()
+                a.begin_episode(1)
+        assert a.planning and (a.planner is not None) == (mid == 12)
+        b = restored(a, keep_pending)
+        for _ in range(300):
+            action = a.act(s)
+            if b.act(s) != action:
+                return False
+            out = stream.step(action)
+            if a.observe(s, action, out) != b.observe(s, action, out):
+                return False
+            s = out.state
+        return torch.equal(a.plan, b.plan) and a.lags == b.lags
+
+    assert follow(True)
+    assert not follow(False)

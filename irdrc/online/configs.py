@@ -211,12 +211,18 @@ class SafeConfig:
         target_miss: m*: the vehicle's cumulative miss detection is kept at or under it, and its
             plans aim at it.
         prior_count: as ``PosteriorConfig``'s.
+        evaluations_per_step: 0: each plan is the LP, solved between two steps, the vehicle
+            waiting for it; k ≥ 1: beside the acting, k units of planning work after each step (a
+            batch of the noisy-or sampler's sweeps, the model, or one policy evaluation of the
+            LP's Lagrangian dual, ``irdrc.core.cmdp_dual``), the vehicle acting on its last plan
+            until the new one is ready.
         name: the profile's name.
     """
 
     episodes: int = DEFAULT_EPISODES
     target_miss: float = 0.05
     prior_count: float = 1.0
+    evaluations_per_step: int = 0
     name: str = field(default="safe", compare=False)
 
     def __post_init__(self) -> None:
@@ -227,11 +233,16 @@ class SafeConfig:
                 ("episodes", 1, 10**7, checks.INT),
                 ("target_miss", 0, 1, {"open_lo": True, "open_hi": True}),
                 ("prior_count", 0, 1e6, {"open_lo": True}),
+                ("evaluations_per_step", 0, 10**6, checks.INT),
             ),
         )
 
 
 SAFE = SafeConfig()
+
+SAFE_ANYTIME = SafeConfig(evaluations_per_step=1, name="safe_anytime")
+"""The safe learner planning beside its acting, one unit of planning work a step: its plans are
+the LP's optimum found on the LP's dual, and the vehicle never waits for one."""
 
 QLEARNING = dataclasses.replace(QLearningConfig(), episodes=DEFAULT_EPISODES)
 """Our tabular Q-learning (``recipes/qlearning.py``'s profile: step sizes 1/k, uniform exploration)
@@ -254,10 +265,14 @@ PROFILES: dict[str, Any] = {
     "qlearning": QLEARNING,
     "qlearning_paper": QLEARNING_PAPER,
     "safe": SAFE,
+    "safe_anytime": SAFE_ANYTIME,
 }
 """Each learner's profile (``learner=…``), its ``algo.*`` defaults."""
 
 LEARNERS = tuple(PROFILES)
+
+SAFE_LEARNERS = ("safe", "safe_anytime")
+"""The profiles of the safe learner, read against the LP at their ``target_miss``."""
 
 
 ELSEWHERE = {

@@ -27,6 +27,7 @@ COLORS = {
     "qlearning": "tab:orange",
     "qlearning_paper": "tab:red",
     "safe": "tab:purple",
+    "safe_anytime": "tab:pink",
 }
 
 

@@ -22,7 +22,7 @@ def make_learner(name: str, cfg: Any, params: Params, seed: int = 0) -> StreamLe
         from irdrc.online.posterior import PosteriorSampling
 
         return PosteriorSampling(cfg, params, seed)
-    if name == "safe":
+    if name in ("safe", "safe_anytime"):
         from irdrc.online.safe import SafeLearner
 
         return SafeLearner(cfg, params, seed)

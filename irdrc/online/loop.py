@@ -92,6 +92,25 @@ class StreamLearner:
         """Restore ``state_dict``."""
 
 
+def planning_report(
+    unit: str, per_step: int, lags: list[int], begun: int, pending: bool
+) -> dict[str, Any]:
+    """``info()``'s ``planning`` entry of a learner that plans beside its acting: ``per_step``
+    units of work a step (named by ``unit``), the plans that came into force and their lags (steps
+    from their data to their coming into force), and the plans begun but replaced by a newer one
+    before they were ready (``pending``: one is being made now)."""
+    ready = sorted(lags)
+    return {
+        "planning": {
+            unit: per_step,
+            "plans_made_beside_acting": len(ready),
+            "plan_lag_steps_median": ready[len(ready) // 2] if ready else None,
+            "plan_lag_steps_max": ready[-1] if ready else None,
+            "plans_superseded": begun - len(ready) - int(pending),
+        }
+    }
+
+
 def _scored(score: Any, source: str, *args: Any) -> Any:
     """``score(*args)`` (a scorer's ``metrics``, the ledger's ``add``), a table that is not a
     policy of the scenario's states refused naming the learner's method that gave it."""

@@ -33,7 +33,7 @@ from irdrc.core.params import Params
 from irdrc.core.stream import Step
 from irdrc.online.configs import PosteriorConfig
 from irdrc.online.form import Estimate, FormCounts
-from irdrc.online.loop import StreamLearner
+from irdrc.online.loop import StreamLearner, planning_report
 from irdrc.online.qlearning import tuple_state
 
 
@@ -127,18 +127,12 @@ class PosteriorSampling(StreamLearner):
         return self._greedy
 
     def info(self) -> dict[str, Any]:
-        if not self.cfg.sweeps_per_step:
+        k = self.cfg.sweeps_per_step
+        if not k:
             return {}
-        lags = sorted(self.lags)
-        return {
-            "planning": {
-                "sweeps_per_step": self.cfg.sweeps_per_step,
-                "plans_made_beside_acting": len(lags),
-                "plan_lag_steps_median": lags[len(lags) // 2] if lags else None,
-                "plan_lag_steps_max": lags[-1] if lags else None,
-                "plans_superseded": self.begun - len(lags) - (self.pending is not None),
-            }
-        }
+        return planning_report(
+            "sweeps_per_step", k, self.lags, self.begun, self.pending is not None
+        )
 
     def state_dict(self) -> dict[str, Any]:
         pending = None

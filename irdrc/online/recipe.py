@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING, Any
 
 from irdrc.core.checks import build
 from irdrc.core.params import Params
-from irdrc.online.configs import LEARNERS, PROFILES, learner_config
+from irdrc.online.configs import LEARNERS, PROFILES, SAFE_LEARNERS, learner_config
 from irdrc.runs.compose import Composed
 from irdrc.runs.resume import refuse_finished
 from irdrc.runs.sections import Learning, Plot, check_eval_period, check_exact, scenario_field
@@ -41,6 +41,7 @@ ADVICE = {
     "posterior": "algo.episodes=600",
     "posterior_anytime": "algo.episodes=600",
     "safe": "algo.episodes=600",
+    "safe_anytime": "algo.episodes=600",
 }
 """What a run that ends below the optimum is told to try, per learner."""
 
@@ -89,12 +90,12 @@ def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
             "each step (env.actions=binary); the radar share is learned by recipes/sac.py "
             "(continuous), recipes/ppo.py, or recipes/dqn.py algo=dqn_levels (levels)"
         )
-    if cfg.learner == "safe":
+    if cfg.learner in SAFE_LEARNERS:
         from irdrc.core.sizes import dense_fit_states, fits_dense
 
         if not fits_dense(cfg.params):
             raise ValueError(
-                f"learner=safe solves an LP over all S = {cfg.params.env.num_states} states before "
+                f"learner={cfg.learner} solves an LP over all S = {cfg.params.env.num_states} states before "
                 f"its first episode and whenever its data doubles: it runs on scenarios of at most "
                 f"{dense_fit_states()} states (a smaller env.queue_capacity)"
             )
@@ -136,7 +137,7 @@ def run(cfg: Config, run: Run) -> dict[str, Any]:
     scorer = exact_scorer(cfg.params, cfg.optimum_gamma)
     require_ratio(scorer)
     greedy_scorer = None
-    if cfg.learner == "safe":
+    if cfg.learner in SAFE_LEARNERS:
         from irdrc.online.safe import ConstrainedScorer
 
         greedy_scorer = ConstrainedScorer(scorer, cfg.algo.target_miss)
@@ -252,7 +253,7 @@ def print_ledger(row: dict[str, Any], summary: dict[str, Any], cfg: Config) -> N
         f"  cumulative miss detection {_miss_text(row['cumulative_miss_detection'])}; greedy policy: "
         f"{conv}"
     )
-    if cfg.learner == "safe":
+    if cfg.learner in SAFE_LEARNERS:
         print(
             f"  target_miss={cfg.algo.target_miss}: the greedy plan sends {row['lp_ratio']:.4f} of "
             f"the LP's packets, its long-run miss detection {row['miss_detection']:.4f}"
@@ -275,15 +276,22 @@ def print_ledger(row: dict[str, Any], summary: dict[str, Any], cfg: Config) -> N
     )
     plans = summary.get("planning")
     if plans is not None:
-        k, made = plans["sweeps_per_step"], plans["plans_made_beside_acting"]
+        made, sweeps = plans["plans_made_beside_acting"], "sweeps_per_step" in plans
+        k = plans["sweeps_per_step" if sweeps else "evaluations_per_step"]
+        work = (
+            f"{k} sweep{'' if k == 1 else 's'} of value iteration"
+            if sweeps
+            else f"{k} unit{'' if k == 1 else 's'} of work (a batch of sweeps, the model, or "
+            "one policy evaluation of the LP's dual)"
+        )
+        since, newer = ("their draw", "a newer draw") if sweeps else ("their data", "newer data")
         when = (
             f"{made} plans, in force a median of {plans['plan_lag_steps_median']} steps after "
-            f"their draw (at most {plans['plan_lag_steps_max']})"
+            f"{since} (at most {plans['plan_lag_steps_max']})"
             if made
             else "no plan in force yet"
         )
         print(
-            f"  it planned beside its acting, {k} sweep{'' if k == 1 else 's'} of value "
-            f"iteration a step: {when}; {plans['plans_superseded']} replaced by a newer draw "
-            "before they were ready"
+            f"  it planned beside its acting, {work} a step: {when}; "
+            f"{plans['plans_superseded']} replaced by {newer} before they were ready"
         )

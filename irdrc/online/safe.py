@@ -20,6 +20,13 @@ Two parts:
   allows. A level of the channel whose capacity has not shown yet is planned as carrying every
   packet (optimism), so the plan tries it. Its greedy policy, the one it would deploy, is the plan.
 
+By default the vehicle waits for each plan. With ``evaluations_per_step`` k ≥ 1 it plans beside its
+acting instead (``learner=safe_anytime``): k units of work after each step — ``GIBBS_BATCH`` of the
+sampler's sweeps, then the posterior-mean model, then one policy evaluation at a time of the LP's
+Lagrangian dual (``irdrc.core.cmdp_dual``, the LP's optimum) — the vehicle acting on its last plan,
+under the budget, until the new one is ready. Data that doubles meanwhile restarts the plan on the
+newer counts. ``observe`` says when a plan comes into force.
+
 Its behaviour policy in the ledger is the plan, or radar everywhere while the budget forbids
 sending at the episode's start: the budget's interventions within an episode are not in the exact
 ledger (the realised counts have them).
@@ -32,6 +39,7 @@ and the share of draws in which it is at or under m*.
 
 from __future__ import annotations
 
+import dataclasses
 import random
 from typing import TYPE_CHECKING, Any
 
@@ -48,11 +56,12 @@ from irdrc.core.cmdp import (
     solve_lp,
     transitions,
 )
+from irdrc.core.cmdp_dual import DualPlanner, dense_transitions
 from irdrc.core.params import Params
 from irdrc.core.stream import Step
 from irdrc.online.configs import SafeConfig
-from irdrc.online.form import FormCounts
-from irdrc.online.loop import StreamLearner
+from irdrc.online.form import Estimate, FormCounts
+from irdrc.online.loop import StreamLearner, planning_report
 from irdrc.online.qlearning import tuple_state
 
 if TYPE_CHECKING:
@@ -61,6 +70,11 @@ if TYPE_CHECKING:
 GIBBS_SWEEPS = 200
 """Sweeps of the noisy-or sampler before each plan (``FormCounts.advance``): from its cold start the
 posterior mean overstates the event probabilities, and the plan sends less than the data allow."""
+
+
+GIBBS_BATCH = 25
+"""Sweeps of the noisy-or sampler in one unit of planning work beside the acting (about as long as
+one policy evaluation on ``multilevel``)."""
 
 
 CONFIDENCE_DRAWS = 50
@@ -91,6 +105,16 @@ class SafeLearner(StreamLearner):
         self.updates = 0
         self.forced = 0  # radar steps the budget imposed on the plan
         self.planned_at = -1  # the stream's steps at the last plan
+        # beside the acting: the plan being made (sweeps left; its model, its planner), where the
+        # next starts, each plan's steps from its data to its coming into force, plans begun
+        self.planning = False
+        self.sweeps_left = 0
+        self.pending_estimate: Estimate | None = None
+        self.planner: DualPlanner | None = None
+        self.begun_at = 0
+        self.warm: Any = None
+        self.lags: list[int] = []
+        self.begun = 0
 
     @property
     def slack(self) -> float:
@@ -122,10 +146,50 @@ class SafeLearner(StreamLearner):
         if self.planned_at >= 0 and steps < 2 * max(self.planned_at, 1):
             return
         self.planned_at = steps
+        if self.cfg.evaluations_per_step:
+            self.begun += 1
+            self.planning, self.begun_at, self.sweeps_left = True, steps, GIBBS_SWEEPS
+            self.pending_estimate = self.planner = None
+            return
         self.counts.advance(self.gibbs, GIBBS_SWEEPS)
-        self.plan = self._solve()
+        self._adopt(self._solve())
+
+    def _adopt(self, plan: torch.Tensor) -> None:
+        self.plan = plan
         self.comm = self.plan[:, 0].tolist()
         self.updates += 1
+
+    def _begin_planner(self, est: Estimate) -> None:
+        model = self.counts.model(est)
+        self.pending_estimate = est
+        self.planner = DualPlanner(
+            dense_transitions(model),
+            objective_table(model, "throughput"),
+            build_constraints(model, self.cfg.target_miss)[0],
+            start=self.warm,
+        )
+
+    def _work(self) -> torch.Tensor | None:
+        """One unit of the plan being made; the plan when it is ready."""
+        if self.sweeps_left:
+            batch = min(GIBBS_BATCH, self.sweeps_left) if self.counts.noisy_or else self.sweeps_left
+            self.counts.advance(self.gibbs, batch)
+            self.sweeps_left -= batch
+            return None
+        if self.planner is None:
+            self._begin_planner(self.counts.estimate())
+            return None
+        try:
+            result = self.planner.step()
+        except InfeasibleTarget:
+            return torch.nn.functional.one_hot(self.radar, 2).to(torch.float64)
+        except SolverFailed:
+            return self.plan
+        if result is None:
+            return None
+        if self.planner.lo is not None:
+            self.warm = self.planner.lo[0]
+        return result.policy
 
     def act(self, state: int) -> int:
         p = self.comm[state]
@@ -136,10 +200,18 @@ class SafeLearner(StreamLearner):
             return 1
         return 0 if p >= 1.0 or self.rng.random() < p else 1
 
-    def observe(self, state: int, action: int, step: Step) -> None:
+    def observe(self, state: int, action: int, step: Step) -> bool | None:
         self.counts.observe(state, action, step)
         self.events += step.event
         self.missed += step.missed
+        for _ in range(self.cfg.evaluations_per_step if self.planning else 0):
+            plan = self._work()
+            if plan is not None:
+                self.planning, self.pending_estimate, self.planner = False, None, None
+                self.lags.append(self.counts.steps - self.begun_at)
+                self._adopt(plan)
+                return True
+        return None
 
     def end_episode(self, episode: int) -> dict[str, float]:
         return {"slack": self.slack, "forced_radar": self.forced}
@@ -151,6 +223,12 @@ class SafeLearner(StreamLearner):
 
     def greedy(self) -> torch.Tensor:
         return self.plan
+
+    def info(self) -> dict[str, Any]:
+        k = self.cfg.evaluations_per_step
+        if not k:
+            return {}
+        return planning_report("evaluations_per_step", k, self.lags, self.begun, self.planning)
 
     def plan_confidence(self, draws: int = CONFIDENCE_DRAWS) -> dict[str, float]:
         """The plan's long-run miss detection under ``draws`` models drawn from the posterior of
@@ -191,6 +269,21 @@ class SafeLearner(StreamLearner):
             "forced": self.forced,
             "planned_at": self.planned_at,
             "gibbs": self.gibbs.bit_generator.state,
+            "pending": self._pending_state(),
+            "warm": None if self.warm is None else [int(a) for a in self.warm],
+            "lags": list(self.lags),
+            "begun": self.begun,
+        }
+
+    def _pending_state(self) -> dict[str, Any] | None:
+        if not self.planning:
+            return None
+        est = self.pending_estimate
+        return {
+            "sweeps_left": self.sweeps_left,
+            "begun_at": self.begun_at,
+            "estimate": None if est is None else dataclasses.asdict(est),
+            "planner": None if self.planner is None else self.planner.state_dict(),
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -202,6 +295,18 @@ class SafeLearner(StreamLearner):
         self.updates, self.forced = int(state["updates"]), int(state["forced"])
         self.planned_at = int(state["planned_at"])
         self.gibbs.bit_generator.state = state["gibbs"]
+        self.warm = state.get("warm")
+        self.lags, self.begun = list(state.get("lags", [])), int(state.get("begun", 0))
+        self.sweeps_left, self.pending_estimate, self.planner = 0, None, None
+        pending = state.get("pending")
+        self.planning = pending is not None
+        if pending is not None:
+            self.sweeps_left, self.begun_at = int(pending["sweeps_left"]), int(pending["begun_at"])
+            if pending["estimate"] is not None:
+                self._begin_planner(Estimate(**pending["estimate"]))
+                if pending["planner"] is not None:
+                    assert self.planner is not None
+                    self.planner.load_state_dict(pending["planner"])
 
 
 class ConstrainedScorer:

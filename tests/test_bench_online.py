@@ -114,6 +114,33 @@ def test_the_safe_table_puts_the_lagrangian_training_beside_the_safe_learner():
     assert "| 2/2 | 0.40; 2.0 % | — | 1 | 0/1, worst" in table  # no decision timed: —
 
 
+def test_with_both_safe_profiles_the_safe_table_names_each_in_a_first_column():
+    """``safe_learners=[safe,safe_anytime]``: a row per profile and cell, named; one profile alone
+    keeps the table as it was (no learner column)."""
+    res = {"history": history([0, 0.5, 0.9, 0.95]), "wall_seconds": 1, "lp_cost": 0}
+    rows = [run_row(Job(n, "paper", 10, 3, 0.05), res, 3) for n in ("safe", "safe_anytime")]
+    both = safe_table(rows, [], 3)
+    assert both.splitlines()[0].startswith("| learner | target_miss | scenario |")
+    assert (
+        "| safe | 0.05 | paper | 1/1 |" in both and "| safe_anytime | 0.05 | paper | 1/1 |" in both
+    )
+    assert safe_table(rows[:1], [], 3).splitlines()[0].startswith("| target_miss | scenario |")
+
+
+def test_a_failed_run_stops_the_benchmark_at_once_naming_it(tmp_path):
+    """A run that raises (a scenario that does not exist, past the grid's checks) ends the
+    benchmark with its name, and the runs not begun are not run (before, the pool ran every
+    queued run and then raised)."""
+    from irdrc.bench.online import Config, execute
+
+    cfg = Config(workers=1)
+    bad = Job("posterior", "nowhere", 10, 2)
+    rest = [Job("posterior", "paper", s, 2) for s in range(10, 14)]
+    with pytest.raises(RuntimeError, match="run posterior__nowhere__10 failed"):
+        execute(cfg, [bad, *rest], tmp_path)
+    assert len(list((tmp_path / "runs").iterdir())) <= 1
+
+
 def test_the_calibration_note_holds_each_plans_stated_spread_against_its_true_miss():
     """Every hand-made plan's exact miss is 0.045 (``history``): posterior means 0.0445, 0.048
     and 0.06 with sd 0.001 put it 0.5, 3 and 15 sds away; a radar-everywhere plan (sd 0, its mean
@@ -206,6 +233,7 @@ def test_the_benchmark_runs_every_kind_of_job_writes_its_files_and_resumes(tmp_p
         ("scenarios=[nowhere]", "scenarios[0]='nowhere' must be one of"),
         ("window=300", "window=300 must be <= episodes=200"),
         ("safe_targets=[1.5]", "safe_targets"),
+        ("safe_learners=[dqn]", "safe_learners: 'dqn' must be one of safe, safe_anytime"),
     ],
 )
 def test_the_benchmark_refuses_a_bad_grid_before_any_work(override, message):

@@ -32,7 +32,7 @@ from irdrc.bench.online_tables import (
 )
 from irdrc.bench.random_scenarios import REPORTING, Draw, contested_draws
 from irdrc.core.checks import INT, build, check_bool, check_list, check_numbers, numbers
-from irdrc.online.configs import LEARNERS, PROFILES
+from irdrc.online.configs import LEARNERS, PROFILES, SAFE_LEARNERS
 from irdrc.runs.compose import Composed
 from irdrc.runs.grid import require_runs
 from irdrc.runs.sections import one_vehicle_scenarios, seeds
@@ -67,6 +67,7 @@ class Config:
     episodes: int = 200
     window: int = 170
     safe_targets: tuple[float, ...] = (0.05, 0.1)
+    safe_learners: tuple[str, ...] = ("safe",)
     safe_scenarios: tuple[str, ...] = ("paper", "multilevel", "persistent")
     safe_seeds: tuple[int, ...] = (10, 11, 12)
     lagrangian_seeds: tuple[int, ...] = (10,)
@@ -75,7 +76,7 @@ class Config:
     optimum_gamma: float = 0.99
 
     def __post_init__(self) -> None:
-        learners = [n for n in LEARNERS if n != "safe"]
+        learners = [n for n in LEARNERS if n not in SAFE_LEARNERS]
         scenarios = one_vehicle_scenarios("scenarios", self.scenarios, empty=True)
         object.__setattr__(self, "scenarios", scenarios)
         object.__setattr__(self, "seeds", seeds("seeds", self.seeds))
@@ -83,6 +84,8 @@ class Config:
         object.__setattr__(self, "safe_seeds", seeds("safe_seeds", self.safe_seeds))
         for key in ("learners", "paper_learners", "random_learners"):
             object.__setattr__(self, key, _names(key, getattr(self, key), learners, True))
+        safe = _names("safe_learners", self.safe_learners, list(SAFE_LEARNERS))
+        object.__setattr__(self, "safe_learners", safe)
         object.__setattr__(
             self,
             "safe_scenarios",
@@ -222,7 +225,7 @@ def run_job(job: Job, gamma: float) -> dict[str, Any]:
     algo = {"episodes": job.episodes, **({"target_miss": job.target} if job.target else {})}
     cfg = learner_config(job.learner, algo)
     greedy_scorer = None
-    if job.learner == "safe":
+    if job.learner in SAFE_LEARNERS:
         from irdrc.online.safe import ConstrainedScorer
 
         greedy_scorer = ConstrainedScorer(scorer, job.target_miss)
@@ -264,7 +267,11 @@ def plan(cfg: Config, draws: list[Draw]) -> list[Job]:
     # the safe learner's runs stop at the window (its figures are read there)
     for target in cfg.safe_targets:
         for scenario in cfg.safe_scenarios:
-            jobs += [Job("safe", scenario, s, cfg.window, target) for s in cfg.safe_seeds]
+            jobs += [
+                Job(n, scenario, s, cfg.window, target)
+                for n in cfg.safe_learners
+                for s in cfg.safe_seeds
+            ]
             jobs += [
                 Job("dqn_lagrangian", scenario, s, cfg.window, target) for s in cfg.lagrangian_seeds
             ]
@@ -297,7 +304,11 @@ def execute(cfg: Config, jobs: list[Job], out: Path) -> tuple[dict[str, dict[str
         futures = {pool.submit(run_job, job, cfg.optimum_gamma): job for job in todo}
         for fut in cf.as_completed(futures):
             job = futures[fut]
-            result = fut.result()
+            try:
+                result = fut.result()
+            except Exception as err:  # stop at once: the runs not begun are cancelled
+                pool.shutdown(wait=False, cancel_futures=True)
+                raise RuntimeError(f"bench_online: run {job.name} failed: {err}") from err
             atomic_write_text(runs / f"{job.name}.json", json.dumps(_clean(result)))
             results[job.name] = result
             ticker.tick()
@@ -335,7 +346,7 @@ def run(cfg: Config, run: Run) -> int:
         result = results[job.name]
         if job.learner == "dqn_lagrangian":
             lag.append(lagrangian_row(job, result, scenario_params(job).env.horizon))
-        elif job.learner == "safe":
+        elif job.learner in SAFE_LEARNERS:
             safe.append(run_row(job, result, cfg.window))
         else:
             rows.append(run_row(job, result, cfg.window))
@@ -379,7 +390,9 @@ def run(cfg: Config, run: Run) -> int:
             for n in dict.fromkeys(
                 j.learner
                 for j in jobs
-                if j.scenario == scenario and j.learner in PROFILES and j.learner != "safe"
+                if j.scenario == scenario
+                and j.learner in PROFILES
+                and j.learner not in SAFE_LEARNERS
             )
         }
         plot_learners(

@@ -8,6 +8,7 @@ import math
 import statistics
 from typing import Any
 
+from irdrc.online.configs import SAFE_LEARNERS
 from irdrc.runs.results import md_table
 
 THRESHOLD = 0.99
@@ -40,7 +41,7 @@ def run_row(job: Any, result: dict[str, Any], window: int) -> dict[str, Any]:
         "slowest_decision": result.get("slowest_decision"),
         "wall_seconds": result["wall_seconds"],
     }
-    if job.learner == "safe":
+    if job.learner in SAFE_LEARNERS:
         cum = [
             r["cumulative_miss_detection"]
             for r in hist
@@ -130,17 +131,20 @@ def learner_table(rows: list[dict[str, Any]], window: int) -> str:
 
 
 def safe_table(rows: list[dict[str, Any]], lag: list[dict[str, Any]], window: int) -> str:
-    """The safe learner per (target, scenario), with the Lagrangian DQN's training beside it."""
+    """The safe learner per (target, scenario), with the Lagrangian DQN's training beside it; per
+    profile too, in a first column, where the rows hold more than one."""
     body = []
-    groups: dict[tuple[float, str], list[dict[str, Any]]] = {}
+    groups: dict[tuple[str, float, str], list[dict[str, Any]]] = {}
     for r in rows:
-        groups.setdefault((r["target_miss"], r["scenario"]), []).append(r)
-    for (target, scenario), mine in groups.items():
+        groups.setdefault((r["learner"], r["target_miss"], r["scenario"]), []).append(r)
+    several = len({learner for learner, _, _ in groups}) > 1
+    for (learner, target, scenario), mine in groups.items():
         theirs = [r for r in lag if r["target_miss"] == target and r["scenario"] == scenario]
         ratios = [r["lp_ratio"] for r in mine if r["lp_ratio"] is not None]
         beyond = [r["learning_regret"] for r in mine if r.get("learning_regret") is not None]
         body.append(
-            [
+            [learner] * several
+            + [
                 f"{target:g}",
                 scenario,
                 f"{sum(r['violations'] == 0 for r in mine)}/{len(mine)}",
@@ -162,7 +166,8 @@ def safe_table(rows: list[dict[str, Any]], lag: list[dict[str, Any]], window: in
             ]
         )
     return md_table(
-        [
+        ["learner"] * several
+        + [
             "target_miss",
             "scenario",
             "runs within the target at every evaluation",

@@ -51,8 +51,8 @@ _BLAS: Any = None
 
 def one_blas_thread() -> Any:
     """A context in which NumPy's and SciPy's BLAS run on one thread: an LU of a few hundred rows
-    split over threads takes longer at its slowest (10–15 ms on one thread, up to 100 ms on two of
-    a 2-core machine), and a vehicle waits for its slowest."""
+    split over threads is at its slowest several times longer than on one, and a vehicle waits for
+    its slowest decision."""
     global _BLAS
     from threadpoolctl import ThreadpoolController
 

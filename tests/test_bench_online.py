@@ -127,18 +127,44 @@ def test_with_both_safe_profiles_the_safe_table_names_each_in_a_first_column():
     assert safe_table(rows[:1], [], 3).splitlines()[0].startswith("| target_miss | scenario |")
 
 
-def test_a_failed_run_stops_the_benchmark_at_once_naming_it(tmp_path):
-    """A run that raises (a scenario that does not exist, past the grid's checks) ends the
-    benchmark with its name, and the runs not begun are not run (before, the pool ran every
-    queued run and then raised)."""
+def test_a_failed_run_stops_the_benchmark_at_once_naming_it(tmp_path, monkeypatch):
+    """A run that raises ends the benchmark with its name, and the runs not begun are cancelled
+    (before, the pool ran every queued run and then raised). The pool is a stand-in that finishes
+    the first run with an error and leaves the others queued."""
+    import concurrent.futures as cf
+
     from irdrc.bench.online import Config, execute
 
-    cfg = Config(workers=1)
-    bad = Job("posterior", "nowhere", 10, 2)
-    rest = [Job("posterior", "paper", s, 2) for s in range(10, 14)]
-    with pytest.raises(RuntimeError, match="run posterior__nowhere__10 failed"):
-        execute(cfg, [bad, *rest], tmp_path)
-    assert len(list((tmp_path / "runs").iterdir())) <= 1
+    calls = []
+
+    class Pool:
+        def __init__(self, *args, **kwargs):
+            self.futures = []
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            self.shutdown()
+
+        def submit(self, fn, job, gamma):
+            fut = cf.Future()
+            if not self.futures:
+                fut.set_exception(ValueError("no such scenario"))
+            self.futures.append(fut)
+            return fut
+
+        def shutdown(self, wait=True, cancel_futures=False):
+            calls.append(cancel_futures)
+            if cancel_futures:
+                for fut in self.futures:
+                    fut.cancel()
+
+    monkeypatch.setattr(cf, "ProcessPoolExecutor", Pool)
+    jobs = [Job("posterior", "paper", s, 2) for s in range(10, 14)]
+    with pytest.raises(RuntimeError, match="run posterior__paper__10 failed: no such scenario"):
+        execute(Config(workers=1), jobs, tmp_path)
+    assert calls[0] is True and list((tmp_path / "runs").iterdir()) == []
 
 
 def test_the_calibration_note_holds_each_plans_stated_spread_against_its_true_miss():

@@ -29,7 +29,7 @@ import numpy as np
 import torch
 
 from irdrc.core.cmdp import Constraint, InfeasibleTarget, LPResult, SolverFailed
-from irdrc.core.exact import ExactMDP
+from irdrc.core.exact import DenseModel, ExactMDP, FactoredModel
 
 TIE_TOL = 1e-9
 """Policy improvement keeps a state's action unless another's value beats it by more than this
@@ -63,12 +63,14 @@ def one_blas_thread() -> Any:
 
 def dense_transitions(model: ExactMDP) -> np.ndarray:
     """[A, S, S] P_a of every action as one dense array (a dense model's own; a factored model's
-    written from its factors)."""
-    if hasattr(model, "P"):
+    written from its factors, ``FactoredModel.dense``)."""
+    if isinstance(model, DenseModel):
         return np.asarray(model.P.to(torch.float64).cpu().numpy())
-    if hasattr(model, "dense"):
+    if isinstance(model, FactoredModel):
         return np.stack([model.dense(a) for a in range(model.num_actions)])
-    return np.stack([model.sparse(a).toarray() for a in range(model.num_actions)])
+    raise TypeError(
+        f"dense_transitions: a DenseModel or a FactoredModel, not {type(model).__name__}"
+    )
 
 
 class DualPlanner:

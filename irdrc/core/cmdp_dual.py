@@ -9,10 +9,19 @@ iteration. The LP's optimum is min over λ of that maximum, which is convex and 
 finds the best policy at λ = 0 (done, if it keeps the constraint), the one that keeps the
 constraint best (none keeps it: ``InfeasibleTarget``), and then walks to λ*, each time asking for
 the best policy where the lines of the best breaking one (C > 0) and the best keeping one (C ≤ 0)
-cross. When nothing beats their crossing there, both are optimal at λ*, and their occupation
-measures mixed so that the constraint binds are the LP's optimum: the policy
-π(a | s) = x(s, a) / Σ_a′ x(s, a′) randomises where the two differ, and takes radar (the last
-action) in states of zero occupancy, as the LP's policy does.
+cross. When nothing beats their crossing there, both are optimal at λ*, and so is every policy
+that takes, in each state, an action that attains the maximum of λ*'s optimality equation (the
+stable policy's q). The planner walks from the keeping one toward the breaking one through such
+policies, one state at a time (the state the current policy visits most among those where the two
+differ), until the constraint breaks; the last two policies differ in one state, and their
+occupation measures mixed so that the constraint binds are the LP's optimum: the policy
+π(a | s) = x(s, a) / Σ_a′ x(s, a′) randomises in that one state, and takes radar (the last action)
+in states of zero occupancy, as the LP's policy does. Mixing the two ends at once would also attain
+the optimum on paper, but where they live in different parts of the state space (a deep queue kept
+full, or kept drained) the mixture's own chain is balanced on flows of 1e-25, and the policy it
+gives does not keep the target. Where the walk cannot start (its keeping end, with λ*'s actions
+where its own do not attain the maximum, breaks the constraint) or reaches its breaking end still
+keeping it, the planner mixes the two ends after all.
 
 Its unit of work is one policy evaluation: an LU factorisation of the S × S chain (``advance``).
 Policy iteration assumes every policy's chain has one recurrent class (the model's Poisson arrivals
@@ -99,10 +108,13 @@ class DualPlanner:
         self.policy = np.full(S, A - 1) if start is None else np.asarray(start, dtype=np.int64)
         if self.policy.shape != (S,):
             raise ValueError(f"start has shape {tuple(self.policy.shape)}, expected ({S},)")
-        self.stage = 0  # 0: the best at λ = 0; 1: the constraint kept best; 2: towards λ*
+        # 0: the best at λ = 0; 1: the constraint kept best; 2: towards λ*; 3: the walk at λ*
+        self.stage = 0
         self.lam = 0.0
         self.lo: Line | None = None  # the best breaking policy found
         self.hi: Line | None = None  # the best keeping one
+        self.walk: Line | None = None  # the walk's last keeping policy (None: its first step)
+        self.toward: np.ndarray | None = None  # where the walk goes: the breaking end
         self.evaluations = 0
 
     def _reward(self) -> np.ndarray:
@@ -168,7 +180,8 @@ class DualPlanner:
         return LPResult(occupancy=occ, policy=policy, value=value, message="dual: optimal")
 
     def step(self) -> LPResult | None:
-        """One policy evaluation (and improvement); the result once the optimum is reached.
+        """One policy evaluation (and improvement, or a step of the walk); the result once the
+        optimum is reached.
 
         Raises:
             InfeasibleTarget: no policy keeps the constraint.
@@ -181,9 +194,12 @@ class DualPlanner:
             gain, h, mu = self._evaluate(r)
             q = r + self.P @ h  # [A, S]
         self.evaluations += 1
+        if self.stage == 3:
+            return self._walk_step(self._line(self.policy, mu))
         S = len(self.policy)
         best = q.max(0)
-        keep = q[self.policy, np.arange(S)] >= best - TIE_TOL * max(1.0, float(np.abs(best).max()))
+        optimal = q >= best - TIE_TOL * max(1.0, float(np.abs(best).max()))
+        keep = optimal[self.policy, np.arange(S)]
         improved = np.where(keep, self.policy, q.argmax(0))
         if not np.array_equal(improved, self.policy):
             self.policy = improved
@@ -204,20 +220,50 @@ class DualPlanner:
             self._cross()
             return None
         assert self.lo is not None and self.hi is not None
-        (pl, tl, cl, ml), (ph, _, ch, mh) = self.lo, self.hi
-        crossing = tl - self.lam * cl
+        crossing = self.lo[1] - self.lam * self.lo[2]
         if gain <= crossing + TIE_TOL * max(1.0, abs(crossing)) or (
-            np.array_equal(self.policy, pl) or np.array_equal(self.policy, ph)
+            np.array_equal(self.policy, self.lo[0]) or np.array_equal(self.policy, self.hi[0])
         ):
-            # the weight of the breaking policy that makes C bind (C ≤ KEEP_TOL counts as kept)
-            w = min(max(-ch / (cl - ch), 0.0), 1.0)
-            return self._result([(w, pl, ml), (1.0 - w, ph, mh)])
+            # both ends are optimal at λ*: walk between them through the policies that attain
+            # λ*'s maximum everywhere (each end with its own action wherever that attains it)
+            def attaining(pol: np.ndarray) -> np.ndarray:
+                return np.where(optimal[pol, np.arange(S)], pol, self.policy)
+
+            self.stage, self.walk = 3, None
+            self.toward, self.policy = attaining(self.lo[0]), attaining(self.hi[0])
+            return None
         if line[2] > KEEP_TOL:
             self.lo = line
         else:
             self.hi = line
         self._cross()
         return None
+
+    def _mix(self, breaking: Line, keeping: Line) -> LPResult:
+        """The two policies' occupation measures mixed so that C binds (C ≤ KEEP_TOL counts as
+        kept)."""
+        (pb, _, cb, mb), (pk, _, ck, mk) = breaking, keeping
+        w = min(max(-ck / (cb - ck), 0.0), 1.0)  # the breaking policy's weight
+        return self._result([(w, pb, mb), (1.0 - w, pk, mk)])
+
+    def _walk_step(self, line: Line) -> LPResult | None:
+        """The walk at λ*, given the line of the policy just evaluated: the result once the
+        constraint breaks (or the two ends' mixture, where the walk cannot start or finish)."""
+        assert self.lo is not None and self.hi is not None and self.toward is not None
+        if line[2] > KEEP_TOL:  # broken: the last keeping policy and this one differ in a state
+            return self._mix(line, self.walk) if self.walk is not None else self._ends()
+        self.walk = line
+        differ = np.flatnonzero(self.policy != self.toward)
+        if not differ.size:  # the breaking end keeps the constraint after all
+            return self._ends()
+        s = differ[np.argmax(line[3][differ])]
+        self.policy = self.policy.copy()
+        self.policy[s] = self.toward[s]
+        return None
+
+    def _ends(self) -> LPResult:
+        assert self.lo is not None and self.hi is not None
+        return self._mix(self.lo, self.hi)
 
     def advance(self, evaluations: int) -> LPResult | None:
         """Up to ``evaluations`` steps; the result as soon as it is reached, else None."""
@@ -242,6 +288,8 @@ class DualPlanner:
             "lam": self.lam,
             "lo": None if self.lo is None else _line_state(self.lo),
             "hi": None if self.hi is None else _line_state(self.hi),
+            "walk": None if self.walk is None else _line_state(self.walk),
+            "toward": None if self.toward is None else self.toward.tolist(),
             "evaluations": self.evaluations,
         }
 
@@ -257,6 +305,9 @@ class DualPlanner:
             return (np.asarray(v[0], dtype=np.int64), float(v[1]), float(v[2]), np.asarray(v[3]))
 
         self.lo, self.hi = line(state["lo"]), line(state["hi"])
+        self.walk = line(state.get("walk"))
+        toward = state.get("toward")
+        self.toward = None if toward is None else np.asarray(toward, dtype=np.int64)
 
 
 def _line_state(line: Line) -> tuple[list[int], float, float, list[float]]:

@@ -156,6 +156,52 @@ def test_a_deep_queue_gets_a_policy_whose_own_chain_keeps_the_target():
     assert dual.value == pytest.approx(solve_lp(transitions(model), obj, con).value, rel=1e-7)
 
 
+@pytest.mark.parametrize("name", ["paper", "persistent"])
+def test_the_sparse_chain_plans_as_the_dense_one(models, name):
+    """SuperLU on the sparse rows (``transitions``) against the dense LU: the same evaluations,
+    the same policy and value to rounding (1e-12)."""
+    model = models[name]
+    obj, con = objective_table(model, "throughput"), build_constraints(model, 0.05)[0]
+    dense, sparse = (
+        DualPlanner(dense_transitions(model), obj, con),
+        DualPlanner(transitions(model), obj, con),
+    )
+    a, b = dense.solve(), sparse.solve()
+    assert sparse.rows is not None and dense.evaluations == sparse.evaluations
+    assert b.value == pytest.approx(a.value, rel=1e-12)
+    assert torch.allclose(a.policy, b.policy, atol=1e-12, rtol=0)
+
+
+def test_above_sparse_from_states_solve_dual_takes_the_sparse_chain(monkeypatch):
+    """``chain`` gives the paper model's 352 states the dense chain; with ``SPARSE_FROM_STATES``
+    lowered under them, ``solve_dual`` on its factored model plans on the sparse chain
+    (``transitions`` called; the dense one refused) and reaches the LP's value (1e-7, as above)."""
+    from irdrc.core.exact import build_factored
+
+    model = build_factored(Params())
+    assert isinstance(cmdp_dual.chain(model), np.ndarray)
+    obj, con = objective_table(model, "throughput"), build_constraints(model, 0.05)
+    lp = solve_lp(transitions(model), obj, con)
+    calls = []
+    monkeypatch.setattr(cmdp_dual, "SPARSE_FROM_STATES", 300)
+    monkeypatch.setattr(cmdp_dual, "transitions", lambda m: calls.append(m) or transitions(m))
+    monkeypatch.setattr(cmdp_dual, "dense_transitions", None)  # calling it fails
+    assert solve_dual(model, obj, con[0]).value == pytest.approx(lp.value, rel=1e-7)
+    assert calls == [model]
+
+
+def test_a_singular_sparse_chain_stops_the_planner():
+    """The two absorbing states of the dense case below, as sparse matrices: SuperLU's singular
+    factor is said as the dense one is."""
+    from scipy import sparse
+
+    P = [sparse.identity(2, format="csr"), sparse.identity(2, format="csr")]
+    obj = torch.ones(2, 2, dtype=torch.float64)
+    con = Constraint("c", torch.zeros(2, 2, dtype=torch.float64), 0.0)
+    with pytest.raises(cmdp_dual.SolverFailed, match="more than one recurrent class"):
+        DualPlanner(P, obj, con).solve()
+
+
 def test_a_factored_models_dense_chain_is_its_sparse_one():
     """``FactoredModel.dense`` writes the entries ``sparse`` holds, for both actions, on a model
     with bursty arrivals (several queue dynamics per action)."""
@@ -176,3 +222,18 @@ def test_a_singular_chain_stops_the_planner():
     con = Constraint("c", torch.zeros(2, 2, dtype=torch.float64), 0.0)
     with pytest.raises(cmdp_dual.SolverFailed, match="more than one recurrent class"):
         DualPlanner(P, obj, con).solve()
+
+
+def test_a_sparse_lu_past_memory_is_said_in_one_line(monkeypatch):
+    """SuperLU's MemoryError (``env=large``: 100 800 states) becomes ``SolverFailed`` naming the
+    chain's size and what makes it smaller (the recipes answer it in one line)."""
+    import scipy.sparse.linalg
+
+    def no_memory(_):
+        raise MemoryError
+
+    monkeypatch.setattr(scipy.sparse.linalg, "splu", no_memory)
+    model = build_model(Params())
+    obj, con = objective_table(model, "throughput"), build_constraints(model, 0.05)[0]
+    with pytest.raises(cmdp_dual.SolverFailed, match="S = 352 states does not fit in memory"):
+        DualPlanner(transitions(model), obj, con).solve()

@@ -48,6 +48,31 @@ def test_single_target_writes_the_lp_optimum(tmp_path):
     assert "radar with probability" in res.stdout
 
 
+def test_the_dual_writes_the_lps_optimum_past_the_dense_limit(tmp_path):
+    """``learner=dual`` on a 181-packet queue (S = 5 824, just past the dense limit: the factored model
+    and SuperLU): the optimum the LP reaches at the paper's 10 packets, whose queue the optimum
+    keeps full (0.4131933 packets a step, tests/test_cmdp_dual.py), its miss detection the target
+    (1e-9), randomising in the one full-queue favourable state."""
+    res = run(tmp_path, "learner=dual", "target_miss=0.05", "env.queue_capacity=181")
+    assert res.returncode == 0, res.stderr
+    s = json.loads((tmp_path / "summary.json").read_text())
+    assert s["value"] == pytest.approx(0.4131933414, rel=1e-9)
+    assert s["optimal"]["miss_detection"] == pytest.approx(0.05, abs=1e-9)
+    assert s["randomised_states"] == 1 and "the LP's Lagrangian dual over 5824 states" in res.stdout
+    assert "d=181 c=0 r=0 w=0 v=0 m=0: radar with probability" in res.stdout
+
+
+def test_the_dual_refuses_what_only_the_lp_solves(tmp_path):
+    for name, args, said in [
+        ("a", ["max_drop=0.1"], "learner=dual handles target_miss alone (use learner=lp"),
+        ("b", ["frontier=true"], "learner=dual solves one scenario's whole-step modes"),
+        ("c", ["env.actions=continuous"], "learner=dual solves one scenario's whole-step modes"),
+    ]:
+        res = run(tmp_path / name, "learner=dual", *args)
+        assert res.returncode == 2 and said in res.stderr, res.stderr
+        assert not (tmp_path / name).exists()
+
+
 def test_frontier_writes_csvs_figure_and_the_r4_table(tmp_path):
     res = run(
         tmp_path,

@@ -279,15 +279,24 @@ def test_a_safe_runs_figure_is_read_against_its_own_goal(monkeypatch, tmp_path):
     assert lines(miss)["optimum (floor)"] == [0.0, 5.0, 10.0, 15.0, 20.0]
 
 
-def test_beside_its_acting_the_safe_learner_adopts_the_lps_optimum_of_its_data(paper_scorer):
+@pytest.mark.parametrize("sparse", [False, True], ids=["dense", "sparse"])
+def test_beside_its_acting_the_safe_learner_adopts_the_lps_optimum_of_its_data(
+    paper_scorer, monkeypatch, sparse
+):
     """``learner=safe_anytime`` on the paper scenario at m* = 0.1: each plan begun (before
     episodes 0, 1, 2, 4) comes into force, ``observe`` saying so on that step alone, a batch of
     sweeps, the model and its policy evaluations after its data; each is radar everywhere where the
     LP on its model finds the target out of reach, and else attains the LP's optimum there (to
     2e-7, HiGHS's tolerance) with the target met. Planned at the wrong target (the mutation), the
-    plans send more than that LP allows."""
+    plans send more than that LP allows. With ``SPARSE_FROM_STATES`` lowered under the model's
+    352 states, every plan is made on the sparse chain (``cmdp_dual.chain``) to the same end."""
+    from irdrc.core import cmdp_dual
     from irdrc.core.cmdp import build_constraints, objective_table, solve_lp, transitions
     from irdrc.core.exact import stationary_metrics
+
+    if sparse:
+        monkeypatch.setattr(cmdp_dual, "SPARSE_FROM_STATES", 100)
+    kinds = []
 
     def run(mutate: bool) -> tuple[SafeLearner, list, list[bool]]:
         cfg = configs.learner_config("safe_anytime", {"episodes": 5, "target_miss": 0.1})
@@ -301,6 +310,7 @@ def test_beside_its_acting_the_safe_learner_adopts_the_lps_optimum_of_its_data(p
             if mutate:
                 learner.cfg = dataclasses.replace(cfg, target_miss=0.3)
             begin(est)
+            kinds.append(learner.planner.rows is not None)
             learner.cfg = cfg
 
         def adopted(plan):
@@ -333,7 +343,7 @@ def test_beside_its_acting_the_safe_learner_adopts_the_lps_optimum_of_its_data(p
         metrics = stationary_metrics(model, plan)
         assert metrics.throughput == pytest.approx(lp.value, rel=2e-7)
         assert metrics.miss_detection <= 0.1 + 1e-9
-    assert feasible >= 2
+    assert feasible >= 2 and kinds == [sparse] * 4
 
     mutant, made, _ = run(True)
     est, plan = made[-1]

@@ -56,7 +56,7 @@ from irdrc.core.cmdp import (
     solve_lp,
     transitions,
 )
-from irdrc.core.cmdp_dual import DualPlanner, dense_transitions
+from irdrc.core.cmdp_dual import DualPlanner, chain
 from irdrc.core.params import Params
 from irdrc.core.stream import Step
 from irdrc.online.configs import SafeConfig
@@ -163,7 +163,7 @@ class SafeLearner(StreamLearner):
         model = self.counts.model(est)
         self.pending_estimate = est
         self.planner = DualPlanner(
-            dense_transitions(model),
+            chain(model),
             objective_table(model, "throughput"),
             build_constraints(model, self.cfg.target_miss)[0],
             start=self.warm,

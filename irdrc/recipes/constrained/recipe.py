@@ -1,9 +1,11 @@
 """``recipes/constrained.py``: the most data subject to a miss-detection target (MODEL.md § A),
-solved exactly by the LP of ``irdrc.core.cmdp`` beside the reward-optimal policy; with
-``frontier=true`` the whole frontier against the r4 route (``irdrc.recipes.constrained.frontier``); with
+solved exactly by the LP of ``irdrc.core.cmdp`` beside the reward-optimal policy (``learner=dual``:
+the same optimum on the LP's Lagrangian dual, ``irdrc.core.cmdp_dual``); with ``frontier=true`` the
+whole frontier against the r4 route (``irdrc.recipes.constrained.frontier``); with
 ``learner=dqn_lagrangian`` learned too (``irdrc.agents.lagrangian``), scored exactly against the LP.
 
     python recipes/constrained.py target_miss=0.05               # LP optimum, summary.json, policy.csv
+    python recipes/constrained.py learner=dual env.queue_capacity=1000   # the dual: S = 32 032
     python recipes/constrained.py target_miss=0.05 max_drop=0.01 min_radar=0.5
     python recipes/constrained.py frontier=true                  # frontier vs the r4 route
     python recipes/constrained.py learner=dqn_lagrangian target_miss=0.05 seed=3
@@ -39,7 +41,7 @@ ALGO_KEYS = OffPolicyConfig.keys()
 SWEEP_DEFAULTS = ("progress=false", "logger=none")
 """What a sweep gives every trial of this recipe before its own overrides (which may change it)."""
 RESUMABLE = True
-LEARNERS = ("lp", "dqn_lagrangian")
+LEARNERS = ("lp", "dual", "dqn_lagrangian")
 """``learner``: ``lp`` solves exactly; ``dqn_lagrangian`` also learns and is scored against it."""
 MU_FIELDS = ("env_steps", "mu", "measured_miss", "cumulative_miss")
 """Columns of ``mu.csv``: the multiplier, the learner's measured miss detection, and the cumulative
@@ -156,6 +158,18 @@ class Config(Learning):
                     )
         if self.frontier:
             check_speeds("frontier_grid.p1_speed", self.frontier_grid.p1_speed, self.params)
+        if self.learner == "dual":
+            if self.frontier or actions != "binary":
+                raise ValueError(
+                    "learner=dual solves one scenario's whole-step modes (env.actions=binary, "
+                    "frontier=false); the others are learner=lp's"
+                )
+            for key in ("max_drop", "min_radar"):
+                if getattr(self, key) is not None:
+                    raise ValueError(
+                        f"{key}={getattr(self, key)}: learner=dual handles target_miss alone "
+                        f"(use learner=lp for {key})"
+                    )
         if self.learner == "dqn_lagrangian":
             if self.frontier:
                 raise ValueError("learner=dqn_lagrangian learns one target: use frontier=false")
@@ -235,11 +249,12 @@ def describe_randomised(sol: Any, levels: Sequence[int] | None = None) -> list[s
 
 
 def solve_lp(cfg: Config, run: Run) -> dict[str, Any]:
-    """Solve the constrained problem exactly; print it beside the reward-optimal policy; write
-    ``policy.csv`` (with ``p_radar``); return the summary (the LP optimum's exact metrics under
-    ``optimal`` and ``metrics``)."""
+    """Solve the constrained problem exactly (the LP, or with ``learner=dual`` its Lagrangian
+    dual); print it beside the reward-optimal policy; write ``policy.csv`` (with ``p_radar``);
+    return the summary (the optimum's exact metrics under ``optimal`` and ``metrics``)."""
     from irdrc.core.cmdp import solve_cmdp
-    from irdrc.core.exact import stationary_metrics, value_iteration
+    from irdrc.core.cmdp_dual import solve_cmdp_dual
+    from irdrc.core.exact import build_factored, stationary_metrics, value_iteration
     from irdrc.core.metrics import format_table
     from irdrc.runs.progress import lp_notice
     from irdrc.runs.report import table_dict
@@ -247,9 +262,15 @@ def solve_lp(cfg: Config, run: Run) -> dict[str, Any]:
     from irdrc.runs.tables import write_policy_csv
 
     t0 = time.perf_counter()
-    model = lp_model(cfg.params)
-    lp_notice(model.num_states)
-    sol = solve_cmdp(model, **cfg.constraints)
+    if cfg.learner == "dual":  # the factored model: its sparse chain holds the arrivals' reach
+        model: ExactMDP = build_factored(cfg.params)
+        sol = solve_cmdp_dual(model, cfg.target_miss, cfg.objective)
+        how = f"the LP's Lagrangian dual over {model.num_states} states"
+    else:
+        model = lp_model(cfg.params)
+        lp_notice(model.num_states)
+        sol = solve_cmdp(model, **cfg.constraints)
+        how = f"exact LP over {model.num_actions * model.num_states} occupation variables"
     wall = time.perf_counter() - t0
     tol = 1e-9 if fits_dense(cfg.params) else 1e-6
     reward_opt = stationary_metrics(
@@ -260,8 +281,8 @@ def solve_lp(cfg: Config, run: Run) -> dict[str, Any]:
         for name, (_, bound) in sol.constraints.items()
     )
     print(
-        f"scenario={run.scenario}: maximise {sol.objective} subject to {bounds} — exact LP over "
-        f"{model.num_actions * model.num_states} occupation variables, {wall:.2f} s"
+        f"scenario={run.scenario}: maximise {sol.objective} subject to {bounds} — {how}, "
+        f"{wall:.2f} s"
     )
     print(
         f"optimum: {sol.objective} {sol.value:.6g} per step; randomises in "
@@ -269,7 +290,10 @@ def solve_lp(cfg: Config, run: Run) -> dict[str, Any]:
     )
     for line in describe_randomised(sol, cfg.params.env.factor_levels):
         print(line)
-    rows = {"constrained optimum (LP)": sol.metrics, "reward-optimal (value iteration)": reward_opt}
+    name = (
+        "constrained optimum (LP's dual)" if cfg.learner == "dual" else "constrained optimum (LP)"
+    )
+    rows = {name: sol.metrics, "reward-optimal (value iteration)": reward_opt}
     print("\nexact long-run metrics:\n")
     print(format_table(rows))
     write_policy_csv(run.dir / "policy.csv", sol.policy, cfg.params.env.factor_levels)

@@ -163,8 +163,8 @@ def test_the_printed_ledger_says_when_the_greedy_policy_first_reached_099(
         ),
         (
             ["learner=safe_anytime", "env=large"],
-            "learner=safe_anytime evaluates its policies on the dense chain of all S = 100800 "
-            "states whenever its data doubles: it runs on scenarios of at most 5792 states",
+            "learner=safe_anytime evaluates its policies on the chain of all S = 100800 states "
+            "whenever its data doubles: it runs on scenarios of at most 5792 states",
         ),
     ],
 )

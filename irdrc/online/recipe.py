@@ -97,7 +97,7 @@ def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
             plans = (
                 "solves an LP over all S = {S} states before its first episode and"
                 if cfg.algo.evaluations_per_step == 0
-                else "evaluates its policies on the dense chain of all S = {S} states"
+                else "evaluates its policies on the chain of all S = {S} states"
             )
             raise ValueError(
                 f"learner={cfg.learner} {plans.format(S=cfg.params.env.num_states)} whenever its "

@@ -64,10 +64,9 @@ Line = tuple[np.ndarray, float, float, np.ndarray]
 and its stationary distribution."""
 
 SPARSE_FROM_STATES = 3_000
-"""``chain`` gives the sparse chain (SuperLU) to models of more states than this, the dense one
-(LAPACK's LU) to the others: the faster of the two on either side on the paper's model (whole
-solves at m* = 0.05, one thread: 1 312 states 0.74 s dense, 1.13 s sparse; 4 832 states 20.3 s
-dense, 3.0 s sparse)."""
+"""``chain`` gives the sparse chain (SuperLU) to factored models of more states than this, the
+dense one (LAPACK's LU) to the others: the faster of the two on either side (whole solves on the
+paper's model with deeper queues)."""
 
 MAX_EVALUATIONS = 10_000
 """Policy evaluations one plan may take before ``SolverFailed`` (tens are usual)."""

@@ -120,6 +120,31 @@ class CMDPSolution:
         """[S] probability of the radar action (the last) per state."""
         return self.policy[:, -1]
 
+    @classmethod
+    def of(
+        cls,
+        lp: LPResult,
+        objective: str,
+        metrics: Metrics,
+        constraints: dict[str, tuple[float, float]],
+        lp_value: float,
+    ) -> CMDPSolution:
+        """The solution of a solver's ``lp`` (its policy and occupancy) whose policy has the exact
+        ``metrics``: the states it randomises in (with occupancy) and those it never visits."""
+        mass = lp.occupancy.sum(0)
+        several = (lp.policy > RANDOMISED_TOL).sum(-1) > 1
+        return cls(
+            policy=lp.policy,
+            occupancy=lp.occupancy,
+            objective=objective,
+            value=float(getattr(metrics, objective)),
+            metrics=metrics,
+            randomised=(several & (mass > 0)).nonzero().flatten().tolist(),
+            unvisited=(mass <= 0).nonzero().flatten().tolist(),
+            constraints=constraints,
+            lp_value=lp_value,
+        )
+
 
 _RUNNING: set[int] = set()
 """The ids of ``interruptible``'s calls still running (a thread's ``is_alive`` is not to be
@@ -397,22 +422,9 @@ def _solve_once(
         gain = float(getattr(alt, objective)) > float(getattr(metrics, objective))
         if alt.miss_detection <= target_miss and (gain or not meets):
             lp, metrics = first, alt
-    mass = lp.occupancy.sum(0)
-    several = (lp.policy > RANDOMISED_TOL).sum(-1) > 1
-    randomised = (several & (mass > 0)).nonzero().flatten().tolist()
     achieved = {"miss_detection": (metrics.miss_detection, float(target_miss))}
     if max_drop is not None:
         achieved["drop_rate"] = (metrics.drop_rate, float(max_drop))
     if min_radar is not None:
         achieved["radar_fraction"] = (metrics.radar_fraction, float(min_radar))
-    return CMDPSolution(
-        policy=lp.policy,
-        occupancy=lp.occupancy,
-        objective=objective,
-        value=float(getattr(metrics, objective)),
-        metrics=metrics,
-        randomised=randomised,
-        unvisited=(mass <= 0).nonzero().flatten().tolist(),
-        constraints=achieved,
-        lp_value=best,
-    )
+    return CMDPSolution.of(lp, objective, metrics, achieved, best)

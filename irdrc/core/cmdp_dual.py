@@ -40,7 +40,6 @@ import numpy as np
 import torch
 
 from irdrc.core.cmdp import (
-    RANDOMISED_TOL,
     CMDPSolution,
     Constraint,
     InfeasibleTarget,
@@ -407,16 +406,5 @@ def solve_cmdp_dual(
     except InfeasibleTarget as e:
         raise InfeasibleTarget(f"target_miss={target_miss:g} is out of reach: {e}") from None
     metrics = stationary_metrics(model, result.policy.to(model.device))
-    mass = result.occupancy.sum(0)
-    several = (result.policy > RANDOMISED_TOL).sum(-1) > 1
-    return CMDPSolution(
-        policy=result.policy,
-        occupancy=result.occupancy,
-        objective=objective,
-        value=float(getattr(metrics, objective)),
-        metrics=metrics,
-        randomised=(several & (mass > 0)).nonzero().flatten().tolist(),
-        unvisited=(mass <= 0).nonzero().flatten().tolist(),
-        constraints={"miss_detection": (metrics.miss_detection, float(target_miss))},
-        lp_value=result.value,
-    )
+    achieved = {"miss_detection": (metrics.miss_detection, float(target_miss))}
+    return CMDPSolution.of(result, objective, metrics, achieved, result.value)

@@ -3,6 +3,8 @@ against the LP and a hand-solved case, step by step as in one go, and resumed mi
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import pytest
 import torch
@@ -132,8 +134,8 @@ def test_step_by_step_and_resumed_midway_it_ends_where_one_solve_ends(models):
     broken.load_state_dict({**saved, "lo": None, "hi": None, "stage": 0, "lam": 0.0})
     broken.solve()
     assert broken.evaluations > one_go.evaluations
-    lost = DualPlanner(P, obj, con[0])  # mid-walk without the walk's last keeping policy
-    lost.load_state_dict({**walking, "walk": None})
+    lost = DualPlanner(P, obj, con[0])  # mid-walk without the walk's own state
+    lost.load_state_dict({k: v for k, v in walking.items() if k not in ("walk", "stride")})
     assert not torch.equal(lost.solve().policy, whole.policy)
 
 
@@ -154,6 +156,67 @@ def test_a_deep_queue_gets_a_policy_whose_own_chain_keeps_the_target():
     assert metrics.throughput == pytest.approx(dual.value, rel=1e-9)
     assert metrics.miss_detection == pytest.approx(0.05, abs=1e-9)
     assert dual.value == pytest.approx(solve_lp(transitions(model), obj, con).value, rel=1e-7)
+
+
+def test_the_search_takes_the_first_policy_that_keeps_the_constraint(models):
+    """After the best policy at λ = 0 breaks the target, the search needs only a policy that keeps
+    it: the one that keeps it best one step ahead (radar wherever an event can be missed) does on
+    the paper's model, and one evaluation of it is all of stage 1 (policy iteration on the
+    constraint from the breaking policy, the mutation, takes more)."""
+    model = models["paper"]
+    obj, con = objective_table(model, "throughput"), build_constraints(model, 0.05)
+
+    def stage_one(planner: DualPlanner) -> int:
+        stages = []
+        while True:
+            stages.append(planner.stage)
+            if planner.step() is not None:
+                return stages.count(1)
+
+    assert stage_one(DualPlanner(dense_transitions(model), obj, con[0])) == 1
+    slow = DualPlanner(dense_transitions(model), obj, con[0])
+    while slow.stage == 0:
+        slow.step()
+    slow.policy = slow.lo[0].copy()  # stage 1 from the breaking policy
+    assert stage_one(slow) > 1
+
+
+def test_a_long_walk_takes_logarithmically_many_evaluations():
+    """A walk of 256 states at λ* whose constraint breaks once 100 of them are switched (every
+    policy's chain draws the next state uniformly; the constraint counts comm states). One state a
+    step, it would take 101 evaluations; switching twice as many after each keeping policy and
+    half as many after each breaking one, it takes at most 2·log₂ 256 + 2, and ends randomising
+    in one state with the constraint binding."""
+    S, broken_at = 256, 100
+    P = np.full((2, S, S), 1.0 / S)
+    coef = torch.stack([torch.ones(S), torch.zeros(S)]).to(torch.float64)
+    con = Constraint("c", coef, (broken_at - 0.5) / S)
+    planner = DualPlanner(P, coef.clone(), con)
+    planner.stage, planner.toward = 3, np.zeros(S, dtype=np.int64)  # from radar toward comm
+    out = planner.solve()
+    assert planner.evaluations <= 2 * 8 + 2
+    assert int(((out.policy > 1e-9).sum(1) > 1).sum()) == 1
+    assert float((out.occupancy * coef).sum()) == pytest.approx(con.bound, abs=1e-12)
+
+
+def test_policy_iteration_that_comes_back_to_a_policy_stops_at_once(models, monkeypatch):
+    """Evaluations too coarse to rank the actions (made here to favour comm everywhere, then radar
+    everywhere) send policy iteration round a cycle, which exact arithmetic never does: the planner
+    stops with ``SolverFailed`` at the first return, not after ``MAX_EVALUATIONS``."""
+    model = models["paper"]
+    obj, con = objective_table(model, "throughput"), build_constraints(model, 0.05)
+    planner = DualPlanner(dense_transitions(model), obj, con[0])
+    flip = itertools.cycle([0, 1])
+
+    def coarse(h: np.ndarray) -> np.ndarray:
+        q = np.zeros((2, len(h)))
+        q[next(flip)] = 1e3
+        return q
+
+    monkeypatch.setattr(planner, "_expect", coarse)
+    with pytest.raises(cmdp_dual.SolverFailed, match="came back to a policy it had left"):
+        planner.solve()
+    assert planner.evaluations == 2
 
 
 @pytest.mark.parametrize("name", ["paper", "persistent"])

@@ -1,38 +1,43 @@
 """The constrained problem of one constraint solved on its Lagrangian dual (MODEL.md § A), a little
-work at a time: the LP's optimum (``irdrc.core.cmdp.solve_lp``), for models small enough to hold
-their chains as dense matrices.
+work at a time: the LP's optimum (``irdrc.core.cmdp.solve_lp``), on the model's chains held as dense
+or sparse matrices.
 
 For a multiplier λ ≥ 0, the policies that maximise the long-run average of J − λ·c (J the
 objective, c the constraint's coefficients less its bound) are found by average-reward policy
 iteration. The LP's optimum is min over λ of that maximum, which is convex and piecewise linear in
 λ, each piece a policy's line T − λ·C (T its objective, C its constraint, per step). The planner
-finds the best policy at λ = 0 (done, if it keeps the constraint), the one that keeps the
-constraint best (none keeps it: ``InfeasibleTarget``), and then walks to λ*, each time asking for
+finds the best policy at λ = 0 (done, if it keeps the constraint), then a policy that keeps the
+constraint (policy iteration on the constraint alone, from the policy that keeps it best one step
+ahead, stopped at the first that keeps it; none: ``InfeasibleTarget``), and walks to λ*, asking for
 the best policy where the lines of the best breaking one (C > 0) and the best keeping one (C ≤ 0)
 cross. When nothing beats their crossing there, both are optimal at λ*, and so is every policy
 that takes, in each state, an action that attains the maximum of λ*'s optimality equation (the
 stable policy's q). The planner walks from the keeping one toward the breaking one through such
-policies, one state at a time (the state the current policy visits most among those where the two
-differ), until the constraint breaks; the last two policies differ in one state, and their
-occupation measures mixed so that the constraint binds are the LP's optimum: the policy
-π(a | s) = x(s, a) / Σ_a′ x(s, a′) randomises in that one state, and takes radar (the last action)
-in states of zero occupancy, as the LP's policy does. Mixing the two ends at once would also attain
-the optimum on paper, but where they live in different parts of the state space (a deep queue kept
-full, or kept drained) the mixture's own chain is balanced on flows of 1e-25, and the policy it
-gives does not keep the target. Where the walk cannot start (its keeping end, with λ*'s actions
-where its own do not attain the maximum, breaks the constraint) or reaches its breaking end still
-keeping it, the planner mixes the two ends after all.
+policies, each time switching the states its last keeping policy visits most among those where the
+two differ: one state, then twice as many after each policy that keeps the constraint and half as
+many after each that breaks it, until switching one state breaks it. Those two policies differ in
+that one state, the one the keeping policy visits most, and their occupation measures mixed so that
+the constraint binds are the LP's optimum: the policy π(a | s) = x(s, a) / Σ_a′ x(s, a′)
+randomises in that one state, and takes radar (the last action) in states of zero occupancy, as
+the LP's policy does. Mixing the two ends at once would also attain the optimum on paper, but where
+they live in different parts of the state space (a deep queue kept full, or kept drained) the
+mixture's own chain is balanced on flows of 1e-25, and the policy it gives does not keep the
+target. Where the walk cannot start (its keeping end, with λ*'s actions where its own do not attain
+the maximum, breaks the constraint) or reaches its breaking end still keeping it, the planner mixes
+the two ends after all.
 
 Its unit of work is one policy evaluation: an LU factorisation of the S × S chain (``advance``),
 dense (``dense_transitions``) or sparse (``transitions``: SuperLU on the chain's rows, for models
 of more than ``SPARSE_FROM_STATES`` states; ``chain`` chooses).
 Policy iteration assumes every policy's chain has one recurrent class (the model's Poisson arrivals
-reach a full queue from every state); where a chain's system is singular it stops with
+reach a full queue from every state); where a chain's system is singular, or policy iteration comes
+back to a policy it has left (evaluations too coarse to rank the actions), it stops with
 ``SolverFailed``.
 """
 
 from __future__ import annotations
 
+import hashlib
 import warnings
 from typing import Any
 
@@ -142,14 +147,18 @@ class DualPlanner:
         self.policy = np.full(S, A - 1) if start is None else np.asarray(start, dtype=np.int64)
         if self.policy.shape != (S,):
             raise ValueError(f"start has shape {tuple(self.policy.shape)}, expected ({S},)")
-        # 0: the best at λ = 0; 1: the constraint kept best; 2: towards λ*; 3: the walk at λ*
+        # 0: the best at λ = 0; 1: one that keeps the constraint; 2: towards λ*; 3: the walk at λ*
         self.stage = 0
         self.lam = 0.0
         self.lo: Line | None = None  # the best breaking policy found
         self.hi: Line | None = None  # the best keeping one
-        self.walk: Line | None = None  # the walk's last keeping policy (None: its first step)
-        self.toward: np.ndarray | None = None  # where the walk goes: the breaking end
+        # the walk: its last keeping policy (None: its first step), where it goes (the breaking
+        # end), the states it switches next, and how many the policy being evaluated switched
+        self.walk: Line | None = None
+        self.toward: np.ndarray | None = None
+        self.stride = self.switched = 1
         self.evaluations = 0
+        self.seen: set[str] = set()  # the policies this policy iteration has left
 
     def _reward(self) -> np.ndarray:
         if self.stage == 0:
@@ -228,6 +237,20 @@ class DualPlanner:
         (_, tl, cl, _), (_, th, ch, _) = self.lo, self.hi
         self.lam = max((tl - th) / (cl - ch), 0.0)
         self.policy = self.lo[0].copy()
+        self.seen.clear()
+
+    def _improve(self, improved: np.ndarray) -> None:
+        """Policy iteration's move to ``improved``. In exact arithmetic it never comes back to a
+        policy it has left; where it does, the evaluations have lost the differences that rank
+        the actions (a nearly decomposable chain's bias can be of order 1e13)."""
+        self.seen.add(_key(self.policy))
+        if _key(improved) in self.seen:
+            raise SolverFailed(
+                f"policy iteration came back to a policy it had left (stage {self.stage}, "
+                f"λ = {self.lam:.6g}): the chain's evaluations are not accurate enough to rank "
+                "the actions (recipes/constrained.py solves such models as an LP)"
+            )
+        self.policy = improved
 
     def _result(self, parts: list[tuple[float, np.ndarray, np.ndarray]]) -> LPResult:
         """The mixture of (weight, policy, stationary distribution) parts as the LP's result."""
@@ -251,7 +274,8 @@ class DualPlanner:
 
         Raises:
             InfeasibleTarget: no policy keeps the constraint.
-            SolverFailed: a singular chain, or more than ``MAX_EVALUATIONS`` evaluations.
+            SolverFailed: a singular chain, a policy iteration that comes back to a policy it
+                has left, or more than ``MAX_EVALUATIONS`` evaluations.
         """
         if self.evaluations >= MAX_EVALUATIONS:
             raise SolverFailed(f"the dual planner took more than {MAX_EVALUATIONS} evaluations")
@@ -263,28 +287,30 @@ class DualPlanner:
         if self.stage == 3:
             return self._walk_step(self._line(self.policy, mu))
         S = len(self.policy)
+        line = self._line(self.policy, mu)
+        if self.stage == 1 and line[2] <= KEEP_TOL:  # a keeping policy is all the search needs
+            self.hi, self.stage = line, 2
+            self._cross()
+            return None
         best = q.max(0)
         optimal = q >= best - TIE_TOL * max(1.0, float(np.abs(best).max()))
         keep = optimal[self.policy, np.arange(S)]
         improved = np.where(keep, self.policy, q.argmax(0))
         if not np.array_equal(improved, self.policy):
-            self.policy = improved
+            self._improve(improved)
             return None
-        line = self._line(self.policy, mu)
         if self.stage == 0:
             if line[2] <= KEEP_TOL:
                 return self._result([(1.0, self.policy, mu)])
-            self.lo, self.stage = line, 1
+            # the constraint kept best, from the policy that keeps it best one step ahead
+            self.lo, self.stage, self.policy = line, 1, self.c.argmin(0)
+            self.seen.clear()
             return None
         if self.stage == 1:
-            if line[2] > KEEP_TOL:
-                raise InfeasibleTarget(
-                    f"no policy keeps the constraint: the least it reaches is {line[2]:.3g} over "
-                    "its bound"
-                )
-            self.hi, self.stage = line, 2
-            self._cross()
-            return None
+            raise InfeasibleTarget(
+                f"no policy keeps the constraint: the least it reaches is {line[2]:.3g} over "
+                "its bound"
+            )
         assert self.lo is not None and self.hi is not None
         crossing = self.lo[1] - self.lam * self.lo[2]
         if gain <= crossing + TIE_TOL * max(1.0, abs(crossing)) or (
@@ -313,18 +339,30 @@ class DualPlanner:
         return self._result([(w, pb, mb), (1.0 - w, pk, mk)])
 
     def _walk_step(self, line: Line) -> LPResult | None:
-        """The walk at λ*, given the line of the policy just evaluated: the result once the
-        constraint breaks (or the two ends' mixture, where the walk cannot start or finish)."""
-        assert self.lo is not None and self.hi is not None and self.toward is not None
-        if line[2] > KEEP_TOL:  # broken: the last keeping policy and this one differ in a state
-            return self._mix(line, self.walk) if self.walk is not None else self._ends()
-        self.walk = line
-        differ = np.flatnonzero(self.policy != self.toward)
+        """The walk at λ*, given the line of the policy just evaluated: the result once switching
+        one state breaks the constraint (or the two ends' mixture, where the walk cannot start or
+        finish). From its last keeping policy it switches the ``stride`` states that policy visits
+        most among those that differ: twice as many after a keeping policy, half as many after a
+        breaking one, until one state breaks it."""
+        assert self.toward is not None
+        if self.walk is None:  # its keeping end
+            if line[2] > KEEP_TOL:
+                return self._ends()
+            self.walk, self.stride = line, 1
+        elif line[2] <= KEEP_TOL:
+            self.walk, self.stride = line, 2 * self.switched
+        elif self.switched == 1:
+            return self._mix(line, self.walk)
+        else:
+            self.stride = self.switched // 2
+        base, mu = self.walk[0], self.walk[3]
+        differ = np.flatnonzero(base != self.toward)
         if not differ.size:  # the breaking end keeps the constraint after all
             return self._ends()
-        s = differ[np.argmax(line[3][differ])]
-        self.policy = self.policy.copy()
-        self.policy[s] = self.toward[s]
+        top = differ[np.argsort(-mu[differ], kind="stable")[: self.stride]]
+        self.switched = len(top)
+        self.policy = base.copy()
+        self.policy[top] = self.toward[top]
         return None
 
     def _ends(self) -> LPResult:
@@ -356,7 +394,10 @@ class DualPlanner:
             "hi": None if self.hi is None else _line_state(self.hi),
             "walk": None if self.walk is None else _line_state(self.walk),
             "toward": None if self.toward is None else self.toward.tolist(),
+            "stride": self.stride,
+            "switched": self.switched,
             "evaluations": self.evaluations,
+            "seen": sorted(self.seen),
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -374,6 +415,12 @@ class DualPlanner:
         self.walk = line(state.get("walk"))
         toward = state.get("toward")
         self.toward = None if toward is None else np.asarray(toward, dtype=np.int64)
+        self.stride, self.switched = int(state.get("stride", 1)), int(state.get("switched", 1))
+        self.seen = set(state.get("seen", []))
+
+
+def _key(policy: np.ndarray) -> str:
+    return hashlib.blake2b(policy.tobytes(), digest_size=16).hexdigest()
 
 
 def _line_state(line: Line) -> tuple[list[int], float, float, list[float]]:

@@ -403,3 +403,42 @@ def test_a_safe_learner_restored_while_it_plans_goes_on_as_the_original(mid):
 
     assert follow(True)
     assert not follow(False)
+
+
+def test_past_the_dense_limit_the_safe_learner_plans_on_the_lps_dual(paper_scorer, monkeypatch):
+    """With the dense limit lowered under the paper model's 352 states, the waiting safe learner
+    plans on the LP's dual (``solve_dual``) and its reference is ``solve_cmdp_dual``'s: on its own
+    data after 4 episodes at m* = 0.05 the plan sends what the LP's plan sends (to 2e-7, HiGHS's
+    tolerance) and meets the target, and the reference's policy sends the LP's optimum (1e-7 below,
+    1e-6 above, as in ``test_cmdp_dual``)."""
+    from irdrc.core import sizes
+    from irdrc.core.cmdp import build_constraints, objective_table, solve_lp, transitions
+    from irdrc.core.exact import stationary_metrics
+    from irdrc.online import safe
+
+    cfg = configs.learner_config("safe", {"episodes": 4, "target_miss": 0.05})
+    learner = make_learner("safe", cfg, PAPER, 3)
+    assert isinstance(learner, SafeLearner)
+    learn_on_stream(learner, PAPER, paper_scorer, episodes=4)
+    model = learner.counts.model(learner.counts.estimate())
+    lp_plan = learner._solve()
+
+    monkeypatch.setattr(sizes, "DENSE_LIMIT_BYTES", 16 * 300**2)
+    calls = []
+
+    def spy(name):
+        solver = getattr(safe, name)
+        monkeypatch.setattr(safe, name, lambda *a: calls.append(name) or solver(*a))
+
+    spy("solve_dual")
+    spy("solve_cmdp_dual")
+    dual_plan, reference = learner._solve(), ConstrainedScorer(paper_scorer, 0.05).lp
+    assert calls == ["solve_dual", "solve_cmdp_dual"]
+    lp, dual = stationary_metrics(model, lp_plan), stationary_metrics(model, dual_plan)
+    assert dual.throughput == pytest.approx(lp.throughput, rel=2e-7) and lp.throughput > 0.2
+    assert dual.miss_detection <= 0.05 + 1e-9
+    true = paper_scorer.model
+    lp_value = solve_lp(
+        transitions(true), objective_table(true, "throughput"), build_constraints(true, 0.05)
+    ).value
+    assert lp_value * (1 - 1e-7) <= reference.value <= lp_value * (1 + 1e-6)

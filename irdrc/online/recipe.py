@@ -90,20 +90,6 @@ def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
             "each step (env.actions=binary); the radar share is learned by recipes/sac.py "
             "(continuous), recipes/ppo.py, or recipes/dqn.py algo=dqn_levels (levels)"
         )
-    if cfg.learner in SAFE_LEARNERS:
-        from irdrc.core.sizes import dense_fit_states, fits_dense
-
-        if not fits_dense(cfg.params):
-            plans = (
-                "solves an LP over all S = {S} states before its first episode and"
-                if cfg.algo.evaluations_per_step == 0
-                else "evaluates its policies on the chain of all S = {S} states"
-            )
-            raise ValueError(
-                f"learner={cfg.learner} {plans.format(S=cfg.params.env.num_states)} whenever its "
-                f"data doubles: it runs on scenarios of at most {dense_fit_states()} states (a "
-                "smaller env.queue_capacity)"
-            )
     if cfg.eval.every_frames is None:  # every episode, whatever its length
         cfg = replace(cfg, eval=replace(cfg.eval, every_frames=cfg.params.env.horizon))
     explicit = "eval.every_frames" in composed.explicit

@@ -14,11 +14,13 @@ Two parts:
   only as far as the radar's own misses allow.
 - **The plan.** Before the first episode and whenever its data has doubled since the last plan
   (before episodes 1, 2, 4, 8, …) it solves the LP for the most packets at miss target m* on the
-  posterior-mean model of what it has counted (``irdrc.online.form``: told the model's form, not its
-  numbers), the noisy-or sampler run ``GIBBS_SWEEPS`` sweeps on before it (the mean is drawn from
-  where it stands); an infeasible plan is radar everywhere. It acts by the plan wherever the budget
-  allows. A level of the channel whose capacity has not shown yet is planned as carrying every
-  packet (optimism), so the plan tries it. Its greedy policy, the one it would deploy, is the plan.
+  posterior-mean model of what it has counted (``irdrc.online.form``: told the model's form, not
+  its numbers), the noisy-or sampler run ``GIBBS_SWEEPS`` sweeps on before it (the mean is drawn
+  from where it stands); an infeasible plan is radar everywhere. Past the dense limit
+  (``dense_fit_states``), where the LP takes minutes, it finds the LP's optimum on its dual
+  (``irdrc.core.cmdp_dual``). It acts by the plan wherever the budget allows. A level of the
+  channel whose capacity has not shown yet is planned as carrying every packet (optimism), so the
+  plan tries it. Its greedy policy, the one it would deploy, is the plan.
 
 By default the vehicle waits for each plan. With ``evaluations_per_step`` k ≥ 1 it plans beside its
 acting instead (``learner=safe_anytime``): k units of work after each step — ``GIBBS_BATCH`` of the
@@ -56,8 +58,9 @@ from irdrc.core.cmdp import (
     solve_lp,
     transitions,
 )
-from irdrc.core.cmdp_dual import DualPlanner, chain
+from irdrc.core.cmdp_dual import DualPlanner, chain, solve_cmdp_dual, solve_dual
 from irdrc.core.params import Params
+from irdrc.core.sizes import dense_fit_states
 from irdrc.core.stream import Step
 from irdrc.online.configs import SafeConfig
 from irdrc.online.form import Estimate, FormCounts
@@ -129,12 +132,13 @@ class SafeLearner(StreamLearner):
         everywhere where no policy meets the target, the plan so far where the solver cannot
         settle the LP."""
         model = self.counts.model(self.counts.estimate())
+        objective = objective_table(model, "throughput")
+        constraints = build_constraints(model, self.cfg.target_miss)
         try:
-            lp = solve_lp(
-                transitions(model),
-                objective_table(model, "throughput"),
-                build_constraints(model, self.cfg.target_miss),
-            )
+            if self.num_states <= dense_fit_states():
+                lp = solve_lp(transitions(model), objective, constraints)
+            else:
+                lp = solve_dual(model, objective, constraints[0])
         except InfeasibleTarget:
             return torch.nn.functional.one_hot(self.radar, 2).to(torch.float64)
         except SolverFailed:
@@ -310,9 +314,10 @@ class SafeLearner(StreamLearner):
 
 
 class ConstrainedScorer:
-    """Scores a safe learner's greedy policy against the constrained optimum (the LP at m*): its
-    exact metrics, and ``extra`` columns — ``lp_ratio`` (its packets per step over the LP's) and
-    ``meets_target`` (its long-run miss detection ≤ m*).
+    """Scores a safe learner's greedy policy against the constrained optimum (the LP at m*; past the
+    dense limit, the LP's optimum on its dual, ``solve_cmdp_dual``): its exact metrics, and
+    ``extra`` columns — ``lp_ratio`` (its packets per step over the LP's) and ``meets_target``
+    (its long-run miss detection ≤ m*).
 
     Args:
         scorer: the scenario's exact scorer.
@@ -322,7 +327,10 @@ class ConstrainedScorer:
     def __init__(self, scorer: Any, target_miss: float) -> None:
         self.scorer = scorer
         self.target_miss = float(target_miss)
-        self.lp = solve_cmdp(scorer.model, target_miss)
+        if scorer.model.num_states <= dense_fit_states():
+            self.lp = solve_cmdp(scorer.model, target_miss)
+        else:
+            self.lp = solve_cmdp_dual(scorer.model, target_miss)
         self.optimal_metrics = scorer.optimal_metrics
 
     def metrics(self, table: torch.Tensor) -> Metrics:

@@ -128,9 +128,9 @@ class SafeLearner(StreamLearner):
         return self.slack >= 1.0 - self.cfg.target_miss
 
     def _solve(self) -> torch.Tensor:
-        """The LP's policy [S, 2] on the posterior-mean model of the counts so far: radar
-        everywhere where no policy meets the target, the plan so far where the solver cannot
-        settle the LP."""
+        """The LP's policy [S, 2] on the posterior-mean model of the counts so far (found on its
+        dual past the dense limit): radar everywhere where no policy meets the target, the plan so
+        far where the solver cannot settle it."""
         model = self.counts.model(self.counts.estimate())
         objective = objective_table(model, "throughput")
         constraints = build_constraints(model, self.cfg.target_miss)

@@ -13,18 +13,14 @@ the best policy where the lines of the best breaking one (C > 0) and the best ke
 cross. When nothing beats their crossing there, both are optimal at λ*, and so is every policy
 that takes, in each state, an action that attains the maximum of λ*'s optimality equation (the
 stable policy's q). The planner walks from the keeping one toward the breaking one through such
-policies, each time switching the states its last keeping policy visits most among those where the
-two differ: one state, then twice as many after each policy that keeps the constraint and half as
-many after each that breaks it, until switching one state breaks it. Those two policies differ in
-that one state, the one the keeping policy visits most, and their occupation measures mixed so that
-the constraint binds are the LP's optimum: the policy π(a | s) = x(s, a) / Σ_a′ x(s, a′)
-randomises in that one state, and takes radar (the last action) in states of zero occupancy, as
-the LP's policy does. Mixing the two ends at once would also attain the optimum on paper, but where
-they live in different parts of the state space (a deep queue kept full, or kept drained) the
-mixture's own chain is balanced on flows of 1e-25, and the policy it gives does not keep the
-target. Where the walk cannot start (its keeping end, with λ*'s actions where its own do not attain
-the maximum, breaks the constraint) or reaches its breaking end still keeping it, the planner mixes
-the two ends after all.
+policies (``_walk_step``) until switching one state, the one its last keeping policy visits most,
+breaks the constraint; those two policies' occupation measures mixed so that it binds are the LP's
+optimum: π(a | s) = x(s, a) / Σ_a′ x(s, a′) randomises in that one state, and takes radar (the
+last action) in states of zero occupancy, as the LP's policy does. Mixing the two ends at once
+would also attain the optimum on paper, but where they live apart (a deep queue kept full, or kept
+drained) the mixture's own chain balances on flows of 1e-25, and its policy breaks the target. Where
+the walk cannot start (its keeping end, with λ*'s actions where its own do not attain the maximum,
+breaks the constraint) or reaches its breaking end still keeping it, the two ends are mixed.
 
 Its unit of work is one policy evaluation: an LU factorisation of the S × S chain (``advance``),
 dense (``dense_transitions``) or sparse (``transitions``: SuperLU on the chain's rows, for models
@@ -148,8 +144,7 @@ class DualPlanner:
         if self.policy.shape != (S,):
             raise ValueError(f"start has shape {tuple(self.policy.shape)}, expected ({S},)")
         # 0: the best at λ = 0; 1: one that keeps the constraint; 2: towards λ*; 3: the walk at λ*
-        self.stage = 0
-        self.lam = 0.0
+        self.stage, self.lam = 0, 0.0
         self.lo: Line | None = None  # the best breaking policy found
         self.hi: Line | None = None  # the best keeping one
         # the walk: its last keeping policy (None: its first step), where it goes (the breaking
@@ -240,9 +235,8 @@ class DualPlanner:
         self.seen.clear()
 
     def _improve(self, improved: np.ndarray) -> None:
-        """Policy iteration's move to ``improved``. In exact arithmetic it never comes back to a
-        policy it has left; where it does, the evaluations have lost the differences that rank
-        the actions (a nearly decomposable chain's bias can be of order 1e13)."""
+        """Policy iteration's move to ``improved``, which in exact arithmetic never returns to a
+        policy it has left (where it does, the evaluations cannot rank the actions)."""
         self.seen.add(_key(self.policy))
         if _key(improved) in self.seen:
             raise SolverFailed(
@@ -411,8 +405,7 @@ class DualPlanner:
                 return None
             return (np.asarray(v[0], dtype=np.int64), float(v[1]), float(v[2]), np.asarray(v[3]))
 
-        self.lo, self.hi = line(state["lo"]), line(state["hi"])
-        self.walk = line(state.get("walk"))
+        self.lo, self.hi, self.walk = line(state["lo"]), line(state["hi"]), line(state.get("walk"))
         toward = state.get("toward")
         self.toward = None if toward is None else np.asarray(toward, dtype=np.int64)
         self.stride, self.switched = int(state.get("stride", 1)), int(state.get("switched", 1))

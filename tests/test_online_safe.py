@@ -405,12 +405,15 @@ def test_a_safe_learner_restored_while_it_plans_goes_on_as_the_original(mid):
     assert not follow(False)
 
 
-def test_past_the_dense_limit_the_safe_learner_plans_on_the_lps_dual(paper_scorer, monkeypatch):
-    """With the dense limit lowered under the paper model's 352 states, the waiting safe learner
-    plans on the LP's dual (``solve_dual``) and its reference is ``solve_cmdp_dual``'s: on its own
-    data after 4 episodes at m* = 0.05 the plan sends what the LP's plan sends (to 2e-7, HiGHS's
-    tolerance) and meets the target, and the reference's policy sends the LP's optimum (1e-7 below,
-    1e-6 above, as in ``test_cmdp_dual``)."""
+def test_the_safe_learner_plans_on_the_lps_dual_and_past_the_dense_limit_is_read_against_it(
+    paper_scorer, monkeypatch
+):
+    """The waiting safe learner plans on the LP's dual (``DualPlanner``, never the LP itself): on
+    its own data after 4 episodes at m* = 0.05 its plan sends the LP's optimum on the same model
+    (to 2e-7, HiGHS's tolerance) and meets the target. With the dense limit lowered under the
+    paper model's 352 states its reference is ``solve_cmdp_dual``'s, whose policy sends the LP's
+    optimum (1e-7 below, 1e-6 above, as in ``test_cmdp_dual``). Planned with the LP (the code
+    before), the first check fails."""
     from irdrc.core import sizes
     from irdrc.core.cmdp import build_constraints, objective_table, solve_lp, transitions
     from irdrc.core.exact import stationary_metrics
@@ -421,22 +424,25 @@ def test_past_the_dense_limit_the_safe_learner_plans_on_the_lps_dual(paper_score
     assert isinstance(learner, SafeLearner)
     learn_on_stream(learner, PAPER, paper_scorer, episodes=4)
     model = learner.counts.model(learner.counts.estimate())
-    lp_plan = learner._solve()
-
-    monkeypatch.setattr(sizes, "DENSE_LIMIT_BYTES", 16 * 300**2)
     calls = []
 
     def spy(name):
         solver = getattr(safe, name)
-        monkeypatch.setattr(safe, name, lambda *a: calls.append(name) or solver(*a))
+        monkeypatch.setattr(safe, name, lambda *a, **k: calls.append(name) or solver(*a, **k))
 
-    spy("solve_dual")
+    spy("DualPlanner")
     spy("solve_cmdp_dual")
-    dual_plan, reference = learner._solve(), ConstrainedScorer(paper_scorer, 0.05).lp
-    assert calls == ["solve_dual", "solve_cmdp_dual"]
-    lp, dual = stationary_metrics(model, lp_plan), stationary_metrics(model, dual_plan)
-    assert dual.throughput == pytest.approx(lp.throughput, rel=2e-7) and lp.throughput > 0.2
+    plan = learner._solve()
+    assert calls == ["DualPlanner"]
+    obj, con = objective_table(model, "throughput"), build_constraints(model, 0.05)
+    lp = solve_lp(transitions(model), obj, con)
+    dual = stationary_metrics(model, plan)
+    assert dual.throughput == pytest.approx(lp.value, rel=2e-7) and lp.value > 0.2
     assert dual.miss_detection <= 0.05 + 1e-9
+
+    monkeypatch.setattr(sizes, "DENSE_LIMIT_BYTES", 16 * 300**2)
+    reference = ConstrainedScorer(paper_scorer, 0.05).lp
+    assert calls == ["DualPlanner", "solve_cmdp_dual"]
     true = paper_scorer.model
     lp_value = solve_lp(
         transitions(true), objective_table(true, "throughput"), build_constraints(true, 0.05)

@@ -211,11 +211,11 @@ class SafeConfig:
         target_miss: m*: the vehicle's cumulative miss detection is kept at or under it, and its
             plans aim at it.
         prior_count: as ``PosteriorConfig``'s.
-        evaluations_per_step: 0: each plan is the LP, solved between two steps, the vehicle
-            waiting for it; k ≥ 1: beside the acting, k units of planning work after each step (a
-            batch of the noisy-or sampler's sweeps, the model, or one policy evaluation of the
-            LP's Lagrangian dual, ``irdrc.core.cmdp_dual``), the vehicle acting on its last plan
-            until the new one is ready.
+        evaluations_per_step: each plan is the LP's optimum, found on the LP's Lagrangian dual
+            (``irdrc.core.cmdp_dual``). 0: solved between two steps, the vehicle waiting for it;
+            k ≥ 1: beside the acting, k units of planning work after each step (a batch of the
+            noisy-or sampler's sweeps, the model, or one policy evaluation), the vehicle acting on
+            its last plan until the new one is ready.
         name: the profile's name.
     """
 

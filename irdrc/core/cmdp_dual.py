@@ -22,13 +22,12 @@ drained) the mixture's own chain balances on flows of 1e-25, and its policy brea
 the walk cannot start (its keeping end, with λ*'s actions where its own do not attain the maximum,
 breaks the constraint) or reaches its breaking end still keeping it, the two ends are mixed.
 
-Its unit of work is one policy evaluation: an LU factorisation of the S × S chain (``advance``),
-dense (``dense_transitions``) or sparse (``transitions``: SuperLU on the chain's rows, for models
-of more than ``SPARSE_FROM_STATES`` states; ``chain`` chooses).
-Policy iteration assumes every policy's chain has one recurrent class (the model's Poisson arrivals
-reach a full queue from every state); where a chain's system is singular, or policy iteration comes
-back to a policy it has left (evaluations too coarse to rank the actions), it stops with
-``SolverFailed``.
+Its unit of work is one policy evaluation (``advance``): an LU factorisation of the S × S chain,
+dense (``dense_transitions``) or sparse (``transitions``, SuperLU: for models of more than
+``SPARSE_FROM_STATES`` states; ``chain`` chooses). Policy iteration assumes every policy's chain has
+one recurrent class (the model's Poisson arrivals reach a full queue from every state); where a
+chain's system is singular, or policy iteration comes back to a policy it has left (evaluations too
+coarse to rank the actions), it stops with ``SolverFailed``.
 """
 
 from __future__ import annotations
@@ -71,14 +70,12 @@ paper's model with deeper queues)."""
 MAX_EVALUATIONS = 10_000
 """Policy evaluations one plan may take before ``SolverFailed`` (tens are usual)."""
 
-
 _BLAS: Any = None
 
 
 def one_blas_thread() -> Any:
-    """A context in which NumPy's and SciPy's BLAS run on one thread: an LU of a few hundred rows
-    split over threads is at its slowest several times longer than on one, and a vehicle waits for
-    its slowest decision."""
+    """A context in which NumPy's and SciPy's BLAS run on one thread: split over threads, an LU of a
+    few hundred rows is at its slowest several times longer (a vehicle waits for its slowest)."""
     global _BLAS
     from threadpoolctl import ThreadpoolController
 
@@ -206,7 +203,10 @@ class DualPlanner:
 
         S = len(self.policy)
         M = (sparse.identity(S, format="csr") - self.rows[self.policy * S + np.arange(S)]).tocsc()
-        M = sparse.hstack([sparse.csc_matrix(np.ones((S, 1))), M[:, 1:]], format="csc")
+        cut = M.indptr[1]  # column 0 becomes ones, the gain's column
+        data = np.concatenate([np.ones(S), M.data[cut:]])
+        rows = np.concatenate([np.arange(S, dtype=M.indices.dtype), M.indices[cut:]])
+        M = sparse.csc_matrix((data, rows, np.r_[0, M.indptr[1:] - cut + S]), shape=(S, S))
         try:
             lu = splu(M)
         except MemoryError:

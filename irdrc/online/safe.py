@@ -107,14 +107,13 @@ class SafeLearner(StreamLearner):
         self.updates = 0
         self.forced = 0  # radar steps the budget imposed on the plan
         self.planned_at = -1  # the stream's steps at the last plan
-        # beside the acting: the plan being made (sweeps left; its model, its planner), where the
-        # next starts, each plan's steps from its data to its coming into force, plans begun
+        # beside the acting: the plan being made (sweeps left; its model, its planner), each
+        # plan's steps from its data to its coming into force, plans begun
         self.planning = False
         self.sweeps_left = 0
         self.pending_estimate: Estimate | None = None
         self.planner: DualPlanner | None = None
         self.begun_at = 0
-        self.warm: Any = None
         self.lags: list[int] = []
         self.begun = 0
 
@@ -161,7 +160,6 @@ class SafeLearner(StreamLearner):
             chain(model),
             objective_table(model, "throughput"),
             build_constraints(model, self.cfg.target_miss)[0],
-            start=self.warm,
         )
 
     def _work(self) -> torch.Tensor | None:
@@ -187,11 +185,7 @@ class SafeLearner(StreamLearner):
             return torch.nn.functional.one_hot(self.radar, 2).to(torch.float64)
         except SolverFailed:
             return self.plan
-        if result is None:
-            return None
-        if self.planner.lo is not None:
-            self.warm = self.planner.lo[0]
-        return result.policy
+        return None if result is None else result.policy
 
     def act(self, state: int) -> int:
         p = self.comm[state]
@@ -272,7 +266,6 @@ class SafeLearner(StreamLearner):
             "planned_at": self.planned_at,
             "gibbs": self.gibbs.bit_generator.state,
             "pending": self._pending_state(),
-            "warm": None if self.warm is None else [int(a) for a in self.warm],
             "lags": list(self.lags),
             "begun": self.begun,
         }
@@ -297,7 +290,6 @@ class SafeLearner(StreamLearner):
         self.updates, self.forced = int(state["updates"]), int(state["forced"])
         self.planned_at = int(state["planned_at"])
         self.gibbs.bit_generator.state = state["gibbs"]
-        self.warm = state.get("warm")
         self.lags, self.begun = list(state.get("lags", [])), int(state.get("begun", 0))
         self.sweeps_left, self.pending_estimate, self.planner = 0, None, None
         pending = state.get("pending")

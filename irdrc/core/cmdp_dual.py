@@ -115,15 +115,12 @@ class DualPlanner:
             (``irdrc.core.cmdp.transitions``).
         objective: [A, S] the per-step objective J (``irdrc.core.cmdp.objective_table``).
         constraint: the one constraint Σ x·coef ≤ bound (``build_constraints``'s first).
-        start: [S] the policy the first policy iteration starts from (default: radar everywhere).
+
+    The first policy iteration starts from radar (the last action) everywhere.
     """
 
     def __init__(
-        self,
-        P: np.ndarray | list[Any],
-        objective: torch.Tensor,
-        constraint: Constraint,
-        start: torch.Tensor | np.ndarray | None = None,
+        self, P: np.ndarray | list[Any], objective: torch.Tensor, constraint: Constraint
     ) -> None:
         self.P = P
         self.rows: Any = None  # sparse: every action's rows stacked, [A·S, S]
@@ -137,9 +134,7 @@ class DualPlanner:
         self.J = objective.to(torch.float64).cpu().numpy().reshape(A, S)
         self.c = constraint.coef.to(torch.float64).cpu().numpy().reshape(A, S)
         self.bound = float(constraint.bound)
-        self.policy = np.full(S, A - 1) if start is None else np.asarray(start, dtype=np.int64)
-        if self.policy.shape != (S,):
-            raise ValueError(f"start has shape {tuple(self.policy.shape)}, expected ({S},)")
+        self.policy = np.full(S, A - 1)
         # 0: the best at λ = 0; 1: one that keeps the constraint; 2: towards λ*; 3: the walk at λ*
         self.stage, self.lam = 0, 0.0
         self.lo: Line | None = None  # the best breaking policy found

@@ -4,30 +4,26 @@ or sparse matrices.
 
 For a multiplier λ ≥ 0, the policies that maximise the long-run average of J − λ·c (J the
 objective, c the constraint's coefficients less its bound) are found by average-reward policy
-iteration. The LP's optimum is min over λ of that maximum, which is convex and piecewise linear in
-λ, each piece a policy's line T − λ·C (T its objective, C its constraint, per step). The planner
-finds the best policy at λ = 0 (done, if it keeps the constraint), then a policy that keeps the
-constraint (policy iteration on the constraint alone, from the policy that keeps it best one step
-ahead, stopped at the first that keeps it; none: ``InfeasibleTarget``), and walks to λ*, asking for
-the best policy where the lines of the best breaking one (C > 0) and the best keeping one (C ≤ 0)
-cross. When nothing beats their crossing there, both are optimal at λ*, and so is every policy
-that takes, in each state, an action that attains the maximum of λ*'s optimality equation (the
-stable policy's q). The planner walks from the keeping one toward the breaking one through such
-policies (``_walk_step``) until switching one state, the one its last keeping policy visits most,
-breaks the constraint; those two policies' occupation measures mixed so that it binds are the LP's
-optimum: π(a | s) = x(s, a) / Σ_a′ x(s, a′) randomises in that one state, and takes radar (the
-last action) in states of zero occupancy, as the LP's policy does. Mixing the two ends at once
-would also attain the optimum on paper, but where they live apart (a deep queue kept full, or kept
-drained) the mixture's own chain balances on flows of 1e-25, and its policy breaks the target. Where
-the walk cannot start (its keeping end, with λ*'s actions where its own do not attain the maximum,
-breaks the constraint) or reaches its breaking end still keeping it, the two ends are mixed.
+iteration. The LP's optimum is min over λ of that maximum, convex and piecewise linear in λ, each
+piece a policy's line T − λ·C (T its objective, C its constraint, per step). The planner finds the
+best policy at λ = 0 (done, if it keeps the constraint), then one that keeps the constraint (policy
+iteration on the constraint alone, stopped at the first that keeps it; none: ``InfeasibleTarget``),
+and walks to λ*, where the lines of the best breaking (C > 0) and best keeping (C ≤ 0) policies
+cross. There both are optimal, and so is every policy that takes, in each state, an action that
+attains λ*'s optimality equation. The planner walks from the keeping one toward the breaking one
+through such policies (``_walk_step``) until switching one state breaks the constraint; those two
+policies' occupation measures mixed so that it binds are the LP's optimum: π(a | s) = x(s, a) /
+Σ_a′ x(s, a′) randomises in that one state and takes radar (the last action) in the states its
+chain never visits, as the LP's policy does. Mixing the two ends at once would attain the optimum
+on paper, but where they live apart (a deep queue kept full, or drained) the mixture's chain
+balances on flows of 1e-25 and its policy breaks the target; they are mixed only where the walk
+cannot start or reaches its breaking end still keeping the constraint.
 
 Its unit of work is one policy evaluation (``advance``): an LU factorisation of the S × S chain,
-dense (``dense_transitions``) or sparse (``transitions``, SuperLU: for models of more than
-``SPARSE_FROM_STATES`` states; ``chain`` chooses). Policy iteration assumes every policy's chain has
-one recurrent class (the model's Poisson arrivals reach a full queue from every state); where a
-chain's system is singular, or policy iteration comes back to a policy it has left (evaluations too
-coarse to rank the actions), it stops with ``SolverFailed``.
+dense or sparse (SuperLU, above ``SPARSE_FROM_STATES`` states; ``chain`` chooses). Policy iteration
+assumes every policy's chain has one recurrent class (the model's Poisson arrivals reach a full
+queue from every state); a singular system, or a policy iteration that comes back to a policy it
+has left, stops it with ``SolverFailed``.
 """
 
 from __future__ import annotations
@@ -246,7 +242,7 @@ class DualPlanner:
         A, S = self.J.shape
         x = np.zeros((A, S))
         for w, pol, mu in parts:
-            x[pol, np.arange(S)] += w * mu
+            x[pol, np.arange(S)] += w * np.where(self._recurrent(pol), mu, 0.0)
         x /= x.sum()
         occ = torch.from_numpy(x)
         mass = occ.sum(0)
@@ -256,6 +252,19 @@ class DualPlanner:
         policy[~visited, -1] = 1.0
         value = float((x * self.J).sum())
         return LPResult(occupancy=occ, policy=policy, value=value, message="dual: optimal")
+
+    def _recurrent(self, pol: np.ndarray) -> np.ndarray:
+        """[S] whether each state is in ``pol``'s recurrent class, the strongly connected component
+        of its chain that no edge leaves (the LU leaves rounding dust, 1e-18, on the others)."""
+        from scipy import sparse
+        from scipy.sparse.csgraph import connected_components
+
+        S, idx = len(pol), np.arange(len(pol))
+        rows = self.P[pol, idx] if isinstance(self.P, np.ndarray) else self.rows[pol * S + idx]
+        graph = sparse.coo_matrix(rows > 0)
+        label = connected_components(graph, connection="strong")[1]
+        left = label[graph.row] != label[graph.col]
+        return ~np.isin(label, label[graph.row[left]])
 
     def step(self) -> LPResult | None:
         """One policy evaluation (and improvement, or a step of the walk); the result once the
@@ -368,10 +377,9 @@ class DualPlanner:
 
     def solve(self) -> LPResult:
         """Every step to the end."""
-        while True:
-            out = self.step()
-            if out is not None:
-                return out
+        while (out := self.step()) is None:
+            pass
+        return out
 
     def state_dict(self) -> dict[str, Any]:
         """Where it stands (the model is the caller's to keep)."""

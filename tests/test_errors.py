@@ -71,6 +71,8 @@ def refused(recipe: str, *overrides: str) -> str:
         ("solve", ["optimum_gamma=abc"], "optimum_gamma='abc'"),
         ("solve", ["gamma=abc"], "did you mean optimum_gamma?"),
         ("dqn", ["total_frames=4000"], "did you mean algo.total_frames?"),
+        # a learner's key the online recipe's algo: {} does not hold (its profiles' keys)
+        ("online", ["learner=safe", "target_miss=0.1"], "did you mean algo.target_miss?"),
         ("qlearning", ["algo.alpha=abc"], "algo.alpha='abc'"),
         ("qlearning", ["num_learners=1000000"], "num_learners=1000000"),
         ("qlearning", ["batch_grid={}"], "batch_grid is empty"),

@@ -147,9 +147,13 @@ def _initialised() -> Any:
     return _Scope()
 
 
-def compose(config_name: str, overrides: list[str] | tuple[str, ...] = ()) -> Composed:
+def compose(
+    config_name: str, overrides: list[str] | tuple[str, ...] = (), algo_keys: Any = ()
+) -> Composed:
     """Compose ``irdrc/conf/<config_name>.yaml`` with command-line ``overrides`` — once — into
     plain containers. ``hydra.*`` overrides set the run's own settings (``hydra.run.dir``).
+    ``algo_keys`` (a recipe's ``ALGO_KEYS``) are the ``algo.`` keys an unknown key's hint may name
+    beside those the composed files hold (a profile lists only the keys that act in its run).
 
     Raises:
         ValueError: an unknown key (naming the closest valid one), an unknown group option, or an
@@ -165,7 +169,7 @@ def compose(config_name: str, overrides: list[str] | tuple[str, ...] = ()) -> Co
         with _initialised():
             cfg = hydra_compose(config_name=config_name, overrides=args, return_hydra_config=True)
     except Exception as err:  # Hydra's own errors: one line each
-        raise ValueError(_explain(config_name, args, err)) from None
+        raise ValueError(_explain(config_name, args, err, algo_keys)) from None
     hydra = cfg.hydra
     choices = {k: str(v) for k, v in hydra.runtime.choices.items() if not k.startswith("hydra")}
     task = [str(o) for o in hydra.overrides.task if not override_key(str(o)).startswith("hydra")]
@@ -205,14 +209,16 @@ def _check_choices(config_name: str, args: list[str]) -> None:
                 raise ValueError(f"{key}={value!r} is not a choice of {key}: {options}")
 
 
-def _explain(config_name: str, args: list[str], err: Exception) -> str:
-    """Hydra's error as one line; an unknown key with the closest valid key."""
+def _explain(config_name: str, args: list[str], err: Exception, algo_keys: Any = ()) -> str:
+    """Hydra's error as one line; an unknown key with the closest valid key (``algo_keys``: as
+    ``compose``'s)."""
     import re
 
     found = re.search(r"Could not override '([^']+)'", str(err))
     if found:
         bad = next((a for a in args if override_key(a) == found.group(1)), "")
-        return unknown_key(config_name, found.group(1), _known_keys(config_name, args, bad))
+        known = _known_keys(config_name, args, bad) | {f"algo.{k}" for k in algo_keys}
+        return unknown_key(config_name, found.group(1), known)
     text = str(err).strip().splitlines()[0] if str(err).strip() else ""
     ambiguous = re.search(r"Ambiguous value for argument '([^']+)'", str(err))
     if ambiguous:
@@ -337,7 +343,8 @@ def with_profile_keys(args: list[str], keys: Any) -> list[str]:
 def compose_recipe(module: Any, args: list[str]) -> Composed:
     """``module``'s config (a recipe module: its ``NAME`` and ``ALGO_KEYS``) composed with ``args``,
     a profile's omitted keys taking the command line's values (``with_profile_keys``)."""
-    return compose(module.NAME, with_profile_keys(args, getattr(module, "ALGO_KEYS", ())))
+    keys = getattr(module, "ALGO_KEYS", ())
+    return compose(module.NAME, with_profile_keys(args, keys), keys)
 
 
 class SeededCompose:

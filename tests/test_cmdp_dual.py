@@ -255,6 +255,23 @@ def test_the_states_never_visited_are_the_policys_transient_states(models, chain
     assert (result.policy[torch.from_numpy(never), -1] == 1).all()
 
 
+@pytest.mark.parametrize("sparse", [False, True])
+def test_a_state_of_tiny_probability_that_the_chain_reaches_is_visited(sparse):
+    """States 0 and 1 alternate; 0 goes to 2 once in 1e14 steps, 2 comes back; nothing enters 3.
+    State 2's stationary probability (5e-15) is under the dust the LU leaves on transient states,
+    yet the chain reaches it: it is visited, and 3 is not."""
+    from scipy import sparse as sp
+
+    P = np.zeros((4, 4))
+    P[0, 1], P[0, 2], P[1:, 0] = 1 - 1e-14, 1e-14, 1.0
+    chains = [sp.csr_matrix(P), sp.csr_matrix(P)] if sparse else np.stack([P, P])
+    obj = torch.ones(2, 4, dtype=torch.float64)
+    con = Constraint("c", torch.zeros(2, 4, dtype=torch.float64), 0.0)
+    mass = DualPlanner(chains, obj, con).solve().occupancy.sum(0)
+    assert 0 < mass[2] < cmdp_dual.DUST and mass[3] == 0
+    assert mass[2] == pytest.approx(1e-14 / (2 + 1e-14), rel=1e-6)
+
+
 def test_above_sparse_from_states_solve_dual_takes_the_sparse_chain(monkeypatch):
     """``chain`` gives the paper model's 352 states the dense chain; with ``SPARSE_FROM_STATES``
     lowered under them, ``solve_dual`` on its factored model plans on the sparse chain

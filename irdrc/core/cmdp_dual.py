@@ -1,23 +1,16 @@
 """The constrained problem of one constraint solved on its Lagrangian dual (MODEL.md § A), a little
 work at a time: the LP's optimum (``irdrc.core.cmdp.solve_lp``), on the model's chains held as dense
-or sparse matrices.
+or sparse matrices (docs/CONSTRAINED.md says it in words).
 
-For a multiplier λ ≥ 0, the policies that maximise the long-run average of J − λ·c (J the
-objective, c the constraint's coefficients less its bound) are found by average-reward policy
-iteration. The LP's optimum is min over λ of that maximum, convex and piecewise linear in λ, each
-piece a policy's line T − λ·C (T its objective, C its constraint, per step). The planner finds the
-best policy at λ = 0 (done, if it keeps the constraint), then one that keeps the constraint (policy
-iteration on the constraint alone, stopped at the first that keeps it; none: ``InfeasibleTarget``),
-and walks to λ*, where the lines of the best breaking (C > 0) and best keeping (C ≤ 0) policies
-cross. There both are optimal, and so is every policy that takes, in each state, an action that
-attains λ*'s optimality equation. The planner walks from the keeping one toward the breaking one
-through such policies (``_walk_step``) until switching one state breaks the constraint; those two
-policies' occupation measures mixed so that it binds are the LP's optimum: π(a | s) = x(s, a) /
-Σ_a′ x(s, a′) randomises in that one state and takes radar (the last action) in the states its
-chain never visits, as the LP's policy does. Mixing the two ends at once would attain the optimum
-on paper, but where they live apart (a deep queue kept full, or drained) the mixture's chain
-balances on flows of 1e-25 and its policy breaks the target; they are mixed only where the walk
-cannot start or reaches its breaking end still keeping the constraint.
+For λ ≥ 0, average-reward policy iteration finds the policies that maximise the long-run average
+of J − λ·c (J the objective, c the constraint less its bound). The LP's optimum is the minimum over
+λ of that maximum, piecewise linear in λ, a piece per policy (T − λ·C, T its objective and C its
+constraint per step). The planner finds the best policy at λ = 0 (done if it keeps the constraint),
+then one that keeps it (none: ``InfeasibleTarget``), and walks λ to λ*, where the best breaking and
+best keeping policies cross; then it walks between the two through policies that attain λ*'s
+optimality equation (``_walk_step``) until switching one state breaks the constraint. Those two
+policies' occupation measures mixed so that it binds are the LP's optimum: the policy randomises in
+one state and takes radar (the last action) where its chain never goes, as the LP's does.
 
 Its unit of work is one policy evaluation (``advance``): an LU factorisation of the S × S chain,
 dense or sparse (SuperLU, above ``SPARSE_FROM_STATES`` states; ``chain`` chooses). Policy iteration
@@ -53,6 +46,10 @@ TIE_TOL = 1e-9
 
 KEEP_TOL = 1e-12
 """A policy keeps the constraint when its C is at most this."""
+
+DUST = 1e-12
+"""A state of more stationary probability than this is in its policy's recurrent class; one of
+less may be transient (``DualPlanner._recurrent``)."""
 
 Line = tuple[np.ndarray, float, float, np.ndarray]
 """A policy found on the way, with its objective T and constraint C per step (the bound taken off),
@@ -242,7 +239,7 @@ class DualPlanner:
         A, S = self.J.shape
         x = np.zeros((A, S))
         for w, pol, mu in parts:
-            x[pol, np.arange(S)] += w * np.where(self._recurrent(pol), mu, 0.0)
+            x[pol, np.arange(S)] += w * np.where(self._recurrent(pol, mu), mu, 0.0)
         x /= x.sum()
         occ = torch.from_numpy(x)
         mass = occ.sum(0)
@@ -253,18 +250,21 @@ class DualPlanner:
         value = float((x * self.J).sum())
         return LPResult(occupancy=occ, policy=policy, value=value, message="dual: optimal")
 
-    def _recurrent(self, pol: np.ndarray) -> np.ndarray:
-        """[S] whether each state is in ``pol``'s recurrent class, the strongly connected component
-        of its chain that no edge leaves (the LU leaves rounding dust, 1e-18, on the others)."""
-        from scipy import sparse
-        from scipy.sparse.csgraph import connected_components
-
-        S, idx = len(pol), np.arange(len(pol))
-        rows = self.P[pol, idx] if isinstance(self.P, np.ndarray) else self.rows[pol * S + idx]
-        graph = sparse.coo_matrix(rows > 0)
-        label = connected_components(graph, connection="strong")[1]
-        left = label[graph.row] != label[graph.col]
-        return ~np.isin(label, label[graph.row[left]])
+    def _recurrent(self, pol: np.ndarray, mu: np.ndarray) -> np.ndarray:
+        """[S] whether each state is in ``pol``'s recurrent class: one of more than ``DUST`` of
+        ``mu`` is, one of less (the LU's dust on transient states) if the chain reaches it."""
+        small, out, S = np.flatnonzero(mu <= DUST), mu > DUST, len(pol)
+        if not small.size:
+            return out
+        P = self.P if isinstance(self.P, np.ndarray) else None
+        rows = P[pol, np.arange(S)] if P is not None else self.rows[pol * S + np.arange(S)]
+        into = rows[:, small] > 0  # [S, k]: the moves into the small states
+        reached = frontier = np.asarray(into[np.flatnonzero(out)].sum(0)).ravel() > 0
+        while frontier.any():
+            frontier = (np.asarray(into[small[frontier]].sum(0)).ravel() > 0) & ~reached
+            reached = reached | frontier
+        out[small] = reached
+        return out
 
     def step(self) -> LPResult | None:
         """One policy evaluation (and improvement, or a step of the walk); the result once the

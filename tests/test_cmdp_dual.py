@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 import torch
 
-from irdrc.core import cmdp_dual
+from irdrc.core import chains, cmdp_dual
+from irdrc.core.chains import dense_transitions
 from irdrc.core.cmdp import (
     Constraint,
     InfeasibleTarget,
@@ -18,7 +19,7 @@ from irdrc.core.cmdp import (
     solve_lp,
     transitions,
 )
-from irdrc.core.cmdp_dual import DualPlanner, dense_transitions, solve_dual
+from irdrc.core.cmdp_dual import DualPlanner, solve_dual
 from irdrc.core.exact import build_model, stationary_metrics
 from irdrc.core.params import Params
 
@@ -279,13 +280,13 @@ def test_above_sparse_from_states_solve_dual_takes_the_sparse_chain(monkeypatch)
     from irdrc.core.exact import build_factored
 
     model = build_factored(Params())
-    assert isinstance(cmdp_dual.chain(model), np.ndarray)
+    assert isinstance(chains.chain(model), np.ndarray)
     obj, con = objective_table(model, "throughput"), build_constraints(model, 0.05)
     lp = solve_lp(transitions(model), obj, con)
     calls = []
-    monkeypatch.setattr(cmdp_dual, "SPARSE_FROM_STATES", 300)
-    monkeypatch.setattr(cmdp_dual, "transitions", lambda m: calls.append(m) or transitions(m))
-    monkeypatch.setattr(cmdp_dual, "dense_transitions", None)  # calling it fails
+    monkeypatch.setattr(chains, "SPARSE_FROM_STATES", 300)
+    monkeypatch.setattr(chains, "transitions", lambda m: calls.append(m) or transitions(m))
+    monkeypatch.setattr(chains, "dense_transitions", None)  # calling it fails
     assert solve_dual(model, obj, con[0]).value == pytest.approx(lp.value, rel=1e-7)
     assert calls == [model]
 

@@ -178,7 +178,7 @@ def test_a_safe_run_past_the_dense_limit_whose_chain_does_not_fit_says_so_first(
     chain's size in one line (the constrained optimum it is read against is solved first)."""
     import scipy.sparse.linalg
 
-    from irdrc.core import cmdp_dual, sizes
+    from irdrc.core import chains, sizes
     from irdrc.online import recipe
     from irdrc.runs import app
 
@@ -186,7 +186,7 @@ def test_a_safe_run_past_the_dense_limit_whose_chain_does_not_fit_says_so_first(
         raise MemoryError
 
     monkeypatch.setattr(sizes, "DENSE_LIMIT_BYTES", 16 * 300**2)
-    monkeypatch.setattr(cmdp_dual, "SPARSE_FROM_STATES", 100)
+    monkeypatch.setattr(chains, "SPARSE_FROM_STATES", 100)
     monkeypatch.setattr(scipy.sparse.linalg, "splu", no_memory)
     run_dir = tmp_path / "run"
     code = app.execute(recipe, [f"learner={learner}", f"hydra.run.dir={run_dir}"])

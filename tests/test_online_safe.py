@@ -289,13 +289,13 @@ def test_beside_its_acting_the_safe_learner_adopts_the_lps_optimum_of_its_data(
     LP on its model finds the target out of reach, and else attains the LP's optimum there (to
     2e-7, HiGHS's tolerance) with the target met. Planned at the wrong target (the mutation), the
     plans send more than that LP allows. With ``SPARSE_FROM_STATES`` lowered under the model's
-    352 states, every plan is made on the sparse chain (``cmdp_dual.chain``) to the same end."""
-    from irdrc.core import cmdp_dual
+    352 states, every plan is made on the sparse chain (``chains.chain``) to the same end."""
+    from irdrc.core import chains
     from irdrc.core.cmdp import build_constraints, objective_table, solve_lp, transitions
     from irdrc.core.exact import stationary_metrics
 
     if sparse:
-        monkeypatch.setattr(cmdp_dual, "SPARSE_FROM_STATES", 100)
+        monkeypatch.setattr(chains, "SPARSE_FROM_STATES", 100)
     kinds = []
 
     def run(mutate: bool) -> tuple[SafeLearner, list, list[bool]]:

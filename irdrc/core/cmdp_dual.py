@@ -13,7 +13,7 @@ policies' occupation measures mixed so that it binds are the LP's optimum: the p
 one state and takes radar (the last action) where its chain never goes, as the LP's does.
 
 Its unit of work is one policy evaluation (``advance``): an LU factorisation of the S × S chain,
-dense or sparse (SuperLU, above ``SPARSE_FROM_STATES`` states; ``chain`` chooses). Policy iteration
+dense or sparse (SuperLU; ``irdrc.core.chains.chain`` chooses). Policy iteration
 assumes every policy's chain has one recurrent class (the model's Poisson arrivals reach a full
 queue from every state); a singular system, or a policy iteration that comes back to a policy it
 has left, stops it with ``SolverFailed``.
@@ -28,6 +28,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from irdrc.core.chains import chain
 from irdrc.core.cmdp import (
     CMDPSolution,
     Constraint,
@@ -36,9 +37,8 @@ from irdrc.core.cmdp import (
     SolverFailed,
     build_constraints,
     objective_table,
-    transitions,
 )
-from irdrc.core.exact import DenseModel, ExactMDP, FactoredModel
+from irdrc.core.exact import ExactMDP
 
 TIE_TOL = 1e-9
 """Policy improvement keeps a state's action unless another's value beats it by more than this
@@ -54,11 +54,6 @@ less may be transient (``DualPlanner._recurrent``)."""
 Line = tuple[np.ndarray, float, float, np.ndarray]
 """A policy found on the way, with its objective T and constraint C per step (the bound taken off),
 and its stationary distribution."""
-
-SPARSE_FROM_STATES = 3_000
-"""``chain`` gives the sparse chain (SuperLU) to factored models of more states than this, the
-dense one (LAPACK's LU) to the others: the faster of the two on either side (whole solves on the
-paper's model with deeper queues)."""
 
 MAX_EVALUATIONS = 10_000
 """Policy evaluations one plan may take before ``SolverFailed`` (tens are usual)."""
@@ -77,34 +72,12 @@ def one_blas_thread() -> Any:
     return _BLAS.limit(limits=1, user_api="blas")
 
 
-def dense_transitions(model: ExactMDP) -> np.ndarray:
-    """[A, S, S] P_a of every action as one dense array (a dense model's own; a factored model's
-    written from its factors, ``FactoredModel.dense``)."""
-    if isinstance(model, DenseModel):
-        return np.asarray(model.P.to(torch.float64).cpu().numpy())
-    if isinstance(model, FactoredModel):
-        return np.stack([model.dense(a) for a in range(model.num_actions)])
-    raise TypeError(
-        f"dense_transitions: a DenseModel or a FactoredModel, not {type(model).__name__}"
-    )
-
-
-def chain(model: ExactMDP) -> np.ndarray | list[Any]:
-    """The transitions ``DualPlanner`` factorises fastest for ``model``: a factored model's
-    sparse ones (``irdrc.core.cmdp.transitions``: only the arrivals' reach) above
-    ``SPARSE_FROM_STATES`` states, and dense ones (``dense_transitions``) otherwise (a dense
-    model's sparse form would hold every entry its P holds, down to 1e-300)."""
-    if isinstance(model, DenseModel) or model.num_states <= SPARSE_FROM_STATES:
-        return dense_transitions(model)
-    return transitions(model)
-
-
 class DualPlanner:
     """The LP's optimum of ``objective`` subject to ``constraint``, one policy evaluation at a time
     (see the module docstring).
 
     Args:
-        P: the transitions: [A, S, S] (``dense_transitions``), or A SciPy sparse S × S matrices
+        P: the transitions: [A, S, S] (``irdrc.core.chains.dense_transitions``), or A SciPy sparse S × S matrices
             (``irdrc.core.cmdp.transitions``).
         objective: [A, S] the per-step objective J (``irdrc.core.cmdp.objective_table``).
         constraint: the one constraint Σ x·coef ≤ bound (``build_constraints``'s first).

@@ -49,6 +49,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import torch
 
+from irdrc.core.chains import chain
 from irdrc.core.cmdp import (
     InfeasibleTarget,
     SolverFailed,
@@ -57,7 +58,7 @@ from irdrc.core.cmdp import (
     objective_table,
     solve_cmdp,
 )
-from irdrc.core.cmdp_dual import DualPlanner, chain, solve_cmdp_dual
+from irdrc.core.cmdp_dual import DualPlanner, solve_cmdp_dual
 from irdrc.core.params import Params
 from irdrc.core.sizes import dense_fit_states
 from irdrc.core.stream import Step

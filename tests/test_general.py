@@ -404,3 +404,17 @@ def test_the_lp_on_sparse_factored_transitions_equals_the_dense_lp():
     assert sf.value == pytest.approx(sd.value, rel=1e-8)
     assert sf.metrics.miss_detection <= 0.25
     assert sf.metrics.false_alarm_rate == pytest.approx(0.1, rel=1e-9)
+
+
+@pytest.mark.parametrize("feature", [None, "levels", "reaction", "bursty", "everything"])
+def test_nonzeros_counts_the_sparse_transitions_without_building_them(feature):
+    """The LP's memory is read from its transitions' non-zeros before they are built (the
+    recipes' refusal): ``nonzeros(a)`` is ``sparse(a).nnz`` exactly, dense and factored."""
+    p = (
+        Params.from_overrides({"env.queue_capacity": 12})
+        if feature is None
+        else params_of(feature, 12)
+    )
+    for model in (build_model(p), build_factored(p)):
+        for a in range(model.num_actions):
+            assert model.nonzeros(a) == model.sparse(a).nnz > 0

@@ -96,6 +96,10 @@ class DenseModel(ExactMDP):
 
         return sparse.csr_matrix(self.P[a].numpy())
 
+    def nonzeros(self, a: int) -> int:
+        """The non-zeros of ``sparse(a)``: P_a's entries that are not 0."""
+        return int(torch.count_nonzero(self.P[a]))
+
 
 def stationary_distribution(P: torch.Tensor) -> torch.Tensor:
     """μ with μ P = μ, Σμ = 1: one LU solve of (P^T − I) with its last equation replaced by

@@ -266,16 +266,14 @@ class FactoredModel(ExactMDP):
             out[:, fsel] = q[:, None, :, None] * F[fsel][None, :, None, :]
         return out.reshape(D1 * nf, D1 * nf)
 
-    def sparse(self, a: int) -> Any:
-        """P_a as a SciPy CSR matrix: P[(d, f), (d′, f′)] = Q(d′ | d, ν, λ)·F[a, f, f′], the queue's
-        arrivals (``pmf``, tail folded into the last entry) clamped at 0 and D — O(S · fan-out)
-        non-zeros, never S × S dense."""
+    def _blocks(self, a: int) -> Any:
+        """``sparse``'s parts, one per queue dynamics (ν, arrivals) of action ``a``: the queue's
+        (D + 1) × (D + 1) chain (COO, the clamped ends summed) and the factor configurations it
+        applies to."""
         import numpy as np
         from scipy import sparse
 
         D1, nf = self.queue_capacity + 1, self.num_configs
-        F = self.F[a].cpu().numpy()
-        rows, cols, vals = [], [], []
         d = np.arange(D1)
         for sel, nu, prow in self.cols[a]:
             pmf = self.pmf[prow].cpu().numpy()
@@ -288,18 +286,38 @@ class FactoredModel(ExactMDP):
                 ),
                 shape=(D1, D1),
             ).tocsr()  # duplicates (the clamped ends) summed
-            q = q.tocoo()
-            fsel = np.arange(nf)[sel.cpu().numpy() if isinstance(sel, torch.Tensor) else sel]
+            yield (
+                q.tocoo(),
+                np.arange(nf)[sel.cpu().numpy() if isinstance(sel, torch.Tensor) else sel],
+            )
+
+    def sparse(self, a: int) -> Any:
+        """P_a as a SciPy CSR matrix: P[(d, f), (d′, f′)] = Q(d′ | d, ν, λ)·F[a, f, f′], the queue's
+        arrivals (``pmf``, tail folded into the last entry) clamped at 0 and D — O(S · fan-out)
+        non-zeros, never S × S dense."""
+        import numpy as np
+        from scipy import sparse
+
+        nf = self.num_configs
+        F = self.F[a].cpu().numpy()
+        rows, cols, vals = [], [], []
+        for q, fsel in self._blocks(a):
             fr, fc = np.nonzero(F[fsel])
             fv = F[fsel][fr, fc]
             fr = fsel[fr]
             rows.append((q.row[:, None] * nf + fr[None, :]).ravel())
             cols.append((q.col[:, None] * nf + fc[None, :]).ravel())
             vals.append((q.data[:, None] * fv[None, :]).ravel())
-        S = D1 * nf
+        S = self.num_states
         return sparse.csr_matrix(
             (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(S, S)
         )
+
+    def nonzeros(self, a: int) -> int:
+        """The non-zeros ``sparse(a)`` holds, counted from the factors without building it: each
+        queue block's times its configurations' factor-chain entries."""
+        F = self.F[a].cpu()
+        return sum(q.nnz * int(torch.count_nonzero(F[fsel])) for q, fsel in self._blocks(a))
 
 
 def _poisson(lam: float, n: int) -> torch.Tensor:

@@ -138,6 +138,10 @@ class ExactMDP:
         """P_a as a SciPy CSR matrix [S, S] (the LP of ``irdrc.core.cmdp``)."""
         raise NotImplementedError(f"{type(self).__name__} has no sparse transitions")
 
+    def nonzeros(self, a: int) -> int:
+        """The non-zeros of ``sparse(a)`` (a model may count them without building it)."""
+        return int(self.sparse(a).nnz)
+
     def radar_share(self) -> torch.Tensor:
         """[A, S]: the share of a step in radar mode under each action (v1: 0 comm, 1 radar)."""
         radar = torch.as_tensor(self.radar, dtype=torch.float64, device=self.device)

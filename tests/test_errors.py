@@ -432,6 +432,38 @@ def test_env_rows_are_bounded_by_this_machines_memory(monkeypatch):
     load("dqn", *big)
 
 
+def test_an_lp_past_this_machines_memory_is_refused_before_it_is_built(monkeypatch, tmp_path):
+    """The LP's memory is read from its transitions' non-zeros, counted from the factors: ``large``'s
+    binary LP (318.8 M non-zeros) is refused at load on a machine of 24 GB, with its estimate and
+    the dual named (HiGHS was stopped by the system at 24 GB after a minute); the paper's LP and
+    ``learner=dual`` go on; ``evaluate.py target_miss=…`` is held to the same estimate; where the
+    memory is unknown nothing is refused."""
+    import torch
+
+    from irdrc.recipes.constrained.lp_cost import LP_BYTES_PER_NONZERO
+    from irdrc.runs import sections
+    from irdrc.runs.tables import write_policy_csv
+
+    monkeypatch.setattr(sections, "available_memory", lambda: 24 * 2**30)
+    load("constrained")
+    says = r"318\.8 M non-zeros for S = 100 800 states and would need ~\d+\.\d GB, more than"
+    with pytest.raises(ValueError, match=says) as err:
+        load("constrained", "env=large")
+    assert str(err.value).startswith("env.queue_capacity=699: the LP over 201 600 occupation")
+    assert "learner=dual" in str(err.value)
+    load("constrained", "env=large", "learner=dual")
+    table = tmp_path / "policy.csv"
+    write_policy_csv(table, torch.ones(352, dtype=torch.long), None)
+    load("evaluate", f"policy={table}", "target_miss=0.05")
+    paper = (94_720 + 50_688) * LP_BYTES_PER_NONZERO  # the paper LP's non-zeros
+    monkeypatch.setattr(sections, "available_memory", lambda: int(paper))
+    with pytest.raises(ValueError, match="or leave target_miss out"):
+        load("evaluate", f"policy={table}", "target_miss=0.05")
+    load("evaluate", f"policy={table}")
+    monkeypatch.setattr(sections, "available_memory", lambda: None)
+    load("constrained", "env=large")
+
+
 @pytest.mark.parametrize(
     ("recipe", "override", "says"),
     [

@@ -82,6 +82,10 @@ def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
             f"{source}: target_miss reads a comm/radar policy against the LP; a radar-share "
             "policy's constrained optimum is recipes/constrained.py env.actions=continuous"
         )
+    if cfg.target_miss is not None:
+        from irdrc.recipes.constrained.lp_cost import check_binary_lp
+
+        check_binary_lp(cfg.params, "use a smaller env.queue_capacity, or leave target_miss out")
     return cfg
 
 

@@ -67,7 +67,8 @@ def lp_notice(num_states: int) -> None:
     if num_states > LP_NOTICE_STATES:
         print(
             f"[lp] solving the constrained optimum over {num_states:,} states (one solver call "
-            "with no progress of its own: seconds to minutes at this size) …".replace(",", " "),
+            "with no progress of its own: minutes or more at this size; Ctrl-C stops it at once) "
+            "…".replace(",", " "),
             flush=True,
         )
 

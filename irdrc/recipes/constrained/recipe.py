@@ -203,6 +203,14 @@ def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
         check_share_lp(cfg.params)
     if cfg.learner == "dqn_lagrangian" or cfg.frontier:
         check_dense(cfg.params)  # the learner's exact scorer and the frontier's LPs: dense models
+    if cfg.params.env.actions == "binary" and cfg.learner == "lp":
+        from irdrc.recipes.constrained.lp_cost import check_binary_lp
+
+        check_binary_lp(
+            cfg.params,
+            "use a smaller env.queue_capacity, or for target_miss alone learner=dual (the same "
+            "optimum on the LP's dual, which factorises the chain instead)",
+        )
     if resume is not None:
         total = cfg.algo.dqn.total_frames
         refuse_finished(cfg.resume, int(resume["frames"]), total, "algo.total_frames", total)

@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING, Any
 import torch
 
 from irdrc.core.params import Params
+from irdrc.recipes.constrained.lp_cost import LP_BYTES_PER_NONZERO, check_lp_fits
 
 if TYPE_CHECKING:
     from irdrc.runs.scaffold import Run
@@ -39,9 +40,6 @@ LP_SECONDS, LP_NONZEROS, LP_POWER = 57.0, 3.09e6, 1.6
 """The LP over radar shares as measured here (one core): 57 s at 3.09 M non-zeros (21 shares, 480
 states), 359 s at 10.4 M (928 states): time ∝ non-zeros^1.6."""
 
-LP_BYTES_PER_NONZERO = 210
-"""The LP's peak memory per non-zero, as measured here (2.2 GB at 10.4 M non-zeros)."""
-
 LP_NOTICE_SECONDS = 60.0
 """An LP over shares estimated to take longer than this is announced before it starts."""
 
@@ -66,18 +64,14 @@ def share_lp_cost(params: Params) -> tuple[int, float, float]:
 
 def check_share_lp(params: Params) -> None:
     """Refuse an LP over radar shares that would need more memory than this machine has free."""
-    from irdrc.recipes.solve import size
-    from irdrc.runs.sections import available_memory
-
-    nonzeros, _, need = share_lp_cost(params)
-    free = available_memory()
-    if free is not None and need > 0.8 * free:
-        raise ValueError(
-            f"env.actions={params.env.actions}: the LP over radar shares has {nonzeros / 1e6:.1f} M "
-            f"non-zeros for S = {params.env.num_states:,} states and would need ~{size(need)}, more "
-            f"than this machine has free ({size(free)}); use a smaller scenario "
-            "(env.queue_capacity) or env.actions=binary"
-        )
+    nonzeros, _, _ = share_lp_cost(params)
+    check_lp_fits(
+        f"env.actions={params.env.actions}",
+        "over radar shares",
+        nonzeros,
+        params.env.num_states,
+        "use a smaller scenario (env.queue_capacity) or env.actions=binary",
+    )
 
 
 def share_lp_notice(params: Params) -> None:

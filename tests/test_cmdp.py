@@ -250,7 +250,11 @@ def test_a_solver_failure_is_one_line_and_the_safe_learner_keeps_its_plan(paper,
         status, message, x, fun = 4, "HiGHS Status 4: Solve error", None, None
 
     monkeypatch.setattr(scipy.optimize, "linprog", lambda *a, **k: Failed())
-    with pytest.raises(SolverFailed, match=r"HiGHS Status 4: Solve error; 704 variables"):
+    says = (  # the counts' thousands apart by spaces, the prose's commas kept
+        r"HiGHS Status 4: Solve error; 704 variables, 146 040 non-zeros\): a smaller model "
+        r"\(env\.queue_capacity, fewer factor levels or arrival phases\)"
+    )
+    with pytest.raises(SolverFailed, match=says):
         solve_cmdp(paper, 0.1)
     assert issubclass(SolverFailed, ValueError)
     learner = make_learner("safe", configs.learner_config("safe", {"episodes": 2}), Params(), 0)

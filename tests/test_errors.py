@@ -393,7 +393,7 @@ def test_a_solve_past_its_time_limit_is_refused_with_its_estimate(tmp_path):
     out = tmp_path / "run"
     r = _run("recipes/solve.py", "env=large", "max_minutes=0.001", f"hydra.run.dir={out}")
     assert r.returncode == 2, r.stderr
-    assert r.stdout.startswith("scenario=large: S = 100,800 states, factored value iteration;")
+    assert r.stdout.startswith("scenario=large: S = 100 800 states, factored value iteration;")
     assert "estimate here" in r.stdout and "value iteration:" not in r.stdout
     assert "above max_minutes=0.001; raise max_minutes to solve it anyway" in r.stderr
     assert not out.exists()

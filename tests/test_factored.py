@@ -125,7 +125,7 @@ def test_solve_recipe_switches_to_the_factored_operator(tmp_path):
         cwd=ROOT,
     )
     assert res.returncode == 0, res.stderr
-    assert "S = 10,080 states, factored value iteration" in res.stdout
+    assert "S = 10 080 states, factored value iteration" in res.stdout
     assert "C×" in res.stdout or "R×" in res.stdout or "radar" in res.stdout
     import json
 

@@ -143,7 +143,8 @@ def test_the_advice_to_train_longer_is_twice_the_runs_own_env_steps():
 
 def test_a_long_lp_is_announced_before_it_starts(tmp_path, capsys, monkeypatch):
     """The constrained optimum's LP is one solver call with no progress of its own (minutes at a
-    few thousand states): beyond ``LP_NOTICE_STATES`` a line says it started, before the result."""
+    few thousand states): beyond ``LP_NOTICE_STATES`` a line says it started, before the result,
+    and where the miss target is the only constraint that the dual is faster."""
     from irdrc.recipes.constrained import recipe
     from irdrc.runs import app, progress
 
@@ -155,3 +156,7 @@ def test_a_long_lp_is_announced_before_it_starts(tmp_path, capsys, monkeypatch):
     out = capsys.readouterr().out
     assert "[lp] solving the constrained optimum over 352 states" in out
     assert out.index("[lp]") < out.index("constrained optimum (LP)")
+    assert "learner=dual finds the same optimum" in out  # the miss target alone: the dual's hint
+    args = ["target_miss=0.1", "max_drop=0.5", f"hydra.run.dir={tmp_path / 'c'}"]
+    assert app.execute(recipe, args) == 0
+    assert "learner=dual" not in capsys.readouterr().out  # the dual takes the miss target alone

@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from irdrc.core.checks import build, check_list, check_number, numbers
+from irdrc.core.checks import build, check_list, check_number, grouped, numbers
 from irdrc.runs.compose import Composed
 from irdrc.runs.grid import parse_grid
 from irdrc.runs.results import md_table
@@ -145,7 +145,7 @@ def _steps(n: float) -> str:
     """Env steps in words a table reads at a glance: 80 000, 1.2 M, 279 M."""
     if n >= 1e6:
         return f"{n / 1e6:.3g} M"
-    return f"{n:,.0f}".replace(",", " ")
+    return grouped(n)
 
 
 def constrained_bench_table(

@@ -13,7 +13,7 @@ import time
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
-from irdrc.core.checks import build, check_list
+from irdrc.core.checks import build, check_list, grouped
 from irdrc.core.params import Params
 from irdrc.runs.compose import Composed, compose_recipe
 from irdrc.runs.grid import candidate_overrides
@@ -167,10 +167,10 @@ def speed_table(rows: list[dict[str, Any]], profiles: list[str]) -> str:
             [
                 name,
                 len(mine),
-                f"{mine[0]['env_steps']:,}".replace(",", " "),
-                f"{statistics.median(r['updates'] for r in mine):,.0f}".replace(",", " "),
+                grouped(mine[0]["env_steps"]),
+                grouped(statistics.median(r["updates"] for r in mine)),
                 f"{statistics.median(r['training_seconds'] for r in mine):.2f}",
-                f"{rate:,.0f}".replace(",", " "),
+                grouped(rate),
                 f"{rate / base:.3g}",
                 f"{statistics.median(r['updates_per_second'] for r in mine):.0f}",
                 " / ".join(

@@ -18,7 +18,7 @@ import gymnasium
 import numpy as np
 import torch
 
-from irdrc.core.checks import INT, build, check_choice, check_list, check_numbers, numbers
+from irdrc.core.checks import INT, build, check_choice, check_list, check_numbers, grouped, numbers
 from irdrc.core.dynamics import Dynamics
 from irdrc.core.env import DFRCEnv
 from irdrc.core.params import Params
@@ -295,7 +295,7 @@ def bench_env_table(rows: list[dict[str, Any]]) -> str:
             md_table(
                 ["N envs", "threads", *(f"{m} (M steps/s)" for m in modes)],
                 [
-                    [f"{n:,}".replace(",", " "), t]
+                    [grouped(n), t]
                     + [f"{rate[(t, n, m)] / 1e6:.3g}" if (t, n, m) in rate else "" for m in modes]
                     for t, n in keys
                 ],

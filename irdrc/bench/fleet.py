@@ -35,6 +35,7 @@ import matplotlib.pyplot as plt
 
 from irdrc.agents.configs import FLEET_LEARNERS
 from irdrc.core import checks
+from irdrc.core.checks import grouped
 from irdrc.runs.compose import Composed
 from irdrc.runs.grid import require_runs
 from irdrc.runs.results import (
@@ -245,7 +246,7 @@ def _steps(values: list[float]) -> str:
     hit = [v for v in values if v is not None]
     if not hit:
         return "—"
-    label = f"{statistics.median(hit):,.0f}".replace(",", " ")
+    label = grouped(statistics.median(hit))
     return label if len(hit) == len(values) else f"{label} ({len(hit)}/{len(values)})"
 
 

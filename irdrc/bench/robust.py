@@ -27,6 +27,7 @@ from irdrc.core.checks import (
     check_list,
     check_number,
     check_numbers,
+    grouped,
     numbers,
 )
 from irdrc.runs.compose import Composed
@@ -232,7 +233,7 @@ def robust_table(
 
     def med(values: list[float]) -> str:
         values = [v for v in values if v is not None]
-        return f"{statistics.median(values):,.0f}".replace(",", " ") if values else "—"
+        return grouped(statistics.median(values)) if values else "—"
 
     def summary(mine: list[dict[str, Any]]) -> list[str]:
         reached = [r for r in mine if r["env_steps_to_threshold"] is not None]

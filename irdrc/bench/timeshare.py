@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from irdrc.bench.random_scenarios import ShareDraw, command_line
-from irdrc.core.checks import INT, build, check_choice, check_list, check_numbers
+from irdrc.core.checks import INT, build, check_choice, check_list, check_numbers, grouped
 from irdrc.runs.compose import Composed
 from irdrc.runs.grid import candidate_overrides, parse_grid
 from irdrc.runs.results import md_table
@@ -177,7 +177,7 @@ def random_summary(rows: list[dict[str, Any]], cfg: Config) -> str:
             continue
         worst = min(mine, key=lambda r: r["final_ratio"])
         reached = [r[f"env_steps_to_{th:g}"] for r in mine if r.get(f"env_steps_to_{th:g}")]
-        median = f"{statistics.median(reached):,.0f}".replace(",", " ") if reached else "—"
+        median = grouped(statistics.median(reached)) if reached else "—"
         lines.append(
             f"- **{learner}**: {sum(r['holds'] for r in mine)} of {len(mine)} runs ≥ {th:g} of the "
             f"optimum over ρ; worst {worst['final_ratio']:.4f} ({worst['scenario']}, seed "

@@ -17,6 +17,11 @@ from pathlib import Path
 from typing import Any
 
 
+def grouped(x: float, digits: int = 0) -> str:
+    """``x`` for a message or a table, its thousands set apart by spaces: ``100 800``, ``1 461.5``."""
+    return f"{x:,.{digits}f}".replace(",", " ")
+
+
 def check_number(
     key: str,
     value: Any,

@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from irdrc.core.checks import grouped
 from irdrc.core.exact import ExactMDP, stationary_metrics
 from irdrc.core.metrics import Metrics
 
@@ -235,9 +236,9 @@ def solve_lp(P: Any, objective: torch.Tensor, constraints: Sequence[Constraint] 
         raise InfeasibleTarget(res.message)
     if res.status != 0:
         raise SolverFailed(
-            f"the LP solver failed on this model ({res.message}; {A * S:,} variables, "
-            f"{A_eq.nnz:,} non-zeros): a smaller model (env.queue_capacity, fewer factor levels "
-            "or arrival phases) gives a smaller LP".replace(",", " ")
+            f"the LP solver failed on this model ({res.message}; {grouped(A * S)} variables, "
+            f"{grouped(A_eq.nnz)} non-zeros): a smaller model (env.queue_capacity, fewer factor "
+            "levels or arrival phases) gives a smaller LP"
         )
     x = torch.from_numpy(res.x).to(torch.float64).clamp(min=0).reshape(A, S)
     x = x / x.sum()

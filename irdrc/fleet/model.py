@@ -22,6 +22,7 @@ from collections.abc import Iterator, Mapping, Sequence
 
 import torch
 
+from irdrc.core.checks import grouped
 from irdrc.core.exact import ExactMDP
 from irdrc.core.exact.krylov import stationary_krylov
 from irdrc.core.params import Params
@@ -107,8 +108,8 @@ class FleetModel(ExactMDP):
         """Raise a ``ValueError`` when the joint state space is beyond the exact model's reach."""
         if not self.exact:
             raise ValueError(
-                f"env.vehicles={self.N}: {self.num_states:,} joint states, above the exact fleet "
-                f"model's {FLEET_STATE_LIMIT:,} (N = 2 on the paper's sizes has 30 976); the "
+                f"env.vehicles={self.N}: {grouped(self.num_states)} joint states, above the exact fleet "
+                f"model's {grouped(FLEET_STATE_LIMIT)} (N = 2 on the paper's sizes has 30 976); the "
                 "simulator and Monte-Carlo evaluation work at any N"
             )
 

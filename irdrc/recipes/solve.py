@@ -16,7 +16,7 @@ import time
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
-from irdrc.core.checks import INT, build, check_number, check_numbers
+from irdrc.core.checks import INT, build, check_number, check_numbers, grouped
 from irdrc.core.params import Params
 from irdrc.core.sizes import DENSE_LIMIT_BYTES, fits_dense
 from irdrc.runs.compose import Composed
@@ -90,7 +90,7 @@ def check_shares_fit(params: Params) -> None:
     if not fits_dense(params) or need > 2 * DENSE_LIMIT_BYTES:
         raise ValueError(
             f"env.actions={env.actions}: the exact solve over radar shares is built on the dense "
-            f"model, {actions} S × S matrices: ~{need / 2**30:.1f} GB for S = {env.num_states:,} "
+            f"model, {actions} S × S matrices: ~{need / 2**30:.1f} GB for S = {grouped(env.num_states)} "
             "states; use a smaller scenario (env.queue_capacity) or env.actions=binary"
         )
 
@@ -322,19 +322,19 @@ def solve_factored(cfg: Config, run: Run) -> dict[str, Any]:
     S = model.num_states
     seconds, need = estimate(params, model)
     print(
-        f"scenario={run.scenario}: S = {S:,} states, factored value iteration; estimate here "
+        f"scenario={run.scenario}: S = {grouped(S)} states, factored value iteration; estimate here "
         f"~{duration(seconds)} and ~{size(need)} (two sweeps timed)",
         flush=True,
     )
     free = available_memory() or math.inf  # unknown: no bound
     if need > 0.8 * free:
         raise ValueError(
-            f"env.queue_capacity={params.env.queue_capacity}: S = {S:,} states would need "
+            f"env.queue_capacity={params.env.queue_capacity}: S = {grouped(S)} states would need "
             f"~{need / 2**30:.1f} GB, more than this machine has free ({free / 2**30:.1f} GB)"
         )
     if seconds > 60 * cfg.max_minutes:
         raise ValueError(
-            f"env.queue_capacity={params.env.queue_capacity}: S = {S:,} states would take "
+            f"env.queue_capacity={params.env.queue_capacity}: S = {grouped(S)} states would take "
             f"~{duration(seconds)} here, above max_minutes={cfg.max_minutes:g}; raise "
             "max_minutes to solve it anyway"
         )

@@ -22,6 +22,7 @@ from irdrc.core.checks import (
     check_choice,
     check_list,
     check_number,
+    grouped,
     reject_unknown_keys,
 )
 from irdrc.core.metrics import Metrics, first_reaching
@@ -222,7 +223,7 @@ def _median(values: list[Any]) -> Any:
 def _n(x: Any, digits: int = 0) -> str:
     if x is None:
         return "—"
-    return f"{x:,.{digits}f}".replace(",", " ")
+    return grouped(x, digits)
 
 
 def study_table(rows: list[dict[str, Any]]) -> str:

@@ -11,6 +11,7 @@ from typing import Any
 
 from tqdm import tqdm
 
+from irdrc.core.checks import grouped
 from irdrc.runs.tracking import log_scalars
 
 
@@ -61,14 +62,14 @@ is announced before it starts: it takes under a second at the paper's 352 states
 (a queue of 40) and minutes at a few thousand with slower chains (162 s at 1 968)."""
 
 
-def lp_notice(num_states: int) -> None:
+def lp_notice(num_states: int, hint: str = "") -> None:
     """Say that a long LP is starting (``LP_NOTICE_STATES``), so that a quiet terminal is not taken
-    for a hung one."""
+    for a hung one; ``hint``, a faster way where there is one, follows."""
     if num_states > LP_NOTICE_STATES:
         print(
-            f"[lp] solving the constrained optimum over {num_states:,} states (one solver call "
-            "with no progress of its own: minutes or more at this size; Ctrl-C stops it at once) "
-            "…".replace(",", " "),
+            f"[lp] solving the constrained optimum over {grouped(num_states)} states (one solver "
+            "call with no progress of its own: minutes or more at this size; Ctrl-C stops it at "
+            f"once{'; ' + hint if hint else ''}) …",
             flush=True,
         )
 

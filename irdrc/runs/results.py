@@ -13,6 +13,7 @@ from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 from typing import Any, BinaryIO
 
+from irdrc.core.checks import grouped
 from irdrc.core.metrics import Metrics
 
 
@@ -115,7 +116,7 @@ def measured_line(wall_seconds: float | None = None, kept_runs: int = 0) -> str:
     date = datetime.date.today().isoformat()
     took = ""
     if wall_seconds is not None:
-        took = ", in " + f"{wall_seconds:,.0f}".replace(",", " ") + " s"
+        took = ", in " + grouped(wall_seconds) + " s"
     if kept_runs:
         took += (
             f" (the runs of this invocation; {kept_runs} more were kept from an earlier one "

@@ -99,8 +99,9 @@ def check_exact(params: Params) -> None:
         per_state = math.prod(params.env.factor_levels) or 1
         top = EXACT_LIMIT_STATES // per_state - 1
         raise ValueError(
-            f"env.queue_capacity={params.env.queue_capacity}: the exact model has S = {S} states, "
-            f"about {S * EXACT_BYTES_PER_STATE / 2**30:.1f} GiB factored (limit {EXACT_LIMIT_STATES} states); use "
+            f"env.queue_capacity={params.env.queue_capacity}: the exact model has S = "
+            f"{checks.grouped(S)} states, about {S * EXACT_BYTES_PER_STATE / 2**30:.1f} GiB "
+            f"factored (limit {checks.grouped(EXACT_LIMIT_STATES)} states); use "
             f"env.queue_capacity ≤ {top}"
         )
 
@@ -140,7 +141,7 @@ def check_memory(algo: Any) -> None:
     per_rows = steps / rows  # a collection's steps per row, kept
     room = (have - base - per_slot * slots) / (per_row + per_step * per_rows)
     fits = (
-        f"use algo.num_envs ≤ {int(room):,}".replace(",", " ")
+        f"use algo.num_envs ≤ {checks.grouped(int(room))}"
         if room >= 1
         else "lower algo.buffer_size"
     )

@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING, Any
 
 import torch
 
+from irdrc.core.checks import grouped
 from irdrc.core.states import decode_state
 from irdrc.runs.results import atomic_write_text, read_csv_rows, read_csv_table
 
@@ -337,4 +338,4 @@ def closest_decisions(model: Any, sol: Any, gamma: float, count: int = 6) -> str
 
 def _count(x: float) -> str:
     """A count for a table: ``12``, ``1 461``, ``inf``."""
-    return "inf" if not math.isfinite(x) else f"{x:,.0f}".replace(",", " ")
+    return "inf" if not math.isfinite(x) else grouped(x)

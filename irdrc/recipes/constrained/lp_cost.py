@@ -5,6 +5,7 @@ work (HiGHS would otherwise grow until the system stops the process)."""
 
 from __future__ import annotations
 
+from irdrc.core.checks import grouped
 from irdrc.core.params import Params
 
 LP_BYTES_PER_NONZERO = 240
@@ -34,7 +35,7 @@ def check_lp_fits(key: str, what: str, nonzeros: int, num_states: int, advice: s
     free = available_memory()
     if free is not None and need > 0.8 * free:
         raise ValueError(
-            f"{key}: the LP {what} has {nonzeros / 1e6:.1f} M non-zeros for S = {_n(num_states)} "
+            f"{key}: the LP {what} has {nonzeros / 1e6:.1f} M non-zeros for S = {grouped(num_states)} "
             f"states and would need ~{size(need)}, more than this machine has free "
             f"({size(free)}); {advice}"
         )
@@ -44,13 +45,8 @@ def check_binary_lp(params: Params, advice: str) -> None:
     """Refuse the binary modes' LP on ``params`` where it would not fit (``check_lp_fits``)."""
     check_lp_fits(
         f"env.queue_capacity={params.env.queue_capacity}",
-        f"over {_n(2 * params.env.num_states)} occupation variables",
+        f"over {grouped(2 * params.env.num_states)} occupation variables",
         binary_lp_nonzeros(params),
         params.env.num_states,
         advice,
     )
-
-
-def _n(count: int) -> str:
-    """``count`` with a space between thousands (``100 800``)."""
-    return f"{count:,}".replace(",", " ")

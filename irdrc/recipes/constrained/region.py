@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING, Any
 
 import torch
 
+from irdrc.core.checks import grouped
 from irdrc.core.params import Params
 from irdrc.recipes.constrained.lp_cost import LP_BYTES_PER_NONZERO, check_lp_fits
 
@@ -82,7 +83,7 @@ def share_lp_notice(params: Params) -> None:
     if seconds > LP_NOTICE_SECONDS:
         print(
             f"[lp] the constrained optimum over radar shares: an LP of {nonzeros / 1e6:.1f} M "
-            f"non-zeros over {params.env.num_states:,} states, ~{duration(seconds)} and "
+            f"non-zeros over {grouped(params.env.num_states)} states, ~{duration(seconds)} and "
             f"~{size(need)} here; one solver call with no progress of its own",
             flush=True,
         )

@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING, Any
 
 import torch
 
+from irdrc.core.checks import grouped
 from irdrc.core.exact import value_iteration
 from irdrc.core.states import decode_state
 from irdrc.fleet.model import FleetModel
@@ -67,7 +68,7 @@ def describe(spec: FleetSpec, observe: str, model: FleetModel) -> str:
     )
     return (
         f"fleet: {spec.vehicles} vehicles ({alike}), {spec.channels} channel(s), {spec.access} "
-        f"access, share {spec.share:g}, observe {observe}; {model.num_states:,} joint states "
+        f"access, share {spec.share:g}, observe {observe}; {grouped(model.num_states)} joint states "
         f"({reach}){slow}"
     )
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING, Any
 
-from irdrc.core.checks import build
+from irdrc.core.checks import build, grouped
 from irdrc.runs.compose import Composed
 from irdrc.runs.resume import refuse_finished
 from irdrc.runs.sections import check_eval_period, check_memory
@@ -83,9 +83,9 @@ def run_learner(cfg: Any, run: Run, train: Any) -> dict[str, Any]:
     ratio = scorer.ratio(rho)
     to99 = record.first_reaching(0.99)
     print(
-        f"\n{name}: {ratio:.4f} of the optimum over ρ after {record.env_steps:,} env steps "
+        f"\n{name}: {ratio:.4f} of the optimum over ρ after {grouped(record.env_steps)} env steps "
         f"({record.wall_seconds:.0f} s); first ≥ 0.99 at "
-        f"{'—' if to99 is None else f'{to99:,} env steps'}"
+        f"{'—' if to99 is None else f'{grouped(to99)} env steps'}"
     )
     if ratio < 0.99:
         print(

@@ -29,6 +29,7 @@ import numpy as np
 import torch
 
 from irdrc.core.chains import chain
+from irdrc.core.checks import grouped
 from irdrc.core.cmdp import (
     CMDPSolution,
     Constraint,
@@ -88,10 +89,12 @@ class DualPlanner:
     def __init__(
         self, P: np.ndarray | list[Any], objective: torch.Tensor, constraint: Constraint
     ) -> None:
-        self.P = P
-        self.rows: Any = None  # sparse: every action's rows stacked, [A·S, S]
+        # dense: P itself; sparse: every action's rows stacked, [A·S, S] (the list is not kept)
+        self.P: np.ndarray | None = None
+        self.rows: Any = None
         if isinstance(P, np.ndarray):
             A, S = P.shape[0], P.shape[-1]
+            self.P = P
         else:
             from scipy import sparse
 
@@ -133,7 +136,7 @@ class DualPlanner:
         try:
             with np.errstate(all="raise"), warnings.catch_warnings():
                 warnings.simplefilter("error", sl.LinAlgWarning)
-                if isinstance(self.P, np.ndarray):
+                if self.P is not None:
                     M = -self.P[self.policy, idx]  # I − P_π, one array
                     M[idx, idx] += 1.0
                     M[:, 0] = 1.0
@@ -172,16 +175,16 @@ class DualPlanner:
             lu = splu(M)
         except MemoryError:
             raise SolverFailed(
-                f"the LU of the sparse chain of S = {S} states does not fit in memory "
-                f"({M.nnz} non-zeros before fill-in): a smaller env.queue_capacity"
+                f"the LU of the sparse chain of S = {grouped(S)} states does not fit in memory "
+                f"({grouped(M.nnz)} non-zeros before fill-in): a smaller env.queue_capacity"
             ) from None
         return lu.solve(rhs), lu.solve(e0, trans="T")
 
     def _expect(self, h: np.ndarray) -> np.ndarray:
         """[A, S]: P_a h for every action."""
-        if isinstance(self.P, np.ndarray):
+        if self.P is not None:
             return np.asarray(self.P @ h)
-        return np.asarray(self.rows @ h).reshape(len(self.P), -1)
+        return np.asarray(self.rows @ h).reshape(-1, len(h))
 
     def _line(self, pol: np.ndarray, mu: np.ndarray) -> Line:
         idx = np.arange(len(pol))
@@ -229,7 +232,7 @@ class DualPlanner:
         small, out, S = np.flatnonzero(mu <= DUST), mu > DUST, len(pol)
         if not small.size:
             return out
-        P = self.P if isinstance(self.P, np.ndarray) else None
+        P = self.P
         rows = P[pol, np.arange(S)] if P is not None else self.rows[pol * S + np.arange(S)]
         into = rows[:, small] > 0  # [S, k]: the moves into the small states
         reached = frontier = np.asarray(into[np.flatnonzero(out)].sum(0)).ravel() > 0

@@ -268,7 +268,7 @@ class FactoredModel(ExactMDP):
 
     def _blocks(self, a: int) -> Any:
         """``sparse``'s parts, one per queue dynamics (ν, arrivals) of action ``a``: the queue's
-        (D + 1) × (D + 1) chain (COO, the clamped ends summed) and the factor configurations it
+        (D + 1) × (D + 1) chain (CSR, the clamped ends summed) and the factor configurations it
         applies to."""
         import numpy as np
         from scipy import sparse
@@ -279,45 +279,65 @@ class FactoredModel(ExactMDP):
             pmf = self.pmf[prow].cpu().numpy()
             keep = np.nonzero(pmf)[0]
             dn = np.clip(d[:, None] + keep[None, :] - nu, 0, D1 - 1)  # [D + 1, K]
-            q = sparse.coo_matrix(
+            q = sparse.csr_matrix(
                 (
                     np.broadcast_to(pmf[keep], dn.shape).ravel(),
                     (np.repeat(d, keep.size), dn.ravel()),
                 ),
                 shape=(D1, D1),
-            ).tocsr()  # duplicates (the clamped ends) summed
-            yield (
-                q.tocoo(),
-                np.arange(nf)[sel.cpu().numpy() if isinstance(sel, torch.Tensor) else sel],
             )
+            q.sum_duplicates()
+            yield q, np.arange(nf)[sel.cpu().numpy() if isinstance(sel, torch.Tensor) else sel]
+
+    def _row_counts(self, a: int, blocks: list[Any]) -> Any:
+        """[D + 1, F] the non-zeros of each row (d, f) of P_a: its queue row's times its factor
+        row's."""
+        import numpy as np
+
+        per_config = (self.F[a] != 0).sum(1).cpu().numpy()
+        counts = np.zeros((self.queue_capacity + 1, self.num_configs), dtype=np.int64)
+        for q, fsel in blocks:
+            counts[:, fsel] = np.diff(q.indptr)[:, None] * per_config[fsel][None, :]
+        return counts
 
     def sparse(self, a: int) -> Any:
         """P_a as a SciPy CSR matrix: P[(d, f), (d′, f′)] = Q(d′ | d, ν, λ)·F[a, f, f′], the queue's
         arrivals (``pmf``, tail folded into the last entry) clamped at 0 and D — O(S · fan-out)
-        non-zeros, never S × S dense."""
+        non-zeros, never S × S dense. Written in place into the CSR arrays, a few million entries
+        at a time: it holds little more than the matrix it returns."""
         import numpy as np
         from scipy import sparse
 
-        nf = self.num_configs
+        nf, S = self.num_configs, self.num_states
         F = self.F[a].cpu().numpy()
-        rows, cols, vals = [], [], []
-        for q, fsel in self._blocks(a):
-            fr, fc = np.nonzero(F[fsel])
-            fv = F[fsel][fr, fc]
-            fr = fsel[fr]
-            rows.append((q.row[:, None] * nf + fr[None, :]).ravel())
-            cols.append((q.col[:, None] * nf + fc[None, :]).ravel())
-            vals.append((q.data[:, None] * fv[None, :]).ravel())
-        S = self.num_states
-        return sparse.csr_matrix(
-            (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(S, S)
-        )
+        blocks = list(self._blocks(a))
+        counts = self._row_counts(a, blocks)
+        indptr = np.zeros(S + 1, dtype=np.int64)
+        np.cumsum(counts.ravel(), out=indptr[1:])
+        indices = np.empty(int(indptr[-1]), dtype=np.int32 if S < 2**31 else np.int64)
+        data = np.empty(int(indptr[-1]))
+        per_config = np.count_nonzero(F, axis=1)
+        for q, fsel in blocks:
+            fr, fc = np.nonzero(F[fsel])  # row by row, columns ascending
+            fv, ff = F[fsel][fr, fc], fsel[fr]
+            j = np.arange(fr.size) - np.searchsorted(fr, fr)  # its place in its factor row
+            qd = np.repeat(np.arange(q.shape[0]), np.diff(q.indptr))
+            k = np.arange(q.nnz) - q.indptr[qd]  # its place in its queue row
+            step = max(1, SPARSE_CHUNK // max(1, fr.size))
+            for lo in range(0, q.nnz, step):
+                at = slice(lo, lo + step)
+                pos = indptr[qd[at, None] * nf + ff] + k[at, None] * per_config[ff] + j
+                indices[pos] = q.indices[at, None] * nf + fc
+                data[pos] = q.data[at, None] * fv
+        return sparse.csr_matrix((data, indices, indptr), shape=(S, S))
 
     def nonzeros(self, a: int) -> int:
-        """The non-zeros ``sparse(a)`` holds, counted from the factors without building it: each
-        queue block's times its configurations' factor-chain entries."""
-        F = self.F[a].cpu()
-        return sum(q.nnz * int(torch.count_nonzero(F[fsel])) for q, fsel in self._blocks(a))
+        """The non-zeros ``sparse(a)`` holds, counted from the factors without building it."""
+        return int(self._row_counts(a, list(self._blocks(a))).sum())
+
+
+SPARSE_CHUNK = 4_000_000
+"""``FactoredModel.sparse`` writes at most about this many entries at a time."""
 
 
 def _poisson(lam: float, n: int) -> torch.Tensor:

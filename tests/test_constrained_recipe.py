@@ -58,7 +58,9 @@ def test_the_dual_writes_the_lps_optimum_past_the_dense_limit(tmp_path):
     s = json.loads((tmp_path / "summary.json").read_text())
     assert s["value"] == pytest.approx(0.4131933414, rel=1e-9)
     assert s["optimal"]["miss_detection"] == pytest.approx(0.05, abs=1e-9)
-    assert s["randomised_states"] == 1 and "the LP's Lagrangian dual over 5824 states" in res.stdout
+    assert (
+        s["randomised_states"] == 1 and "the LP's Lagrangian dual over 5 824 states" in res.stdout
+    )
     assert "d=181 c=0 r=0 w=0 v=0 m=0: radar with probability" in res.stdout
 
 

@@ -35,9 +35,9 @@ def check_lp_fits(key: str, what: str, nonzeros: int, num_states: int, advice: s
     free = available_memory()
     if free is not None and need > 0.8 * free:
         raise ValueError(
-            f"{key}: the LP {what} has {nonzeros / 1e6:.1f} M non-zeros for S = {grouped(num_states)} "
-            f"states and would need ~{size(need)}, more than this machine has free "
-            f"({size(free)}); {advice}"
+            f"{key}: the LP {what} has {nonzeros / 1e6:.1f} M non-zeros for S = "
+            f"{grouped(num_states)} states and would need ~{size(need)}, more than this machine "
+            f"has free ({size(free)}); {advice}"
         )
 
 

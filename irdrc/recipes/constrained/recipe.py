@@ -278,13 +278,14 @@ def solve_lp(cfg: Config, run: Run) -> dict[str, Any]:
     if cfg.learner == "dual":  # the factored model: its sparse chain holds the arrivals' reach
         model: ExactMDP = build_factored(cfg.params)
         sol = solve_cmdp_dual(model, cfg.target_miss, cfg.objective)
-        how = f"the LP's Lagrangian dual over {model.num_states} states"
+        how = f"the LP's Lagrangian dual over {checks.grouped(model.num_states)} states"
     else:
         model = lp_model(cfg.params)
         alone = cfg.max_drop is None and cfg.min_radar is None
         lp_notice(model.num_states, DUAL_HINT if alone else "")
         sol = solve_cmdp(model, **cfg.constraints)
-        how = f"exact LP over {model.num_actions * model.num_states} occupation variables"
+        variables = checks.grouped(model.num_actions * model.num_states)
+        how = f"exact LP over {variables} occupation variables"
     wall = time.perf_counter() - t0
     tol = 1e-9 if fits_dense(cfg.params) else 1e-6
     reward_opt = stationary_metrics(

@@ -418,3 +418,32 @@ def test_nonzeros_counts_the_sparse_transitions_without_building_them(feature):
     for model in (build_model(p), build_factored(p)):
         for a in range(model.num_actions):
             assert model.nonzeros(a) == model.sparse(a).nnz > 0
+
+
+def test_a_factored_chain_is_written_in_place_in_little_more_than_its_own_memory(monkeypatch):
+    """``FactoredModel.sparse`` writes the CSR arrays in place, ``SPARSE_CHUNK`` entries at a time:
+    on ``large``'s comm chain at 24 packets (5.1 M non-zeros, 61 MB) it allocates at most 2.5× the
+    matrix at its peak (1.7× here; the COO pieces it used to concatenate took 5.8×), and written a
+    thousand entries at a time it is the same matrix to the bit."""
+    import tracemalloc
+
+    import numpy as np
+
+    from irdrc import scenario
+    from irdrc.core.exact import factored
+
+    model = build_factored(scenario("large", {"env.queue_capacity": 24}))
+    tracemalloc.start()
+    try:
+        P = model.sparse(0)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 2.5 * (P.data.nbytes + P.indices.nbytes + P.indptr.nbytes)
+    small = build_factored(params_of("everything", 12))
+    whole = [small.sparse(a) for a in range(2)]
+    monkeypatch.setattr(factored, "SPARSE_CHUNK", 1000)
+    for a, W in enumerate(whole):
+        C = small.sparse(a)
+        for name in ("data", "indices", "indptr"):
+            assert np.array_equal(getattr(C, name), getattr(W, name))

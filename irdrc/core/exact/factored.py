@@ -289,12 +289,11 @@ class FactoredModel(ExactMDP):
             q.sum_duplicates()
             yield q, np.arange(nf)[sel.cpu().numpy() if isinstance(sel, torch.Tensor) else sel]
 
-    def _row_counts(self, a: int, blocks: list[Any]) -> Any:
+    def _row_counts(self, per_config: Any, blocks: list[Any]) -> Any:
         """[D + 1, F] the non-zeros of each row (d, f) of P_a: its queue row's times its factor
-        row's."""
+        row's (``per_config``: [F] the non-zeros of each row of F[a])."""
         import numpy as np
 
-        per_config = (self.F[a] != 0).sum(1).cpu().numpy()
         counts = np.zeros((self.queue_capacity + 1, self.num_configs), dtype=np.int64)
         for q, fsel in blocks:
             counts[:, fsel] = np.diff(q.indptr)[:, None] * per_config[fsel][None, :]
@@ -311,12 +310,11 @@ class FactoredModel(ExactMDP):
         nf, S = self.num_configs, self.num_states
         F = self.F[a].cpu().numpy()
         blocks = list(self._blocks(a))
-        counts = self._row_counts(a, blocks)
+        per_config = np.count_nonzero(F, axis=1)
         indptr = np.zeros(S + 1, dtype=np.int64)
-        np.cumsum(counts.ravel(), out=indptr[1:])
+        np.cumsum(self._row_counts(per_config, blocks).ravel(), out=indptr[1:])
         indices = np.empty(int(indptr[-1]), dtype=np.int32 if S < 2**31 else np.int64)
         data = np.empty(int(indptr[-1]))
-        per_config = np.count_nonzero(F, axis=1)
         for q, fsel in blocks:
             fr, fc = np.nonzero(F[fsel])  # row by row, columns ascending
             fv, ff = F[fsel][fr, fc], fsel[fr]
@@ -333,7 +331,8 @@ class FactoredModel(ExactMDP):
 
     def nonzeros(self, a: int) -> int:
         """The non-zeros ``sparse(a)`` holds, counted from the factors without building it."""
-        return int(self._row_counts(a, list(self._blocks(a))).sum())
+        per_config = (self.F[a] != 0).sum(1).cpu().numpy()
+        return int(self._row_counts(per_config, list(self._blocks(a))).sum())
 
 
 SPARSE_CHUNK = 4_000_000

@@ -109,6 +109,10 @@ def test_stationary_distribution_and_schedules(paper):
     probs = torch.nn.functional.one_hot(radar, 2).double()
     assert torch.equal(as_schedule(probs.tolist(), 352)[0], probs)
     assert len(as_schedule([torch.zeros_like(radar).tolist(), radar.tolist()], 352)) == 2
+    # a list of the wrong length, or rows of the wrong width, is refused by its own shape
+    for wrong, shape in (([0] * 10, r"\(10,\)"), ([[0.5, 0.25, 0.25]] * 352, r"\(352, 3\)")):
+        with pytest.raises(ValueError, match=rf"policy table has shape {shape}; expected \[352\]"):
+            as_schedule(wrong, 352)
     # with the default chains each factor is bad w.p. 0.1 every step: P(c = 1) = 0.1 under
     # always-comm (no radar reaction), exactly
     c1 = mu.view(11, 2, 16)[:, 1].sum()

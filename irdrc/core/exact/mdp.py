@@ -231,16 +231,17 @@ def as_schedule(policy: Any, num_states: int, num_actions: int = 2) -> list[torc
             return [torch.full((num_states, num_actions), 1.0 / num_actions, dtype=torch.float64)]
         named = {"always_comm": [comm], "always_radar": [radar], "round_robin": [comm, radar]}
         return [as_probs(t, num_states, num_actions) for t in named[policy]]
-    if isinstance(policy, Sequence) and not _one_table(policy, num_states, num_actions):
+    if isinstance(policy, Sequence) and not _one_table(policy, num_states):
         return [t for p in policy for t in as_schedule(p, num_states, num_actions)]
     return [as_probs(policy, num_states, num_actions)]
 
 
-def _one_table(policy: Sequence[Any], num_states: int, num_actions: int) -> bool:
-    """Whether a Python sequence is one table (S numbers, or S rows of A numbers: a ``tolist()``
-    of a table) rather than a schedule of tables."""
+def _one_table(policy: Sequence[Any], num_states: int) -> bool:
+    """Whether a Python sequence is one table (numbers, or rows of numbers: a ``tolist()`` of a
+    table, of any length, so that a wrong one is refused by its shape) rather than a schedule of
+    tables (rows of S numbers, or a list of tables)."""
     try:
         t = torch.as_tensor(policy)
     except (TypeError, ValueError, RuntimeError):  # tables of their own, or ragged
         return False
-    return t.shape in ((num_states,), (num_states, num_actions))
+    return t.dim() == 1 or (t.dim() == 2 and t.shape[1] != num_states)

@@ -17,7 +17,7 @@ this):
 - ``irdrc.paper``: the paper's figures, claims, trade-off and the reproduction report.
 
 ``import irdrc`` registers the gymnasium id ``irdrc/DFRC-v0`` and imports nothing heavy: the
-names below (``DFRCEnv`` …) load torch on first use.
+names below (``DFRCEnv`` …) and the layers (``irdrc.fleet.parallel_env`` …) load on first use.
 """
 
 from __future__ import annotations
@@ -26,6 +26,15 @@ import importlib
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:  # the lazy names below, as a type checker reads them
+    from irdrc import agents as agents
+    from irdrc import bench as bench
+    from irdrc import core as core
+    from irdrc import fleet as fleet
+    from irdrc import online as online
+    from irdrc import paper as paper
+    from irdrc import recipes as recipes
+    from irdrc import runs as runs
+    from irdrc import sweeps as sweeps
     from irdrc.core.dynamics import Dynamics as Dynamics
     from irdrc.core.env import DFRCEnv as DFRCEnv
     from irdrc.core.params import EnvParams as EnvParams
@@ -48,12 +57,18 @@ _LAZY = {
     "scenario": "irdrc.runs.scenarios",
 }
 
+_SUBPACKAGES = ("agents", "bench", "core", "fleet", "online", "paper", "recipes", "runs", "sweeps")
+"""The layers, reachable as ``irdrc.fleet`` … after a bare ``import irdrc`` (each loads on first
+use)."""
+
 __all__ = sorted(_LAZY)
 
 
 def __getattr__(name: str) -> Any:
     if name in _LAZY:
         return getattr(importlib.import_module(_LAZY[name]), name)
+    if name in _SUBPACKAGES:
+        return importlib.import_module(f"irdrc.{name}")
     raise AttributeError(f"module 'irdrc' has no attribute {name!r}")
 
 

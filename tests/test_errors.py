@@ -212,6 +212,9 @@ def test_long_horizon_is_cheap_not_refused():
     assert long.avg_reward == pytest.approx(
         stationary_metrics(model, "round_robin").avg_reward, abs=1e-6
     )
+    # an episode of no steps has no metrics (it gave NaN for every one)
+    with pytest.raises(ValueError, match=r"horizon=0 is outside the allowed range >= 1"):
+        episodic_metrics(model, "round_robin", horizon=0)
 
 
 def test_all_zero_rewards_warn():

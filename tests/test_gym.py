@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
+
 import gymnasium
 import numpy as np
 import pytest
@@ -63,6 +66,9 @@ def test_a_named_scenario_is_irdrc_scenario():
         ValueError, match=r"no scenario=: .* params=irdrc\.scenario\('multilevel'\)"
     ):
         gymnasium.make("irdrc/DFRC-v0", scenario="multilevel")
+    # params= of another type was "'int' object is not iterable"
+    with pytest.raises(TypeError, match=r"params=3 must be a Params \(irdrc\.scenario\(name\)"):
+        gymnasium.make("irdrc/DFRC-v0", params=3)
     # overrides as keywords, as gymnasium.make and parallel_env take them (was a TypeError)
     fast = irdrc.scenario("imperfect_radar", **{"env.p1.speed": 0.5, "reward.r4": 50})
     assert fast == irdrc.scenario("imperfect_radar", {"env.p1.speed": 0.5, "reward.r4": 50})
@@ -73,6 +79,22 @@ def test_a_named_scenario_is_irdrc_scenario():
         parallel_env(env="paper")
     with pytest.raises(ValueError, match=r"'fleet' is a fleet of vehicles: irdrc\.fleet"):
         irdrc.scenario("fleet")
+
+
+def test_a_bare_import_reaches_the_layers_and_loads_none_of_them():
+    """``import irdrc`` then ``irdrc.fleet.parallel_env`` (as the README names it) works, loading
+    the fleet only then (it was "module 'irdrc' has no attribute 'fleet'")."""
+    code = (
+        "import sys, irdrc\n"
+        "assert 'irdrc.fleet' not in sys.modules and 'torch' not in sys.modules\n"
+        "assert irdrc.fleet.parallel_env.__module__ == 'irdrc.fleet'\n"
+        "assert irdrc.online is sys.modules['irdrc.online']\n"
+        "print(irdrc.fleet.__name__)"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=False)
+    assert done.returncode == 0 and done.stdout == "irdrc.fleet\n", done.stderr
+    with pytest.raises(AttributeError, match="has no attribute 'nope'"):
+        irdrc.nope  # noqa: B018 - the attribute access is the test
 
 
 def test_episode_and_info():

@@ -51,6 +51,11 @@ def _params(params: Params | None, overrides: dict[str, Any]) -> Params:
     if params is not None and overrides:
         raise ValueError("pass either params or overrides, not both")
     if params is not None:
+        if not isinstance(params, Params):
+            raise TypeError(
+                f"params={params!r} must be a Params (irdrc.scenario(name), "
+                "Params.from_overrides({…})), or pass overrides instead"
+            )
         return params
     if "scenario" in overrides:
         name = overrides["scenario"]

@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING, Any
 
 import torch
 
+from irdrc.core.checks import check_number
 from irdrc.core.exact.mdp import ExactMDP, as_schedule
 from irdrc.core.metrics import Metrics, long_run_rates
 
@@ -217,7 +218,7 @@ def episodic_occupancy(mdp: ExactMDP, policy: Any, horizon: int | None = None) -
     """State-action occupancy [A, S] averaged over the steps of an episode from the reset
     distribution (uniform over all states), for ``horizon`` steps (default ``env.horizon``)."""
     sched = as_schedule(policy, mdp.num_states, mdp.num_actions)
-    horizon = mdp.horizon if horizon is None else horizon
+    horizon = mdp.horizon if horizon is None else check_number("horizon", horizon, 1, integer=True)
     k, S = len(sched), mdp.num_states
     rho = torch.full((S,), 1.0 / S, dtype=torch.float64)
     occ = torch.zeros(mdp.num_actions, S, dtype=torch.float64)

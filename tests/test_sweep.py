@@ -242,6 +242,49 @@ def test_local_executor_crash_resume_and_mixed_plans(tmp_path):
     assert {t["status"] for t in rows(tmp_path / "summary.csv")} == {"DONE"}
 
 
+@pytest.mark.parametrize(
+    ("args", "says"),
+    [
+        (["seed=3"], "seed=3 is for the runs of dqn (method), not for the sweep"),
+        (["env=multilevel"], "every trial takes it with \"sweep.base=['env=multilevel']\""),
+        (["method=online", "algo.episodes=3"], "sweep.grid='{algo.episodes: [...]}'"),
+    ],
+)
+def test_an_override_of_the_method_given_to_the_sweep_says_where_it_goes(args, says):
+    """It was "unknown key 'seed' in sweep; did you mean sweep?"; a key neither has is still one."""
+    with pytest.raises(ValueError) as err:
+        load("sweep", *args)
+    assert says in str(err.value)
+    with pytest.raises(ValueError, match=r"unknown key 'algo\.episodes' in sweep"):
+        load("sweep", "method=solve", "algo.episodes=3")  # solve has no such key either
+
+
+def test_one_vehicle_learners_sweep_with_the_price_of_their_learning(tmp_path, capsys):
+    """method=online: each point one vehicle's run; summary.csv carries its ledger beside its
+    final metrics, and summary_by_point.csv their means over seeds."""
+    from conftest import run_recipe
+
+    grid = "sweep.grid={learner: [posterior, qlearning], seed: [0, 1]}"
+    base = "sweep.base=['algo.episodes=2','env.horizon=50']"
+    assert run_recipe("sweep", tmp_path, "method=online", "executor=local", grid, base) == 0
+    table = rows(tmp_path / "summary.csv")
+    assert [(r["learner"], r["seed"], r["status"]) for r in table] == [
+        ("posterior", "0", "DONE"),
+        ("posterior", "1", "DONE"),
+        ("qlearning", "0", "DONE"),
+        ("qlearning", "1", "DONE"),
+    ]
+    for r in table:
+        s = json.loads((tmp_path / "trials" / r["point_id"] / "summary.json").read_text())
+        assert s["learner"] == r["learner"] and s["env_steps"] == 100
+        for key in ("regret", "expected_missed", "floor_missed", "cumulative_miss_detection"):
+            assert float(r[key]) == pytest.approx(s["ledger"][key], rel=1e-12), key
+        assert float(r["miss_detection"]) == pytest.approx(s["metrics"]["miss_detection"])
+    means = {r["learner"]: r for r in rows(tmp_path / "summary_by_point.csv")}
+    want = sum(float(r["regret"]) for r in table if r["learner"] == "qlearning") / 2
+    assert float(means["qlearning"]["regret_mean"]) == pytest.approx(want, rel=1e-5)
+
+
 def test_resume_without_a_directory_says_to_name_it(tmp_path):
     r = subprocess.run(
         [sys.executable, str(ROOT / "recipes" / "sweep.py"), "resume=true"],

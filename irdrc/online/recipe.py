@@ -28,6 +28,7 @@ if TYPE_CHECKING:
 
 NAME = "online"
 RESUMABLE = True
+SWEEP_DEFAULTS = ("progress=false", "logger=none")
 ALGO_KEYS = frozenset(
     f.name for profile in PROFILES.values() for f in fields(profile) if f.name != "name"
 )

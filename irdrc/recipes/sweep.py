@@ -3,20 +3,23 @@ Ray Tune or one after another here (the engine: ``irdrc.sweeps.trials``).
 
     python recipes/sweep.py 'sweep.grid={env.p1.speed: [0.1,0.5,1.0], seed: [0,1,2]}'
     python recipes/sweep.py method=constrained executor=local 'sweep.grid={target_miss: [0.02,0.05]}'
+    python recipes/sweep.py method=online executor=local 'sweep.grid={learner: [posterior, dqn], seed: [0,1,2]}'
 """
 
 from __future__ import annotations
 
+import sys
 from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any
 
 from irdrc.core.checks import build, check_choice, check_list
+from irdrc.online import recipe as online
 from irdrc.recipes import dqn, qlearning, solve
 from irdrc.recipes.constrained import recipe as constrained
 from irdrc.recipes.fleet import recipe as fleet
 from irdrc.recipes.shares import ppo, sac
-from irdrc.runs.compose import Composed
-from irdrc.runs.grid import parse_grid
+from irdrc.runs.compose import Composed, compose_recipe
+from irdrc.runs.grid import override_key, parse_grid
 from irdrc.runs.sections import EXECUTOR, Executor
 from irdrc.sweeps.trials import execute, plan
 
@@ -25,7 +28,7 @@ if TYPE_CHECKING:
 
 NAME = "sweep"
 
-METHODS = {m.NAME: m for m in (dqn, qlearning, solve, constrained, fleet, sac, ppo)}
+METHODS = {m.NAME: m for m in (dqn, online, qlearning, solve, constrained, fleet, sac, ppo)}
 """The recipes a grid point may run (``method``), each handing the engine its module."""
 
 
@@ -55,6 +58,33 @@ class Config:
 
     def __post_init__(self) -> None:
         check_choice("method", self.method, tuple(METHODS))
+
+
+def misplaced_override(args: list[str]) -> str | None:
+    """Where an override the sweep refused goes, when it is one of the method's recipe: into every
+    trial (``sweep.base``) or over values (``sweep.grid``); None when it is not."""
+    method = next((a.partition("=")[2] for a in args if override_key(a) == "method"), Config.method)
+    module = METHODS.get(method)
+    if module is None:
+        return None
+    for arg in args:
+        key = override_key(arg)
+        if "=" not in arg or key.startswith("hydra") or _composes(sys.modules[__name__], arg):
+            continue
+        if _composes(module, arg):
+            return (
+                f"{arg} is for the runs of {method} (method), not for the sweep: every trial takes "
+                f"it with \"sweep.base=['{arg}']\", or over values sweep.grid='{{{key}: [...]}}'"
+            )
+    return None
+
+
+def _composes(module: Any, arg: str) -> bool:
+    try:
+        compose_recipe(module, [arg])
+    except ValueError:
+        return False
+    return True
 
 
 def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:

@@ -69,7 +69,14 @@ def prepare(module: ModuleType, args: list[str]) -> Prepared:
             raise ValueError(f"{a!r} is not an override: write key=value{many}")
         if a in getattr(module, "ELSEWHERE", {}):
             raise ValueError(f"{a} is not a {module.NAME} profile: use {module.ELSEWHERE[a]}")
-    composed = compose_recipe(module, args)
+    try:
+        composed = compose_recipe(module, args)
+    except ValueError as err:
+        misplaced = getattr(module, "misplaced_override", None)
+        where = misplaced(args) if misplaced is not None else None
+        if where is None:
+            raise
+        raise ValueError(where) from err
     resume = None
     if getattr(module, "RESUMABLE", False) and isinstance(composed.cfg.get("resume"), str):
         from irdrc.agents.base import load_checkpoint

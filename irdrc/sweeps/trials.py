@@ -48,6 +48,11 @@ def _matches(point_ov: list[str], fail_on: list[str]) -> bool:
     return bool(fail_on) and set(fail_on) <= set(point_ov)
 
 
+SUMMARY_SECTIONS = ("metrics", "ledger")
+"""The sections of a trial's ``summary.json`` whose entries are ``summary.csv``'s columns: the final
+metrics, and the price of learning where the recipe counts it (``online``: regret, missed events …)."""
+
+
 def plan(
     module: ModuleType, points: list[dict[str, Any]], base: list[str], fail_on: Sequence[str] = ()
 ) -> list[dict[str, Any]]:
@@ -186,7 +191,8 @@ def _run_local(todo: list[dict[str, Any]], already: int, total: int, trials_dir:
 
 
 def write_summary_csv(path: Path, planned: list[dict[str, Any]], trials_dir: Path) -> int:
-    """``summary.csv``: one row per expected grid point (overrides, status, final metrics).
+    """``summary.csv``: one row per expected grid point (overrides, status, and the entries of its
+    summary's ``SUMMARY_SECTIONS``).
 
     Returns 0 if every point is DONE, else 1.
     """
@@ -209,10 +215,11 @@ def write_summary_csv(path: Path, planned: list[dict[str, Any]], trials_dir: Pat
             row["optimality_ratio"] = s.get("optimality_ratio")
             row["env_steps"] = s.get("env_steps")
             row["wall_seconds"] = s.get("wall_seconds")
-            for k, v in (s.get("metrics") or {}).items():
-                row[k] = v
-                if k not in metric_names:
-                    metric_names.append(k)
+            for section in SUMMARY_SECTIONS:
+                for k, v in (s.get(section) or {}).items():
+                    row[k] = v
+                    if k not in metric_names:
+                        metric_names.append(k)
         rows.append(row)
     fields = [
         *lead,

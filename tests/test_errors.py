@@ -500,3 +500,24 @@ def test_a_list_for_a_mapping_and_a_mapping_for_a_list_are_named():
     assert "profiles='{KEY: …}'" in message
     assert refused("dqn", "env.p1=[1]").startswith("env.p1 is a mapping, not a list")
     assert refused("bench_dqn", "seeds={a: 1}") == "seeds is a list, not a mapping: seeds='[…]'"
+
+
+@pytest.mark.parametrize(
+    ("recipe", "overrides", "says"),
+    [
+        ("figure2", ["env.p1.speed=0.5"], "figure2 sets env.p1.speed per run; set p1_speed=[…]"),
+        ("figure2", ["learners.qlearning.overrides=['seed=3']"], "set seeds=[…]"),
+        ("tradeoff", ["reward.r4=50"], "set r4=[…] (the exact curves) and dqn.r4=[…]"),
+        ("tradeoff", ["dqn.overrides=['seed=3']"], "set dqn.seeds=[…]"),
+        ("bench_robust", ["overrides=['env.p1.speed=0.3']"], "set p1_speed=[…]"),
+        ("bench_constrained", ["overrides=['target_miss=0.1']"], "set targets=[…]"),
+    ],
+)
+def test_a_key_a_recipe_sets_per_run_is_not_taken_to_be_overwritten(recipe, overrides, says):
+    """``figure2.py env.p1.speed=0.5`` ran the whole figure at p1_speed's values, the 0.5 lost
+    without a word; the same held for every recipe whose runs set a key from a list of its own.
+    The key is refused, naming that list; the scenario's other keys still pass."""
+    message = refused(recipe, *overrides)
+    assert "would be overwritten" in message and says in message, message
+    first_run = load(recipe, "env.p1.road=0.3").planned[0]["config"]
+    assert first_run.params.env.p1.road == 0.3

@@ -76,6 +76,14 @@ def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
     from irdrc.sweeps.trials import plan
 
     cfg = build(Config, composed.cfg)
+    composed.refuse_overwritten(
+        {
+            "env.p1.speed": "set p1_speed=[…]",
+            "target_miss": "set targets=[…]",
+            "seed": "set seeds=[…]",
+        },
+        cfg.overrides,
+    )
     base = [
         *composed.scenario_overrides,
         "learner=dqn_lagrangian",

@@ -31,7 +31,7 @@ from irdrc.core.checks import (
     numbers,
 )
 from irdrc.runs.compose import Composed
-from irdrc.runs.grid import candidate_overrides, parse_grid
+from irdrc.runs.grid import candidate_overrides, override_key, parse_grid
 from irdrc.runs.results import md_table
 from irdrc.runs.sections import EXECUTOR, Eval, Executor, check_common, seeds
 
@@ -113,6 +113,17 @@ def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
     ]
     planned, owner = [], {}
     draws = random_draws(cfg) if cfg.scenarios == "random" else [None]
+    drawn = {override_key(o) for d in draws if d is not None for o in command_line(d.overrides)}
+    composed.refuse_overwritten(
+        {"seed": "set seeds=[…]", **dict.fromkeys(sorted(drawn), "scenarios=random draws it")}
+        if draws != [None]
+        else {
+            "env.p1.speed": "set p1_speed=[…]",
+            "reward.r4": "set r4=[…]",
+            "seed": "set seeds=[…]",
+        },
+        cfg.overrides,
+    )
     for name, extra in candidate_overrides(cfg.candidates).items():
         for draw in draws:
             scenario = [] if draw is None else command_line(draw.overrides)

@@ -108,6 +108,13 @@ class Config:
 def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
     """The typed config; every training run composed and checked before any work."""
     cfg = build(Config, composed.cfg)
+    composed.refuse_overwritten(
+        {
+            "env.p1.speed": "set p1_speed=[…] (panels (b)–(d)) and curve_p1_speed=… (panel (a))",
+            "seed": "set seeds=[…]",
+        },
+        [o for spec in cfg.learners.values() for o in spec.overrides],
+    )
     check_dense(cfg.params)  # the exact references, after the training: refused before it
     return replace(cfg, planned=tuple(plan_figure2(cfg, composed.scenario_overrides)))
 

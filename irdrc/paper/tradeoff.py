@@ -132,6 +132,14 @@ class Config:
 def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
     """The typed config; DQN's runs composed and checked before any work."""
     cfg = build(Config, composed.cfg)
+    composed.refuse_overwritten(
+        {
+            "env.p1.speed": "set p1_speed=[…]",
+            "reward.r4": "set r4=[…] (the exact curves) and dqn.r4=[…] (DQN's runs)",
+            "seed": "set dqn.seeds=[…]",
+        },
+        cfg.dqn.overrides,
+    )
     check_dense(cfg.params)  # the exact curves' models, before any work
     if not cfg.dqn.r4:
         return cfg

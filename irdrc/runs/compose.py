@@ -85,6 +85,17 @@ class Composed:
         """The keys the command line set (groups included)."""
         return frozenset(override_key(o) for o in self.task)
 
+    def refuse_overwritten(self, axes: dict[str, str], overrides: Any = ()) -> None:
+        """Refuse a key the recipe sets per run itself (``axes``: the key → what to do instead)
+        where the command line or the recipe's ``overrides`` list sets it too: the runs would
+        overwrite it without a word."""
+        given = {override_key(o): o.lstrip("+") for o in [*self.task, *map(str, overrides)]}
+        for key, instead in axes.items():
+            if key in given:
+                raise ValueError(
+                    f"{given[key]} would be overwritten: {self.name} sets {key} per run; {instead}"
+                )
+
 
 def _primary(config_name: str) -> dict[str, Any]:
     """The recipe's own YAML file, unmerged (no compose): which of its keys hold mappings."""

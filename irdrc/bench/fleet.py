@@ -131,6 +131,18 @@ def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
     from irdrc.sweeps.trials import plan
 
     cfg = checks.build(Config, composed.cfg)
+    composed.refuse_overwritten(
+        {
+            "learner": "set learners=[…] and scale_learners=[…]",
+            "env.observe": "each learner's own (joint: full; the others: own)",
+            "env.share": "set share=[…] (part B: 0.5)",
+            "env.channels": "set channels=[…] (part B: 1)",
+            "env.vehicles": "set vehicles=[…] (part A: 2)",
+            "seed": "set seeds=[…] and scale_seeds=[…]",
+            "eval.every_frames": "set eval.every_frames=…",
+        },
+        cfg.overrides,
+    )
     base = [*cfg.overrides, f"eval.every_frames={cfg.eval['every_frames']}"]
     planned, part = [], {}
     for learner in cfg.learners:

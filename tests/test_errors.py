@@ -532,3 +532,13 @@ def test_a_key_a_recipe_sets_per_run_is_not_taken_to_be_overwritten(recipe, over
     few = SMALL.get(recipe, [])  # fewer runs to plan: the check is the same
     first_run = load(recipe, *few, other or f"overrides=['{road}']").planned[0]["composed"]
     assert first_run.cfg["env"]["p1"]["road"] == 0.3
+
+
+def test_a_dqn_profile_that_sets_what_bench_dqn_owns_is_refused():
+    """``bench_dqn.py 'profiles={b: [algo=dqn, env.p1.speed=0.9]}'`` ran b on the benchmark's own
+    scenario, the 0.9 never read; a profile is DQN's algo and network keys."""
+    message = refused("bench_dqn", "profiles={b: ['algo=dqn','env.p1.speed=0.9']}")
+    assert message.startswith("profiles.b: env.p1.speed=0.9 is not read"), message
+    assert "overrides: seed=3 is not read" in refused("bench_dqn", "overrides=['seed=3']")
+    cfg = load("bench_dqn", "profiles={b: ['algo=dqn','network=small']}", "env.p1.speed=0.9")
+    assert cfg.algos["b"].network.hidden == (32, 32) and cfg.params.env.p1.speed == 0.9

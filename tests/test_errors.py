@@ -516,6 +516,7 @@ SMALL = {
         ("tradeoff", ["reward.r4=50"], "set r4=[…] (the exact curves) and dqn.r4=[…]"),
         ("tradeoff", ["dqn.overrides=['seed=3']"], "set dqn.seeds=[…]"),
         ("bench_robust", ["overrides=['env.p1.speed=0.3']"], "set p1_speed=[…]"),
+        ("bench_robust", ["candidates={a: ['reward.r4=50'], b: []}"], "set r4=[…]"),
         ("bench_constrained", ["overrides=['target_miss=0.1']"], "set targets=[…]"),
         ("bench_fleet", ["overrides=['env.share=0.3']"], "set share=[…] (part B: 0.5)"),
         ("bench_timeshare", ["overrides=['seed=3']"], "set seeds=[…]"),

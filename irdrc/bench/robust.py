@@ -114,16 +114,14 @@ def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
     planned, owner = [], {}
     draws = random_draws(cfg) if cfg.scenarios == "random" else [None]
     drawn = {override_key(o) for d in draws if d is not None for o in command_line(d.overrides)}
-    composed.refuse_overwritten(
-        {"seed": "set seeds=[…]", **dict.fromkeys(sorted(drawn), "scenarios=random draws it")}
-        if draws != [None]
-        else {
-            "env.p1.speed": "set p1_speed=[…]",
-            "reward.r4": "set r4=[…]",
-            "seed": "set seeds=[…]",
-        },
-        cfg.overrides,
+    grid_axes = {"seed": "set seeds=[…]"}
+    if draws == [None]:
+        grid_axes |= {"env.p1.speed": "set p1_speed=[…]", "reward.r4": "set r4=[…]"}
+    candidates = [o for extra in candidate_overrides(cfg.candidates).values() for o in extra]
+    composed.refuse_overwritten(  # a candidate's own key wins over a draw's; the grid's over both
+        {**dict.fromkeys(sorted(drawn), "scenarios=random draws it"), **grid_axes}, cfg.overrides
     )
+    composed.refuse_overwritten(grid_axes, candidates)
     for name, extra in candidate_overrides(cfg.candidates).items():
         for draw in draws:
             scenario = [] if draw is None else command_line(draw.overrides)

@@ -134,6 +134,8 @@ def refused(recipe: str, *overrides: str) -> str:
         # a study's per-learner overrides: checked before any run, never the scenario
         ("study", ["overrides.dqn=['env.p1.speed=0.5']"], "overrides.dqn: 'env.p1.speed=0.5' sets"),
         ("study", ["overrides.qlearning=['algo.nosuch=1']"], "unknown key 'algo.nosuch'"),
+        # a learner's seed, evaluation or device in its overrides was never read
+        ("study", ["overrides.dqn=['seed=3']"], "overrides.dqn: 'seed=3' is not read"),
     ],
 )
 def test_bad_input_is_refused_naming_the_key(recipe, overrides, named):

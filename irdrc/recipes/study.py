@@ -102,6 +102,12 @@ def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
                     f"overrides.{learner}: {o!r} sets the scenario; the study runs every learner "
                     f"on each of scenarios={list(cfg.scenarios)} as it is"
                 )
+            if override_key(o).split(".")[0] not in ("algo", "network"):
+                raise ValueError(
+                    f"overrides.{learner}: {o!r} is not read: a learner's overrides are its "
+                    "algo.* and network.* keys; seeds, evals, num_threads and device are the "
+                    "study's own"
+                )
         for scenario in cfg.scenarios:
             planned[learner, scenario] = learner_config(learner, scenario, extra)
     return replace(cfg, planned=planned)

@@ -113,7 +113,7 @@ def run(cfg: Config, run: Run) -> int:
             rows.append(_speed_row(name, seed, rec))
             row = rows[-1]
             print(
-                f"{name:>14} seed {seed}: {row['env_steps_per_second']:,.0f} env steps/s, "
+                f"{name:>14} seed {seed}: {grouped(row['env_steps_per_second'])} env steps/s, "
                 f"{row['updates_per_second']:.0f} updates/s of training; 99 % at "
                 f"{row['env_steps_to_99']} steps / {row['seconds_to_99']} s; final "
                 f"{row['final_ratio']:.4f}",

@@ -237,9 +237,9 @@ def run_bench_scale(cfg: Config, out: Path) -> None:
             queue = _queue_for(int(states), configs)
             S = (queue + 1) * configs
             if slow:
-                skipped.append(f"{scenario} at S = {S:,}")
+                skipped.append(f"{scenario} at S = {checks.grouped(S)}")
                 print(
-                    f"{scenario:>12}  skipped at S = {S}: the previous size took more than "
+                    f"{scenario:>12}  skipped at S = {checks.grouped(S)}: the previous size took more than "
                     f"{cfg.skip_after_seconds:g} s",
                     flush=True,
                 )
@@ -296,7 +296,7 @@ def run_bench_scale(cfg: Config, out: Path) -> None:
                 r["scenario"],
                 r["solver"],
                 r["device"],
-                f"{r['num_states']:,}",
+                checks.grouped(r["num_states"]),
                 f"{r['median_seconds']:.2f}",
                 r["sweeps"],
                 r["stationary_steps"],
@@ -321,7 +321,7 @@ def run_bench_scale(cfg: Config, out: Path) -> None:
                     g["scenario"],
                     g["solver"],
                     g["device"],
-                    ", ".join(f"{S:,}" for S in g["sizes"]),
+                    ", ".join(checks.grouped(S) for S in g["sizes"]),
                     f"{g['k_fit']:.2f}",
                     f"{g['k_last']:.2f}",
                 ]

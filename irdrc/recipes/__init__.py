@@ -8,6 +8,7 @@ checked) and ``run``; a recipe a sweep may run also has ``SWEEP_DEFAULTS``.
 - ``fleet/``: several vehicles (``recipe``) and their ``report``;
 - ``shares/``: the radar share's learners, ``sac`` and ``ppo``, on their shared ``learning``.
 
-May import: ``irdrc.core``, ``irdrc.fleet``, ``irdrc.agents``, ``irdrc.runs``, ``irdrc.sweeps``.
-Nothing of ``irdrc.online``, ``irdrc.bench`` or ``irdrc.paper``.
+May import: ``irdrc.core``, ``irdrc.fleet``, ``irdrc.agents``, ``irdrc.runs``, ``irdrc.sweeps``, and
+of ``irdrc.online`` (the layer beside this one) its ``recipe`` alone, which ``sweep`` runs as a
+method. Nothing of ``irdrc.bench`` or ``irdrc.paper``.
 """

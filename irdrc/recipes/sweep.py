@@ -8,8 +8,9 @@ Ray Tune or one after another here (the engine: ``irdrc.sweeps.trials``).
 
 from __future__ import annotations
 
-import sys
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from functools import partial
 from typing import TYPE_CHECKING, Any
 
 from irdrc.core.checks import build, check_choice, check_list
@@ -18,7 +19,7 @@ from irdrc.recipes import dqn, qlearning, solve
 from irdrc.recipes.constrained import recipe as constrained
 from irdrc.recipes.fleet import recipe as fleet
 from irdrc.recipes.shares import ppo, sac
-from irdrc.runs.compose import Composed, compose_recipe
+from irdrc.runs.compose import Composed, compose, compose_recipe
 from irdrc.runs.grid import override_key, parse_grid
 from irdrc.runs.sections import EXECUTOR, Executor
 from irdrc.sweeps.trials import execute, plan
@@ -69,9 +70,9 @@ def misplaced_override(args: list[str]) -> str | None:
         return None
     for arg in args:
         key = override_key(arg)
-        if "=" not in arg or key.startswith("hydra") or _composes(sys.modules[__name__], arg):
+        if "=" not in arg or key.startswith("hydra") or _composes(partial(compose, NAME, [arg])):
             continue
-        if _composes(module, arg):
+        if _composes(partial(compose_recipe, module, [arg])):
             return (
                 f"{arg} is for the runs of {method} (method), not for the sweep: every trial takes "
                 f"it with \"sweep.base=['{arg}']\", or over values sweep.grid='{{{key}: [...]}}'"
@@ -79,9 +80,9 @@ def misplaced_override(args: list[str]) -> str | None:
     return None
 
 
-def _composes(module: Any, arg: str) -> bool:
+def _composes(composing: Callable[[], Any]) -> bool:
     try:
-        compose_recipe(module, [arg])
+        composing()
     except ValueError:
         return False
     return True

@@ -5,8 +5,9 @@ every error reported in one line.
 A recipe module (``irdrc.recipes.dqn`` …) provides ``NAME`` (its config file), ``load(composed,
 resume) -> Config`` (its typed config, checked), ``run(config, run)`` and, for training recipes,
 ``RESUMABLE = True`` (``resume=PATH`` goes on from a checkpoint); optionally ``ELSEWHERE`` (group
-choices that belong to another
-recipe, and the command to use instead). ``recipes/<name>.py`` is
+choices that belong to another recipe, and the command to use instead) and
+``misplaced_override(args)`` (where an override the recipe refused goes instead: the sweep's
+method's keys). ``recipes/<name>.py`` is
 ``app.main(module)``. Set ``IRDRC_TRACEBACK=1`` to see the traceback of an error instead of its
 one line.
 """

@@ -521,6 +521,7 @@ SMALL = {
         ("bench_robust", ["candidates={a: ['reward.r4=50'], b: []}"], "set r4=[…]"),
         ("bench_constrained", ["overrides=['target_miss=0.1']"], "set targets=[…]"),
         ("bench_fleet", ["overrides=['env.share=0.3']"], "set share=[…] (part B: 0.5)"),
+        ("bench_fleet", ["overrides=['eval.every_frames=100']"], "set eval.every_frames=…"),
         ("bench_timeshare", ["overrides=['seed=3']"], "set seeds=[…]"),
     ],
 )
@@ -535,6 +536,9 @@ def test_a_key_a_recipe_sets_per_run_is_not_taken_to_be_overwritten(recipe, over
     few = SMALL.get(recipe, [])  # fewer runs to plan: the check is the same
     first_run = load(recipe, *few, other or f"overrides=['{road}']").planned[0]["composed"]
     assert first_run.cfg["env"]["p1"]["road"] == 0.3
+    if recipe == "bench_fleet":  # its own key on its own command line is what sets the runs'
+        runs = load(recipe, *few, "eval.every_frames=1000").planned
+        assert {p["composed"].cfg["eval"]["every_frames"] for p in runs} == {1000}
 
 
 def test_a_dqn_profile_that_sets_what_bench_dqn_owns_is_refused():

@@ -87,9 +87,11 @@ class Composed:
 
     def refuse_overwritten(self, axes: dict[str, str], overrides: Any = ()) -> None:
         """Refuse a key the recipe sets per run itself (``axes``: the key → what to do instead)
-        where the command line or the recipe's ``overrides`` list sets it too: the runs would
-        overwrite it without a word."""
-        given = {override_key(o): o.lstrip("+") for o in [*self.task, *map(str, overrides)]}
+        where the command line's scenario (``env.*``, ``reward.*``: passed on to every run) or the
+        recipe's ``overrides`` list sets it too: the runs would overwrite it without a word. (A key
+        of the recipe's own on its command line, ``eval.every_frames=…``, is not passed on.)"""
+        scenario = [o for o in self.task if is_scenario_key(o)]
+        given = {override_key(o): o.lstrip("+") for o in [*scenario, *map(str, overrides)]}
         for key, instead in axes.items():
             if key in given:
                 raise ValueError(

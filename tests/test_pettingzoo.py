@@ -179,3 +179,15 @@ def test_without_pettingzoo_the_error_says_how_to_install_it(monkeypatch):
     monkeypatch.delitem(sys.modules, "irdrc.fleet.parallel", raising=False)
     with pytest.raises(ModuleNotFoundError, match=r"pip install 'irdrc\[pettingzoo\]'"):
         irdrc.fleet.parallel_env()
+
+
+@pytest.mark.parametrize("seed", ["a", -1, 2.5])
+def test_a_seed_that_is_not_one_is_refused_by_name(seed):
+    """``parallel_env(seed="a")`` was "invalid literal for int() with base 10: 'a'"; ``seed=-1``
+    was taken, and ``reset(seed=-1)`` failed in gymnasium's seeding of the action spaces ("Seed
+    must be greater or equal to zero")."""
+    with pytest.raises(ValueError, match=r"^seed="):
+        parallel_env(seed=seed)
+    env = parallel_env(seed=np.int64(3))  # a NumPy integer is a seed
+    with pytest.raises(ValueError, match=r"^seed="):
+        env.reset(seed=seed)

@@ -25,6 +25,7 @@ import torch
 from gymnasium import spaces
 from pettingzoo import ParallelEnv
 
+from irdrc.core.checks import check_number
 from irdrc.core.dynamics import checked_actions, fresh_seed
 from irdrc.core.overrides import apply_overrides
 from irdrc.core.params import Params
@@ -104,7 +105,7 @@ class FleetParallelEnv(ParallelEnv):
         self.state_space = spaces.Box(np.zeros_like(critic), critic, dtype=np.float32)
         self.horizon = params.env.horizon
         self.rng = torch.Generator()
-        self.rng.manual_seed(int(seed if seed is not None else fresh_seed()))
+        self.rng.manual_seed(fresh_seed() if seed is None else _checked_seed(seed))
         self._states: torch.Tensor | None = None
         self._steps = 0
         self._joint: torch.Tensor | None = None  # [S_fleet, N], built on the first start state
@@ -124,7 +125,8 @@ class FleetParallelEnv(ParallelEnv):
         """Start an episode from a joint state drawn uniformly (as ``FleetEnv``), or from
         ``options={"state": s}`` (the exact model's joint index); ``seed`` reseeds."""
         if seed is not None:
-            self.rng.manual_seed(int(seed))
+            seed = _checked_seed(seed)
+            self.rng.manual_seed(seed)
             for i, agent in enumerate(self.possible_agents):
                 self.action_spaces[agent].seed(int(seed) + i)
         start = (options or {}).get("state")
@@ -294,3 +296,10 @@ def parallel_env(
         return FleetParallelEnv(spec, observe=observe, rewards=rewards, seed=seed)
     fleet, observe = fleet_spec(overrides)
     return FleetParallelEnv(fleet, observe=observe, rewards=rewards, seed=seed)
+
+
+def _checked_seed(seed: Any) -> int:
+    """``seed`` as an int, if it is a whole number in [0, 2³² − 1] (the recipes' range; a NumPy
+    integer too)."""
+    seed = int(seed) if isinstance(seed, np.integer) else seed
+    return int(check_number("seed", seed, 0, 2**32 - 1, integer=True))

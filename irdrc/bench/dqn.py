@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING, Any
 from irdrc.core.checks import build, check_list, grouped
 from irdrc.core.params import Params
 from irdrc.runs.compose import Composed, compose_recipe
-from irdrc.runs.grid import candidate_overrides, override_key
+from irdrc.runs.grid import candidate_overrides, is_learner_key
 from irdrc.runs.results import md_table
 from irdrc.runs.sections import Eval, check_common, scenario_field
 from irdrc.runs.sections import seeds as distinct_seeds
@@ -60,10 +60,6 @@ class Config:
         object.__setattr__(self, "overrides", check_list("overrides", self.overrides, empty=True))
 
 
-PROFILE_KEYS = ("algo", "network")
-"""What a profile of ``recipes/dqn.py`` sets here: its learner (the rest is the benchmark's own)."""
-
-
 def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
     """The typed config; every profile composed (``recipes/dqn.py``'s way) and checked."""
     from dataclasses import replace
@@ -77,7 +73,7 @@ def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
             *((f"profiles.{name}", o) for o in extra),
             *(("overrides", o) for o in cfg.overrides),
         ]:
-            if override_key(o).split(".")[0] not in PROFILE_KEYS:
+            if not is_learner_key(o):
                 raise ValueError(
                     f"{where}: {o} is not read: a profile is DQN's algo.* and network.* keys; "
                     f"the scenario, seeds, eval, num_threads and device are bench_dqn's own "

@@ -28,7 +28,7 @@ from irdrc.core.checks import (
 from irdrc.core.metrics import Metrics, first_reaching
 from irdrc.recipes import solve
 from irdrc.runs.compose import Composed, compose, compose_recipe
-from irdrc.runs.grid import is_scenario_key, override_key
+from irdrc.runs.grid import is_learner_key, is_scenario_key, override_key
 from irdrc.runs.scenarios import list_scenarios
 from irdrc.runs.sections import check_common, one_vehicle_scenarios
 from irdrc.runs.sections import seeds as distinct_seeds
@@ -102,7 +102,7 @@ def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
                     f"overrides.{learner}: {o!r} sets the scenario; the study runs every learner "
                     f"on each of scenarios={list(cfg.scenarios)} as it is"
                 )
-            if override_key(o).split(".")[0] not in ("algo", "network"):
+            if not is_learner_key(o):
                 raise ValueError(
                     f"overrides.{learner}: {o!r} is not read: a learner's overrides are its "
                     "algo.* and network.* keys; seeds, evals, num_threads and device are the "

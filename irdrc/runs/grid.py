@@ -21,6 +21,12 @@ def override_key(override: str) -> str:
     return override.split("=", 1)[0].lstrip("+~")
 
 
+def is_learner_key(key_or_override: str) -> bool:
+    """Whether a key (or an override) sets the learner itself: ``algo…`` or ``network…`` (what a
+    profile of a benchmark or the study may set; the rest is theirs)."""
+    return override_key(key_or_override).split(".")[0] in ("algo", "network")
+
+
 def is_scenario_key(key_or_override: str) -> bool:
     """Whether a key (or an override ``key=value``) sets an ``env.`` or ``reward.`` value."""
     return override_key(key_or_override).startswith(SCENARIO_PREFIXES)

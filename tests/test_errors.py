@@ -523,12 +523,18 @@ SMALL = {
         ("bench_fleet", ["overrides=['env.share=0.3']"], "set share=[…] (part B: 0.5)"),
         ("bench_fleet", ["overrides=['eval.every_frames=100']"], "set eval.every_frames=…"),
         ("bench_timeshare", ["overrides=['seed=3']"], "set seeds=[…]"),
+        ("figure2", ["learners.dqn.overrides=['eval.mc_episodes=9']"], "scored exactly"),
+        ("tradeoff", ["dqn.overrides=['optimum_gamma=0.9']"], "set optimum_gamma=…"),
+        ("bench_robust", ["overrides=['eval.every_frames=5000']"], "set eval.every_frames=…"),
+        ("bench_constrained", ["overrides=['checkpoint.every_frames=9']"], "keep no checkpoints"),
     ],
 )
 def test_a_key_a_recipe_sets_per_run_is_not_taken_to_be_overwritten(recipe, overrides, says):
     """``figure2.py env.p1.speed=0.5`` ran the whole figure at p1_speed's values, the 0.5 lost
-    without a word; the same held for every recipe whose runs set a key from a list of its own.
-    The key is refused, naming that list; the scenario's other keys still pass."""
+    without a word; the same held for every recipe whose runs set a key from a list of its own,
+    and for the keys it sets for every run after a learner's overrides (``eval.mc_episodes=0``,
+    its ``optimum_gamma``). The key is refused, naming what to set; the scenario's other keys
+    still pass."""
     message = refused(recipe, *overrides)
     assert "would be overwritten" in message and says in message, message
     road = "env.p1.road=0.3"

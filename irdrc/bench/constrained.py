@@ -83,6 +83,7 @@ def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
             "seed": "set seeds=[…]",
         },
         cfg.overrides,
+        fixed=("optimum_gamma", "checkpoint.every_frames"),
     )
     base = [
         *composed.scenario_overrides,

@@ -139,9 +139,9 @@ def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
             "env.channels": "set channels=[…] (part B: 1)",
             "env.vehicles": "set vehicles=[…] (part A: 2)",
             "seed": "set seeds=[…] and scale_seeds=[…]",
-            "eval.every_frames": "set eval.every_frames=…",
         },
         cfg.overrides,
+        fixed=("eval.every_frames",),
     )
     base = [*cfg.overrides, f"eval.every_frames={cfg.eval['every_frames']}"]
     planned, part = [], {}

@@ -119,7 +119,9 @@ def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
         grid_axes |= {"env.p1.speed": "set p1_speed=[…]", "reward.r4": "set r4=[…]"}
     candidates = [o for extra in candidate_overrides(cfg.candidates).values() for o in extra]
     composed.refuse_overwritten(  # a candidate's own key wins over a draw's; the grid's over both
-        {**dict.fromkeys(sorted(drawn), "scenarios=random draws it"), **grid_axes}, cfg.overrides
+        {**dict.fromkeys(sorted(drawn), "scenarios=random draws it"), **grid_axes},
+        cfg.overrides,
+        fixed=("optimum_gamma", "eval.mc_episodes", "eval.every_frames", "checkpoint.every_frames"),
     )
     composed.refuse_overwritten(grid_axes, candidates)
     for name, extra in candidate_overrides(cfg.candidates).items():

@@ -115,7 +115,9 @@ def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
 
     cfg = build(Config, composed.cfg)
     composed.refuse_overwritten(
-        {"seed": "set seeds=[…]", "optimum_gamma": "set optimum_gamma=…"}, cfg.overrides
+        {"seed": "set seeds=[…]"},
+        cfg.overrides,
+        fixed=("optimum_gamma", "checkpoint.every_frames"),
     )
     if cfg.random:  # each draw a pure function of its index: a resumed run finds the same ones
         drawn = {f"draw {d.index}": command_line(d.overrides) for d in random_draws(cfg)}

@@ -114,6 +114,7 @@ def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
             "seed": "set seeds=[…]",
         },
         [o for spec in cfg.learners.values() for o in spec.overrides],
+        fixed=("optimum_gamma", "eval.mc_episodes"),
     )
     check_dense(cfg.params)  # the exact references, after the training: refused before it
     return replace(cfg, planned=tuple(plan_figure2(cfg, composed.scenario_overrides)))

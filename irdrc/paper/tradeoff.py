@@ -139,6 +139,7 @@ def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
             "seed": "set dqn.seeds=[…]",
         },
         cfg.dqn.overrides,
+        fixed=("optimum_gamma", "eval.mc_episodes"),
     )
     check_dense(cfg.params)  # the exact curves' models, before any work
     if not cfg.dqn.r4:

@@ -18,6 +18,15 @@ from irdrc.runs.scenarios import list_scenarios, register_scenarios
 CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
 """The recipes' Hydra configs (``dqn.yaml``, ``algo/``, …), package data."""
 
+FIXED = {
+    "optimum_gamma": "set optimum_gamma=…, which every run and ratio reads",
+    "eval.mc_episodes": "its runs are scored exactly, not by Monte Carlo episodes",
+    "checkpoint.every_frames": "its runs keep no checkpoints",
+    "eval.every_frames": "set eval.every_frames=…",
+}
+"""Keys a many-run recipe sets for every run after its ``overrides`` (scoring, checkpoints), with
+what to do instead: ``Composed.refuse_overwritten(fixed=…)`` refuses them in an overrides list."""
+
 OPTIONAL_KEYS = (
     "env.factors",
     "env.bursty",
@@ -85,11 +94,15 @@ class Composed:
         """The keys the command line set (groups included)."""
         return frozenset(override_key(o) for o in self.task)
 
-    def refuse_overwritten(self, axes: dict[str, str], overrides: Any = ()) -> None:
+    def refuse_overwritten(
+        self, axes: dict[str, str], overrides: Any = (), fixed: tuple[str, ...] = ()
+    ) -> None:
         """Refuse a key the recipe sets per run itself (``axes``: the key → what to do instead)
         where the command line's scenario (``env.*``, ``reward.*``: passed on to every run) or the
         recipe's ``overrides`` list sets it too: the runs would overwrite it without a word. (A key
-        of the recipe's own on its command line, ``eval.every_frames=…``, is not passed on.)"""
+        of the recipe's own on its command line, ``eval.every_frames=…``, is not passed on.)
+        ``fixed`` names keys of ``FIXED`` the recipe sets for every run after the overrides."""
+        axes = {**axes, **{key: FIXED[key] for key in fixed}}
         scenario = [o for o in self.task if is_scenario_key(o)]
         given = {override_key(o): o.lstrip("+") for o in [*scenario, *map(str, overrides)]}
         for key, instead in axes.items():

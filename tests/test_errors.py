@@ -73,6 +73,7 @@ def refused(recipe: str, *overrides: str) -> str:
         ("dqn", ["total_frames=4000"], "did you mean algo.total_frames?"),
         # a learner's key the online recipe's algo: {} does not hold (its profiles' keys)
         ("online", ["learner=safe", "target_miss=0.1"], "did you mean algo.target_miss?"),
+        ("online", ["device=cuda"], "online runs one vehicle's stream on the CPU"),
         ("qlearning", ["algo.alpha=abc"], "algo.alpha='abc'"),
         ("qlearning", ["num_learners=1000000"], "num_learners=1000000"),
         ("qlearning", ["batch_grid={}"], "batch_grid is empty"),

@@ -20,6 +20,7 @@ from irdrc.core.checks import build
 from irdrc.core.params import Params
 from irdrc.online.configs import LEARNERS, PROFILES, SAFE_LEARNERS, learner_config
 from irdrc.runs.compose import Composed
+from irdrc.runs.grid import override_key
 from irdrc.runs.resume import refuse_finished
 from irdrc.runs.sections import Learning, Plot, check_eval_period, check_exact, scenario_field
 
@@ -52,6 +53,18 @@ a warning (it is read against the LP at its ``target_miss``, not the unconstrain
 
 DEFAULT_LEARNER = "posterior"
 """``learner=`` when none is given (``irdrc/conf/online.yaml`` says the same)."""
+
+
+def misplaced_override(args: list[str]) -> str | None:
+    """What to say of ``device=…``, which online refused: one vehicle's stream runs on the CPU."""
+    for arg in args:
+        if override_key(arg) == "device":
+            return (
+                f"{arg}: online runs one vehicle's stream on the CPU, one step at a time "
+                "(num_threads=… sets its threads); device is a key of the recipes that simulate "
+                "many vehicles at once (recipes/dqn.py device=cuda)"
+            )
+    return None
 
 
 def _algo(data: Any, prefix: str) -> Any:

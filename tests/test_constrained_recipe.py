@@ -289,7 +289,7 @@ def test_a_long_lp_over_shares_is_announced_and_one_past_memory_refused(capsys, 
     region.share_lp_notice(params)
     assert "[lp] the constrained optimum over radar shares" in capsys.readouterr().out
     region.check_share_lp(params)  # this machine has the memory
-    monkeypatch.setattr("irdrc.runs.sections.available_memory", lambda: int(need))
+    monkeypatch.setattr("irdrc.runs.limits.available_memory", lambda: int(need))
     with pytest.raises(ValueError, match="more than this machine has free"):
         region.check_share_lp(params)
 

@@ -409,9 +409,9 @@ def test_env_rows_are_bounded_by_this_machines_memory(monkeypatch):
     """``algo.num_envs`` is refused where the estimated memory of its rows, collections and replay
     exceeds what the machine has available, naming the estimate and a number of rows that fits
     (which the estimate then accepts); nothing is refused where the memory is unknown."""
-    from irdrc.runs import sections
+    from irdrc.runs import limits
 
-    monkeypatch.setattr(sections, "available_memory", lambda: 4 * 2**30)
+    monkeypatch.setattr(limits, "available_memory", lambda: 4 * 2**30)
     load("dqn")  # the main job: 8 000 rows
     load("sac")
     big = ("algo.num_envs=10000000", "algo.frames_per_batch=10000000", "algo.total_frames=40000000")
@@ -434,7 +434,7 @@ def test_env_rows_are_bounded_by_this_machines_memory(monkeypatch):
             "algo.frames_per_batch=5000000",
             "algo.total_frames=40000000",
         )
-    monkeypatch.setattr(sections, "available_memory", lambda: None)
+    monkeypatch.setattr(limits, "available_memory", lambda: None)
     load("dqn", *big)
 
 
@@ -447,10 +447,10 @@ def test_an_lp_past_this_machines_memory_is_refused_before_it_is_built(monkeypat
     import torch
 
     from irdrc.recipes.constrained.lp_cost import LP_BYTES_PER_NONZERO
-    from irdrc.runs import sections
+    from irdrc.runs import limits
     from irdrc.runs.tables import write_policy_csv
 
-    monkeypatch.setattr(sections, "available_memory", lambda: 24 * 2**30)
+    monkeypatch.setattr(limits, "available_memory", lambda: 24 * 2**30)
     load("constrained")
     says = r"318\.8 M non-zeros for S = 100 800 states and would need ~\d+\.\d GB, more than"
     with pytest.raises(ValueError, match=says) as err:
@@ -462,11 +462,11 @@ def test_an_lp_past_this_machines_memory_is_refused_before_it_is_built(monkeypat
     write_policy_csv(table, torch.ones(352, dtype=torch.long), None)
     load("evaluate", f"policy={table}", "target_miss=0.05")
     paper = (94_720 + 50_688) * LP_BYTES_PER_NONZERO  # the paper LP's non-zeros
-    monkeypatch.setattr(sections, "available_memory", lambda: int(paper))
+    monkeypatch.setattr(limits, "available_memory", lambda: int(paper))
     with pytest.raises(ValueError, match="or leave target_miss out"):
         load("evaluate", f"policy={table}", "target_miss=0.05")
     load("evaluate", f"policy={table}")
-    monkeypatch.setattr(sections, "available_memory", lambda: None)
+    monkeypatch.setattr(limits, "available_memory", lambda: None)
     load("constrained", "env=large")
 
 

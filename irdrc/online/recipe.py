@@ -21,8 +21,9 @@ from irdrc.core.params import Params
 from irdrc.online.configs import LEARNERS, PROFILES, SAFE_LEARNERS, learner_config
 from irdrc.runs.compose import Composed
 from irdrc.runs.grid import override_key
+from irdrc.runs.limits import check_exact
 from irdrc.runs.resume import refuse_finished
-from irdrc.runs.sections import Learning, Plot, check_eval_period, check_exact, scenario_field
+from irdrc.runs.sections import Learning, Plot, check_eval_period, scenario_field
 
 if TYPE_CHECKING:
     from irdrc.runs.scaffold import Run

@@ -22,8 +22,9 @@ from irdrc.recipes import dqn, qlearning
 from irdrc.recipes.constrained.frontier import optimal_at, ref_params
 from irdrc.runs.compose import Composed
 from irdrc.runs.grid import format_value, parse_grid
+from irdrc.runs.limits import check_dense
 from irdrc.runs.results import atomic_write_text, write_rows_csv
-from irdrc.runs.sections import EXECUTOR, Executor, check_common, check_dense, scenario_field
+from irdrc.runs.sections import EXECUTOR, Executor, check_common, scenario_field
 from irdrc.sweeps.trials import execute, plan
 
 if TYPE_CHECKING:

@@ -26,13 +26,13 @@ from irdrc.recipes import dqn
 from irdrc.recipes.constrained.frontier import optimal_at, ref_params
 from irdrc.runs.compose import Composed
 from irdrc.runs.grid import parse_grid
+from irdrc.runs.limits import check_dense
 from irdrc.runs.progress import Ticker
 from irdrc.runs.results import write_rows_csv
 from irdrc.runs.sections import (
     EXECUTOR,
     Executor,
     check_common,
-    check_dense,
     check_speeds,
     scenario_field,
     seeds,

@@ -15,14 +15,9 @@ from typing import TYPE_CHECKING, Any
 from irdrc.agents.configs import DQNConfig
 from irdrc.core.checks import build
 from irdrc.runs.compose import Composed
+from irdrc.runs.limits import check_exact, check_memory
 from irdrc.runs.resume import refuse_finished
-from irdrc.runs.sections import (
-    OneVehicleLearning,
-    algo_field,
-    check_eval_period,
-    check_exact,
-    check_memory,
-)
+from irdrc.runs.sections import OneVehicleLearning, algo_field, check_eval_period
 
 if TYPE_CHECKING:
     from irdrc.runs.scaffold import Run

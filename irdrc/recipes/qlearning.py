@@ -17,12 +17,7 @@ from irdrc.core.params import Params
 from irdrc.runs.compose import Composed
 from irdrc.runs.grid import is_scenario_key, parse_grid
 from irdrc.runs.resume import refuse_finished
-from irdrc.runs.sections import (
-    Learning,
-    Plot,
-    check_eval_period,
-    scenario_field,
-)
+from irdrc.runs.sections import Learning, Plot, check_eval_period, scenario_field
 
 if TYPE_CHECKING:
     from irdrc.runs.scaffold import Run
@@ -87,7 +82,7 @@ def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
             f"num_learners={cfg.num_learners} × {len(scenarios)} scenarios: the Q-tables would "
             f"take {table_bytes / 2**30:.1f} GiB (limit 4 GiB); use fewer learners"
         )
-    from irdrc.runs.sections import check_exact
+    from irdrc.runs.limits import check_exact
 
     check_exact(cfg.params)
     cfg.eval.check_cost(cfg.params)

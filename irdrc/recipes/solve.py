@@ -20,13 +20,8 @@ from irdrc.core.checks import INT, build, check_number, check_numbers, grouped
 from irdrc.core.params import Params
 from irdrc.core.sizes import DENSE_LIMIT_BYTES, fits_dense
 from irdrc.runs.compose import Composed
-from irdrc.runs.sections import (
-    ONE_OR_FLEET,
-    Eval,
-    available_memory,
-    check_common,
-    scenario_field,
-)
+from irdrc.runs.limits import available_memory
+from irdrc.runs.sections import ONE_OR_FLEET, Eval, check_common, scenario_field
 
 if TYPE_CHECKING:
     from irdrc.runs.scaffold import Run

@@ -5,6 +5,7 @@
 - ``app``: what every recipe does around its run (composed once, checked before any work, one-line
   errors); ``cli``: the ``irdrc`` command;
 - ``sections``: the config sections recipes share (scenario, eval, logger, checkpoint, executor …);
+  ``limits``: what this machine can run (the exact model's size, a learner's memory, the device);
 - ``scaffold``: the run directory (lock, log, config files), threads, logger, progress,
   checkpoints (with their digest) and the finishing of a run; ``signals``: SIGINT/SIGTERM in any
   phase; ``resume``: a resumed run's configuration and what it refuses; ``progress``;

@@ -29,7 +29,7 @@ def check_lp_fits(key: str, what: str, nonzeros: int, num_states: int, advice: s
     machine has free: ``key: the LP {what} has … non-zeros for S = … states and would need ~…,
     more than this machine has free (…); {advice}``."""
     from irdrc.recipes.solve import size
-    from irdrc.runs.sections import available_memory
+    from irdrc.runs.limits import available_memory
 
     need = LP_BYTES_PER_NONZERO * nonzeros
     free = available_memory()

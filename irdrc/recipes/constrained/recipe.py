@@ -23,13 +23,9 @@ from irdrc.core import checks
 from irdrc.core.params import Params
 from irdrc.core.sizes import fits_dense
 from irdrc.runs.compose import Composed
+from irdrc.runs.limits import check_dense
 from irdrc.runs.resume import refuse_finished
-from irdrc.runs.sections import (
-    Learning,
-    check_dense,
-    check_speeds,
-    scenario_field,
-)
+from irdrc.runs.sections import Learning, check_speeds, scenario_field
 
 if TYPE_CHECKING:
     from irdrc.core.exact.mdp import ExactMDP

@@ -8,8 +8,9 @@ from typing import TYPE_CHECKING, Any
 
 from irdrc.core.checks import build, grouped
 from irdrc.runs.compose import Composed
+from irdrc.runs.limits import check_memory
 from irdrc.runs.resume import refuse_finished
-from irdrc.runs.sections import check_eval_period, check_memory
+from irdrc.runs.sections import check_eval_period
 
 if TYPE_CHECKING:
     from irdrc.runs.scaffold import Run

@@ -79,6 +79,10 @@ def test_fleet_score_is_the_fleet_scorers():
     assert got["ratio"] == pytest.approx(1.0, abs=1e-12)
     with pytest.raises(ValueError, match="actions per agent"):
         env.score(lambda obs: {a: np.zeros(3) for a in env.possible_agents})
+    # a policy's 0.5 (a probability, a share) was scored as 0: it is refused, naming the agent
+    half = {a: np.full(env.model.single.num_states, 0.5) for a in env.possible_agents}
+    with pytest.raises(ValueError, match=r"^vehicle_1's actions \[0\.5, 0\.5, 0\.5\] must be"):
+        env.score(lambda obs: half)
 
 
 def _run(args: list[str], cwd: Path, tmp: Path | None = None) -> str:

@@ -130,8 +130,12 @@ def test_parallel_env_misuse_is_refused_clearly():
         ValueError, match=r"unknown agent.*vehicle_0: this env's agents are vehicle_1"
     ):
         env.step({"vehicle_0": 0, "vehicle_2": 0})
-    with pytest.raises(ValueError, match="action"):
-        env.step({"vehicle_1": 2, "vehicle_2": 0})
+    # an action that is not 0 or 1 is refused naming its agent (0.5 was taken as 0, True as 1)
+    for bad in (2, 0.5, True, "a", None, [0, 1]):
+        with pytest.raises(ValueError, match=r"^vehicle_1's action"):
+            env.step({"vehicle_1": bad, "vehicle_2": 0})
+    for good in (1, 1.0, np.int64(1), np.array(1), np.array([1.0])):
+        env.step({"vehicle_1": good, "vehicle_2": 0})
     with pytest.raises(ValueError, match="joint state index"):
         env.reset(options={"state": env.model.num_states})
     with pytest.raises(ValueError, match=r"env\.vehicles"):

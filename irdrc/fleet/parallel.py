@@ -26,7 +26,7 @@ from gymnasium import spaces
 from pettingzoo import ParallelEnv
 
 from irdrc.core.checks import check_number
-from irdrc.core.dynamics import checked_actions, fresh_seed
+from irdrc.core.dynamics import fresh_seed
 from irdrc.core.overrides import apply_overrides
 from irdrc.core.params import Params
 from irdrc.fleet.config import fleet_from_config
@@ -169,9 +169,7 @@ class FleetParallelEnv(ParallelEnv):
         missing = [a for a in self.agents if a not in actions]
         if missing:
             raise ValueError(f"no action for {', '.join(missing)}: every vehicle acts every step")
-        act = checked_actions(
-            torch.tensor([int(np.asarray(actions[a]).reshape(())) for a in self.agents])
-        ).reshape(1, -1)
+        act = torch.tensor([[_agent_action(a, actions[a]) for a in self.agents]])
         res = self.sim.step(self._states, act, self.rng)
         self._states = res.state
         self._steps += 1
@@ -240,14 +238,12 @@ class FleetParallelEnv(ParallelEnv):
         obs = fleet_observation(self.sim.dyn.obs[states], self.own, self.observe).numpy()
         out = policy({a: obs[:, i].astype(np.float32) for i, a in enumerate(self.possible_agents)})
         act = torch.stack(
-            [torch.as_tensor(np.asarray(out[a])).reshape(-1).long() for a in self.possible_agents],
-            1,
+            [torch.as_tensor(_actions(a, out[a])).reshape(-1) for a in self.possible_agents], 1
         )
         if act.shape[0] != len(states):
             raise ValueError(
                 f"policy returned {act.shape[0]} actions per agent for {len(states)} rows"
             )
-        checked_actions(act.reshape(-1))
         if self.observe == "own":
             return act.T.reshape(-1)
         return (act << torch.arange(n)).sum(1)
@@ -296,6 +292,26 @@ def parallel_env(
         return FleetParallelEnv(spec, observe=observe, rewards=rewards, seed=seed)
     fleet, observe = fleet_spec(overrides)
     return FleetParallelEnv(fleet, observe=observe, rewards=rewards, seed=seed)
+
+
+def _actions(agent: str, action: Any) -> np.ndarray:
+    """An agent's action(s) as int64, if each is 0 (communication) or 1 (radar), 0.0 / 1.0 too;
+    0.5, 2, a bool or a string is refused naming the agent, never truncated."""
+    a = np.asarray(action)
+    numbers = a.dtype.kind in "iuf"
+    good = np.isin(a, (0, 1)) if numbers else np.zeros(a.shape, dtype=bool)
+    if not good.all():
+        shown = f"action {action!r}" if a.size == 1 else f"actions {a[~good][:3].tolist()}"
+        raise ValueError(f"{agent}'s {shown} must be 0 (communication) or 1 (radar)")
+    return a.astype(np.int64)
+
+
+def _agent_action(agent: str, action: Any) -> int:
+    """One agent's action of a step: one number, 0 or 1 (``_actions``)."""
+    a = _actions(agent, action)
+    if a.size != 1:
+        raise ValueError(f"{agent}'s action {action!r} must be one number, 0 or 1")
+    return int(a.reshape(()))
 
 
 def _checked_seed(seed: Any) -> int:

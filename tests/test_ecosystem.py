@@ -44,6 +44,11 @@ def test_gym_score_is_the_exact_scorers():
         env.score(lambda obs: np.ones(3))
     with pytest.raises(ValueError, match="action"):
         env.score(lambda obs: np.full(len(obs), 2))
+    # 0.5 (a probability) was scored as 0, "x" was torch's TypeError: each is refused by name
+    for bad in (0.5, "x"):
+        with pytest.raises(ValueError, match=r"^predict's actions \[.*\] must be 0"):
+            env.score(lambda obs, bad=bad: np.full(len(obs), bad))
+    assert env.score(lambda obs: np.ones(len(obs)))["ratio"] == radar["ratio"]  # 1.0 is radar
     cont = gymnasium.make("irdrc/DFRC-v0", **{"env.actions": "continuous"}).unwrapped
     rho = ContinuumScorer(Params.from_overrides({"env.actions": "continuous"})).optimal.rho
     assert cont.score(lambda obs: rho.numpy()[:, None])["ratio"] == pytest.approx(1.0, abs=1e-9)

@@ -16,6 +16,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
+import numpy as np
 import torch
 
 from irdrc.core.params import Params
@@ -363,6 +364,18 @@ def checked_actions(action: torch.Tensor) -> torch.Tensor:
             f"action must be 0 (communication) or 1 (radar); got {action[bad][:3].tolist()}"
         )
     return action.to(torch.int64)
+
+
+def binary_actions(values: Any, name: str = "action") -> torch.Tensor:
+    """Actions from outside (a user's policy, a trainer's step) as int64, if each is 0
+    (communication) or 1 (radar), 0.0 / 1.0 too; 0.5, 2, a bool or a string is refused naming
+    ``name``, never truncated."""
+    a = np.asarray(values)
+    good = np.isin(a, (0, 1)) if a.dtype.kind in "iuf" else np.zeros(a.shape, dtype=bool)
+    if not good.all():
+        shown = f"{name} {values!r}" if a.size == 1 else f"{name}s {a[~good][:3].tolist()}"
+        raise ValueError(f"{shown} must be 0 (communication) or 1 (radar)")
+    return torch.from_numpy(a.astype(np.int64))
 
 
 def checked_shares(env: Any, action: torch.Tensor) -> torch.Tensor:

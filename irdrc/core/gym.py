@@ -31,6 +31,7 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 
 from irdrc.core.dynamics import (
     Dynamics,
+    binary_actions,
     checked_actions,
     checked_shares,
     observation_high,
@@ -204,7 +205,7 @@ class DFRCGymEnv(gymnasium.Env):
             )
         out = out.reshape(S)
         if actions == "binary":
-            return checked_actions(torch.as_tensor(out).long())
+            return binary_actions(out, "predict's action")
         return checked_shares(self.params.env, torch.as_tensor(out, dtype=torch.float64))
 
     def score(self, predict: Callable[[np.ndarray], Any], gamma: float = 0.99) -> dict[str, float]:

@@ -26,7 +26,7 @@ from gymnasium import spaces
 from pettingzoo import ParallelEnv
 
 from irdrc.core.checks import check_number
-from irdrc.core.dynamics import fresh_seed
+from irdrc.core.dynamics import binary_actions, fresh_seed
 from irdrc.core.overrides import apply_overrides
 from irdrc.core.params import Params
 from irdrc.fleet.config import fleet_from_config
@@ -238,7 +238,7 @@ class FleetParallelEnv(ParallelEnv):
         obs = fleet_observation(self.sim.dyn.obs[states], self.own, self.observe).numpy()
         out = policy({a: obs[:, i].astype(np.float32) for i, a in enumerate(self.possible_agents)})
         act = torch.stack(
-            [torch.as_tensor(_actions(a, out[a])).reshape(-1) for a in self.possible_agents], 1
+            [binary_actions(out[a], f"{a}'s action").reshape(-1) for a in self.possible_agents], 1
         )
         if act.shape[0] != len(states):
             raise ValueError(
@@ -294,22 +294,10 @@ def parallel_env(
     return FleetParallelEnv(fleet, observe=observe, rewards=rewards, seed=seed)
 
 
-def _actions(agent: str, action: Any) -> np.ndarray:
-    """An agent's action(s) as int64, if each is 0 (communication) or 1 (radar), 0.0 / 1.0 too;
-    0.5, 2, a bool or a string is refused naming the agent, never truncated."""
-    a = np.asarray(action)
-    numbers = a.dtype.kind in "iuf"
-    good = np.isin(a, (0, 1)) if numbers else np.zeros(a.shape, dtype=bool)
-    if not good.all():
-        shown = f"action {action!r}" if a.size == 1 else f"actions {a[~good][:3].tolist()}"
-        raise ValueError(f"{agent}'s {shown} must be 0 (communication) or 1 (radar)")
-    return a.astype(np.int64)
-
-
 def _agent_action(agent: str, action: Any) -> int:
-    """One agent's action of a step: one number, 0 or 1 (``_actions``)."""
-    a = _actions(agent, action)
-    if a.size != 1:
+    """One agent's action of a step: one number, 0 or 1 (``binary_actions``)."""
+    a = binary_actions(action, f"{agent}'s action")
+    if a.numel() != 1:
         raise ValueError(f"{agent}'s action {action!r} must be one number, 0 or 1")
     return int(a.reshape(()))
 

@@ -371,7 +371,7 @@ def binary_actions(values: Any, name: str = "action") -> torch.Tensor:
     (communication) or 1 (radar), 0.0 / 1.0 too; 0.5, 2, a bool or a string is refused naming
     ``name``, never truncated."""
     a = np.asarray(values)
-    good = np.isin(a, (0, 1)) if a.dtype.kind in "iuf" else np.zeros(a.shape, dtype=bool)
+    good = (a == 0) | (a == 1) if a.dtype.kind in "iuf" else np.zeros(a.shape, dtype=bool)
     if not good.all():
         shown = f"{name} {values!r}" if a.size == 1 else f"{name}s {a[~good][:3].tolist()}"
         raise ValueError(f"{shown} must be 0 (communication) or 1 (radar)")

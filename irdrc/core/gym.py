@@ -32,7 +32,6 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from irdrc.core.dynamics import (
     Dynamics,
     binary_actions,
-    checked_actions,
     checked_shares,
     observation_high,
     step_shares,
@@ -296,7 +295,7 @@ class DFRCVectorEnv(VectorEnv):
             rho = _shares(self.params, actions, self.num_envs)
             res = step_shares(self.dynamics, self._state, rho, self._rng)
         else:
-            a = checked_actions(torch.as_tensor(np.asarray(actions)).reshape(-1))
+            a = binary_actions(actions).reshape(-1)
             if a.numel() != self.num_envs:
                 raise ValueError(f"{a.numel()} actions for {self.num_envs} envs")
             res = self.dynamics.step(self._state, a, self._rng)

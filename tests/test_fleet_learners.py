@@ -38,17 +38,18 @@ def test_vehicle_states_invert_the_joint_index(two):
 
 def test_monte_carlo_matches_the_exact_metrics(two):
     """``simulate`` of the baselines' action rules agrees with ``fleet_metrics`` of the same
-    policies at N = 2: fleet reward within 5 standard errors (a seeded run of 256 fleets × 4 000
-    steps; 5 SE keeps 5 comparisons from failing by chance at ~6e-7 each), denial rate and mean
-    queue within 0.02 and 0.1 (both averaged over ~10⁶ vehicle steps; their spreads are below
-    0.5 and 5, so a few thousandths and hundredths: the bounds are loose)."""
+    policies at N = 2: fleet reward within 5 standard errors (a seeded run of 2 048 independent
+    fleets × 500 steps after 200 of burn-in, the error taken across fleets; 5 SE keeps 5
+    comparisons from failing by chance at ~6e-7 each), denial rate and mean queue within 0.02 and
+    0.1 (both averaged over ~2·10⁶ vehicle steps; their spreads are below 0.5 and 5, so a few
+    thousandths and hundredths: the bounds are loose)."""
     from irdrc.fleet.evaluate import baseline_rules, simulate
 
     single = value_iteration(two.single).policy
     exact = baselines(two, single)
     exact["always radar"] = torch.full((two.num_states,), 3)
     for name, rule in baseline_rules(two, single).items():
-        got = simulate(two, rule, fleets=256, steps=4_000, burn_in=200, seed=5)
+        got = simulate(two, rule, fleets=2048, steps=500, burn_in=200, seed=5)
         want = fleet_metrics(two, exact[name])[1][-1]
         se = got.ci95 / 1.96
         assert abs(got.fleet.avg_reward - want["avg_reward"]) <= 5 * se, name

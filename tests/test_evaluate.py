@@ -282,8 +282,8 @@ def test_a_comm_radar_table_on_a_scenario_of_radar_shares_means_comm_and_radar(t
 
 
 def test_a_checkpoint_without_a_network_to_read_names_its_recipe_and_its_table(tmp_path, capsys):
-    """A one-stream learner's checkpoint is not one evaluate reads: the refusal names the recipe
-    that wrote it and the run's table, which evaluate scores."""
+    """A one-stream tabular learner's checkpoint has no network: the refusal names the recipe and
+    learner that wrote it and the run's table, which evaluate scores."""
     from irdrc.online import recipe
     from irdrc.recipes import evaluate
     from irdrc.runs.app import execute
@@ -295,8 +295,36 @@ def test_a_checkpoint_without_a_network_to_read_names_its_recipe_and_its_table(t
     out = [f"hydra.run.dir={tmp_path / 'e'}", "eval.mc_episodes=0"]
     assert execute(evaluate, [f"checkpoint={run_dir / 'checkpoint.pt'}", *out]) == 2
     err = capsys.readouterr().err
-    assert "(this one: online)" in err and f"policy={run_dir / 'policy.csv'}" in err, err
+    assert "(this one: online learner=qlearning)" in err, err
+    assert f"policy={run_dir / 'policy.csv'}" in err, err
     assert execute(evaluate, [f"policy={run_dir / 'policy.csv'}", *out]) == 0
+
+
+@pytest.mark.parametrize("learner", ["dqn", "dqn_paper"])
+def test_a_one_stream_dqn_network_scores_as_its_run_did_and_goes_elsewhere(
+    learner, tmp_path, capsys
+):
+    """``online.py learner=dqn``'s checkpoint holds a network: on its own scenario evaluate scores
+    the table the run scored (its policy.csv, its ratio: the target network's greedy table, or
+    the online one's for ``dqn_paper``), and on a scenario of another state space the network's
+    greedy table there."""
+    from irdrc.online import recipe
+    from irdrc.recipes import evaluate
+    from irdrc.runs.app import execute
+
+    run_dir = tmp_path / "online"
+    args = [f"learner={learner}", "algo.episodes=3", "logger=none", "progress=false"]
+    assert execute(recipe, [*args, f"hydra.run.dir={run_dir}"]) == 0
+    out = [f"checkpoint={run_dir / 'checkpoint.pt'}", "eval.mc_episodes=0"]
+    assert execute(evaluate, [*out, f"hydra.run.dir={tmp_path / 'same'}"]) == 0
+    assert "on one stream, trained 1200 env steps" in capsys.readouterr().out
+    same = json.loads((tmp_path / "same" / "summary.json").read_text())
+    ran = json.loads((run_dir / "summary.json").read_text())
+    assert same["optimality_ratio"] == pytest.approx(ran["optimality_ratio"], abs=1e-12)
+    assert (tmp_path / "same" / "policy.csv").read_text() == (run_dir / "policy.csv").read_text()
+    assert execute(evaluate, [*out, "env=multilevel", f"hydra.run.dir={tmp_path / 'ml'}"]) == 0
+    rows = (tmp_path / "ml" / "policy.csv").read_text().splitlines()
+    assert len(rows) - 1 == 792  # multilevel's S (11 queue lengths × 2·2·2·3·3 levels), not 352
 
 
 def test_a_table_of_another_state_space_says_what_must_match(tmp_path):

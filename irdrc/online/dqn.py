@@ -274,3 +274,16 @@ class StreamDQN(StreamLearner):
         torch.set_rng_state(state["torch_rng"])
         self.last_values = state["last_values"] if self.full else None
         self.table = self._last_table()
+
+
+def saved_greedy(
+    learner: dict[str, Any], cfg: StreamDQNConfig, trained: Params, params: Params
+) -> torch.Tensor:
+    """[S] the greedy table, on the states of ``params``, of a saved run's network (its
+    ``policy_network``: the target, or the online one): each state's levels scaled as in its
+    training on ``trained``, ties to comm. ``learner`` is the run's ``state_dict``."""
+    net = make_body(observation_high(trained), cfg.network, 2)
+    net.load_state_dict(learner["qnet" if cfg.policy_network == "online" else "target"])
+    obs = decode_state(torch.arange(params.env.num_states), params.env.factor_levels)
+    with torch.no_grad():
+        return net(obs.to(torch.float32)).argmax(-1)

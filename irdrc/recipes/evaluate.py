@@ -1,6 +1,6 @@
-"""``recipes/evaluate.py``: a saved policy on any scenario — a DQN, SAC or PPO run's network
-(``checkpoint=…/checkpoint.pt``) or a single-vehicle run's table (``policy=…/policy.csv``,
-randomised ones included).
+"""``recipes/evaluate.py``: a saved policy on any scenario — a DQN, SAC or PPO run's network, or a
+one-stream DQN's (``online.py learner=dqn``; ``checkpoint=…/checkpoint.pt``), or a
+single-vehicle run's table (``policy=…/policy.csv``, randomised ones included).
 
 The policy is scored exactly on the scenario the command line composes (long run, and episodic on
 models small enough for the dense matrices), by Monte-Carlo episodes on its simulator, and against
@@ -105,6 +105,8 @@ def network_table(path: Path, params: Params) -> tuple[Any, str, str]:
     saved = state["config"]
     recipe = checkpoint_recipe(path, state)
     fleet = "vehicles" in saved.get("env", {})
+    if recipe == "online" and saved.get("learner") in ("dqn", "dqn_paper"):
+        return stream_dqn_table(path, state, params)
     if recipe not in ("dqn", "sac", "ppo") or "env" not in saved or fleet or "target_miss" in saved:
         table = path.parent / "policy.csv"
         hint = (
@@ -113,8 +115,10 @@ def network_table(path: Path, params: Params) -> tuple[Any, str, str]:
             else ""
         )
         raise ValueError(
-            f"checkpoint={path}: not a checkpoint of recipes/dqn.py, sac.py or ppo.py (this one: "
-            f"{recipe or 'another recipe'}); evaluate reads a single-vehicle network{hint}"
+            f"checkpoint={path}: not a checkpoint of recipes/dqn.py, sac.py, ppo.py or online.py "
+            f"learner=dqn (this one: {recipe or 'another recipe'}"
+            f"{' learner=' + str(saved['learner']) if recipe == 'online' else ''}); evaluate "
+            f"reads a single-vehicle network{hint}"
         )
     trained = Params.from_config(saved)
     check_observations(path, trained, params)
@@ -129,6 +133,22 @@ def network_table(path: Path, params: Params) -> tuple[Any, str, str]:
         return rho, f"{recipe} radar shares {steps}", "rho"
     table, name = dqn_table(state, saved, trained, params)
     source = f"{name} {steps}"
+    table, rho = fit_actions(table, trained.env.shares, params, source)
+    return table, source, "rho" if rho else "network"
+
+
+def stream_dqn_table(path: Path, state: dict[str, Any], params: Params) -> tuple[Any, str, str]:
+    """``network_table`` of a one-stream DQN run (``recipes/online.py learner=dqn``): the greedy
+    table of the network it scored, on the states of ``params``."""
+    from irdrc.online.configs import learner_config
+    from irdrc.online.dqn import saved_greedy
+
+    saved = state["config"]
+    trained = Params.from_config(saved)
+    check_observations(path, trained, params)
+    cfg = learner_config(saved["learner"], saved.get("algo"))
+    table = saved_greedy(state["learner"], cfg, trained, params)
+    source = f"{cfg.name} on one stream, trained {int(state['frames'])} env steps ({path})"
     table, rho = fit_actions(table, trained.env.shares, params, source)
     return table, source, "rho" if rho else "network"
 

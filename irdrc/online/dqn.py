@@ -280,8 +280,9 @@ def saved_greedy(
     learner: dict[str, Any], cfg: StreamDQNConfig, trained: Params, params: Params
 ) -> torch.Tensor:
     """[S] the greedy table, on the states of ``params``, of a saved run's network (its
-    ``policy_network``: the target, or the online one): each state's levels scaled as in its
-    training on ``trained``, ties to comm. ``learner`` is the run's ``state_dict``."""
+    ``policy_network``: the target, whose table is the one its run scored; or the online one, as
+    saved: one update past the acting table its run scored last), each state's levels scaled as in
+    its training on ``trained``, ties to comm. ``learner`` is the run's ``state_dict``."""
     net = make_body(observation_high(trained), cfg.network, 2)
     net.load_state_dict(learner["qnet" if cfg.policy_network == "online" else "target"])
     obs = decode_state(torch.arange(params.env.num_states), params.env.factor_levels)

@@ -347,6 +347,18 @@ def test_a_starved_vehicle_is_named_in_words_and_a_win_over_a_baseline_is_no_ver
     assert "no verdict on the optimum" in text and "wins" not in text
 
 
+def test_a_rate_that_is_zero_up_to_the_solves_accuracy_is_printed_as_zero():
+    """Round-robin in anti-phase drops nothing; the exact solve gives its drop rate as −4.4e-15
+    (at env.queue_capacity=40), which the table printed as "-0.0000"."""
+    from irdrc.recipes.fleet.report import format_rows
+
+    row = {"vehicle": 1, "avg_reward": 0.6139, "drop_rate": -4.4e-15, "denial_rate": 0.0}
+    table = format_rows({"round-robin": [row, {**row, "vehicle": "fleet"}]}, reference=1.0)
+    assert "-0.0000" not in table and " 0.0000" in table, table
+    negative = format_rows({"p": [{**row, "avg_reward": -0.25}, {**row, "vehicle": "fleet"}]}, 1.0)
+    assert "-0.2500" in negative
+
+
 def test_a_fleet_whose_exact_evaluations_are_slow_says_so_first():
     """Past SLOW_EXACT_STATES joint states every exact evaluation takes several seconds or more
     (one linear solve over the joint states): the run's first lines say so, so that a quiet

@@ -14,6 +14,7 @@ import torch
 
 from irdrc.core.checks import grouped
 from irdrc.core.exact import value_iteration
+from irdrc.core.metrics import RESOLUTION
 from irdrc.core.states import decode_state
 from irdrc.fleet.model import FleetModel
 from irdrc.fleet.policies import baselines, single_optima
@@ -97,8 +98,11 @@ def format_rows(
 
 
 def _cell(x: float | None) -> str:
-    """A table cell: 4 decimals, or — where the metric is undefined."""
-    return "—" if x is None or (isinstance(x, float) and math.isnan(x)) else f"{x:.4f}"
+    """A table cell: 4 decimals, or — where the metric is undefined; a value below the exact
+    solves' accuracy (``RESOLUTION``) is 0, not the "-0.0000" of a −4e-15."""
+    if x is None or (isinstance(x, float) and math.isnan(x)):
+        return "—"
+    return f"{0.0 if abs(x) < RESOLUTION else x:.4f}"
 
 
 STARVED_THROUGHPUT = 1e-3

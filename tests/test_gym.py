@@ -187,10 +187,14 @@ def test_vector_env_matches_the_batched_dynamics_and_autoresets():
 
 @pytest.mark.parametrize("action", [0.5, 1.7, "1", 1.0, 2, -1, True, np.array([1])])
 def test_gym_env_refuses_anything_but_0_and_1(action):
+    """Discrete(2)'s actions are integers: 1.0 or [1] is refused saying so (it read "action=1.0
+    must be 0 (communication) or 1 (radar)", which 1.0 seems to be)."""
     env = gymnasium.make("irdrc/DFRC-v0")
     env.reset(seed=0)
-    with pytest.raises(ValueError, match=r"must be 0 \(communication\) or 1 \(radar\)"):
+    with pytest.raises(ValueError, match=r"must be 0 \(communication\) or 1 \(radar\)") as err:
         env.unwrapped.step(action)
+    integer = isinstance(action, int | np.integer) and not isinstance(action, bool)
+    assert ("as an integer" in str(err.value)) == (not integer and action is not True), err.value
 
 
 def test_gym_env_accepts_integer_scalars():

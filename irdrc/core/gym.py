@@ -106,7 +106,11 @@ def _action(action: Any) -> int:
         a = int(action)
         if a in (0, 1):
             return a
-    raise ValueError(f"action={action!r} must be 0 (communication) or 1 (radar)")
+        raise ValueError(f"action={action!r} must be 0 (communication) or 1 (radar)")
+    raise ValueError(
+        f"action={action!r} must be 0 (communication) or 1 (radar) as an integer: its space is "
+        "Discrete(2), whose actions are Python or NumPy integers (a 0-d integer array too)"
+    )
 
 
 class DFRCGymEnv(gymnasium.Env):

@@ -178,7 +178,7 @@ def test_vector_env_matches_the_batched_dynamics_and_autoresets():
     assert not trunc.any() and (reward == 0).all() and not info["event"].any()
     # what is not 0 or 1 is refused by value (a bool and a string were taken, or torch's TypeError)
     for bad in ([0, 2, 0], [0, 0.5, 0], [True, False, True], ["0", "1", "0"]):
-        with pytest.raises(ValueError, match=r"^actions \[.*\] must be 0 \(communication\)"):
+        with pytest.raises(ValueError, match=r"^actions? \S.* must be 0 \(communication\)"):
             venv.step(np.array(bad))
 
 

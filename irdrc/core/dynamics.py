@@ -353,29 +353,34 @@ def observation_high(params: Params) -> torch.Tensor:
     return torch.tensor(top, dtype=torch.float32)
 
 
-def checked_actions(action: torch.Tensor) -> torch.Tensor:
-    """``action`` as int64 if every entry is 0 (communication) or 1 (radar), else a ``ValueError``.
+def checked_actions(action: torch.Tensor, name: str = "action") -> torch.Tensor:
+    """``action`` as int64 if every entry is 0 (communication) or 1 (radar), else a ``ValueError``
+    naming ``name`` and the first values refused.
 
     Floating-point 0.0 / 1.0 are accepted; 0.5, 1.7, −1 or 2 are not (they would index the tables
     out of their meaning)."""
     bad = (action != 0) & (action != 1)
     if bool(bad.any()):
         raise ValueError(
-            f"action must be 0 (communication) or 1 (radar); got {action[bad][:3].tolist()}"
+            f"{_shown(name, action[bad].tolist())} must be 0 (communication) or 1 (radar)"
         )
     return action.to(torch.int64)
 
 
 def binary_actions(values: Any, name: str = "action") -> torch.Tensor:
-    """Actions from outside (a user's policy, a trainer's step) as int64, if each is 0
-    (communication) or 1 (radar), 0.0 / 1.0 too; 0.5, 2, a bool or a string is refused naming
-    ``name``, never truncated."""
+    """Actions from outside (a user's policy, a trainer's step): numbers, each 0 or 1
+    (``checked_actions``); a bool or a string is refused naming ``name``, never cast."""
     a = np.asarray(values)
-    good = (a == 0) | (a == 1) if a.dtype.kind in "iuf" else np.zeros(a.shape, dtype=bool)
-    if not good.all():
-        shown = f"{name} {values!r}" if a.size == 1 else f"{name}s {a[~good][:3].tolist()}"
-        raise ValueError(f"{shown} must be 0 (communication) or 1 (radar)")
-    return torch.from_numpy(a.astype(np.int64))
+    if a.dtype.kind not in "iuf":
+        raise ValueError(f"{_shown(name, a.tolist())} must be 0 (communication) or 1 (radar)")
+    return checked_actions(torch.from_numpy(a), name)
+
+
+def _shown(name: str, values: Any) -> str:
+    """``action 0.5`` or ``actions [0.5, 2.0, …]`` (the first three) for a message."""
+    if not isinstance(values, list):
+        return f"{name} {values!r}"
+    return f"{name} {values[0]!r}" if len(values) == 1 else f"{name}s {values[:3]}"
 
 
 def checked_shares(env: Any, action: torch.Tensor) -> torch.Tensor:

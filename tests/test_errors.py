@@ -53,16 +53,19 @@ def refused(recipe: str, *overrides: str) -> str:
         ("online", ["env.actions=levels"], "recipes/dqn.py algo=dqn_levels (levels)"),
         ("online", ["algo.sweeps_per_step=-1"], "algo.sweeps_per_step=-1"),
         ("online", ["learner=safe", "algo.evaluations_per_step=-1"], "evaluations_per_step=-1"),
+        # another learner's key names the learners that read it
         (
             "online",
             ["learner=posterior", "algo.evaluations_per_step=1"],
-            "unknown key(s) algo.evaluations_per_step",
+            "algo.evaluations_per_step is read by learner=safe|safe_anytime, not by learner=posterior",
         ),
         (
             "online",
             ["learner=dqn", "algo.sweeps_per_step=1"],
-            "unknown key(s) algo.sweeps_per_step",
+            "algo.sweeps_per_step is read by learner=posterior|posterior_anytime, not by learner=dqn",
         ),
+        ("online", ["algo.alpha=0.1"], "is read by learner=qlearning|qlearning_paper, not by"),
+        ("online", ["learner=qlearning", "algo.alfa=0.1"], "did you mean algo.alpha?"),
         # wrong types and ranges name the key
         ("dqn", ["optimum_gamma=1.0"], "optimum_gamma=1.0"),
         ("dqn", ["seed=abc"], "seed='abc'"),
@@ -546,6 +549,66 @@ def test_a_key_a_recipe_sets_per_run_is_not_taken_to_be_overwritten(recipe, over
     if recipe == "bench_fleet":  # its own key on its own command line is what sets the runs'
         runs = load(recipe, *few, "eval.every_frames=1000").planned
         assert {p["composed"].cfg["eval"]["every_frames"] for p in runs} == {1000}
+
+
+@pytest.mark.parametrize(
+    ("recipe", "overrides", "says"),
+    [
+        # an exact solve learns nothing: the learner's keys
+        ("constrained", ["algo.lr=0.001"], "learner=lp solves exactly and learns nothing"),
+        ("constrained", ["learner=dual", "network=large"], "learner=dual solves exactly"),
+        ("constrained", ["checkpoint.every_frames=5"], "read with learner=dqn_lagrangian"),
+        ("constrained", ["frontier=true", "eval.every_frames=5"], "frontier=true solves LPs"),
+        # the frontier sets its own targets and speeds; its grid needs it
+        ("constrained", ["frontier=true", "target_miss=0.3"], "frontier_grid.targets=[…]"),
+        ("constrained", ["frontier=true", "env.p1.speed=0.5"], "frontier_grid.p1_speed=[…]"),
+        ("constrained", ["frontier_grid.points=5"], "the frontier's grid is read with frontier"),
+        # a batch's scenarios, a sweep's points
+        (
+            "qlearning",
+            ["env.p1.speed=0.5", "batch_grid={env.p1.speed: [0.1,1.0]}"],
+            "batch_grid sets env.p1.speed in every scenario of the batch",
+        ),
+        (
+            "sweep",
+            [
+                "executor=local",
+                "method=solve",
+                "sweep.grid={env.p1.speed: [0.1,1.0]}",
+                "sweep.base=['env.p1.speed=0.5']",
+            ],
+            "sweep.base's env.p1.speed=0.5 would be overwritten: sweep.grid sets env.p1.speed",
+        ),
+        # an exact solve with no Monte-Carlo check
+        ("solve", ["env.actions=continuous", "eval.mc_episodes=3"], "the optimum over ρ is"),
+        ("solve", ["env=large", "eval.mc_episodes=3"], "100 800 states (the factored solve)"),
+        ("solve", ["env=fleet", "eval.mc_num_envs=8"], "the fleet's optimum is scored exactly"),
+        # the radar share's keys where each step is all comm or all radar
+        ("solve", ["env.levels=9"], "env.levels=9: with env.actions=binary each step is all"),
+        ("dqn", ["env.dwell_gain=2"], "env.dwell_gain shapes the radar share"),
+        ("online", ["env.sensing=linear"], "env.sensing shapes the radar share"),
+    ],
+)
+def test_a_key_the_run_would_not_read_is_refused(recipe, overrides, says):
+    """Each of these ran, the key set on the command line never read: ``constrained.py
+    algo.lr=0.001`` solved the LP, ``frontier=true target_miss=0.3`` drew the frontier at its own
+    targets, ``solve.py env.levels=9`` solved whole-step modes. Each is refused, saying what
+    reads it; the same keys where they are read still pass."""
+    assert says in refused(recipe, *overrides)
+
+
+def test_the_same_keys_pass_where_they_are_read():
+    """The keys the test above refuses, in the runs that read them."""
+    cfg = load("constrained", "learner=dqn_lagrangian", "algo.lr=0.001", "network=small")
+    assert cfg.algo.dqn.lr == 0.001
+    cfg = load("constrained", "frontier=true", "frontier_grid.points=5", "objective=avg_reward")
+    assert cfg.frontier_grid.points == 5
+    assert load("constrained", "target_miss=0.2", "env.p1.speed=0.5").target_miss == 0.2
+    assert load("solve", "eval.mc_episodes=8").eval.mc_episodes == 8
+    assert load("solve", "env.actions=levels", "env.levels=9").model.env.levels == 9
+    assert load("sac", "env.dwell_gain=2").params.env.dwell_gain == 2
+    cfg = load("qlearning", "env.p1.road=0.3", "batch_grid={env.p1.speed: [0.1,1.0]}")
+    assert [p.env.p1.road for p in cfg.scenarios] == [0.3, 0.3]
 
 
 def test_a_dqn_profile_that_sets_what_bench_dqn_owns_is_refused():

@@ -145,7 +145,8 @@ def test_the_printed_ledger_says_when_the_greedy_policy_first_reached_099(
 @pytest.mark.parametrize(
     ("args", "message"),
     [
-        (["algo.batch_size=64"], "unknown key(s) algo.batch_size"),
+        (["algo.batch_size=64"], "algo.batch_size is read by learner=dqn|dqn_paper, not by"),
+        (["algo.batch_sise=64"], "unknown key(s) algo.batch_sise"),
         (["learner=dqn", "algo.batch_sze=64"], "did you mean algo.batch_size?"),
         (["learner=nobody"], "learner='nobody' must be one of"),
         (

@@ -123,8 +123,9 @@ def test_section_d_facts_elsewhere():
     ],
 )
 def test_bad_time_sharing_keys_are_one_line(override, message, tmp_path):
+    shared = [] if override.startswith("env.actions") else ["env.actions=levels"]
     r = subprocess.run(
-        [sys.executable, "recipes/solve.py", override, f"hydra.run.dir={tmp_path / 'r'}"],
+        [sys.executable, "recipes/solve.py", *shared, override, f"hydra.run.dir={tmp_path / 'r'}"],
         capture_output=True,
         text=True,
         cwd=ROOT,

@@ -295,8 +295,20 @@ def learner_config(learner: str, algo: Any) -> Any:
     checks.check_choice("learner", learner, LEARNERS)
     base = PROFILES[learner]
     data = dict(algo or {})
-    names = {f.name for f in dataclasses.fields(base) if f.name != "name"}
+    names = _keys(learner)
+    for key in sorted(set(data) - names):
+        readers = [n for n in LEARNERS if key in _keys(n)]
+        if readers:
+            raise ValueError(
+                f"algo.{key} is read by learner={'|'.join(readers)}, not by learner={learner} "
+                f"(which reads algo." + ", algo.".join(sorted(names)) + ")"
+            )
     checks.reject_unknown_keys("algo.", data, names)
     if "hidden" in data and isinstance(data["hidden"], list):
         data["hidden"] = tuple(data["hidden"])
     return dataclasses.replace(base, **data)
+
+
+def _keys(learner: str) -> set[str]:
+    """The ``algo.*`` keys of ``learner``'s profile."""
+    return {f.name for f in dataclasses.fields(PROFILES[learner]) if f.name != "name"}

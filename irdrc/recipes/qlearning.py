@@ -74,6 +74,10 @@ def batch_points(grid: Any) -> list[dict[str, Any]]:
 def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
     """The typed config, checked: values, every batched scenario, what the tables cost."""
     cfg = build(Config, composed.cfg)
+    for key in cfg.batch_grid[0]:
+        composed.refuse_unread(
+            (key,), f"batch_grid sets {key} in every scenario of the batch; drop one of the two"
+        )
     scenarios = cfg.scenarios
     rows = cfg.num_learners * len(scenarios)
     table_bytes = rows * cfg.params.env.num_states * 2 * 4 * 2  # Q-values and visit counts

@@ -62,6 +62,20 @@ class Config:
 def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
     """The typed config, checked: values, and what the exact solve costs."""
     cfg = build(Config, composed.cfg)
+    if not isinstance(cfg.model, Params):
+        unchecked = "the fleet's optimum"
+    elif cfg.model.env.actions == "continuous":
+        unchecked = "the optimum over ρ"
+    elif not fits_dense(cfg.model):
+        unchecked = f"a model of {grouped(cfg.model.env.num_states)} states (the factored solve)"
+    else:
+        unchecked = None
+    if unchecked is not None:
+        composed.refuse_unread(
+            ("eval",),
+            f"{unchecked} is scored exactly, with no Monte-Carlo check (eval.* sets the dense "
+            "single-vehicle solve's)",
+        )
     if isinstance(cfg.model, Params) and cfg.model.env.actions != "binary":
         check_shares_fit(cfg.model)
     if isinstance(cfg.model, Params) and fits_dense(cfg.model):

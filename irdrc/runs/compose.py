@@ -7,6 +7,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import re
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, cast
@@ -93,6 +94,16 @@ class Composed:
     def explicit(self) -> frozenset[str]:
         """The keys the command line set (groups included)."""
         return frozenset(override_key(o) for o in self.task)
+
+    def refuse_unread(self, keys: Iterable[str], why: str) -> None:
+        """Refuse a key of the command line this run does not read: one of ``keys``, or a key of
+        one of those sections (``algo`` covers ``algo.lr``), named with ``why``. A value nothing
+        reads would otherwise be taken without a word."""
+        keys = tuple(keys)
+        for o in self.task:
+            key = override_key(o)
+            if any(key == k or key.startswith(f"{k}.") for k in keys):
+                raise ValueError(f"{o.lstrip('+')}: {why}")
 
     def refuse_overwritten(
         self, axes: dict[str, str], overrides: Any = (), fixed: tuple[str, ...] = ()
@@ -203,7 +214,27 @@ def compose(
     with open_dict(cfg):
         del cfg["hydra"]
     plain = cast(dict[str, Any], OmegaConf.to_container(cfg, resolve=True))
+    _refuse_share_keys(plain, task)
     return Composed(config_name, plain, choices, task, run_dir)
+
+
+SHARE_KEYS = ("env.levels", "env.sensing", "env.dwell_gain")
+"""Model keys of the radar share (MODEL.md § D), read only where a step may be shared."""
+
+
+def _refuse_share_keys(cfg: dict[str, Any], task: list[str]) -> None:
+    """Refuse a radar-share key the command line sets for whole-step modes (``env.actions=binary``,
+    the default): each step is all comm or all radar, so nothing would read it."""
+    env = cfg.get("env")
+    if not isinstance(env, dict) or env.get("actions", "binary") != "binary":
+        return
+    for o in task:
+        if override_key(o) in SHARE_KEYS:
+            raise ValueError(
+                f"{o.lstrip('+')}: with env.actions=binary each step is all comm or all radar; "
+                f"{override_key(o)} shapes the radar share (env.actions=levels or continuous, "
+                "MODEL.md § D)"
+            )
 
 
 def _groups_of(config_name: str) -> set[str]:

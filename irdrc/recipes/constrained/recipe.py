@@ -191,6 +191,7 @@ def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
     """The typed config, checked; a learner's model must fit the dense scorer, and one target's
     feasibility is the LP itself (``run`` solves it before any file is written)."""
     cfg = checks.build(Config, composed.cfg)
+    refuse_unread(cfg, composed)
     if cfg.params.env.actions != "binary":
         from irdrc.recipes.constrained.region import check_share_lp
         from irdrc.recipes.solve import check_shares_fit
@@ -211,6 +212,35 @@ def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
         total = cfg.algo.dqn.total_frames
         refuse_finished(cfg.resume, int(resume["frames"]), total, "algo.total_frames", total)
     return cfg
+
+
+LEARNER_KEYS = ("algo", "network", "checkpoint", "eval")
+"""The sections only ``learner=dqn_lagrangian`` reads (its settings, network, checkpoints and
+evaluations)."""
+
+
+def refuse_unread(cfg: Config, composed: Composed) -> None:
+    """Refuse what the command line sets and this run would not read: a learner's keys where
+    nothing learns, the one target and ``env.p1.speed`` where the frontier sets its own, the
+    frontier's grid where no frontier is drawn."""
+    if cfg.learner != "dqn_lagrangian":
+        solves = "frontier=true solves LPs" if cfg.frontier else f"learner={cfg.learner} solves"
+        composed.refuse_unread(
+            LEARNER_KEYS,
+            f"{solves} exactly and learns nothing; the learner's keys are read with "
+            "learner=dqn_lagrangian",
+        )
+    if not cfg.frontier:
+        composed.refuse_unread(("frontier_grid",), "the frontier's grid is read with frontier=true")
+        return
+    composed.refuse_unread(
+        ("target_miss",),
+        "frontier=true solves the LP at frontier_grid.points targets from 0 up and tabulates "
+        "frontier_grid.targets=[…]",
+    )
+    composed.refuse_unread(
+        ("env.p1.speed",), "frontier=true draws one frontier per frontier_grid.p1_speed=[…]"
+    )
 
 
 def run(cfg: Config, run: Run) -> dict[str, Any]:

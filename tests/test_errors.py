@@ -583,6 +583,21 @@ def test_a_key_a_recipe_sets_per_run_is_not_taken_to_be_overwritten(recipe, over
         ("solve", ["env.actions=continuous", "eval.mc_episodes=3"], "the optimum over ρ is"),
         ("solve", ["env=large", "eval.mc_episodes=3"], "100 800 states (the factored solve)"),
         ("solve", ["env=fleet", "eval.mc_num_envs=8"], "the fleet's optimum is scored exactly"),
+        # a part of a benchmark that does not run
+        ("bench_robust", ["draws=5"], "draws=5: the random draws need scenarios=random"),
+        ("bench_robust", ["scenarios=random", "r4=[10]"], "scenarios=random draws every"),
+        ("bench_timeshare", ["first_draw=3"], "the random draws need scenarios=random"),
+        ("bench_online", ["random_draws=0", "random_seed=3"], "no random draw runs (random_d"),
+        ("bench_online", ["random_learners=[]", "random_draws=4"], "(random_learners=[])"),
+        ("bench_online", ["safe_targets=[]", "safe_seeds=[1]"], "no safe learner runs"),
+        ("bench_online", ["scenarios=[multilevel]", "paper_seeds=[3]"], "scenarios leaves out"),
+        ("figure2", ["methods=[dqn]", "learners.qlearning.panels=[a]"], "not among methods"),
+        ("tradeoff", ["target_miss=null", "search.lo=2"], "skipped (target_miss=null)"),
+        ("tradeoff", ["dqn.r4=[]", "dqn.seeds=[3]"], "no DQN run (dqn.r4=[])"),
+        ("study", ["learners=[dqn]", "overrides.qlearning=['algo.episodes=3']"], "not among"),
+        ("study", ["scenarios=[paper]", "evals.large=3"], "large is not among scenarios"),
+        ("bench_fleet", ["search=false", "search_sweeps=3"], "no search runs (search=false)"),
+        ("bench_fleet", ["vehicles=[]", "scale_seeds=[4]"], "part B does not run (vehicles=[])"),
         # the radar share's keys where each step is all comm or all radar
         ("solve", ["env.levels=9"], "env.levels=9: with env.actions=binary each step is all"),
         ("dqn", ["env.dwell_gain=2"], "env.dwell_gain shapes the radar share"),
@@ -609,6 +624,11 @@ def test_the_same_keys_pass_where_they_are_read():
     assert load("sac", "env.dwell_gain=2").params.env.dwell_gain == 2
     cfg = load("qlearning", "env.p1.road=0.3", "batch_grid={env.p1.speed: [0.1,1.0]}")
     assert [p.env.p1.road for p in cfg.scenarios] == [0.3, 0.3]
+    # a value that asks for nothing passes where nothing reads it
+    cfg = load("bench_online", "safe_targets=[]", "lagrangian_seeds=[]", "random_draws=0")
+    assert cfg.lagrangian_seeds == () and cfg.random_draws == 0
+    assert load("bench_online", "scenarios=[paper]", "paper_seeds=[3]").paper_seeds == (3,)
+    assert load("bench_timeshare", "scenarios=random", "draws=1", "first_draw=3").draws == 1
 
 
 def test_a_dqn_profile_that_sets_what_bench_dqn_owns_is_refused():

@@ -143,6 +143,14 @@ def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
         cfg.overrides,
         fixed=("eval.every_frames",),
     )
+    if not cfg.search:
+        composed.refuse_unread(("search_sweeps",), "no search runs (search=false)")
+    if not cfg.scale_learners or not cfg.vehicles:
+        off = "scale_learners=[]" if not cfg.scale_learners else "vehicles=[]"
+        composed.refuse_unread(
+            [k for k in ("scale_learners", "vehicles") if not off.startswith(k)] + ["scale_seeds"],
+            f"part B does not run ({off})",
+        )
     base = [*cfg.overrides, f"eval.every_frames={cfg.eval['every_frames']}"]
     planned, part = [], {}
     for learner in cfg.learners:

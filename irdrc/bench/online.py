@@ -130,8 +130,25 @@ class Config:
 
 
 def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
-    """The typed config, checked."""
-    return build(Config, composed.cfg)
+    """The typed config, checked; a key of a part of the benchmark that does not run is refused."""
+    cfg = build(Config, composed.cfg)
+    if "paper" not in cfg.scenarios:
+        composed.refuse_unread(
+            ("paper_learners", "paper_seeds"), "their runs are on paper, which scenarios leaves out"
+        )
+    if not cfg.random_draws or not cfg.random_learners:
+        off = "random_draws=0" if not cfg.random_draws else "random_learners=[]"
+        composed.refuse_unread(
+            [k for k in ("random_draws", "random_learners") if not off.startswith(k)]
+            + ["first_draw", "random_seed"],
+            f"no random draw runs ({off})",
+        )
+    if not cfg.safe_targets:
+        composed.refuse_unread(
+            ("safe_learners", "safe_scenarios", "safe_seeds", "lagrangian_seeds"),
+            "no safe learner runs (safe_targets=[])",
+        )
+    return cfg
 
 
 # -- the runs -----------------------------------------------------------------------------------------

@@ -103,6 +103,10 @@ def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
     from irdrc.sweeps.trials import plan
 
     cfg = build(Config, composed.cfg)
+    if cfg.scenarios == "random":
+        composed.refuse_unread(("p1_speed", "r4"), "scenarios=random draws every model key")
+    else:
+        composed.refuse_unread(("draws", "first_draw"), "the random draws need scenarios=random")
     base = [
         *composed.scenario_overrides,
         *cfg.overrides,

@@ -117,6 +117,11 @@ def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
         [o for spec in cfg.learners.values() for o in spec.overrides],
         fixed=("optimum_gamma", "eval.mc_episodes"),
     )
+    for name in cfg.learners:
+        if name not in cfg.methods:
+            composed.refuse_unread(
+                (f"learners.{name}",), f"{name} is not among methods=[…]; add it there to run it"
+            )
     check_dense(cfg.params)  # the exact references, after the training: refused before it
     return replace(cfg, planned=tuple(plan_figure2(cfg, composed.scenario_overrides)))
 

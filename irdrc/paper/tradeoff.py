@@ -141,8 +141,14 @@ def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
         cfg.dqn.overrides,
         fixed=("optimum_gamma", "eval.mc_episodes"),
     )
+    if cfg.target_miss is None:
+        composed.refuse_unread(
+            ("search",),
+            "the search for the smallest r4 meeting target_miss is skipped (target_miss=null)",
+        )
     check_dense(cfg.params)  # the exact curves' models, before any work
     if not cfg.dqn.r4:
+        composed.refuse_unread(("dqn",), "no DQN run (dqn.r4=[])")
         return cfg
     base = [
         *composed.scenario_overrides,

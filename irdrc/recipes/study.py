@@ -93,6 +93,16 @@ def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
     bad one is refused before any run (one that sets the scenario too: each learner runs each of
     ``scenarios`` as it is, and is scored against that scenario's optimum)."""
     cfg = build(Config, composed.cfg)
+    for learner in cfg.overrides or {}:
+        if learner not in cfg.learners:
+            composed.refuse_unread(
+                (f"overrides.{learner}",), f"{learner} is not among learners=[…]; add it there"
+            )
+    for scenario in cfg.evals:
+        if scenario != "default" and scenario not in cfg.scenarios:
+            composed.refuse_unread(
+                (f"evals.{scenario}",), f"{scenario} is not among scenarios=[…]; add it there"
+            )
     planned = {}
     for learner in cfg.learners:
         extra = [str(o) for o in (cfg.overrides or {}).get(learner) or []]

@@ -98,10 +98,13 @@ class Composed:
     def refuse_unread(self, keys: Iterable[str], why: str) -> None:
         """Refuse a key of the command line this run does not read: one of ``keys``, or a key of
         one of those sections (``algo`` covers ``algo.lr``), named with ``why``. A value nothing
-        reads would otherwise be taken without a word."""
+        reads would otherwise be taken without a word; one that asks for nothing (``[]``, ``{}``,
+        ``null``) passes."""
         keys = tuple(keys)
         for o in self.task:
-            key = override_key(o)
+            key, value = override_key(o), o.partition("=")[2].strip()
+            if value in ("[]", "{}", "null"):
+                continue
             if any(key == k or key.startswith(f"{k}.") for k in keys):
                 raise ValueError(f"{o.lstrip('+')}: {why}")
 

@@ -40,6 +40,25 @@ def test_overrides():
         gymnasium.make("irdrc/DFRC-v0", r4=50)
 
 
+def test_a_radar_share_key_for_whole_step_modes_is_refused():
+    """``env.levels=9`` (or κ, the sensing curve) without ``env.actions`` made a Discrete(2) env
+    that never read it; the same keys with a shared step still make their env."""
+    import irdrc.fleet
+
+    refusal = r"with env\.actions=binary each step is all comm or all radar; env\.{}"
+    for key, value in (("levels", 9), ("dwell_gain", 2.0), ("sensing", "linear")):
+        with pytest.raises(ValueError, match=refusal.format(key)):
+            gymnasium.make("irdrc/DFRC-v0", **{f"env.{key}": value})
+        with pytest.raises(ValueError, match=refusal.format(key)):
+            gymnasium.make_vec("irdrc/DFRC-v0", num_envs=2, env={key: value})
+        with pytest.raises(ValueError, match=refusal.format(key)):
+            irdrc.fleet.parallel_env(**{f"env.{key}": value})
+    env = gymnasium.make("irdrc/DFRC-v0", **{"env.actions": "levels", "env.levels": 9})
+    assert env.action_space.n == 9
+    env = gymnasium.make("irdrc/DFRC-v0", env={"actions": "continuous", "dwell_gain": 2.0})
+    assert env.unwrapped.params.env.dwell_gain == 2.0
+
+
 def test_a_named_scenario_is_irdrc_scenario():
     """``irdrc.scenario(NAME, overrides)`` is the ``Params`` the recipes compose for ``env=NAME``
     (every single-vehicle scenario of irdrc/scenarios/), for the gym id's ``params=``. A

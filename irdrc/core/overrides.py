@@ -4,7 +4,7 @@ gym constructors' way to name a scenario; recipes compose theirs with Hydra)."""
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from typing import Any
 
 REWARD_KEYS = ("r1", "r2", "r3", "r4", "r5")
@@ -52,3 +52,30 @@ def deep_set(target: dict[str, Any], key: str, value: Any) -> None:
             deep_set(target[key], k, v)
     else:
         target[key] = value
+
+
+SHARE_KEYS = ("env.levels", "env.sensing", "env.dwell_gain")
+"""Keys of the radar share (MODEL.md § D), read only where a step may be shared (``env.actions``
+levels or continuous)."""
+
+
+def refuse_share_keys(actions: str, given: Mapping[str, str]) -> None:
+    """Refuse a key of ``SHARE_KEYS`` among ``given`` (each key → how its caller wrote it) where
+    ``actions`` is ``binary``: each step is all comm or all radar, so nothing would read it."""
+    if actions != "binary":
+        return
+    for key, shown in given.items():
+        if key in SHARE_KEYS:
+            raise ValueError(
+                f"{shown}: with env.actions=binary each step is all comm or all radar; {key} "
+                "shapes the radar share (env.actions=levels or continuous, MODEL.md § D)"
+            )
+
+
+def dotted(overrides: Mapping[str, Any], prefix: str = "") -> Iterator[tuple[str, Any]]:
+    """The overrides as (dotted key, value) pairs, nested mappings opened."""
+    for key, value in overrides.items():
+        if isinstance(value, Mapping) and value:
+            yield from dotted(value, f"{prefix}{key}.")
+        else:
+            yield f"{prefix}{key}", value

@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any, cast
 
 from irdrc.core.checks import closest
+from irdrc.core.overrides import refuse_share_keys
 from irdrc.runs.grid import is_scenario_key, override_key
 from irdrc.runs.scenarios import list_scenarios, register_scenarios
 
@@ -217,27 +218,11 @@ def compose(
     with open_dict(cfg):
         del cfg["hydra"]
     plain = cast(dict[str, Any], OmegaConf.to_container(cfg, resolve=True))
-    _refuse_share_keys(plain, task)
+    if isinstance(env := plain.get("env"), dict):  # a radar-share key for whole-step modes
+        refuse_share_keys(
+            env.get("actions", "binary"), {override_key(o): o.lstrip("+") for o in task}
+        )
     return Composed(config_name, plain, choices, task, run_dir)
-
-
-SHARE_KEYS = ("env.levels", "env.sensing", "env.dwell_gain")
-"""Model keys of the radar share (MODEL.md § D), read only where a step may be shared."""
-
-
-def _refuse_share_keys(cfg: dict[str, Any], task: list[str]) -> None:
-    """Refuse a radar-share key the command line sets for whole-step modes (``env.actions=binary``,
-    the default): each step is all comm or all radar, so nothing would read it."""
-    env = cfg.get("env")
-    if not isinstance(env, dict) or env.get("actions", "binary") != "binary":
-        return
-    for o in task:
-        if override_key(o) in SHARE_KEYS:
-            raise ValueError(
-                f"{o.lstrip('+')}: with env.actions=binary each step is all comm or all radar; "
-                f"{override_key(o)} shapes the radar share (env.actions=levels or continuous, "
-                "MODEL.md § D)"
-            )
 
 
 def _groups_of(config_name: str) -> set[str]:

@@ -61,6 +61,48 @@ def test_a_scenario_file_that_is_a_list_is_refused_by_name(tmp_path):
         load_scenario("listed", tmp_path)
 
 
+def test_a_scenario_file_of_the_users_is_a_scenario(tmp_path, monkeypatch):
+    """``env=PATH.yaml``: a file of the user's, anywhere, in the named scenarios' form — the same
+    model as the command line's keys; without ``defaults`` it starts from paper; its ``defaults``
+    name scenarios of irdrc or files beside it. Runs name it by its file name and store its
+    absolute path, so a sweep or a resumed run finds it from any directory."""
+    from conftest import load
+
+    import irdrc
+    from irdrc.runs.compose import compose
+
+    (tmp_path / "city.yaml").write_text(
+        "# a city\np1: {object: 0.2, speed: 0.3}\narrival_rate: 1.5\n"
+    )
+    (tmp_path / "rush.yaml").write_text("# rush hour\ndefaults: [city.yaml]\np1: {speed: 0.9}\n")
+    (tmp_path / "town.yaml").write_text("# a town\ndefaults: [multilevel]\nqueue_capacity: 5\n")
+    monkeypatch.chdir(tmp_path)
+    keys = ["env.p1.object=0.2", "env.p1.speed=0.3", "env.arrival_rate=1.5"]
+    assert load("solve", "env=city.yaml").model == load("solve", *keys).model
+    rush = load("solve", "env=rush.yaml", "reward.r4=50").model
+    assert rush == load("solve", *keys, "env.p1.speed=0.9", "reward.r4=50").model
+    town = load("solve", f"env={tmp_path / 'town.yaml'}").model
+    assert town == load("solve", "env=multilevel", "env.queue_capacity=5").model
+    assert irdrc.scenario("rush.yaml", {"reward.r4": 50}) == rush
+    composed = compose("solve", ["env=rush.yaml", "env.p1.road=0.2"])
+    assert composed.scenario == "rush.yaml[env.p1.road=0.2]"
+    assert f"env={tmp_path / 'rush.yaml'}" in composed.task
+    assert composed.scenario_overrides[0] == f"env={tmp_path / 'rush.yaml'}"
+    # what is wrong with a file is said in one line, naming it
+    (tmp_path / "typo.yaml").write_text("# typo\np1: {sped: 0.5}\n")
+    (tmp_path / "broken.yaml").write_text("p1: [\n")
+    (tmp_path / "loop.yaml").write_text("# loop\ndefaults: [loop.yaml]\n")
+    for value, says in (
+        ("nope.yaml", r"env=nope\.yaml: no such scenario file"),
+        ("typo.yaml", r"env\.p1\.sped \(did you mean env\.p1\.speed\?\)"),
+        ("broken.yaml", r"broken\.yaml: not a YAML file"),
+        ("loop.yaml", r"scenario defaults form a cycle"),
+        ("nope", r"env='nope' is not a choice of env: .*a scenario file of your own"),
+    ):
+        with pytest.raises(ValueError, match=says):
+            load("solve", f"env={value}")
+
+
 BAD = [
     ("env.queue_capacity", 0),
     ("env.queue_capacity", 2.5),

@@ -15,7 +15,12 @@ from typing import Any, cast
 from irdrc.core.checks import closest
 from irdrc.core.overrides import refuse_share_keys
 from irdrc.runs.grid import is_scenario_key, override_key
-from irdrc.runs.scenarios import list_scenarios, register_scenarios
+from irdrc.runs.scenarios import (
+    FILE_SUFFIXES,
+    list_scenarios,
+    register_scenarios,
+    scenario_file_overrides,
+)
 
 CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
 """The recipes' Hydra configs (``dqn.yaml``, ``algo/``, …), package data."""
@@ -81,6 +86,8 @@ class Composed:
         """The scenario as runs name it: the ``env`` choice, plus any ``env.*`` / ``reward.*``
         overrides in brackets (``paper[env.p1.speed=0.5,reward.r4=50]``)."""
         name = self.choices.get("env") or "custom"
+        if name.endswith(FILE_SUFFIXES):  # a scenario file: its file name
+            name = Path(name).name
         extra = [o.removeprefix("++") for o in self.task if is_scenario_key(o)]
         return f"{name}[{','.join(extra)}]" if extra else name
 
@@ -205,7 +212,8 @@ def compose(
 
     register_scenarios()
     args = prepare_overrides(config_name, [str(o) for o in overrides])
-    _check_choices(config_name, args)
+    args, files = scenario_file_overrides(args)
+    _check_choices(config_name, args, files)
     try:
         with _initialised():
             cfg = hydra_compose(config_name=config_name, overrides=args, return_hydra_config=True)
@@ -214,6 +222,9 @@ def compose(
     hydra = cfg.hydra
     choices = {k: str(v) for k, v in hydra.runtime.choices.items() if not k.startswith("hydra")}
     task = [str(o) for o in hydra.overrides.task if not override_key(str(o)).startswith("hydra")]
+    if choices.get("env") in files:  # a scenario file: named by its path, wherever it is read
+        choices["env"] = files[choices["env"]]
+        task = [f"env={choices['env']}" if override_key(o) == "env" else o for o in task]
     run_dir = str(hydra.run.dir)
     with open_dict(cfg):
         del cfg["hydra"]
@@ -234,9 +245,10 @@ def _groups_of(config_name: str) -> set[str]:
     return out
 
 
-def _check_choices(config_name: str, args: list[str]) -> None:
+def _check_choices(config_name: str, args: list[str], files: Any = ()) -> None:
     """An unknown option of a config group, named with the options; a group the recipe has no
-    choice of, naming the recipes that do."""
+    choice of, naming the recipes that do. ``files``: the names scenario files are registered
+    under (``scenario_file_overrides``)."""
     groups = config_groups()
     mine = _groups_of(config_name)
     for o in args:
@@ -249,9 +261,10 @@ def _check_choices(config_name: str, args: list[str]) -> None:
                     f"{config_name} has no {key}: {key}= is for "
                     + ", ".join(f"python {recipe_call(u)}" for u in users)
                 )
-            if value not in group_options(key):
+            if value not in group_options(key) and value not in files:
                 options = ", ".join(group_options(key))
-                raise ValueError(f"{key}={value!r} is not a choice of {key}: {options}")
+                own = ", or a scenario file of your own (env=PATH.yaml)" if key == "env" else ""
+                raise ValueError(f"{key}={value!r} is not a choice of {key}: {options}{own}")
 
 
 def _explain(config_name: str, args: list[str], err: Exception, algo_keys: Any = ()) -> str:

@@ -4,7 +4,9 @@ installed wheel has them too): listed with their purposes, loaded with their ``d
 
 A scenario file holds the ``env`` keys of MODEL.md, its purpose on its first line. It may start with
 ``defaults: [other]`` to take another scenario's values first and override some of them
-(``ref_impl.yaml`` does).
+(``ref_impl.yaml`` does). A file of the user's, anywhere, is a scenario too: ``env=PATH.yaml`` on
+the command line, ``irdrc.scenario(PATH.yaml)`` in Python (its ``defaults`` name scenarios of
+irdrc or files beside it; without them it starts from ``paper``).
 """
 
 from __future__ import annotations
@@ -20,6 +22,24 @@ if TYPE_CHECKING:
 
 ENVS_DIR = Path(__file__).resolve().parents[1] / "scenarios"
 """Where the named scenarios are."""
+
+FILE_SUFFIXES = (".yaml", ".yml")
+"""A scenario given by its file (``env=PATH.yaml``) rather than by name ends with one of these."""
+
+
+def scenario_file(value: str) -> Path | None:
+    """The scenario file ``value`` names (it ends with .yaml or .yml), as an absolute path; None for
+    a scenario's name.
+
+    Raises:
+        ValueError: no such file.
+    """
+    if not str(value).endswith(FILE_SUFFIXES):
+        return None
+    path = Path(value).expanduser().resolve()
+    if not path.is_file():
+        raise ValueError(f"env={value}: no such scenario file ({path})")
+    return path
 
 
 def list_scenarios(envs_dir: Path = ENVS_DIR) -> list[str]:
@@ -82,21 +102,32 @@ def load_scenario(name: str, envs_dir: Path = ENVS_DIR, _seen: tuple[str, ...] =
     """
     from omegaconf import DictConfig, OmegaConf
 
-    path = envs_dir / f"{name}.yaml"
+    file = scenario_file(name)
+    path = file or envs_dir / f"{name}.yaml"
     if not path.is_file():
         raise ValueError(
-            f"env={name!r} is not a scenario; available: {', '.join(list_scenarios(envs_dir))}"
+            f"env={name!r} is not a scenario; available: {', '.join(list_scenarios(envs_dir))}, "
+            "or a scenario file of your own (env=PATH.yaml)"
         )
+    if file is not None:
+        name = str(file)
     if name in _seen:
         raise ValueError(f"scenario defaults form a cycle: {' -> '.join((*_seen, name))}")
-    node = OmegaConf.load(path)
+    try:
+        node = OmegaConf.load(path)
+    except Exception as err:  # YAML's own error, one line
+        raise ValueError(f"{path}: not a YAML file ({str(err).splitlines()[0]})") from None
     if not isinstance(node, DictConfig):
         raise ValueError(f"{path}: a scenario file holds a mapping of env keys, not a list")
-    bases = node.pop("defaults", [])
+    # a file of the user's without defaults takes the paper's values first, as the command line does
+    bases = node.pop("defaults", ["paper"] if file is not None else [])
     merged: Any = OmegaConf.create()
     for base in bases:
         if base != "_self_":
-            merged = OmegaConf.merge(merged, load_scenario(str(base), envs_dir, (*_seen, name)))
+            base = str(base)
+            if file is not None and base.endswith(FILE_SUFFIXES):
+                base = str(file.parent / base)  # a file beside this one
+            merged = OmegaConf.merge(merged, load_scenario(base, envs_dir, (*_seen, name)))
     return cast(DictConfig, OmegaConf.merge(merged, node))
 
 
@@ -113,3 +144,31 @@ def register_scenarios(envs_dir: Path = ENVS_DIR) -> None:
     for name in list_scenarios(envs_dir):
         cs.store(group="env", name=name, node=load_scenario(name, envs_dir))
     _REGISTERED.add(str(envs_dir))
+
+
+def register_scenario_file(path: Path) -> str:
+    """Put the scenario file ``path`` into Hydra's ConfigStore (group ``env``) under a name of its
+    own, read now; returns that name."""
+    import hashlib
+
+    from hydra.core.config_store import ConfigStore
+
+    name = "file_" + hashlib.sha256(str(path).encode()).hexdigest()[:16]
+    ConfigStore.instance().store(group="env", name=name, node=load_scenario(str(path)))
+    return name
+
+
+def scenario_file_overrides(args: list[str]) -> tuple[list[str], dict[str, str]]:
+    """``args`` with each ``env=PATH.yaml`` (a scenario file of the user's) given as the name it
+    is registered under with Hydra, and each such name → the file's absolute path."""
+    out, files = [], {}
+    for o in args:
+        key = o.split("=", 1)[0].lstrip("+~")
+        path = scenario_file(o.split("=", 1)[1]) if key == "env" and "=" in o else None
+        if path is None:
+            out.append(o)
+            continue
+        name = register_scenario_file(path)
+        files[name] = str(path)
+        out.append(f"{o.split('=', 1)[0]}={name}")
+    return out, files

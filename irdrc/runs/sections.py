@@ -34,9 +34,10 @@ def one_vehicle(data: Any, prefix: str = "") -> Params:
     """The scenario of a recipe that takes one vehicle (a fleet refused, naming the fleet's
     recipes)."""
     if is_fleet(data):
+        n = (data.get("env") or {}).get("vehicles")
         raise ValueError(
-            f"env=fleet (env.vehicles=…) is a fleet of vehicles; this recipe takes one vehicle — "
-            f"run the fleet with {FLEET_RECIPES}"
+            f"the scenario is a fleet of {n} vehicles (env.vehicles={n}); this recipe takes one "
+            f"vehicle — run the fleet with {FLEET_RECIPES}"
         )
     params = Params.from_config({"env": data.get("env", {}), "reward": data.get("reward", {})})
     rw = params.reward

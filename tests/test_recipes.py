@@ -302,7 +302,8 @@ def test_cli_lists_every_scenario_with_its_purpose(capsys, tmp_path):
     assert main([]) == 0
     out = capsys.readouterr().out.split("scenarios (env=NAME):\n", 1)[1]
     assert "  multilevel       Speed low / medium / high and traffic density" in out
-    assert len(out.strip().splitlines()) == len(scenario_purposes()) >= 7
+    assert len(out.strip().splitlines()) == len(scenario_purposes()) + 1 >= 8
+    assert out.strip().splitlines()[-1].startswith("  PATH.yaml        A scenario of your own")
     (tmp_path / "mine.yaml").write_text("queue_capacity: 5\n")
     with pytest.raises(ValueError, match=r"mine\.yaml: its first line must say its purpose"):
         scenario_purposes(tmp_path)

@@ -139,6 +139,7 @@ def main(argv: list[str] | None = None) -> int:
         width = max(map(len, purposes))
         for name, purpose in purposes.items():
             print(f"  {name:<{width}}  {purpose}")
+        print(f"  {'PATH.yaml':<{width}}  A scenario of your own, in their form (docs/CONFIG.md).")
         return 0
     if args[0] in ("-V", "--version"):
         from importlib.metadata import PackageNotFoundError, version

@@ -23,7 +23,7 @@ from irdrc.core.exact import (
 torch.set_num_threads(1)
 
 TIERS = {
-    "not slow and not e2e": "the default suite (2–7 min on 2 cores)",
+    "not slow and not e2e": "the default suite (2–9 min on 2 cores)",
     "slow": "the learning tests (-m slow)",
     "e2e": "the end-to-end tier (-m e2e: whole recipes, sweeps, kills and resumes)",
 }

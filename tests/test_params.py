@@ -75,7 +75,7 @@ def test_a_scenario_file_of_the_users_is_a_scenario(tmp_path, monkeypatch):
         "# a city\np1: {object: 0.2, speed: 0.3}\narrival_rate: 1.5\n"
     )
     (tmp_path / "rush.yaml").write_text("# rush hour\ndefaults: [city.yaml]\np1: {speed: 0.9}\n")
-    (tmp_path / "town.yaml").write_text("# a town\ndefaults: [multilevel]\nqueue_capacity: 5\n")
+    (tmp_path / "town.yaml").write_text("# a town\ndefaults: multilevel\nqueue_capacity: 5\n")
     monkeypatch.chdir(tmp_path)
     keys = ["env.p1.object=0.2", "env.p1.speed=0.3", "env.arrival_rate=1.5"]
     assert load("solve", "env=city.yaml").model == load("solve", *keys).model

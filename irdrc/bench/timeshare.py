@@ -119,11 +119,11 @@ def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
         cfg.overrides,
         fixed=("optimum_gamma", "checkpoint.every_frames"),
     )
-    if not cfg.random:
-        composed.refuse_unread(("draws", "first_draw"), "the random draws need scenarios=random")
     if cfg.random:  # each draw a pure function of its index: a resumed run finds the same ones
         drawn = {f"draw {d.index}": command_line(d.overrides) for d in random_draws(cfg)}
         cfg = replace(cfg, drawn=drawn)
+    else:
+        composed.refuse_unread(("draws", "first_draw"), "the random draws need scenarios=random")
     base = [*cfg.overrides, f"optimum_gamma={cfg.optimum_gamma}", "checkpoint.every_frames=0"]
     planned, owner = [], {}
     for learner in cfg.learners:

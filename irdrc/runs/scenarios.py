@@ -121,6 +121,8 @@ def load_scenario(name: str, envs_dir: Path = ENVS_DIR, _seen: tuple[str, ...] =
         raise ValueError(f"{path}: a scenario file holds a mapping of env keys, not a list")
     # a file of the user's without defaults takes the paper's values first, as the command line does
     bases = node.pop("defaults", ["paper"] if file is not None else [])
+    if isinstance(bases, str):  # defaults: paper, one name without its list
+        bases = [bases]
     merged: Any = OmegaConf.create()
     for base in bases:
         if base != "_self_":

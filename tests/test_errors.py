@@ -577,7 +577,7 @@ def test_a_key_a_recipe_sets_per_run_is_not_taken_to_be_overwritten(recipe, over
                 "sweep.grid={env.p1.speed: [0.1,1.0]}",
                 "sweep.base=['env.p1.speed=0.5']",
             ],
-            "sweep.base's env.p1.speed=0.5 would be overwritten: sweep.grid sets env.p1.speed",
+            "env.p1.speed=0.5 would be overwritten: sweep sets env.p1.speed per run; sweep.grid",
         ),
         # an exact solve with no Monte-Carlo check
         ("solve", ["env.actions=continuous", "eval.mc_episodes=3"], "the optimum over ρ is"),

@@ -36,7 +36,7 @@ from irdrc.core.dynamics import (
     observation_high,
     step_shares,
 )
-from irdrc.core.overrides import dotted, full_key, refuse_share_keys
+from irdrc.core.overrides import full_key, refuse_share_overrides
 from irdrc.core.params import Params
 from irdrc.core.stream import ScalarStep
 
@@ -72,10 +72,7 @@ def _params(params: Params | None, overrides: dict[str, Any]) -> Params:
             f"key with its section ({fixes}), e.g. env={{'p1': {{'speed': 0.5}}}}, "
             "reward={'r4': 50} or **{'env.p1.speed': 0.5}"
         )
-    given = dict(dotted(overrides))
-    refuse_share_keys(
-        given.get("env.actions", "binary"), {k: f"{k}={v!r}" for k, v in given.items()}
-    )
+    refuse_share_overrides(overrides)
     return Params.from_overrides(overrides)
 
 

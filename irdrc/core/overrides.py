@@ -72,6 +72,14 @@ def refuse_share_keys(actions: str, given: Mapping[str, str]) -> None:
             )
 
 
+def refuse_share_overrides(overrides: Mapping[str, Any]) -> None:
+    """``refuse_share_keys`` for overrides as a constructor takes them (dotted or nested)."""
+    given = dict(dotted(overrides))
+    refuse_share_keys(
+        given.get("env.actions", "binary"), {k: f"{k}={v!r}" for k, v in given.items()}
+    )
+
+
 def dotted(overrides: Mapping[str, Any], prefix: str = "") -> Iterator[tuple[str, Any]]:
     """The overrides as (dotted key, value) pairs, nested mappings opened."""
     for key, value in overrides.items():

@@ -27,7 +27,7 @@ from pettingzoo import ParallelEnv
 
 from irdrc.core.checks import check_number
 from irdrc.core.dynamics import binary_actions, fresh_seed
-from irdrc.core.overrides import apply_overrides, dotted, refuse_share_keys
+from irdrc.core.overrides import apply_overrides, refuse_share_overrides
 from irdrc.core.params import Params
 from irdrc.fleet.config import fleet_from_config
 from irdrc.fleet.env import (
@@ -56,10 +56,7 @@ def fleet_spec(overrides: Mapping[str, Any]) -> tuple[FleetSpec, str]:
             "overrides on top of it (**{'env.vehicles': 4, 'env.share': 0.5}); a FleetSpec as spec= builds any "
             "other"
         )
-    given = dict(dotted(overrides))
-    refuse_share_keys(
-        given.get("env.actions", "binary"), {k: f"{k}={v!r}" for k, v in given.items()}
-    )
+    refuse_share_overrides(overrides)
     merged = Params().to_dict()
     merged["env"]["vehicles"] = 2
     apply_overrides(merged, overrides)

@@ -97,13 +97,13 @@ def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
             "hydra.run.dir=… (the one the sweep printed)"
         )
     points = parse_grid(cfg.sweep.grid)
-    varied = {override_key(k) for p in points for k in p}
-    for o in cfg.sweep.base:
-        if override_key(o) in varied:
-            raise ValueError(
-                f"sweep.base's {o} would be overwritten: sweep.grid sets {override_key(o)} in "
-                "every point; drop it from one of them"
-            )
+    composed.refuse_overwritten(
+        {
+            override_key(k): "sweep.grid gives its values; drop it from sweep.base"
+            for k in points[0]
+        },
+        cfg.sweep.base,
+    )
     module = METHODS[cfg.method]
     planned = plan(module, points, list(cfg.sweep.base), list(cfg.sweep.fail_on))
     return replace(cfg, planned=tuple(planned))

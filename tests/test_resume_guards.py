@@ -152,3 +152,14 @@ def test_a_run_directory_given_for_its_file_is_answered_with_the_files_path(tmp_
     with pytest.raises(ValueError, match=r"^policy=/dev/null is not a regular file$"):
         check_file("policy", Path("/dev/null"), "policy.csv")
     assert check_file("checkpoint", path, "checkpoint.pt") == path
+
+
+def test_a_resumed_run_may_choose_another_logger(tmp_path):
+    """The logger may differ on resume (``RESUME_MAY_DIFFER``), whether set key by key or as the
+    group: ``logger=none`` on a run that logged to csv goes on, logging nowhere."""
+    path = write_checkpoint(tmp_path / "run")
+    for choice, backend in (("logger=none", "none"), ("logger=tensorboard", "tensorboard")):
+        resumed = prepare(dqn, [f"resume={path}", choice])
+        assert resumed.composed.cfg["logger"]["backend"] == backend
+    with pytest.raises(ValueError, match=r"algo\.lr: 0\.006 → 0\.1"):  # what it learns may not
+        prepare(dqn, [f"resume={path}", "logger=none", "algo.lr=0.1"])

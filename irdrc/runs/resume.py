@@ -89,7 +89,7 @@ def resumed_config(
     old, new = _flatten(saved), _flatten(current)
     clash = []
     for key in sorted(explicit):
-        if key.startswith(RESUME_MAY_DIFFER):
+        if f"{key}.".startswith(RESUME_MAY_DIFFER):  # logger=none: a group of keys that may differ
             continue
         differ = [
             f"{k}: {old.get(k, '<absent>')} → {new.get(k, '<absent>')}"

@@ -64,6 +64,34 @@ def test_the_recipe_writes_the_ledger_everywhere(tmp_path, capsys):
     assert [int(r["episodes"]) for r in rows] == [0, 1, 2, 3, 4, 5]
 
 
+def test_a_run_records_its_learners_whole_profile_and_resumes_with_it(tmp_path, monkeypatch):
+    """``config.yaml`` and the checkpoint hold every key of the learner's profile, the command
+    line's over it (they held only the command line's): a resumed run, a checkpoint's evaluation
+    and a sweep's point read the profile the run learned with, whatever this version's is."""
+    from omegaconf import OmegaConf
+
+    from irdrc.online import recipe
+    from irdrc.recipes import evaluate
+    from irdrc.runs import app
+    from irdrc.sweeps.trials import plan
+
+    args = ["learner=dqn", "algo.episodes=1", "algo.lr=0.002", "logger=none", "progress=false"]
+    assert app.execute(recipe, [*args, f"hydra.run.dir={tmp_path}"]) == 0
+    algo = OmegaConf.to_container(OmegaConf.load(tmp_path / "config.yaml"))["algo"]
+    assert algo == {**configs.recorded_algo(configs.DQN), "episodes": 1, "lr": 0.002}
+    assert algo["hidden"] == [32, 32] and algo["eps_decay_episodes"] == 10
+    # another version's profile: the run's own is read back
+    other = dataclasses.replace(configs.DQN, hidden=(64, 64), eps_decay_episodes=3)
+    monkeypatch.setitem(configs.PROFILES, "dqn", other)
+    checkpoint = f"resume={tmp_path / 'checkpoint.pt'}"
+    resumed = app.prepare(recipe, [checkpoint, "algo.episodes=2"])
+    assert resumed.config.algo == dataclasses.replace(configs.DQN, episodes=2, lr=0.002)
+    score = [f"checkpoint={tmp_path / 'checkpoint.pt'}", f"hydra.run.dir={tmp_path / 'e'}"]
+    assert app.execute(evaluate, [*score, "eval.mc_episodes=0"]) == 0
+    (point,) = plan(recipe, [{"learner": "dqn"}], ["algo.episodes=1"])
+    assert point["composed"].cfg["algo"] == {**configs.recorded_algo(other), "episodes": 1}
+
+
 def test_a_learner_planning_beside_its_acting_says_how_late_its_plans_came(tmp_path, capsys):
     """``learner=posterior_anytime`` and ``learner=safe_anytime``: summary.json's ``planning`` and
     the printout's line give the plans made beside the acting and the steps each took to come into

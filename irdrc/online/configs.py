@@ -309,6 +309,17 @@ def learner_config(learner: str, algo: Any) -> Any:
     return dataclasses.replace(base, **data)
 
 
+def recorded_algo(algo: Any) -> dict[str, Any]:
+    """A learner's config (``learner_config``'s) as a run records it under ``algo`` in
+    ``config.yaml`` and its checkpoint: every key, plain containers. A resumed run and a
+    checkpoint's evaluation then read the profile the run learned with, not this version's."""
+    return {
+        f.name: list(value) if isinstance(value := getattr(algo, f.name), tuple) else value
+        for f in dataclasses.fields(algo)
+        if f.name != "name"
+    }
+
+
 def _keys(learner: str) -> set[str]:
     """The ``algo.*`` keys of ``learner``'s profile."""
     return {f.name for f in dataclasses.fields(PROFILES[learner]) if f.name != "name"}

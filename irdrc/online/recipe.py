@@ -18,7 +18,13 @@ from typing import TYPE_CHECKING, Any
 
 from irdrc.core.checks import build
 from irdrc.core.params import Params
-from irdrc.online.configs import LEARNERS, PROFILES, SAFE_LEARNERS, learner_config
+from irdrc.online.configs import (
+    LEARNERS,
+    PROFILES,
+    SAFE_LEARNERS,
+    learner_config,
+    recorded_algo,
+)
 from irdrc.runs.compose import Composed
 from irdrc.runs.grid import override_key
 from irdrc.runs.limits import check_exact
@@ -114,6 +120,12 @@ def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
         done = int(resume.get("episode", 0))
         refuse_finished(cfg.resume, done, episodes, "algo.episodes", episodes, unit="episodes")
     return cfg
+
+
+def recorded(config: Config, cfg: dict[str, Any]) -> dict[str, Any]:
+    """The composed config ``cfg`` as the run records it: ``algo`` holds the learner's whole
+    profile, the command line's keys over it (``config.algo``)."""
+    return {**cfg, "algo": recorded_algo(config.algo)}
 
 
 def convergence(history: list[dict[str, Any]]) -> dict[str, Any]:

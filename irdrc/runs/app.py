@@ -5,9 +5,10 @@ every error reported in one line.
 A recipe module (``irdrc.recipes.dqn`` …) provides ``NAME`` (its config file), ``load(composed,
 resume) -> Config`` (its typed config, checked), ``run(config, run)`` and, for training recipes,
 ``RESUMABLE = True`` (``resume=PATH`` goes on from a checkpoint); optionally ``ELSEWHERE`` (group
-choices that belong to another recipe, and the command to use instead) and
+choices that belong to another recipe, and the command to use instead),
 ``misplaced_override(args)`` (where an override the recipe refused goes instead: the sweep's
-method's keys). ``recipes/<name>.py`` is
+method's keys) and ``recorded(config, cfg)`` (the composed config as its run records it, with what
+the recipe resolves in Python written in: ``compose.recorded``). ``recipes/<name>.py`` is
 ``app.main(module)``. Set ``IRDRC_TRACEBACK=1`` to see the traceback of an error instead of its
 one line.
 """
@@ -27,6 +28,7 @@ from irdrc.runs.compose import (
     _flat_keys,
     compose_recipe,
     recipe_call,
+    recorded,
     stored_overrides,
     unknown_key,
 )
@@ -104,6 +106,7 @@ def prepare(module: ModuleType, args: list[str]) -> Prepared:
         config = module.load(composed, resume)
     except ValueError as err:
         raise ValueError(_added_key(module.NAME, composed, args, err)) from None
+    composed = recorded(module, config, composed)
     run_dir = Path(composed.run_dir)
     if resume is not None and not any(a.startswith("hydra.run.dir=") for a in args):
         run_dir = Path(composed.cfg["resume"]).expanduser().resolve().parent  # one run, one dir

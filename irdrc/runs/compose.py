@@ -405,6 +405,16 @@ def compose_recipe(module: Any, args: list[str]) -> Composed:
     return compose(module.NAME, with_profile_keys(args, keys), keys)
 
 
+def recorded(module: Any, config: Any, composed: Composed) -> Composed:
+    """``composed`` as the run of ``module``'s typed ``config`` records it (``config.yaml``, the
+    checkpoint): with what the recipe resolves in Python written in, where the module has
+    ``recorded(config, cfg)`` (a learner's whole profile)."""
+    record = getattr(module, "recorded", None)
+    if record is None:
+        return composed
+    return dataclasses.replace(composed, cfg=record(config, composed.cfg))
+
+
 class SeededCompose:
     """``compose_recipe`` for many runs of one recipe (a sweep's points): runs whose overrides differ
     only in an integer ``seed=`` share one Hydra composition, and each gets a copy with its own

@@ -24,7 +24,7 @@ from pathlib import Path
 from types import ModuleType
 from typing import Any
 
-from irdrc.runs.compose import SeededCompose, recipe_call
+from irdrc.runs.compose import SeededCompose, recipe_call, recorded
 from irdrc.runs.grid import (
     format_value,
     point_id,
@@ -74,6 +74,7 @@ def plan(
         try:
             composed = compose([*defaults, *base, *ov])
             config = module.load(composed)
+            composed = recorded(module, config, composed)
         except Exception as err:
             where = " ".join([*base, *ov]) or "(no overrides)"
             raise ValueError(f"grid point {where}: {str(err).strip().splitlines()[0]}") from err

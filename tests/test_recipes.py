@@ -309,6 +309,25 @@ def test_cli_lists_every_scenario_with_its_purpose(capsys, tmp_path):
         scenario_purposes(tmp_path)
 
 
+def test_cfg_prints_the_runs_config_checked_and_runs_nothing(tmp_path, monkeypatch, capsys):
+    """``--cfg`` (Hydra's flag, ``--cfg job`` too) prints the config.yaml the run would write, the
+    learner's profile in it, after the same checks; nothing runs and nothing is written."""
+    import yaml
+
+    from irdrc.online import configs, recipe
+    from irdrc.runs import app
+
+    monkeypatch.chdir(tmp_path)
+    for flag in (["--cfg"], ["--cfg", "job"]):
+        assert app.execute(recipe, ["learner=safe", *flag, "algo.target_miss=0.1"]) == 0
+        cfg = yaml.safe_load(capsys.readouterr().out)
+        assert cfg["algo"] == {**configs.recorded_algo(configs.SAFE), "target_miss": 0.1}
+        assert cfg["learner"] == "safe" and cfg["env"]["queue_capacity"] == 10
+    assert app.execute(recipe, ["--cfg", "algo.target_miss=2"]) == 2
+    assert "algo.target_miss" in capsys.readouterr().err
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_a_recipe_is_named_as_the_user_can_run_it(tmp_path, monkeypatch):
     """Resume hints name ``recipes/NAME.py`` where the working directory is a checkout, and
     ``-m irdrc NAME`` elsewhere (an installed package, or another directory)."""

@@ -126,11 +126,28 @@ def _added_key(name: str, composed: Composed, args: list[str], err: ValueError) 
     return str(err)
 
 
+CONFIG_FLAG = "--cfg"
+"""Print the run's configuration, checked, and run nothing (Hydra's flag; ``--cfg job`` too)."""
+
+
+def _config_flag(args: list[str]) -> tuple[list[str], bool]:
+    """``args`` without ``--cfg`` (and a ``job`` after it, as Hydra writes it), and whether it
+    was there."""
+    if CONFIG_FLAG not in args:
+        return args, False
+    i = args.index(CONFIG_FLAG)
+    rest = args[i + 1 :]
+    if rest[:1] == ["job"]:
+        rest = rest[1:]
+    return [*args[:i], *rest], True
+
+
 def _help(module: ModuleType) -> None:
     print((module.__doc__ or module.NAME).strip())
     print(
         f"\nkeys and their defaults: {CONF_DIR / module.NAME}.yaml (every key: docs/CONFIG.md); "
-        "override any as key=value, the run directory as hydra.run.dir=DIR"
+        "override any as key=value, the run directory as hydra.run.dir=DIR; "
+        f"{CONFIG_FLAG} prints the run's config.yaml, checked, and runs nothing"
     )
 
 
@@ -142,6 +159,7 @@ def execute(module: ModuleType, args: list[str]) -> int:
     if args and args[0] in ("-h", "--help"):
         _help(module)
         return 0
+    args, show = _config_flag(args)
     full = bool(os.environ.get("IRDRC_TRACEBACK"))
     try:
         prepared = prepare(module, args)
@@ -151,6 +169,11 @@ def execute(module: ModuleType, args: list[str]) -> int:
         return fail(str(err))
     except KeyboardInterrupt:
         return fail("interrupted (Ctrl-C) before the run started; nothing was written", 130)
+    if show:
+        from omegaconf import OmegaConf
+
+        print(OmegaConf.to_yaml(prepared.composed.cfg), end="")
+        return 0
     for note in prepared.notes:
         print(note, file=sys.stderr)
     run = Run(module.NAME, prepared.composed, prepared.run_dir, prepared.resume)

@@ -128,8 +128,9 @@ def main(argv: list[str] | None = None) -> int:
     args = sys.argv[1:] if argv is None else argv
     known = recipes()
     if not args or args[0] in ("-h", "--help", "list"):
-        print("usage: irdrc RECIPE [overrides ...]   e.g. irdrc solve env.p1.speed=1.0")
-        print("       irdrc RECIPE --help            what it does, with examples")
+        print("usage: irdrc RECIPE [overrides ...]        e.g. irdrc solve env.p1.speed=1.0")
+        print("       irdrc RECIPE --help                 what it does, with examples")
+        print("       irdrc RECIPE [overrides ...] --cfg  its config.yaml, checked; runs nothing")
         print("       irdrc --version\n")
         width = max(map(len, known))
         for name, what in known.items():

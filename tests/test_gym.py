@@ -231,3 +231,24 @@ def test_gym_env_step_before_reset_is_refused():
         DFRCGymEnv().step(0)
     with pytest.raises(gymnasium.error.ResetNeeded):
         gymnasium.make_vec("irdrc/DFRC-v0", num_envs=2).step(np.array([0, 1]))
+
+
+def test_reset_options_are_read_or_refused_never_ignored():
+    """``reset(options=…)``: the single env and the vector env start from ``options["state"]``
+    (the vector env from one index for all or one per env); a misspelt or unknown option is
+    refused naming the closest (it was ignored, and the episode started from a random state)."""
+    env = DFRCGymEnv()
+    assert env.reset(options={"state": 5})[1]["state"] == 5
+    vec = gymnasium.make_vec("irdrc/DFRC-v0", num_envs=3)
+    assert vec.reset(options={"state": 7})[1]["state"].tolist() == [7, 7, 7]
+    obs, info = vec.reset(options={"state": [1, 2, 3]})
+    assert info["state"].tolist() == [1, 2, 3]
+    assert (obs == vec.unwrapped.dynamics.obs[[1, 2, 3]].numpy()).all()
+    for target in (env, vec):
+        with pytest.raises(ValueError, match=r"options\.stat \(did you mean options\.state\?\)"):
+            target.reset(options={"stat": 5})
+        with pytest.raises(ValueError, match="must be a dict"):
+            target.reset(options=5)
+    for bad in ([1, 2], 1.5, [0, 1, 352]):
+        with pytest.raises(ValueError, match=r"one per env"):
+            vec.reset(options={"state": bad})

@@ -169,6 +169,17 @@ def reject_unknown_keys(prefix: str, keys: Iterable[Any], allowed: Iterable[str]
     )
 
 
+def reset_option(options: Any, name: str = "state") -> Any:
+    """``options[name]`` of a gymnasium or PettingZoo ``reset(options=…)`` (None without it); any
+    other key is refused naming the closest, as a misspelt option would otherwise be ignored."""
+    if options is None:
+        return None
+    if not isinstance(options, Mapping):
+        raise ValueError(f"options={options!r} must be a dict, e.g. {{{name!r}: 5}}")
+    reject_unknown_keys("options.", options, (name,))
+    return options.get(name)
+
+
 def build(cls: type, data: Any, prefix: str = "") -> Any:
     """A frozen config dataclass ``cls`` from a plain mapping: unknown keys refused (naming the
     closest), each field from its key — a field whose type is a config dataclass from the nested

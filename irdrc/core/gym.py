@@ -12,6 +12,9 @@ The action space follows ``env.actions`` (MODEL.md § D): ``Discrete(2)`` (binar
 the radar share ρ). Time-sharing steps go through ``irdrc.core.dynamics.step_shares`` (torch, one
 env at a time in ``DFRCGymEnv``); an action out of range is an error, never clipped.
 
+``reset(options={"state": s})`` starts from a state index (the vector env: one for every env, or
+one per env); another option is refused by name.
+
 The scenario is ``params=Params(...)``, or overrides named as everywhere else (each key with its
 section, as on the command line): ``env={"p1": {"speed": 0.5}}, reward={"r4": 50}`` (nested), or
 ``**{"env.p1.speed": 0.5, "reward.r4": 50}`` (dotted).
@@ -29,6 +32,7 @@ import torch
 from gymnasium import spaces
 from gymnasium.vector import AutoresetMode, VectorEnv
 
+from irdrc.core.checks import reset_option
 from irdrc.core.dynamics import (
     Dynamics,
     binary_actions,
@@ -152,7 +156,7 @@ class DFRCGymEnv(gymnasium.Env):
         if seed is not None:
             self._rng.seed(int(seed))
             self._torch_rng.manual_seed(self._rng.getrandbits(63))
-        start = (options or {}).get("state")
+        start = reset_option(options)
         if start is None:
             self._state = int(self._rng.random() * self._S)
         elif isinstance(start, int | np.integer) and 0 <= int(start) < self._S:
@@ -284,13 +288,32 @@ class DFRCVectorEnv(VectorEnv):
     def reset(
         self, *, seed: int | None = None, options: dict[str, Any] | None = None
     ) -> tuple[np.ndarray, dict[str, Any]]:
-        """Reset every env (``seed`` reseeds the shared generator)."""
+        """Reset every env from a uniformly drawn state, or from ``options={"state": s}`` (one
+        state index for every env, or one per env); ``seed`` reseeds the shared generator."""
+        start = reset_option(options)
         if seed is not None:
             self._rng.manual_seed(int(seed))
         self._state = self.dynamics.reset_states(self.num_envs, self._rng)
+        if start is not None:
+            self._state = self._start_states(start)
         self._steps.zero_()
         self._autoreset.zero_()
         return self.dynamics.obs[self._state].numpy(), {"state": self._state.numpy().copy()}
+
+    def _start_states(self, start: Any) -> torch.Tensor:
+        """[num_envs] the states ``options["state"]`` gives: one index for all, or one per env."""
+        given = np.asarray(start)
+        S = self.dynamics.num_states
+        if (
+            given.dtype.kind not in "iu"
+            or given.shape not in ((), (self.num_envs,))
+            or bool(((given < 0) | (given >= S)).any())
+        ):
+            raise ValueError(
+                f"options['state']={start!r} must be a state index in [0, {S}), or "
+                f"{self.num_envs} of them (one per env)"
+            )
+        return torch.from_numpy(np.broadcast_to(given, (self.num_envs,)).astype(np.int64))
 
     def step(self, actions: Any) -> tuple[Any, Any, Any, Any, dict[str, Any]]:
         """Step every env with ``actions`` (0 or 1 each, or radar shares: ``env.actions``)."""

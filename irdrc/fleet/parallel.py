@@ -124,7 +124,8 @@ class FleetParallelEnv(ParallelEnv):
         self, seed: int | None = None, options: dict[str, Any] | None = None
     ) -> tuple[dict[str, np.ndarray], dict[str, dict[str, Any]]]:
         """Start an episode from a joint state drawn uniformly (as ``FleetEnv``), or from
-        ``options={"state": s}`` (the exact model's joint index); ``seed`` reseeds."""
+        ``options={"state": s}`` (the exact model's joint index; other keys are ignored, as
+        PettingZoo's ``parallel_api_test`` requires); ``seed`` reseeds."""
         if seed is not None:
             seed = _checked_seed(seed)
             self.rng.manual_seed(seed)

@@ -22,6 +22,20 @@ from irdrc.online.safe import ConstrainedScorer
 PAPER = Params()
 
 
+def test_a_learner_is_made_from_its_profile_a_mapping_or_refused_by_name():
+    """``make_learner`` takes the learner's profile type, keys over its profile, or None; an
+    unknown name lists the learners, and another learner's config is named (it failed deep in the
+    learner with an AttributeError)."""
+    assert make_learner("qlearning", None, PAPER).cfg == configs.QLEARNING
+    assert make_learner("qlearning", {"episodes": 7}, PAPER).cfg.episodes == 7
+    with pytest.raises(ValueError, match=r"learner='posteror' must be one of dqn, dqn_paper"):
+        make_learner("posteror", configs.POSTERIOR, PAPER)
+    with pytest.raises(ValueError, match=r"learner=dqn takes a StreamDQNConfig .* not a Posterior"):
+        make_learner("dqn", configs.POSTERIOR, PAPER)
+    with pytest.raises(ValueError, match=r"algo\.lrr \(did you mean algo\.lr\?\)"):
+        make_learner("dqn", {"lrr": 1e-3}, PAPER)
+
+
 def test_posterior_sampling_draws_again_whenever_its_data_doubles():
     """Within the first episode after 1, 2, 4, …, 256 steps; afterwards at the doublings that fall
     inside an episode (512 = 400 + 112, 1024 = 800 + 224, 2048 = 2000 + 48)."""

@@ -2,14 +2,32 @@
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from typing import Any
 
+from irdrc.core.checks import check_choice
 from irdrc.core.params import Params
+from irdrc.online.configs import LEARNERS, PROFILES, learner_config
 from irdrc.online.loop import StreamLearner
 
 
 def make_learner(name: str, cfg: Any, params: Params, seed: int = 0) -> StreamLearner:
-    """The learner ``name`` (``irdrc.online.configs.LEARNERS``) with hyperparameters ``cfg``."""
+    """The learner ``name`` (``irdrc.online.configs.LEARNERS``) with hyperparameters ``cfg``: its
+    profile's type (``learner_config(name, {…})``), a mapping of keys over its profile, or None
+    (the profile as it is).
+
+    Raises:
+        ValueError: an unknown learner, a key its profile does not have, or a config of another
+            learner's type.
+    """
+    check_choice("learner", name, LEARNERS)
+    if cfg is None or isinstance(cfg, Mapping):
+        cfg = learner_config(name, cfg)
+    elif type(cfg) is not type(PROFILES[name]):
+        raise ValueError(
+            f"learner={name} takes a {type(PROFILES[name]).__name__} "
+            f"(irdrc.online.configs.learner_config({name!r}, {{…}})), not a {type(cfg).__name__}"
+        )
     if name in ("dqn", "dqn_paper"):
         from irdrc.online.dqn import StreamDQN
 
@@ -22,8 +40,6 @@ def make_learner(name: str, cfg: Any, params: Params, seed: int = 0) -> StreamLe
         from irdrc.online.posterior import PosteriorSampling
 
         return PosteriorSampling(cfg, params, seed)
-    if name in ("safe", "safe_anytime"):
-        from irdrc.online.safe import SafeLearner
+    from irdrc.online.safe import SafeLearner
 
-        return SafeLearner(cfg, params, seed)
-    raise ValueError(f"learner={name!r} is not a learner on one stream")
+    return SafeLearner(cfg, params, seed)

@@ -47,7 +47,13 @@ def _names(key: str, value: Any, allowed: list[str], empty: bool = False) -> tup
     out = check_list(key, value, empty=empty, distinct=True)
     for name in out:
         if name not in allowed:
-            raise ValueError(f"{key}: {name!r} must be one of {', '.join(allowed)}")
+            own = (
+                "; a learner of your own runs beside them in a sweep: recipes/sweep.py "
+                "method=online 'sweep.grid={learner: [posterior, PATH.py:Class], seed: [0,1,2]}'"
+                if ":" in str(name)
+                else ""
+            )
+            raise ValueError(f"{key}: {name!r} must be one of {', '.join(allowed)}{own}")
     return out
 
 

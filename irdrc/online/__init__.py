@@ -9,7 +9,8 @@ real time, and the exact price of their learning.
 - the learners: ``posterior`` (posterior sampling on the form, planned on the exact core between
   steps, or beside the acting: ``posterior_anytime``),
   ``dqn`` (DQN from TorchRL parts), ``qlearning`` (tabular), ``safe`` (misses kept under a target
-  while it learns); ``learners`` builds one by name, ``configs`` holds their profiles;
+  while it learns); ``learners`` builds one by name, ``configs`` holds their profiles, ``own``
+  loads a learner of one's own (``learner=PATH.py:Class``);
 - ``recipe``: ``recipes/online.py``; ``figures``: its curves against episodes (its benchmark is
   ``irdrc.bench.online``).
 

@@ -287,12 +287,16 @@ ELSEWHERE = {
 def learner_config(learner: str, algo: Any) -> Any:
     """The profile of ``learner`` with the ``algo`` mapping's keys over it; unknown keys are
     refused, naming the closest of that learner's keys (a learner of another recipe, that
-    recipe)."""
+    recipe). A learner of one's own (``PATH.py:Class``) is ``irdrc.online.own``'s."""
     if learner in ELSEWHERE:
         raise ValueError(
             f"learner={learner} is not a learner on one vehicle's stream: use {ELSEWHERE[learner]}"
         )
-    checks.check_choice("learner", learner, LEARNERS)
+    if learner not in LEARNERS:
+        raise ValueError(
+            f"learner={learner!r} must be one of {', '.join(LEARNERS)}, or one of your own: "
+            "learner=PATH.py:Class"
+        )
     base = PROFILES[learner]
     data = dict(algo or {})
     names = _keys(learner)

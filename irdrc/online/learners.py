@@ -9,17 +9,21 @@ from irdrc.core.checks import check_choice
 from irdrc.core.params import Params
 from irdrc.online.configs import LEARNERS, PROFILES, learner_config
 from irdrc.online.loop import StreamLearner
+from irdrc.online.own import is_own, make_own_learner, own_learner_config
 
 
 def make_learner(name: str, cfg: Any, params: Params, seed: int = 0) -> StreamLearner:
-    """The learner ``name`` (``irdrc.online.configs.LEARNERS``) with hyperparameters ``cfg``: its
-    profile's type (``learner_config(name, {…})``), a mapping of keys over its profile, or None
-    (the profile as it is).
+    """The learner ``name`` (``irdrc.online.configs.LEARNERS``, or one's own: ``PATH.py:Class``,
+    ``irdrc.online.own``) with hyperparameters ``cfg``: its profile's type (``learner_config(name,
+    {…})``), a mapping of keys over its profile, or None (the profile as it is).
 
     Raises:
         ValueError: an unknown learner, a key its profile does not have, or a config of another
             learner's type.
     """
+    if is_own(name):
+        own = own_learner_config(name, cfg) if cfg is None or isinstance(cfg, Mapping) else cfg
+        return make_own_learner(own, params, seed)
     check_choice("learner", name, LEARNERS)
     if cfg is None or isinstance(cfg, Mapping):
         cfg = learner_config(name, cfg)

@@ -7,6 +7,7 @@ regret and the missed events of the policy it behaved by) every episode.
     python recipes/online.py learner=posterior_anytime       # it plans beside its acting
     python recipes/online.py learner=safe algo.target_miss=0.1
     python recipes/online.py learner=qlearning_paper algo.episodes=600
+    python recipes/online.py learner=watchful.py:Watchful   # your own (docs/ONLINE.md)
 """
 
 from __future__ import annotations
@@ -19,12 +20,12 @@ from typing import TYPE_CHECKING, Any
 from irdrc.core.checks import build
 from irdrc.core.params import Params
 from irdrc.online.configs import (
-    LEARNERS,
     PROFILES,
     SAFE_LEARNERS,
     learner_config,
     recorded_algo,
 )
+from irdrc.online.own import DOC, is_own, own_learner_config, recorded_keys, resumable
 from irdrc.runs.compose import Composed
 from irdrc.runs.grid import override_key
 from irdrc.runs.limits import check_exact
@@ -62,6 +63,16 @@ DEFAULT_LEARNER = "posterior"
 """``learner=`` when none is given (``irdrc/conf/online.yaml`` says the same)."""
 
 
+def algo_keys(args: list[str]) -> frozenset[str]:
+    """The ``algo.*`` keys of the command line ``args`` beyond ``ALGO_KEYS``, with a learner of
+    one's own (``learner=PATH.py:Class``): its constructor's keywords, checked against it when the
+    config is built."""
+    learners = [a.split("=", 1)[1] for a in args if override_key(a) == "learner" and "=" in a]
+    if not learners or not is_own(learners[-1]):
+        return frozenset()
+    return frozenset(override_key(a)[5:] for a in args if override_key(a).startswith("algo."))
+
+
 def misplaced_override(args: list[str]) -> str | None:
     """What to say of ``device=…``, which online refused: one vehicle's stream runs on the CPU."""
     for arg in args:
@@ -75,7 +86,10 @@ def misplaced_override(args: list[str]) -> str | None:
 
 
 def _algo(data: Any, prefix: str) -> Any:
-    return learner_config(data.get("learner", DEFAULT_LEARNER), data.get("algo") or {})
+    learner = data.get("learner", DEFAULT_LEARNER)
+    if is_own(learner):
+        return own_learner_config(learner, data.get("algo"))
+    return learner_config(learner, data.get("algo") or {})
 
 
 @dataclass(frozen=True)
@@ -89,10 +103,10 @@ class Config(Learning):
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        if self.learner not in LEARNERS:
-            raise ValueError(f"learner={self.learner!r} must be one of {', '.join(LEARNERS)}")
-        if self.algo is None:
-            object.__setattr__(self, "algo", learner_config(self.learner, {}))
+        if self.algo is None:  # the learner's profile (an unknown learner refused there)
+            object.__setattr__(self, "algo", _algo({"learner": self.learner}, "algo."))
+        if is_own(self.learner):  # its spec as the run records it (a file's path absolute)
+            object.__setattr__(self, "learner", self.algo.learner)
 
     @property
     def total_frames(self) -> int:
@@ -115,6 +129,12 @@ def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
         cfg = replace(cfg, eval=replace(cfg.eval, every_frames=cfg.params.env.horizon))
     explicit = "eval.every_frames" in composed.explicit
     check_eval_period(cfg.eval.every_frames, cfg.total_frames, explicit)
+    if resume is not None and is_own(cfg.learner) and not resumable(cfg.algo):
+        raise ValueError(
+            f"resume={cfg.resume}: learner={cfg.learner} defines no state_dict(), so a resumed "
+            "run could not go on from where it stopped; give it state_dict() and "
+            f"load_state_dict() ({DOC})"
+        )
     if resume is not None:
         episodes = cfg.algo.episodes
         done = int(resume.get("episode", 0))
@@ -124,8 +144,11 @@ def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
 
 def recorded(config: Config, cfg: dict[str, Any]) -> dict[str, Any]:
     """The composed config ``cfg`` as the run records it: ``algo`` holds the learner's whole
-    profile, the command line's keys over it (``config.algo``)."""
-    return {**cfg, "algo": recorded_algo(config.algo)}
+    profile, the command line's keys over it (``config.algo``), and a learner of one's own is
+    named with its file's absolute path."""
+    own = is_own(config.learner)
+    algo = recorded_keys(config.algo) if own else recorded_algo(config.algo)
+    return {**cfg, "learner": config.learner, "algo": algo}
 
 
 def convergence(history: list[dict[str, Any]]) -> dict[str, Any]:
@@ -180,7 +203,7 @@ def run(cfg: Config, run: Run) -> dict[str, Any]:
             cfg,
             record,
             scorer,
-            advice=ADVICE[cfg.learner],
+            advice=ADVICE.get(cfg.learner, "algo.episodes=600"),
             plot=(
                 partial(
                     plot_run,

@@ -399,9 +399,12 @@ def with_profile_keys(args: list[str], keys: Any) -> list[str]:
 
 
 def compose_recipe(module: Any, args: list[str]) -> Composed:
-    """``module``'s config (a recipe module: its ``NAME`` and ``ALGO_KEYS``) composed with ``args``,
-    a profile's omitted keys taking the command line's values (``with_profile_keys``)."""
-    keys = getattr(module, "ALGO_KEYS", ())
+    """``module``'s config (a recipe module: its ``NAME``, ``ALGO_KEYS`` and, where the command line
+    decides more, ``algo_keys(args)``) composed with ``args``, a profile's omitted keys taking the
+    command line's values (``with_profile_keys``)."""
+    keys = {*getattr(module, "ALGO_KEYS", ())}
+    if (more := getattr(module, "algo_keys", None)) is not None:
+        keys |= more(args)
     return compose(module.NAME, with_profile_keys(args, keys), keys)
 
 

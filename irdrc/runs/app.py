@@ -7,10 +7,10 @@ resume) -> Config`` (its typed config, checked), ``run(config, run)`` and, for t
 ``RESUMABLE = True`` (``resume=PATH`` goes on from a checkpoint); optionally ``ELSEWHERE`` (group
 choices that belong to another recipe, and the command to use instead),
 ``misplaced_override(args)`` (where an override the recipe refused goes instead: the sweep's
-method's keys) and ``recorded(config, cfg)`` (the composed config as its run records it, with what
-the recipe resolves in Python written in: ``compose.recorded``), ``ALGO_KEYS`` and
-``algo_keys(args)`` (the ``algo.*`` keys its learners read: ``compose_recipe``). ``recipes/<name>.py`` is
-``app.main(module)``. Set ``IRDRC_TRACEBACK=1`` to see the traceback of an error instead of its
+method's keys), ``recorded(config, cfg)`` (the composed config as its run records it, with what
+the recipe resolves in Python written in: ``compose.recorded``), and ``ALGO_KEYS`` with
+``algo_keys(args)`` (the ``algo.*`` keys its learners read: ``compose_recipe``).
+``recipes/<name>.py`` is ``app.main(module)``. Set ``IRDRC_TRACEBACK=1`` to see the traceback of an error instead of its
 one line.
 """
 

@@ -133,6 +133,16 @@ def test_a_module_learner_a_sweeps_points_and_make_learner(tmp_path, monkeypatch
     monkeypatch.syspath_prepend(str(tmp_path))
     monkeypatch.chdir(tmp_path)
     assert app.prepare(recipe, ["learner=watchful:Watchful"]).config.algo.name == "watchful"
+    # a file imports its neighbours, as under python PATH.py
+    elsewhere = tmp_path / "lab"
+    elsewhere.mkdir()
+    (elsewhere / "rules.py").write_text("EPS = 0.25\n")
+    (elsewhere / "mine.py").write_text(
+        "from rules import EPS\nfrom watchful import Watchful\n\n\n"
+        "class Mine(Watchful):\n    def __init__(self, params, seed=0):\n"
+        "        super().__init__(params, EPS, seed)\n"
+    )
+    assert make_learner(f"{elsewhere / 'mine.py'}:Mine", None, Params()).eps == 0.25
     (point,) = plan(recipe, [{"learner": "watchful.py:Watchful"}], ["algo.eps=0.2"])
     assert point["config"].learner == f"{tmp_path / 'watchful.py'}:Watchful"
     assert point["composed"].cfg["algo"] == {"episodes": 300, "eps": 0.2}

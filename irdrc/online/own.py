@@ -98,7 +98,7 @@ def load_class(spec: str) -> tuple[type[StreamLearner], str]:
 def _file_module(spec: str, path: Path) -> Any:
     """The module of the file ``path``, imported once per process and content under a name of its
     own (its ``if __name__ == "__main__":`` part does not run; a file edited since is imported
-    again)."""
+    again), its directory on the import path while it is imported."""
     digest = hashlib.sha256(str(path).encode() + b"\0" + path.read_bytes())
     name = "irdrc_own_" + digest.hexdigest()[:16]
     if name in sys.modules:
@@ -108,6 +108,7 @@ def _file_module(spec: str, path: Path) -> Any:
         raise ValueError(f"learner={spec}: {path} is not a Python module")
     module = importlib.util.module_from_spec(found)
     sys.modules[name] = module
+    sys.path.insert(0, str(path.parent))  # its neighbours import, as under python PATH.py
     try:
         found.loader.exec_module(module)
     except Exception as err:
@@ -115,6 +116,8 @@ def _file_module(spec: str, path: Path) -> Any:
         raise ValueError(
             f"learner={spec}: importing {path.name} failed: {type(err).__name__}: {err}"
         ) from None
+    finally:
+        sys.path.remove(str(path.parent))
     return module
 
 

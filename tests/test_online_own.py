@@ -13,7 +13,7 @@ import pytest
 from omegaconf import OmegaConf
 
 from irdrc.core.params import Params
-from irdrc.online import recipe
+from irdrc.online import configs, recipe
 from irdrc.online.learners import make_learner
 from irdrc.runs import app
 
@@ -148,6 +148,8 @@ def test_a_module_learner_a_sweeps_points_and_make_learner(tmp_path, monkeypatch
     assert point["composed"].cfg["algo"] == {"episodes": 300, "eps": 0.2}
     learner = make_learner("watchful.py:Watchful", {"eps": 0.5}, Params(), seed=3)
     assert learner.eps == 0.5 and learner.name == "watchful"
+    with pytest.raises(ValueError, match="takes its constructor's keys"):
+        make_learner("watchful.py:Watchful", configs.POSTERIOR, Params())
 
 
 def test_the_benchmark_names_the_sweep_for_a_learner_of_ones_own():

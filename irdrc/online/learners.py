@@ -9,7 +9,7 @@ from irdrc.core.checks import check_choice
 from irdrc.core.params import Params
 from irdrc.online.configs import LEARNERS, PROFILES, learner_config
 from irdrc.online.loop import StreamLearner
-from irdrc.online.own import is_own, make_own_learner, own_learner_config
+from irdrc.online.own import OwnLearnerConfig, is_own, make_own_learner, own_learner_config
 
 
 def make_learner(name: str, cfg: Any, params: Params, seed: int = 0) -> StreamLearner:
@@ -22,8 +22,14 @@ def make_learner(name: str, cfg: Any, params: Params, seed: int = 0) -> StreamLe
             learner's type.
     """
     if is_own(name):
-        own = own_learner_config(name, cfg) if cfg is None or isinstance(cfg, Mapping) else cfg
-        return make_own_learner(own, params, seed)
+        if cfg is None or isinstance(cfg, Mapping):
+            cfg = own_learner_config(name, cfg)
+        elif not isinstance(cfg, OwnLearnerConfig):
+            raise ValueError(
+                f"learner={name} takes its constructor's keys (a mapping), not a "
+                f"{type(cfg).__name__}"
+            )
+        return make_own_learner(cfg, params, seed)
     check_choice("learner", name, LEARNERS)
     if cfg is None or isinstance(cfg, Mapping):
         cfg = learner_config(name, cfg)

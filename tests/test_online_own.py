@@ -104,6 +104,7 @@ def test_a_resumed_run_of_ones_own_learner_is_the_uninterrupted_one(tmp_path, mo
         (["learner=json:JSONDecoder"], r"JSONDecoder is not a subclass of .*StreamLearner"),
         (["learner=nomod.x:Y"], r"cannot import nomod.x .*a file is learner=PATH.py:Y"),
         (["learner=broken.py:B"], r"importing broken.py failed: ZeroDivisionError"),
+        (["learner=script.py:S"], r"importing script.py failed: SystemExit: 3"),
         (["learner=seedless.py:S"], r"its constructor must take \(params, seed=…"),
         (["learner=watchful.py:Watchful", "algo.epss=1"], r"algo.epss \(did you mean algo.eps\?\)"),
         (["learner=watchful.py:Watchful", "algo.episodes=0"], r"algo.episodes=0 is outside"),
@@ -114,6 +115,7 @@ def test_a_wrong_learner_of_ones_own_is_one_line_before_any_work(
 ):
     page_learner(tmp_path)
     (tmp_path / "broken.py").write_text("1 / 0\n")
+    (tmp_path / "script.py").write_text("import sys\n\nsys.exit(3)\n")
     (tmp_path / "seedless.py").write_text(
         "from irdrc.online.loop import StreamLearner\n\n\nclass S(StreamLearner):\n"
         "    def __init__(self, params):\n        pass\n"

@@ -11,6 +11,7 @@ is made absolute, so a resumed run or a sweep's trial finds it from any director
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import importlib
 import importlib.util
@@ -111,13 +112,14 @@ def _file_module(spec: str, path: Path) -> Any:
     sys.path.insert(0, str(path.parent))  # its neighbours import, as under python PATH.py
     try:
         found.loader.exec_module(module)
-    except Exception as err:
+    except (Exception, SystemExit) as err:  # its top level ran sys.exit(): not a module to load
         del sys.modules[name]
         raise ValueError(
             f"learner={spec}: importing {path.name} failed: {type(err).__name__}: {err}"
         ) from None
     finally:
-        sys.path.remove(str(path.parent))
+        with contextlib.suppress(ValueError):  # unless its own code took it off
+            sys.path.remove(str(path.parent))
     return module
 
 
@@ -172,7 +174,7 @@ def make_own_learner(cfg: OwnLearnerConfig, params: Any, seed: int) -> StreamLea
     """The learner ``cfg`` names, built for the scenario ``params``.
 
     Raises:
-        ValueError: its constructor failed (naming it) or gave no ``StreamLearner``.
+        ValueError: its constructor failed (naming it and the error).
     """
     cls: Any = load_class(cfg.learner)[0]  # a subclass's constructor: (params, seed=…, **keys)
     try:

@@ -167,6 +167,115 @@ def test_a_failed_run_stops_the_benchmark_at_once_naming_it(tmp_path, monkeypatc
     assert calls[0] is True and list((tmp_path / "runs").iterdir()) == []
 
 
+def test_a_signal_ends_every_worker_and_says_how_to_go_on(tmp_path, monkeypatch):
+    """SIGINT or SIGTERM while the runs go on cancels the runs not begun, ends the running ones
+    and says how to go on (before, the pool's exit waited for every queued run, silently). The
+    stand-in pool finishes one run and is interrupted while it waits for the next."""
+    import concurrent.futures as cf
+    import signal
+
+    from irdrc.bench.online import Config, execute
+    from irdrc.runs.compose import recipe_call
+    from irdrc.runs.signals import RunInterrupted, Signalled
+
+    calls = []
+
+    class Pool:
+        def __init__(self, *args, **kwargs):
+            self.futures = []
+
+        def submit(self, fn, job, gamma):
+            fut = cf.Future()
+            if not self.futures:
+                fut.set_result({"history": [], "seconds": 1.0})
+            elif len(self.futures) == 1:
+                fut.set_exception(Signalled(signal.SIGINT))
+            self.futures.append(fut)
+            return fut
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            self.shutdown()
+
+        def shutdown(self, wait=True, cancel_futures=False):
+            calls.append(cancel_futures)
+
+    monkeypatch.setattr(cf, "ProcessPoolExecutor", Pool)
+    monkeypatch.setattr(cf, "as_completed", list)  # in the order submitted
+    jobs = [Job("posterior", "paper", s, 2) for s in range(10, 14)]
+    with pytest.raises(RunInterrupted) as err:
+        execute(Config(workers=1), jobs, tmp_path)
+    assert err.value.code == 130 and calls == [True]
+    assert str(err.value) == (
+        f"stopped by SIGINT: 1 of 4 runs are kept in {tmp_path / 'runs'}; go on with: python "
+        f"{recipe_call('bench_online')} resume=true hydra.run.dir={tmp_path}"
+    )
+    assert [p.name for p in (tmp_path / "runs").iterdir()] == ["posterior__paper__10.json"]
+
+
+@pytest.mark.e2e
+def test_ctrl_c_stops_the_benchmark_at_once_and_the_printed_command_finishes_it(tmp_path):
+    """Ctrl-C (SIGINT to the process group) while two runs go on: the benchmark and every worker
+    end within seconds, the finished runs are kept, and the command it prints runs the rest."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parent.parent
+    grid = (
+        "scenarios=[paper]",
+        "learners=[dqn]",
+        "paper_learners=[]",
+        "seeds=[10,11,12,13]",
+        "random_draws=0",
+        "episodes=40",
+        "window=5",
+        "safe_targets=[]",
+        "workers=2",
+    )
+    proc = subprocess.Popen(
+        [sys.executable, "recipes/bench_online.py", *grid, f"hydra.run.dir={tmp_path}"],
+        cwd=root,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+    )
+    t0 = time.monotonic()
+    while not list((tmp_path / "runs").glob("*.json")):
+        assert proc.poll() is None, proc.communicate()
+        assert time.monotonic() - t0 < 240, "no run finished in time"
+        time.sleep(0.2)
+    os.killpg(proc.pid, signal.SIGINT)
+    t1 = time.monotonic()
+    stdout, stderr = proc.communicate(timeout=60)
+    assert proc.returncode == 130 and "Traceback" not in stderr, (stdout, stderr)
+    assert time.monotonic() - t1 < 20  # a run takes ~10 s here; none is waited for
+    for _ in range(50):  # the workers and the resource tracker leave with it
+        try:
+            os.killpg(proc.pid, 0)
+        except ProcessLookupError:
+            break
+        time.sleep(0.1)
+    else:
+        raise AssertionError("a process of the benchmark outlived it")
+    assert "leaked" not in stderr
+    kept = len(list((tmp_path / "runs").glob("*.json")))
+    assert 1 <= kept < 4 and f"{kept} of 4 runs are kept" in stderr
+    printed = stderr.split("go on with: ", 1)[1].splitlines()[0]
+    assert printed == f"python recipes/bench_online.py resume=true hydra.run.dir={tmp_path}"
+    assert run_recipe("bench_online", tmp_path, "resume=true") == 0
+    assert len(list(csv.DictReader((tmp_path / "bench_online.csv").open()))) == 4
+    assert (
+        f"{kept} more were kept from an earlier one" in (tmp_path / "bench_online.md").read_text()
+    )
+
+
 def test_the_calibration_note_holds_each_plans_stated_spread_against_its_true_miss():
     """Every hand-made plan's exact miss is 0.045 (``history``): posterior means 0.0445, 0.048
     and 0.06 with sd 0.001 put it 0.5, 3 and 15 sds away; a radar-everywhere plan (sd 0, its mean

@@ -301,15 +301,45 @@ def plan(cfg: Config, draws: list[Draw]) -> list[Job]:
     return jobs
 
 
+def _worker_start() -> None:
+    """A worker's start: Ctrl-C reaches the whole process group, and the benchmark's own process
+    decides; SIGTERM, which it sends to end a worker, releases what the worker holds first."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, _worker_end)
+
+
+def _worker_end(signum: int, frame: Any) -> None:
+    """End this worker now, after the finalizers a normal exit runs (the replay buffer's
+    semaphores, which the resource tracker would otherwise report as leaked)."""
+    import os
+    from multiprocessing import util
+
+    util._exit_function()  # type: ignore[attr-defined]  # what a process runs at its exit
+    os._exit(128 + signum)
+
+
+def _end_workers(pool: Any) -> None:
+    """Cancel the runs not begun and end the running ones now (their workers' processes)."""
+    workers = list((getattr(pool, "_processes", None) or {}).values())
+    for worker in workers:
+        worker.terminate()
+    pool.shutdown(wait=True, cancel_futures=True)  # the pool sees its workers gone, and cleans up
+
+
 def execute(cfg: Config, jobs: list[Job], out: Path) -> tuple[dict[str, dict[str, Any]], int]:
     """Run every job not in ``out/runs`` yet (all of them unless ``resume``), ``workers`` at a time
     in processes of their own, keeping each result as it finishes; returns every job's result and
-    how many were kept from an earlier invocation."""
+    how many were kept from an earlier invocation. A failed run, SIGINT or SIGTERM ends every
+    worker at once; the results kept so far stay, and the message says how to go on."""
     import concurrent.futures as cf
     import multiprocessing
 
     from irdrc.runs.progress import Ticker
     from irdrc.runs.results import atomic_write_text
+    from irdrc.runs.signals import RunInterrupted, Signalled
+    from irdrc.sweeps.trials import go_on_command
 
     runs = out / "runs"
     runs.mkdir(parents=True, exist_ok=True)
@@ -323,18 +353,29 @@ def execute(cfg: Config, jobs: list[Job], out: Path) -> tuple[dict[str, dict[str
             todo.append(job)
     ticker = Ticker(len(todo), "bench_online", every_seconds=30)
     ctx = multiprocessing.get_context("spawn")
-    with cf.ProcessPoolExecutor(cfg.workers, mp_context=ctx) as pool:
+    pool = cf.ProcessPoolExecutor(cfg.workers, mp_context=ctx, initializer=_worker_start)
+    try:
         futures = {pool.submit(run_job, job, cfg.optimum_gamma): job for job in todo}
         for fut in cf.as_completed(futures):
             job = futures[fut]
             try:
                 result = fut.result()
-            except Exception as err:  # stop at once: the runs not begun are cancelled
-                pool.shutdown(wait=False, cancel_futures=True)
+            except Exception as err:
                 raise RuntimeError(f"bench_online: run {job.name} failed: {err}") from err
             atomic_write_text(runs / f"{job.name}.json", json.dumps(_clean(result)))
             results[job.name] = result
             ticker.tick()
+    except Signalled as sig:
+        _end_workers(pool)
+        raise RunInterrupted(
+            f"stopped by {sig}: {len(results)} of {len(jobs)} runs are kept in {runs}; go on "
+            f"with: {go_on_command(out, NAME)}",
+            128 + sig.signum,
+        ) from None
+    except BaseException:
+        _end_workers(pool)
+        raise
+    pool.shutdown()
     return results, len(jobs) - len(todo)
 
 

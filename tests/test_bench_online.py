@@ -348,7 +348,8 @@ def test_the_benchmark_runs_every_kind_of_job_writes_its_files_and_resumes(tmp_p
     table = (tmp_path / "bench_online.md").read_text()
     assert "| posterior | paper | " in table and "| qlearning | paper | " in table
     assert "| 0.1 | paper | 1/1 | " in table
-    assert "over the 1 safe runs" in table
+    assert "over the 1 safe run:" in table
+    assert "1 seed per named scenario (10; qlearning: 11); 3 episodes per run;" in table
     assert (tmp_path / "bench_online_paper.png").stat().st_size > 0
     kept = {p.name: p.stat().st_mtime_ns for p in (tmp_path / "runs").iterdir()}
     assert len(kept) == 3

@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from irdrc.core.checks import build, check_list, check_number, grouped, numbers
+from irdrc.core.checks import build, check_list, check_number, counted, grouped, numbers
 from irdrc.runs.compose import Composed
 from irdrc.runs.grid import parse_grid
 from irdrc.runs.results import md_table
@@ -141,7 +141,7 @@ def run(cfg: Config, run: Run) -> int:
     write_rows_csv(Path(out) / cfg.csv, rows)
     table = constrained_bench_table(rows, grid, tol, share)
     print(
-        f"\nLagrangian DQN against the LP ({len(grid['seed'])} seeds per cell): miss detection ≤ "
+        f"\nLagrangian DQN against the LP ({counted(len(grid['seed']), 'seed')} per cell): miss detection ≤ "
         f"target + {tol:g}, objective ≥ {share:g} of the LP optimum"
     )
     print(table)

@@ -35,7 +35,7 @@ import matplotlib.pyplot as plt
 
 from irdrc.agents.configs import FLEET_LEARNERS
 from irdrc.core import checks
-from irdrc.core.checks import grouped
+from irdrc.core.checks import counted, grouped
 from irdrc.runs.compose import Composed
 from irdrc.runs.grid import require_runs
 from irdrc.runs.results import (
@@ -313,7 +313,7 @@ def exact_table(rows: list[dict[str, Any]], tables: dict[str, Any], seeds: int) 
             )
         out.append(
             f"**N = 2, share {share:g}, {k} channel(s)** — centralised optimum {opt:.4f} per "
-            f"fleet step (exact), {seeds} seeds per learner\n\n"
+            f"fleet step (exact), {counted(seeds, 'seed')} per learner\n\n"
             + md_table(
                 [
                     "policy",

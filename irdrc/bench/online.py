@@ -31,7 +31,15 @@ from irdrc.bench.online_tables import (
     safe_table,
 )
 from irdrc.bench.random_scenarios import REPORTING, Draw, contested_draws
-from irdrc.core.checks import INT, build, check_bool, check_list, check_numbers, numbers
+from irdrc.core.checks import (
+    INT,
+    build,
+    check_bool,
+    check_list,
+    check_numbers,
+    counted,
+    numbers,
+)
 from irdrc.online.configs import LEARNERS, PROFILES, SAFE_LEARNERS
 from irdrc.runs.compose import Composed
 from irdrc.runs.grid import require_runs
@@ -421,7 +429,7 @@ def run(cfg: Config, run: Run) -> int:
     if rows:
         parts.append(learner_table(rows, cfg.window))
         parts.append(
-            f"{len(cfg.seeds)} seeds per named scenario ({', '.join(map(str, cfg.seeds))}"
+            f"{counted(len(cfg.seeds), 'seed')} per named scenario ({', '.join(map(str, cfg.seeds))}"
             + (
                 f"; {', '.join(cfg.paper_learners)}: {', '.join(map(str, cfg.paper_seeds))}"
                 if cfg.paper_learners and "paper" in cfg.scenarios
@@ -434,7 +442,7 @@ def run(cfg: Config, run: Run) -> int:
                 if draws
                 else ""
             )
-            + f"{cfg.episodes} episodes per run; medians over runs, worst in brackets. Regret and "
+            + f"{counted(cfg.episodes, 'episode')} per run; medians over runs, worst in brackets. Regret and "
             "missed events are the exact ledger's (the behaviour policy of each episode)."
         )
     if safe:

@@ -8,6 +8,7 @@ import math
 import statistics
 from typing import Any
 
+from irdrc.core.checks import counted
 from irdrc.online.configs import SAFE_LEARNERS
 from irdrc.runs.results import md_table
 
@@ -219,7 +220,7 @@ def calibration_note(rows: list[dict[str, Any]]) -> str:
     meets = sum(bool(r["meets_target"]) for r in rows)
     below = sum(r["greedy_miss"] < r["plan_miss_mean"] for r in rows)
     return (
-        f"The stated confidence against the truth, over the {n} safe runs: each plan's exact "
+        f"The stated confidence against the truth, over the {counted(n, 'safe run')}: each plan's exact "
         f"long-run miss detection lies within one posterior sd of the posterior mean in {one} "
         f"({100 * one / n:.0f} %; about 68 % if the posterior is calibrated) and within two in "
         f"{two} ({100 * two / n:.0f} %; about 95 %), and below the posterior mean (fewer misses "

@@ -27,6 +27,7 @@ from irdrc.core.checks import (
     check_list,
     check_number,
     check_numbers,
+    counted,
     grouped,
     numbers,
 )
@@ -297,7 +298,7 @@ def robust_table(
             ],
             body,
         )
-        + f"\n\n{seeds} seeds per scenario; each candidate's overrides: "
+        + f"\n\n{counted(seeds, 'seed')} per scenario; each candidate's overrides: "
         + "; ".join(f"{n}: `{' '.join(o) or '(none)'}`" for n, o in candidates.items())
         + "."
     )

@@ -22,6 +22,11 @@ def grouped(x: float, digits: int = 0) -> str:
     return f"{x:,.{digits}f}".replace(",", " ")
 
 
+def counted(n: int, noun: str) -> str:
+    """``n noun`` for a message, the noun plural unless ``n`` is 1: ``1 seed``, ``3 seeds``."""
+    return f"{n} {noun}" if n == 1 else f"{n} {noun}s"
+
+
 def check_number(
     key: str,
     value: Any,

@@ -17,7 +17,7 @@ from dataclasses import dataclass, field, fields, replace
 from functools import partial
 from typing import TYPE_CHECKING, Any
 
-from irdrc.core.checks import build
+from irdrc.core.checks import build, counted
 from irdrc.core.params import Params
 from irdrc.online.configs import (
     PROFILES,
@@ -285,7 +285,7 @@ def print_ledger(row: dict[str, Any], summary: dict[str, Any], cfg: Config) -> N
             else f", ≥ 0.99 at {stay:.0%} of the evaluations since"
         )
     print(
-        f"\nthe price of learning over {summary['episodes']} episodes (exact, from the behaviour "
+        f"\nthe price of learning over {counted(summary['episodes'], 'episode')} (exact, from the behaviour "
         f"policy of each episode; realised on the stream in brackets):\n"
         f"  regret {row['regret']:.1f} ({row['realised_regret']:.1f}) in reward units; "
         f"missed events {row['expected_missed']:.1f} ({row['realised_missed']:.0f}) where the "

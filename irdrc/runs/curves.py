@@ -12,6 +12,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 
 from irdrc.agents.base import RunRecord
+from irdrc.core.checks import counted
 from irdrc.runs.results import atomic_savefig
 
 
@@ -34,7 +35,7 @@ def plot_learning_curve(
             color="tab:blue",
             alpha=0.15,
             linewidth=0,
-            label=f"min–max of {len(curves)} learners",
+            label=f"min–max of {counted(len(curves), 'learner')}",
         )
         ax.fill_between(
             xs,

@@ -474,6 +474,31 @@ def test_kept_points_counts_what_a_resumed_run_does_not_run_again(tmp_path):
     assert kept_points(Executor(executor="local", resume=True), planned, tmp_path) == 1
 
 
+def test_a_point_id_reads_as_its_overrides_and_a_resume_keeps_an_earlier_versions_trials(
+    tmp_path,
+):
+    """The readable part of a trial's directory names each key by its last part with its whole
+    value, a path by its file (before, ``env.p1.speed=0.5`` read ``5`` and a learner's file
+    ``py-Watchful``); a resumed sweep keeps a DONE trial whose directory an earlier version named
+    (the same hash), under this version's name."""
+    from irdrc.runs.sections import Executor
+    from irdrc.sweeps.trials import kept_points
+
+    speed = point_id({"env.p1.speed": 0.5, "reward.r4": 5.0, "seed": 0})
+    assert speed.startswith("speed=0.5_r4=5.0_seed=0__")
+    own = point_id({"learner": "/home/me/watchful.py:Watchful", "env": "examples/my_city.yaml"})
+    assert own.startswith("env=my_city.yaml_learner=watchful.py-Watchful__")
+    planned = [{"point_id": speed}, {"point_id": own}]
+    earlier = tmp_path / "trials" / f"0_5_seed=0__{speed.rpartition('__')[2]}"
+    earlier.mkdir(parents=True)
+    (earlier / "status.json").write_text(json.dumps({"status": "DONE"}))
+    (earlier / "summary.json").write_text("{}")
+    assert kept_points(Executor(executor="local"), planned, tmp_path) == 0
+    assert earlier.is_dir()  # without resume nothing is touched
+    assert kept_points(Executor(executor="local", resume=True), planned, tmp_path) == 1
+    assert [d.name for d in (tmp_path / "trials").iterdir()] == [speed]
+
+
 def test_points_that_differ_in_their_seed_alone_are_composed_as_fresh_ones():
     """A plan composes runs that differ only in ``seed=`` once and copies the seed in: each copy
     equals a fresh composition (config, choices, task), in the seed's place among the overrides;

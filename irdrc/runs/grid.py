@@ -82,11 +82,14 @@ def point_id(
 ) -> str:
     """Stable id of a grid point: readable prefix + hash of its overrides (order-independent),
     of the method and of the base overrides (so two sweeps of one grid with different bases, or
-    methods, never share a trial directory)."""
+    methods, never share a trial directory). The prefix names each key by its last part and a
+    path by its file: ``speed=0.5_seed=0__…``, ``learner=watchful.py-Watchful__…``."""
     ov = sorted(point_overrides(point))
     key = "|".join(ov) + (f"||{method}||" + "|".join(base) if method or base else "")
     digest = hashlib.sha1(key.encode()).hexdigest()[:10]
-    readable = "_".join(o.split(".")[-1] for o in ov)
+    readable = "_".join(
+        f"{k.rsplit('.', 1)[-1]}={v.rsplit('/', 1)[-1]}" for k, v in (o.split("=", 1) for o in ov)
+    )
     safe = "".join(c if c.isalnum() or c in "=_.-" else "-" for c in readable)[:60]
     return f"{safe}__{digest}"
 

@@ -109,6 +109,7 @@ def execute(cfg: Executor, planned: list[dict[str, Any]], out: Path, recipe: str
         raise ValueError("two planned points share an id (the same method, base and overrides)")
     out = Path(out).resolve()
     trials_dir = out / "trials"
+    _adopt_earlier_ids(cfg, planned, trials_dir)
     todo = [p for p in planned if not _kept(cfg, trials_dir / p["point_id"])]
     total = len(planned)
     methods = ", ".join(sorted({p["method"] for p in planned}))
@@ -148,7 +149,22 @@ def kept_points(cfg: Executor, planned: list[dict[str, Any]], out: Path) -> int:
     ``out`` rather than run (DONE points, with ``resume``): what a benchmark's time line says its
     time leaves out."""
     trials_dir = Path(out).resolve() / "trials"
+    _adopt_earlier_ids(cfg, planned, trials_dir)
     return sum(_kept(cfg, trials_dir / p["point_id"]) for p in planned)
+
+
+def _adopt_earlier_ids(cfg: Executor, planned: list[dict[str, Any]], trials_dir: Path) -> None:
+    """With ``resume``, a point's trial directory named by an earlier version of ``point_id``
+    (another readable prefix before the same hash) takes this version's name, so its results
+    are kept."""
+    if not cfg.resume or not trials_dir.is_dir():
+        return
+    for p in planned:
+        here = trials_dir / p["point_id"]
+        digest = p["point_id"].rpartition("__")[2]
+        earlier = list(trials_dir.glob(f"*__{digest}")) if digest != p["point_id"] else []
+        if not here.exists() and len(earlier) == 1 and earlier[0].is_dir():
+            earlier[0].rename(here)
 
 
 def _kept(cfg: Executor, trial_dir: Path) -> bool:

@@ -48,6 +48,32 @@ TINY = [
 ]
 
 
+@pytest.mark.parametrize(
+    "args, prioritized, double_dqn",
+    [
+        (["learner=idqn"], True, True),
+        (["learner=qmix"], False, False),
+        (["learner=joint", "env.observe=full", "algo.double_dqn=false"], True, False),
+    ],
+)
+def test_the_run_records_what_a_null_replay_key_resolved_to(
+    tmp_path, monkeypatch, capsys, args, prioritized, double_dqn
+):
+    """``fleet.yaml``'s null ``algo.prioritized`` and ``algo.double_dqn`` take the learner's
+    default; config.yaml (here ``--cfg``'s) records the value the run learned with, not null."""
+    import yaml
+
+    from irdrc.recipes.fleet import recipe
+    from irdrc.runs import app
+
+    monkeypatch.chdir(tmp_path)
+    assert app.execute(recipe, [*args, "--cfg"]) == 0
+    algo = yaml.safe_load(capsys.readouterr().out)["algo"]
+    assert (algo["prioritized"], algo["double_dqn"]) == (prioritized, double_dqn)
+    assert app.execute(recipe, ["learner=mappo", "--cfg"]) == 0  # PPO: algo.* is not read
+    assert yaml.safe_load(capsys.readouterr().out)["algo"]["prioritized"] is None
+
+
 @pytest.mark.e2e
 def test_fleet_recipe_files_and_tables(tmp_path):
     """``recipes/fleet.py`` (N = 2, exact): summary.json with the learner's per-vehicle and fleet

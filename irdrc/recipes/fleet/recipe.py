@@ -127,6 +127,18 @@ def load(composed: Composed, resume: dict[str, Any] | None = None) -> Config:
     return cfg
 
 
+def recorded(config: Config, cfg: dict[str, Any]) -> dict[str, Any]:
+    """The composed config ``cfg`` as the run records it: a value learner's ``algo.prioritized``
+    and ``algo.double_dqn`` as it resolved them (null in ``fleet.yaml``: the learner's default)."""
+    if config.learner.learner in POLICY_GRADIENT:
+        return cfg
+    dqn = config.learner.dqn
+    return {
+        **cfg,
+        "algo": {**cfg["algo"], "prioritized": dqn.prioritized, "double_dqn": dqn.double_dqn},
+    }
+
+
 def run(cfg: Config, run: Run) -> dict[str, Any]:
     """Train the learner on the fleet, finish its run directory (``finish_fleet``)."""
     from irdrc.agents import marl

@@ -9,7 +9,7 @@ import re
 import pytest
 from conftest import load, run_recipe
 
-from irdrc.bench.online import Job
+from irdrc.bench.online_jobs import Job
 from irdrc.bench.online_tables import (
     calibration_note,
     lagrangian_row,
@@ -133,7 +133,7 @@ def test_a_failed_run_stops_the_benchmark_at_once_naming_it(tmp_path, monkeypatc
     the first run with an error and leaves the others queued."""
     import concurrent.futures as cf
 
-    from irdrc.bench.online import Config, execute
+    from irdrc.bench.online_jobs import execute
 
     calls = []
 
@@ -163,7 +163,7 @@ def test_a_failed_run_stops_the_benchmark_at_once_naming_it(tmp_path, monkeypatc
     monkeypatch.setattr(cf, "ProcessPoolExecutor", Pool)
     jobs = [Job("posterior", "paper", s, 2) for s in range(10, 14)]
     with pytest.raises(RuntimeError, match="run posterior__paper__10 failed: no such scenario"):
-        execute(Config(workers=1), jobs, tmp_path)
+        execute(jobs, tmp_path, workers=1, resume=False, gamma=0.99)
     assert calls[0] is True and list((tmp_path / "runs").iterdir()) == []
 
 
@@ -174,7 +174,7 @@ def test_a_signal_ends_every_worker_and_says_how_to_go_on(tmp_path, monkeypatch)
     import concurrent.futures as cf
     import signal
 
-    from irdrc.bench.online import Config, execute
+    from irdrc.bench.online_jobs import execute
     from irdrc.runs.compose import recipe_call
     from irdrc.runs.signals import RunInterrupted, Signalled
 
@@ -206,7 +206,7 @@ def test_a_signal_ends_every_worker_and_says_how_to_go_on(tmp_path, monkeypatch)
     monkeypatch.setattr(cf, "as_completed", list)  # in the order submitted
     jobs = [Job("posterior", "paper", s, 2) for s in range(10, 14)]
     with pytest.raises(RunInterrupted) as err:
-        execute(Config(workers=1), jobs, tmp_path)
+        execute(jobs, tmp_path, workers=1, resume=False, gamma=0.99)
     assert err.value.code == 130 and calls == [True]
     assert str(err.value) == (
         f"stopped by SIGINT: 1 of 4 runs are kept in {tmp_path / 'runs'}; go on with: python "

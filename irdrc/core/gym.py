@@ -123,8 +123,9 @@ class DFRCGymEnv(gymnasium.Env):
 
     Observation: float32 array (d, c, r, w, v, m). Action: 0 = communication, 1 = radar (an int or a
     0-d integer array). ``terminated`` is always False; ``truncated`` is True at step
-    ``env.horizon``. ``info`` holds ``state`` (index), ``event``, ``missed``, ``sent``,
-    ``dropped``, ``capacity``, ``step_count``.
+    ``env.horizon``. ``info`` holds ``state`` (index), ``event``, ``missed``, ``false_alarm``,
+    ``sent``, ``dropped``, ``arrivals``, ``capacity``, ``step_count`` (every field of
+    ``irdrc.core.stream.Step``, so a stream over it can feed ``learn_on_stream(stream=…)``).
     """
 
     metadata = {"render_modes": []}  # noqa: RUF012 - gymnasium's convention
@@ -187,6 +188,7 @@ class DFRCGymEnv(gymnasium.Env):
             "false_alarm": out.false_alarm,
             "sent": out.sent,
             "dropped": out.dropped,
+            "arrivals": out.arrivals,
             "capacity": self._step.capacity(s, a),
             "step_count": self._steps,
         }
@@ -250,6 +252,7 @@ class DFRCGymEnv(gymnasium.Env):
             "false_alarm": bool(res.false_alarm[0]),
             "sent": int(res.sent[0]),
             "dropped": int(res.dropped[0]),
+            "arrivals": int(res.arrivals[0]),
             "capacity": int(res.capacity[0]),
             "step_count": self._steps,
         }
@@ -262,7 +265,7 @@ class DFRCVectorEnv(VectorEnv):
 
     Autoreset is gymnasium's default (next step): the step after an episode's last one resets that
     env, ignoring its action and returning reward 0. ``info`` holds arrays ``state``, ``event``,
-    ``missed``, ``sent``, ``dropped``, ``capacity``.
+    ``missed``, ``false_alarm``, ``sent``, ``dropped``, ``arrivals``, ``capacity``.
     """
 
     metadata = {"autoreset_mode": AutoresetMode.NEXT_STEP}  # noqa: RUF012 - gymnasium's convention
@@ -341,6 +344,7 @@ class DFRCVectorEnv(VectorEnv):
             "missed": (res.missed & keep).numpy(),
             "sent": torch.where(keep, res.sent, 0).numpy(),
             "dropped": torch.where(keep, res.dropped, 0).numpy(),
+            "arrivals": torch.where(keep, res.arrivals, 0).numpy(),
             "capacity": torch.where(keep, res.capacity, 0).numpy(),
             "false_alarm": (res.false_alarm & keep).numpy(),
         }

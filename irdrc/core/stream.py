@@ -178,3 +178,75 @@ class VehicleStream:
         """Restore ``state_dict``'s generator (the next ``reset`` goes on from there)."""
         self.generator.set_state(state["generator"])
         self.steps_left = 0
+
+
+class OwnStream:
+    """A stream of one's own (``learn_on_stream(stream=…)``: a vehicle's own steps, or a world the
+    model does not describe), held to what the loop reads: ``reset()`` gives a state index,
+    ``step(action)`` a ``Step`` whose ``state`` is one, episodes of ``env.horizon`` steps;
+    ``state_dict`` / ``load_state_dict`` where it has them (a run on it resumes only with both).
+
+    Args:
+        stream: the stream.
+        params: the scenario whose state index it speaks (``irdrc.state_index``).
+    """
+
+    def __init__(self, stream: Any, params: Params) -> None:
+        self.name = type(stream).__name__
+        missing = [m for m in ("reset", "step") if not callable(getattr(stream, m, None))]
+        if missing:
+            raise TypeError(
+                f"stream={self.name} has no {' or '.join(f'{m}()' for m in missing)}: a stream "
+                "has reset() -> state index and step(action) -> irdrc.core.stream.Step"
+            )
+        self.horizon = getattr(stream, "horizon", params.env.horizon)
+        if self.horizon != params.env.horizon:
+            raise ValueError(
+                f"stream={self.name} has horizon={self.horizon!r}: its episodes must be "
+                f"env.horizon={params.env.horizon} steps, the scenario's"
+            )
+        self.num_states = params.env.num_states
+        self.inner = stream
+
+    def _index(self, state: Any, where: str) -> int:
+        if (
+            isinstance(state, bool)
+            or not isinstance(state, int)
+            or not 0 <= state < self.num_states
+        ):
+            raise ValueError(
+                f"{self.name}.{where} gave state {state!r}: a state is an index in "
+                f"[0, {self.num_states}) (irdrc.state_index)"
+            )
+        return state
+
+    def reset(self) -> int:
+        """The inner stream's ``reset()``, checked."""
+        return self._index(self.inner.reset(), "reset()")
+
+    def step(self, action: int) -> Step:
+        """The inner stream's ``step(action)``, checked."""
+        out = self.inner.step(action)
+        if not isinstance(out, Step):
+            raise TypeError(
+                f"{self.name}.step() returned {type(out).__name__}: a step is "
+                "irdrc.core.stream.Step(state, reward, event, missed, sent, dropped, false_alarm, "
+                "arrivals)"
+            )
+        self._index(out.state, "step()")
+        return out
+
+    def state_dict(self) -> dict[str, Any]:
+        """The inner stream's ``state_dict()`` ({} where it has none)."""
+        save = getattr(self.inner, "state_dict", None)
+        return save() if callable(save) else {}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """The inner stream's ``load_state_dict``; refused where it has none."""
+        load = getattr(self.inner, "load_state_dict", None)
+        if not callable(load):
+            raise ValueError(
+                f"resume: the stream {self.name} has no load_state_dict(): a run on it cannot "
+                "go on from a checkpoint"
+            )
+        load(state)

@@ -28,7 +28,7 @@ import torch
 
 from irdrc.agents.base import Hooks, RunRecord, progress_record
 from irdrc.core.params import Params
-from irdrc.core.stream import Step, VehicleStream
+from irdrc.core.stream import OwnStream, Step, VehicleStream
 from irdrc.online.ledger import Ledger, Tally
 
 
@@ -138,6 +138,7 @@ def learn_on_stream(
     hooks: Hooks | None = None,
     resume: dict[str, Any] | None = None,
     greedy_scorer: Any = None,
+    stream: Any = None,
 ) -> RunRecord:
     """Run ``learner`` on one vehicle's stream for ``episodes`` episodes.
 
@@ -155,6 +156,11 @@ def learn_on_stream(
         resume: a checkpoint (``RunRecord.state``) to go on from.
         greedy_scorer: scores the greedy policy's row (default ``scorer``); its ``extra(table)``,
             where it has one, adds columns (the safe learner's objective against the LP's).
+        stream: where the steps come from (default: the simulator, ``VehicleStream(params,
+            seed)``): any object with ``reset() -> state`` and ``step(action) -> Step``
+            (``irdrc.core.stream.OwnStream`` says what it is held to). The ledger's exact columns
+            still score each behaviour policy on ``params``' model; the realised ones count what
+            this stream produced.
 
     Returns:
         The record: ``history`` one row per evaluation, ``greedy`` [1, S] the final greedy policy
@@ -171,7 +177,7 @@ def learn_on_stream(
         )
     if not isinstance(episodes, int) or episodes < 1:
         raise ValueError(f"episodes={episodes!r} must be an integer >= 1")
-    stream = VehicleStream(params, seed)
+    stream = VehicleStream(params, seed) if stream is None else OwnStream(stream, params)
     T = stream.horizon
     every = int(eval_every_frames or T)
     if every < 1:

@@ -48,12 +48,13 @@ ADVICE = {
     "dqn_paper": "learner=dqn (our profile on one stream: docs/ONLINE.md)",
     "qlearning": "learner=posterior (docs/ONLINE.md) or algo.episodes=1200",
     "qlearning_paper": "learner=qlearning (step sizes 1/k: docs/ONLINE.md)",
-    "posterior": "algo.episodes=600",
-    "posterior_anytime": "algo.episodes=600",
-    "safe": "algo.episodes=600",
-    "safe_anytime": "algo.episodes=600",
+    "posterior": "algo.episodes={twice}",
+    "posterior_anytime": "algo.episodes={twice}",
+    "safe": "algo.episodes={twice}",
+    "safe_anytime": "algo.episodes={twice}",
 }
-"""What a run that ends below the optimum is told to try, per learner."""
+"""What a run that ends below the optimum is told to try, per learner (``{twice}``: twice its
+episodes; a learner of one's own is told that too)."""
 
 SAFE_END_THRESHOLD = 0.95
 """A ``learner=safe`` run whose final plan sends less than this share of the LP's packets ends with
@@ -197,13 +198,14 @@ def run(cfg: Config, run: Run) -> dict[str, Any]:
             resume=run.resume_state,
             greedy_scorer=greedy_scorer,
         )
+    twice = 2 * cfg.algo.episodes  # what a run that ends short is told to try
     summary = finish_learner(
         run,
         LearnerRun.single(
             cfg,
             record,
             scorer,
-            advice=ADVICE.get(cfg.learner, "algo.episodes=600"),
+            advice=ADVICE.get(cfg.learner, ADVICE["posterior"]).format(twice=twice),
             plot=(
                 partial(
                     plot_run,
@@ -217,7 +219,7 @@ def run(cfg: Config, run: Run) -> dict[str, Any]:
             end_check=(
                 partial(
                     end_warning,
-                    advice=ADVICE["safe"],
+                    advice=ADVICE["safe"].format(twice=twice),
                     key="lp_ratio",
                     threshold=SAFE_END_THRESHOLD,
                     of="the LP's packets",

@@ -167,6 +167,45 @@ def test_a_failed_run_stops_the_benchmark_at_once_naming_it(tmp_path, monkeypatc
     assert calls[0] is True and list((tmp_path / "runs").iterdir()) == []
 
 
+def test_a_kept_run_with_other_keys_is_refused_before_any_work(tmp_path, monkeypatch):
+    """``resume=true`` keeps a finished run only if it ran the job this invocation plans: a
+    result of 3 episodes is not read as one of 2 (before, its file name alone matched). One
+    written before results recorded their job is kept as it is."""
+    import concurrent.futures as cf
+    import json
+
+    from irdrc.bench.online_jobs import execute, ran
+
+    class Pool:  # nothing may run
+        def __init__(self, *args, **kwargs):
+            pass
+
+        def submit(self, *args):
+            raise AssertionError("a run began")
+
+        def shutdown(self, wait=True, cancel_futures=False):
+            pass
+
+    monkeypatch.setattr(cf, "ProcessPoolExecutor", Pool)
+    job = Job("posterior", "paper", 10, 3)
+    (tmp_path / "runs").mkdir()
+    path = tmp_path / "runs" / f"{job.name}.json"
+    path.write_text(json.dumps({"history": [], "job": ran(job, 0.99)}))
+    with pytest.raises(ValueError, match=r"ran with other keys \(episodes 3 → 2\); resume with"):
+        execute([Job("posterior", "paper", 10, 2)], tmp_path, workers=1, resume=True, gamma=0.99)
+    with pytest.raises(ValueError, match=r"\(optimum_gamma 0.99 → 0.9\)"):
+        execute([job], tmp_path, workers=1, resume=True, gamma=0.9)
+    assert execute([job], tmp_path, workers=1, resume=True, gamma=0.99) == (
+        {job.name: {"history": [], "job": ran(job, 0.99)}},
+        1,
+    )
+    path.write_text(json.dumps({"history": []}))  # an earlier version's result
+    assert (
+        execute([Job("posterior", "paper", 10, 2)], tmp_path, workers=1, resume=True, gamma=0.99)[1]
+        == 1
+    )
+
+
 def test_a_signal_ends_every_worker_and_says_how_to_go_on(tmp_path, monkeypatch):
     """SIGINT or SIGTERM while the runs go on cancels the runs not begun, ends the running ones
     and says how to go on (before, the pool's exit waited for every queued run, silently). The

@@ -207,7 +207,10 @@ def run(cfg: Config, run: Run) -> int:
         else []
     )
     jobs = plan(cfg, draws)
-    print(f"bench_online: {len(jobs)} runs, {cfg.workers} at a time, into {run.dir}", flush=True)
+    print(
+        f"bench_online: {counted(len(jobs), 'run')}, {cfg.workers} at a time, into {run.dir}",
+        flush=True,
+    )
     results, kept = execute(
         jobs, Path(run.dir), workers=cfg.workers, resume=cfg.resume, gamma=cfg.optimum_gamma
     )

@@ -7,7 +7,7 @@ from __future__ import annotations
 import json
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -152,13 +152,37 @@ def _end_workers(pool: Any) -> None:
     pool.shutdown(wait=True, cancel_futures=True)  # the pool sees its workers gone, and cleans up
 
 
+def ran(job: Job, gamma: float) -> dict[str, Any]:
+    """What a kept result records of its run: the job and the optimum's discount (as JSON reads
+    them back)."""
+    return json.loads(json.dumps({**asdict(job), "optimum_gamma": gamma}))
+
+
+def _same_job(path: Path, stored: dict[str, Any] | None, planned: dict[str, Any]) -> None:
+    """Refuse a kept result run with other keys (one written before results recorded their job
+    is kept as it is)."""
+    if stored is None or stored == planned:
+        return
+    changed = ", ".join(
+        f"{k} {stored.get(k)!r} → {planned.get(k)!r}"
+        for k in planned
+        if stored.get(k) != planned.get(k)
+    )
+    raise ValueError(
+        f"resume: {path} ran with other keys ({changed}); resume with the keys the benchmark "
+        "was started with (resume=true brings them back), or write to another hydra.run.dir"
+    )
+
+
 def execute(
     jobs: list[Job], out: Path, *, workers: int, resume: bool, gamma: float
 ) -> tuple[dict[str, dict[str, Any]], int]:
     """Run every job not in ``out/runs`` yet (all of them unless ``resume``), ``workers`` at a time
-    in processes of their own (the optimum discounted by ``gamma``), keeping each result as it finishes; returns every job's result and
-    how many were kept from an earlier invocation. A failed run, SIGINT or SIGTERM ends every
-    worker at once; the results kept so far stay, and the message says how to go on."""
+    in processes of their own (the optimum discounted by ``gamma``), keeping each result as it
+    finishes, with the job it ran; returns every job's result and how many were kept from an
+    earlier invocation. A kept result whose job differs from this invocation's is refused before
+    any work. A failed run, SIGINT or SIGTERM ends every worker at once; the results kept so far
+    stay, and the message says how to go on."""
     import concurrent.futures as cf
     import multiprocessing
 
@@ -174,7 +198,8 @@ def execute(
     for job in jobs:
         path = runs / f"{job.name}.json"
         if resume and path.is_file():
-            results[job.name] = json.loads(path.read_text())
+            results[job.name] = kept = json.loads(path.read_text())
+            _same_job(path, kept.get("job"), ran(job, gamma))
         else:
             todo.append(job)
     ticker = Ticker(len(todo), "bench_online", every_seconds=30)
@@ -188,7 +213,8 @@ def execute(
                 result = fut.result()
             except Exception as err:
                 raise RuntimeError(f"bench_online: run {job.name} failed: {err}") from err
-            atomic_write_text(runs / f"{job.name}.json", json.dumps(_clean(result)))
+            kept = {**result, "job": ran(job, gamma)}
+            atomic_write_text(runs / f"{job.name}.json", json.dumps(_clean(kept)))
             results[job.name] = result
             ticker.tick()
     except Signalled as sig:

@@ -205,7 +205,8 @@ def assert_chi2(counts: torch.Tensor, expected: torch.Tensor) -> None:
 
 def assert_factored_equals_dense(params, seed: int) -> None:
     """Every operator and table to 1e-9 (observed: ≤ 1e-11), value iteration's policy and values,
-    and exact stationary metrics of the optimum and of a randomised policy by both methods."""
+    exact stationary metrics of the optimum and of a randomised policy by every method, and of two
+    periodic policies."""
     dense, fac = build_model(params), build_factored(params)
     S = dense.num_states
     gen = torch.Generator().manual_seed(seed)
@@ -230,6 +231,13 @@ def assert_factored_equals_dense(params, seed: int) -> None:
             assert set(got) == set(want)  # false_alarm_rate in both, or in neither
             for k in want:
                 assert got[k] == pytest.approx(want[k], rel=1e-9, abs=1e-9), (method, k)
+    # periodic policies: round robin, and three randomised phases applied in turn
+    phases = torch.rand(3, S, 2, generator=gen, dtype=torch.float64)
+    for schedule in ("round_robin", list(phases / phases.sum(-1, keepdim=True))):
+        want = stationary_metrics(dense, schedule).as_dict()
+        got = stationary_metrics(fac, schedule).as_dict()
+        for k in want:
+            assert got[k] == pytest.approx(want[k], rel=1e-9, abs=1e-9), ("periodic", k)
 
 
 def metrics_at(model, policy, mu: torch.Tensor):

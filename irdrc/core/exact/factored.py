@@ -14,13 +14,14 @@ from __future__ import annotations
 
 import functools
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any, cast
 
 import torch
 
 from irdrc.core.exact.mdp import ExactMDP
-from irdrc.core.exact.stationary import stationary_distribution_factored
+from irdrc.core.exact.stationary import stationary_cycle_factored, stationary_distribution_factored
 from irdrc.core.params import Params
 from irdrc.core.tables import ModelTables, model_tables
 
@@ -246,6 +247,12 @@ class FactoredModel(ExactMDP):
     ) -> torch.Tensor:
         """[S] by aggregation-disaggregation over the queue (``stationary_distribution_factored``)."""
         return stationary_distribution_factored(self, probs, tol=tol, max_iter=max_iter)[0]
+
+    def cycle(
+        self, schedule: Sequence[torch.Tensor], tol: float = 1e-13, max_iter: int = 200_000
+    ) -> list[torch.Tensor]:
+        """Each phase's stationary distribution (``stationary_cycle_factored``)."""
+        return stationary_cycle_factored(self, list(schedule), tol=tol, max_iter=max_iter)
 
     def dense(self, a: int) -> Any:
         """P_a as a dense NumPy [S, S] array (the ``sparse`` matrix's entries, written block by

@@ -192,8 +192,27 @@ def _stationary_iad(
     exactly (``banded_stationary``: d′ − d lies between −ν and the arrivals kept); then
     X = α(d)·c(f | d).
     Returns (μ [S], rounds, converged)."""
+    path, rounds, done = _cycle_iad(model, [probs], tol, max_iter, start, progress)
+    return path[0], rounds, done
+
+
+def _cycle_iad(
+    model: FactoredChain,
+    phases: list[torch.Tensor],
+    tol: float,
+    max_iter: int,
+    start: torch.Tensor | None = None,
+    progress: Callable[[int, float], None] | None = None,
+) -> tuple[list[torch.Tensor], int, bool]:
+    """``_stationary_iad`` for a periodic policy (``phases``: one [D + 1, F, A] table per step,
+    applied in turn). A round steps X₀ through one whole period (X₁ … X_k; stop when X_k is within
+    ``tol`` of X₀), aggregates each phase j on its own conditional c_j (c₀ from X_k), and solves the
+    product of the phases' aggregated chains, A₀·A₁ ⋯ A_{k−1}, for the queue's marginal α₀ at phase
+    0 — exact for the true measures, since α_{j+1} = α_j·A_j — then X₀ = α₀(d)·c₀(f | d).
+    Returns (the measure [S] at each phase, rounds, converged)."""
     import numpy as np
 
+    probs = phases[0]
     D1, nf = probs.shape[:2]
     d = np.arange(D1)
     # per (action, queue dynamics): the columns it covers and A's entries (src d → dst d′, P)
@@ -210,18 +229,69 @@ def _stationary_iad(
     X = _initial(model, probs, start)
     uniform = torch.full_like(X, 1.0 / nf)
     for it in range(1, max_iter + 1):
-        X, change = _advance(X, model.step_rows(X, probs), it, progress)
+        path = [X]
+        for p in phases[:-1]:
+            Y = model.step_rows(path[-1], p)
+            path.append(Y / Y.sum())
+        X, change = _advance(X, model.step_rows(path[-1], phases[-1]), it, progress)
+        path[0] = X
         if change < tol:
-            return X.reshape(-1), it, True
-        mass = X.sum(1, keepdim=True)
-        cond = torch.where(mass > 0, X / mass.clamp(min=1e-300), uniform)
-        vals = []
-        for a, cols, src, pmf, _ in parts:
-            w = (cond[:, cols] * probs[:, cols, a]).sum(1).cpu().numpy()
-            vals.append(w[src] * pmf)
-        alpha = banded_stationary(src_all, dst_all, np.concatenate(vals), D1)
-        X = torch.from_numpy(alpha).to(X.device)[:, None] * cond
-    return X.reshape(-1), max_iter, False
+            return [x.reshape(-1) for x in path], it, True
+        conds, kernels = [], []
+        for x, p in zip(path, phases, strict=True):
+            mass = x.sum(1, keepdim=True)
+            cond = torch.where(mass > 0, x / mass.clamp(min=1e-300), uniform)
+            vals = []
+            for a, cols, src, pmf, _ in parts:
+                w = (cond[:, cols] * p[:, cols, a]).sum(1).cpu().numpy()
+                vals.append(w[src] * pmf)
+            conds.append(cond)
+            kernels.append(np.concatenate(vals))
+        if len(phases) == 1:
+            alpha = banded_stationary(src_all, dst_all, kernels[0], D1)
+        else:
+            alpha = _product_stationary(src_all, dst_all, kernels, D1)
+        X = torch.from_numpy(alpha).to(X.device)[:, None] * conds[0]
+    return [x.reshape(-1) for x in path], max_iter, False
+
+
+def _product_stationary(src: Any, dst: Any, kernels: list[Any], n: int) -> Any:
+    """The stationary distribution of the product of the chains on 0 … n − 1 whose transitions
+    ``src`` → ``dst`` have the probabilities ``kernels[j]`` (one period of a periodic policy; the
+    product's jumps stay in the sum of the bands)."""
+    from scipy import sparse
+
+    product = None
+    for vals in kernels:
+        A = sparse.csr_matrix((vals, (src, dst)), shape=(n, n))
+        product = A if product is None else product @ A
+    coo = sparse.coo_matrix(product)
+    return banded_stationary(coo.row, coo.col, coo.data, n)
+
+
+def stationary_cycle_factored(
+    model: FactoredChain, schedule: list[torch.Tensor], tol: float = 1e-13, max_iter: int = 200_000
+) -> list[torch.Tensor]:
+    """The stationary distribution at each phase of a periodic policy (``schedule``: one [S] action
+    table or [S, A] probabilities per step, applied in turn) on the factored operator: by
+    aggregation-disaggregation over whole periods (``_cycle_iad``; at most ``IAD_MAX_ITER``
+    rounds), then power iteration over whole periods if that has not converged. Assumes one
+    recurrent class."""
+    S, A, nf = model.num_states, model.num_actions, model.num_configs
+    phases = [as_probs(p, S, A).to(model.device).reshape(-1, nf, A) for p in schedule]
+    path, _, done = _cycle_iad(model, phases, tol, min(max_iter, IAD_MAX_ITER))
+    if done:
+        return path
+    mu = path[0].reshape(-1, nf)
+    for _ in range(max_iter):
+        start, path = mu, []
+        for p in phases:
+            path.append(mu.reshape(-1))
+            mu = model.step_rows(mu, p)
+            mu = mu / mu.sum()
+        if float((mu - start).abs().sum()) < tol:
+            return path
+    raise RuntimeError(f"the stationary distribution did not converge in {max_iter} cycles")
 
 
 def banded_stationary(src: Any, dst: Any, vals: Any, n: int) -> Any:

@@ -311,7 +311,7 @@ def estimate(params: Params, model: Any) -> tuple[float, float]:
 
 def solve_factored(cfg: Config, run: Run) -> dict[str, Any]:
     """Value iteration (McQueen's bounds, ``tol``) and exact long-run metrics on the factored
-    operator, beside always-comm, always-radar and random; refused past this machine's memory or
+    operator, beside round-robin, always-comm, always-radar and random; refused past this machine's memory or
     ``max_minutes``, with progress while it runs."""
     from irdrc.core.exact import (
         as_probs,
@@ -370,7 +370,8 @@ def solve_factored(cfg: Config, run: Run) -> dict[str, Any]:
     )
     print(policy_table(model, sol.policy))
     rows = {"optimal (stationary)": opt}
-    for name in ("always_comm", "always_radar", "random"):
+    for name in ("round_robin", "always_comm", "always_radar", "random"):
+        beat.beat(f"long-run metrics of {name}")
         rows[f"{name} (stationary)"] = stationary_metrics(model, name)
     print("\nexact long-run metrics (factored operator; no episodic metrics at this size):\n")
     print(format_table(rows))

@@ -60,7 +60,8 @@ class FactoredChain(Protocol):
 
 NEGLIGIBLE_MASS = 1e-30
 """Queue lengths holding less stationary mass than this (summed over the factors) are stepped by
-the power iteration only within the arrivals' reach of the mass (below what any metric resolves)."""
+the power iteration and aggregated only within the arrivals' reach of the mass (below what any
+metric resolves)."""
 GMRES_RTOL = 1e-12
 """Relative residual at which the GMRES solve for a stationary distribution stops (its L1 error
 against power iteration to 1e-13 was ≈ 1e-10 on the persistent, deep-queue scenario)."""
@@ -190,7 +191,8 @@ def _stationary_iad(
     d alone, A[d, d′] = Σ_{a, f} c(f | d)·π(a | d, f)·P(d′ | d, ν(a, f), arrivals of f) — exact for
     the true μ, since the factors' next value does not enter d′ — solved for its stationary α
     exactly (``banded_stationary``: d′ − d lies between −ν and the arrivals kept); then
-    X = α(d)·c(f | d).
+    X = α(d)·c(f | d). Both work on the queue lengths that hold mass (above ``NEGLIGIBLE_MASS``)
+    plus twice the arrivals' reach, as the power steps do.
     Returns (μ [S], rounds, converged)."""
     path, rounds, done = _cycle_iad(model, [probs], tol, max_iter, start, progress)
     return path[0], rounds, done
@@ -214,45 +216,68 @@ def _cycle_iad(
 
     probs = phases[0]
     D1, nf = probs.shape[:2]
-    d = np.arange(D1)
-    # per (action, queue dynamics): the columns it covers and A's entries (src d → dst d′, P)
-    parts = []
+    reach = len(phases) * (model.pmf.shape[-1] + 1)  # how far up one period can carry mass
+    chain: tuple[int, list[Any], Any, Any] = (0, [], None, None)  # n, and its queue chain
+    X = _initial(model, probs, start)
+    uniform = torch.full_like(X, 1.0 / nf)
+    for it in range(1, max_iter + 1):
+        held = (X.sum(1) > NEGLIGIBLE_MASS).nonzero()
+        n = min(D1, int(held.max()) + 1 + 2 * reach) if held.numel() else D1
+        path = [X]
+        for p in phases[:-1]:
+            path.append(_step_prefix(model, path[-1], p, n))
+        X, change = _advance(X, _step_prefix(model, path[-1], phases[-1], n, False), it, progress)
+        path[0] = X
+        if change < tol:
+            return [x.reshape(-1) for x in path], it, True
+        if chain[0] != n:
+            chain = (n, *_queue_chain(model, n))
+        _, parts, src_all, dst_all = chain
+        conds, kernels = [], []
+        for x, p in zip(path, phases, strict=True):
+            mass = x[:n].sum(1, keepdim=True)
+            cond = torch.where(mass > 0, x[:n] / mass.clamp(min=1e-300), uniform[:n])
+            vals = []
+            for a, cols, src, pmf in parts:
+                w = (cond[:, cols] * p[:n, cols, a]).sum(1).cpu().numpy()
+                vals.append(w[src] * pmf)
+            conds.append(cond)
+            kernels.append(np.concatenate(vals))
+        if len(phases) == 1:
+            alpha = banded_stationary(src_all, dst_all, kernels[0], n)
+        else:
+            alpha = _product_stationary(src_all, dst_all, kernels, n)
+        X = torch.zeros_like(X)
+        X[:n] = torch.from_numpy(alpha).to(X.device)[:, None] * conds[0]
+    return [x.reshape(-1) for x in path], max_iter, False
+
+
+def _step_prefix(
+    model: FactoredChain, X: torch.Tensor, probs: torch.Tensor, n: int, normalise: bool = True
+) -> torch.Tensor:
+    """One chain step of X [D + 1, F] over its first ``n`` queue lengths (the rest hold no mass
+    within the arrivals' reach), normalised."""
+    Y = torch.zeros_like(X)
+    Y[:n] = model.step_rows(X[:n], probs[:n])
+    return Y / Y.sum() if normalise else Y
+
+
+def _queue_chain(model: FactoredChain, n: int) -> tuple[list[Any], Any, Any]:
+    """The queue-length chain's entries on 0 … n − 1 (clamped at n − 1) per (action, queue
+    dynamics): ([(action, its columns, src, P)], every src, every dst) for ``_cycle_iad``."""
+    import numpy as np
+
+    d = np.arange(n)
+    parts, srcs, dsts = [], [], []
     for a in range(model.num_actions):
         for cols, nu, row in model.cols[a]:
             pmf = model.pmf[row].cpu().numpy()
             K = pmf.shape[0]
             src = np.repeat(d, K)
-            dst = np.clip(src + np.tile(np.arange(K), D1) - nu, 0, D1 - 1)
-            parts.append((a, cols, src, np.tile(pmf, D1), dst))
-    src_all = np.concatenate([pt[2] for pt in parts])
-    dst_all = np.concatenate([pt[4] for pt in parts])
-    X = _initial(model, probs, start)
-    uniform = torch.full_like(X, 1.0 / nf)
-    for it in range(1, max_iter + 1):
-        path = [X]
-        for p in phases[:-1]:
-            Y = model.step_rows(path[-1], p)
-            path.append(Y / Y.sum())
-        X, change = _advance(X, model.step_rows(path[-1], phases[-1]), it, progress)
-        path[0] = X
-        if change < tol:
-            return [x.reshape(-1) for x in path], it, True
-        conds, kernels = [], []
-        for x, p in zip(path, phases, strict=True):
-            mass = x.sum(1, keepdim=True)
-            cond = torch.where(mass > 0, x / mass.clamp(min=1e-300), uniform)
-            vals = []
-            for a, cols, src, pmf, _ in parts:
-                w = (cond[:, cols] * p[:, cols, a]).sum(1).cpu().numpy()
-                vals.append(w[src] * pmf)
-            conds.append(cond)
-            kernels.append(np.concatenate(vals))
-        if len(phases) == 1:
-            alpha = banded_stationary(src_all, dst_all, kernels[0], D1)
-        else:
-            alpha = _product_stationary(src_all, dst_all, kernels, D1)
-        X = torch.from_numpy(alpha).to(X.device)[:, None] * conds[0]
-    return [x.reshape(-1) for x in path], max_iter, False
+            srcs.append(src)
+            dsts.append(np.clip(src + np.tile(np.arange(K), n) - nu, 0, n - 1))
+            parts.append((a, cols, src, np.tile(pmf, n)))
+    return parts, np.concatenate(srcs), np.concatenate(dsts)
 
 
 def _product_stationary(src: Any, dst: Any, kernels: list[Any], n: int) -> Any:

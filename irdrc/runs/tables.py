@@ -50,12 +50,14 @@ def write_policy_csv(
             rho = torch.as_tensor(shares, dtype=torch.float64)[policy.long()]
             header += ["action", "rho"]
             rows = [
-                [*c.tolist(), int(a), repr(float(r))]
-                for c, a, r in zip(cols, policy, rho, strict=True)
+                [*c, int(a), repr(float(r))]
+                for c, a, r in zip(cols.tolist(), policy.tolist(), rho.tolist(), strict=True)
             ]
         else:
             header += ["rho"]
-            rows = [[*c.tolist(), repr(float(r))] for c, r in zip(cols, policy, strict=True)]
+            rows = [
+                [*c, repr(float(r))] for c, r in zip(cols.tolist(), policy.tolist(), strict=True)
+            ]
         text = "\n".join([",".join(header), *(",".join(map(str, r)) for r in rows)])
         atomic_write_text(Path(path), text + "\n")
         return
@@ -71,8 +73,8 @@ def write_policy_csv(
         header.insert(6, "phase")
     lines = [",".join(header)]
     lines += [
-        ",".join(map(str, [*c.tolist(), int(a), _prob(float(p))]))
-        for c, a, p in zip(cols, actions, p_radar, strict=True)
+        ",".join(map(str, [*c, int(a), _prob(float(p))]))
+        for c, a, p in zip(cols.tolist(), actions.tolist(), p_radar.tolist(), strict=True)
     ]
     atomic_write_text(Path(path), "\n".join(lines) + "\n")
 

@@ -111,6 +111,16 @@ def run_script(*args: str, timeout: int = 300):
     )
 
 
+def python_as_typed(cwd) -> str:
+    """The python running the tests as a go-on command names it for a recipe run from ``cwd``:
+    relative to ``cwd`` when below it (the venv's), else its full path."""
+    import os
+    import sys
+
+    rel = os.path.relpath(sys.executable, cwd)
+    return sys.executable if rel.startswith("..") else rel
+
+
 def run_recipe(recipe: str, run_dir, *overrides: str) -> int:
     """Run ``recipes/<recipe>.py`` in this process with ``overrides``, writing to ``run_dir``;
     returns its exit status."""

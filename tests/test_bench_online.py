@@ -5,9 +5,10 @@ from __future__ import annotations
 
 import csv
 import re
+from pathlib import Path
 
 import pytest
-from conftest import load, run_recipe
+from conftest import load, python_as_typed, run_recipe
 
 from irdrc.bench.online_jobs import Job
 from irdrc.bench.online_tables import (
@@ -248,7 +249,8 @@ def test_a_signal_ends_every_worker_and_says_how_to_go_on(tmp_path, monkeypatch)
         execute(jobs, tmp_path, workers=1, resume=False, gamma=0.99)
     assert err.value.code == 130 and calls == [True]
     assert str(err.value) == (
-        f"stopped by SIGINT: 1 of 4 runs are kept in {tmp_path / 'runs'}; go on with: python "
+        f"stopped by SIGINT: 1 of 4 runs are kept in {tmp_path / 'runs'}; go on with: "
+        f"{python_as_typed(Path.cwd())} "
         f"{recipe_call('bench_online')} resume=true hydra.run.dir={tmp_path}"
     )
     assert [p.name for p in (tmp_path / "runs").iterdir()] == ["posterior__paper__10.json"]
@@ -263,7 +265,6 @@ def test_ctrl_c_stops_the_benchmark_at_once_and_the_printed_command_finishes_it(
     import subprocess
     import sys
     import time
-    from pathlib import Path
 
     root = Path(__file__).resolve().parent.parent
     grid = (
@@ -307,7 +308,8 @@ def test_ctrl_c_stops_the_benchmark_at_once_and_the_printed_command_finishes_it(
     kept = len(list((tmp_path / "runs").glob("*.json")))
     assert 1 <= kept < 4 and f"{kept} of 4 runs are kept" in stderr
     printed = stderr.split("go on with: ", 1)[1].splitlines()[0]
-    assert printed == f"python recipes/bench_online.py resume=true hydra.run.dir={tmp_path}"
+    here = python_as_typed(root)  # the benchmark's python (the venv's: relative to its cwd)
+    assert printed == f"{here} recipes/bench_online.py resume=true hydra.run.dir={tmp_path}"
     assert run_recipe("bench_online", tmp_path, "resume=true") == 0
     assert len(list(csv.DictReader((tmp_path / "bench_online.csv").open()))) == 4
     assert (

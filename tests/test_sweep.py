@@ -13,7 +13,7 @@ import tempfile
 from pathlib import Path
 
 import pytest
-from conftest import load
+from conftest import load, python_as_typed
 
 from irdrc.runs.grid import format_value, parse_grid, point_id, point_overrides, scenario_of
 
@@ -437,7 +437,8 @@ def test_ctrl_c_leaves_a_valid_summary_with_incomplete_rows(tmp_path):
     assert {t["status"] for t in table} <= {"DONE", "INCOMPLETE"}, table
     assert "Tuner.restore" not in stdout + stderr and "FileNotFoundError" not in stdout + stderr
     printed = stdout.split("go on with: ", 1)[1].splitlines()[0]
-    assert printed == f"python recipes/sweep.py resume=true hydra.run.dir={tmp_path}"
+    here = python_as_typed(ROOT)  # the sweep's python (the venv's: relative to its cwd)
+    assert printed == f"{here} recipes/sweep.py resume=true hydra.run.dir={tmp_path}"
     r = sweep(tmp_path, "resume=true")  # as printed (plus the test's ray.num_cpus), no grid
     assert r.returncode == 0, (r.stdout[-3000:], r.stderr[-3000:])
     assert {t["status"] for t in rows(tmp_path / "summary.csv")} == {"DONE"}

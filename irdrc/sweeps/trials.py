@@ -173,9 +173,15 @@ def _kept(cfg: Executor, trial_dir: Path) -> bool:
 
 
 def go_on_command(out: Path, recipe: str = "sweep") -> str:
-    """The command that goes on with the interrupted run in ``out``: its recipe with
-    ``resume=true`` and the directory (the run's stored overrides come back on their own)."""
-    return f"python {recipe_call(recipe)} resume=true hydra.run.dir={shell_quote(str(out))}"
+    """The command that goes on with the interrupted run in ``out``: the python that runs this
+    process (``python_command``), its recipe with ``resume=true`` and the directory (the run's
+    stored overrides come back on their own)."""
+    from irdrc.runs.scaffold import python_command
+
+    return (
+        f"{python_command()} {recipe_call(recipe)} resume=true "
+        f"hydra.run.dir={shell_quote(str(out))}"
+    )
 
 
 def _run_local(todo: list[dict[str, Any]], already: int, total: int, trials_dir: Path) -> None:

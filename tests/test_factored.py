@@ -261,6 +261,36 @@ def test_a_periodic_policy_on_a_deep_queue_settles_in_a_few_rounds(monkeypatch):
         assert got[k] == pytest.approx(want[k], rel=1e-9, abs=1e-11), k
 
 
+def test_a_queue_that_stays_full_is_stepped_only_near_the_top(monkeypatch):
+    """Radar always on the paper's dynamics with a 60-packet queue (S = 1 952): the queue fills
+    and stays full, so every power step (``power``, and ``auto``, which converges by them here)
+    covers only the queue lengths within a few steps' departures of D, not all 61; those and the
+    aggregation rounds (``iad``, over d = 0 … D) give the dense model's metrics."""
+    import irdrc.core.exact.stationary as fmod
+    from irdrc.core.exact.factored import FactoredModel
+
+    params = scenario("env=paper", "env.queue_capacity=60")
+    dense, fac = build_model(params), build_factored(params)
+    policy = torch.ones(dense.num_states, dtype=torch.int64)
+    want = stationary_metrics(dense, policy)
+    rows = []
+    step_rows = FactoredModel.step_rows
+
+    def counted(self, X, probs):
+        rows.append(X.shape[0])
+        return step_rows(self, X, probs)
+
+    monkeypatch.setattr(FactoredModel, "step_rows", counted)
+    for method in ("auto", "iad", "power"):
+        rows.clear()
+        mu, _ = fmod.stationary_distribution_factored(fac, policy, method=method)
+        got = metrics_at(fac, policy, mu)
+        if method != "iad":  # 2 × (4 packets sent + 1) + 1
+            assert rows and max(rows) <= 11, (method, max(rows))
+        assert got.mean_queue == pytest.approx(60.0, abs=1e-9)
+        assert got.avg_reward == pytest.approx(want.avg_reward, abs=1e-9), method
+
+
 def test_aggregation_where_the_queue_never_empties():
     """Radar always on large's dynamics: the queue fills and stays full, so short queues are
     transient. The aggregated solve fixes the scale at the queue length holding the most mass (a

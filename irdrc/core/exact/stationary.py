@@ -59,9 +59,9 @@ class FactoredChain(Protocol):
 
 
 NEGLIGIBLE_MASS = 1e-30
-"""Queue lengths holding less stationary mass than this (summed over the factors) are stepped by
-the power iteration and aggregated only within the arrivals' reach of the mass (below what any
-metric resolves)."""
+"""Queue lengths holding less stationary mass than this (summed over the factors) are stepped only
+within a few steps' reach of the mass: above and below it by the power steps, above it by the
+aggregation rounds (below what any metric resolves)."""
 GMRES_RTOL = 1e-12
 """Relative residual at which the GMRES solve for a stationary distribution stops (its L1 error
 against power iteration to 1e-13 was ≈ 1e-10 on the persistent, deep-queue scenario)."""
@@ -112,17 +112,17 @@ def stationary_distribution_factored(
     """The stationary distribution of a stationary policy ([S] actions or [S, A] probabilities) on
     the factored operator. Returns (μ [S], operator applications).
 
-    ``method``: ``power`` steps the chain until the L1 change of a step is below ``tol``, from
-    where the policy's queue settles (``_start_queue``) and only over the queue lengths that hold
-    mass (above ``NEGLIGIBLE_MASS``) plus the arrivals' reach; ``iad`` alternates one such step
-    with an exact solve of the queue-length chain aggregated over the factors
-    (``_stationary_iad``), so the queue — the slow part of a deep buffer — settles in one round
-    and the rounds needed are set by the factors' mixing (``large``: ≈ 150 rounds, 5–8× faster
-    than GMRES); ``gmres`` solves (I − P_πᵀ + 11ᵀ/S)·μ = 1/S (SciPy's restarted GMRES, relative
-    residual ``GMRES_RTOL``, at most ``GMRES_MAX_MATVECS`` products; CPU); ``auto`` steps the
-    chain up to ``AUTO_POWER_STEPS`` times — fewer when the change's decay says that would not
-    converge (``SLOW_CHECK``) — then hands the iterate to ``iad`` (at most ``IAD_MAX_ITER``
-    rounds) and goes on stepping if that does not converge. The operator
+    ``method``: ``power`` steps the chain until the L1 change of a step is below ``tol``, from where
+    the policy's queue settles (``_start_queue``) and only over the queue lengths that hold mass
+    (above ``NEGLIGIBLE_MASS``) and a few steps' reach around them (``_window``: a queue that stays
+    full is stepped near D alone); ``iad`` alternates one step (from d = 0) with an exact solve of
+    the queue-length chain aggregated over the factors (``_stationary_iad``), so the queue — the
+    slow part of a deep buffer — settles in one round and the rounds needed are set by the factors'
+    mixing (``large``: ≈ 150 rounds, 5–8× faster than GMRES); ``gmres`` solves (I − P_πᵀ + 11ᵀ/S)·μ
+    = 1/S (SciPy's restarted GMRES, relative residual ``GMRES_RTOL``, at most ``GMRES_MAX_MATVECS``
+    products; CPU); ``auto`` steps the chain up to ``AUTO_POWER_STEPS`` times — fewer when the
+    change's decay says that would not converge (``SLOW_CHECK``) — then hands the iterate to ``iad``
+    (at most ``IAD_MAX_ITER`` rounds) and goes on stepping if that does not converge. The operator
     applications returned count one per power step or round; ``progress(step, change)`` is called
     after each. Assumes one recurrent class."""
     if method not in ("auto", "gmres", "iad", "power"):
@@ -191,8 +191,8 @@ def _stationary_iad(
     d alone, A[d, d′] = Σ_{a, f} c(f | d)·π(a | d, f)·P(d′ | d, ν(a, f), arrivals of f) — exact for
     the true μ, since the factors' next value does not enter d′ — solved for its stationary α
     exactly (``banded_stationary``: d′ − d lies between −ν and the arrivals kept); then
-    X = α(d)·c(f | d). Both work on the queue lengths that hold mass (above ``NEGLIGIBLE_MASS``)
-    plus twice the arrivals' reach, as the power steps do.
+    X = α(d)·c(f | d). Both work on the queue lengths from 0 to the top of those that hold mass
+    (above ``NEGLIGIBLE_MASS``) plus twice the arrivals' reach (``_window``'s top).
     Returns (μ [S], rounds, converged)."""
     path, rounds, done = _cycle_iad(model, [probs], tol, max_iter, start, progress)
     return path[0], rounds, done
@@ -215,18 +215,18 @@ def _cycle_iad(
     import numpy as np
 
     probs = phases[0]
-    D1, nf = probs.shape[:2]
-    reach = len(phases) * (model.pmf.shape[-1] + 1)  # how far up one period can carry mass
+    nf = probs.shape[1]
     chain: tuple[int, list[Any], Any, Any] = (0, [], None, None)  # n, and its queue chain
     X = _initial(model, probs, start)
     uniform = torch.full_like(X, 1.0 / nf)
     for it in range(1, max_iter + 1):
-        held = (X.sum(1) > NEGLIGIBLE_MASS).nonzero()
-        n = min(D1, int(held.max()) + 1 + 2 * reach) if held.numel() else D1
+        # from d = 0 up to the window's top: the aggregated solve puts mass below its floor
+        n = _window(model, X, len(phases))[1]
         path = [X]
         for p in phases[:-1]:
-            path.append(_step_prefix(model, path[-1], p, n))
-        X, change = _advance(X, _step_prefix(model, path[-1], phases[-1], n, False), it, progress)
+            path.append(_step_window(model, path[-1], p, 0, n))
+        step = _step_window(model, path[-1], phases[-1], 0, n, False)
+        X, change = _advance(X, step, it, progress)
         path[0] = X
         if change < tol:
             return [x.reshape(-1) for x in path], it, True
@@ -252,13 +252,32 @@ def _cycle_iad(
     return [x.reshape(-1) for x in path], max_iter, False
 
 
-def _step_prefix(
-    model: FactoredChain, X: torch.Tensor, probs: torch.Tensor, n: int, normalise: bool = True
+def _window(model: FactoredChain, X: torch.Tensor, steps: int) -> tuple[int, int]:
+    """The queue lengths [lo, hi) that ``steps`` chain steps from X [D + 1, F] work on: those
+    holding mass (above ``NEGLIGIBLE_MASS``) and twice as far as those steps can carry it, down
+    (the most packets a step sends) and up (the arrivals kept). The queue's dynamics do not depend
+    on d away from 0 and D, so the window's own edges move only the mass left outside it."""
+    D1 = X.shape[0]
+    held = (X.sum(1) > NEGLIGIBLE_MASS).nonzero()
+    if not held.numel():
+        return 0, D1
+    down = steps * (max(nu for cols in model.cols for _, nu, _ in cols) + 1)
+    up = steps * (model.pmf.shape[-1] + 1)
+    return max(0, int(held.min()) - 2 * down), min(D1, int(held.max()) + 1 + 2 * up)
+
+
+def _step_window(
+    model: FactoredChain,
+    X: torch.Tensor,
+    probs: torch.Tensor,
+    lo: int,
+    hi: int,
+    normalise: bool = True,
 ) -> torch.Tensor:
-    """One chain step of X [D + 1, F] over its first ``n`` queue lengths (the rest hold no mass
-    within the arrivals' reach), normalised."""
+    """One chain step of X [D + 1, F] over the queue lengths [lo, hi) (``_window``), normalised
+    unless ``normalise`` is False."""
     Y = torch.zeros_like(X)
-    Y[:n] = model.step_rows(X[:n], probs[:n])
+    Y[lo:hi] = model.step_rows(X[lo:hi], probs[lo:hi])
     return Y / Y.sum() if normalise else Y
 
 
@@ -406,16 +425,11 @@ def _stationary_power(
     ``partial`` (μ, steps, converged) instead of raising when ``max_iter`` steps do not converge;
     with ``give_up`` (and ``partial``) it stops early when the change's decay over the last
     ``SLOW_CHECK`` steps predicts more steps to ``tol`` than ``max_iter`` leaves."""
-    D1 = probs.shape[0]
     X = _initial(model, probs, start)
-    reach = model.pmf.shape[-1] + 1  # how far up the queue one step can carry mass
     before = math.inf
     for it in range(1, max_iter + 1):
-        held = (X.sum(1) > NEGLIGIBLE_MASS).nonzero()
-        top = min(D1, int(held.max()) + 1 + 2 * reach) if held.numel() else D1
-        Y = torch.zeros_like(X)
-        Y[:top] = model.step_rows(X[:top], probs[:top])
-        X, change = _advance(X, Y, it, progress)
+        lo, hi = _window(model, X, 1)
+        X, change = _advance(X, _step_window(model, X, probs, lo, hi, False), it, progress)
         if change < tol:
             return (X.reshape(-1), it, True) if partial else (X.reshape(-1), it)
         if give_up and it % SLOW_CHECK == 0:

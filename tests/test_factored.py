@@ -236,7 +236,23 @@ def test_auto_hands_over_as_soon_as_the_power_steps_show_they_are_slow():
     assert steps == power_steps < fmod.AUTO_POWER_STEPS and torch.equal(auto, power)
 
 
-def test_a_periodic_policy_on_a_deep_queue_settles_in_a_few_rounds(monkeypatch):
+@pytest.fixture
+def stepped_rows(monkeypatch) -> list[int]:
+    """The queue lengths each chain step of the factored model covers, in order."""
+    from irdrc.core.exact.factored import FactoredModel
+
+    rows: list[int] = []
+    step_rows = FactoredModel.step_rows
+
+    def counted(self, X, probs):
+        rows.append(X.shape[0])
+        return step_rows(self, X, probs)
+
+    monkeypatch.setattr(FactoredModel, "step_rows", counted)
+    return rows
+
+
+def test_a_periodic_policy_on_a_deep_queue_settles_in_a_few_rounds(monkeypatch, stepped_rows):
     """Round robin on the paper's dynamics with a 200-packet queue (S = 6 432): the queue stays
     short, so aggregating over whole periods converges in a couple of rounds where stepping whole
     periods from uniform took 390 steps, each over only the queue lengths that hold mass; both give
@@ -245,48 +261,31 @@ def test_a_periodic_policy_on_a_deep_queue_settles_in_a_few_rounds(monkeypatch):
     from irdrc.core.exact.mdp import ExactMDP
 
     fac = build_factored(scenario("env=paper", "env.queue_capacity=200"))
-    rows = []
-    step_rows = FactoredModel.step_rows
-
-    def counted(self, X, probs):
-        rows.append(X.shape[0])
-        return step_rows(self, X, probs)
-
-    monkeypatch.setattr(FactoredModel, "step_rows", counted)
     got = stationary_metrics(fac, "round_robin").as_dict()
-    assert len(rows) <= 10 and max(rows) < 201
+    assert len(stepped_rows) <= 10 and max(stepped_rows) < 201
     monkeypatch.setattr(FactoredModel, "cycle", ExactMDP.cycle)
     want = stationary_metrics(fac, "round_robin").as_dict()
     for k in want:
         assert got[k] == pytest.approx(want[k], rel=1e-9, abs=1e-11), k
 
 
-def test_a_queue_that_stays_full_is_stepped_only_near_the_top(monkeypatch):
+def test_a_queue_that_stays_full_is_stepped_only_near_the_top(stepped_rows):
     """Radar always on the paper's dynamics with a 60-packet queue (S = 1 952): the queue fills
     and stays full, so every power step (``power``, and ``auto``, which converges by them here)
     covers only the queue lengths within a few steps' departures of D, not all 61; those and the
     aggregation rounds (``iad``, over d = 0 … D) give the dense model's metrics."""
     import irdrc.core.exact.stationary as fmod
-    from irdrc.core.exact.factored import FactoredModel
 
     params = scenario("env=paper", "env.queue_capacity=60")
     dense, fac = build_model(params), build_factored(params)
     policy = torch.ones(dense.num_states, dtype=torch.int64)
     want = stationary_metrics(dense, policy)
-    rows = []
-    step_rows = FactoredModel.step_rows
-
-    def counted(self, X, probs):
-        rows.append(X.shape[0])
-        return step_rows(self, X, probs)
-
-    monkeypatch.setattr(FactoredModel, "step_rows", counted)
     for method in ("auto", "iad", "power"):
-        rows.clear()
+        stepped_rows.clear()
         mu, _ = fmod.stationary_distribution_factored(fac, policy, method=method)
         got = metrics_at(fac, policy, mu)
         if method != "iad":  # 2 × (4 packets sent + 1) + 1
-            assert rows and max(rows) <= 11, (method, max(rows))
+            assert stepped_rows and max(stepped_rows) <= 11, (method, max(stepped_rows))
         assert got.mean_queue == pytest.approx(60.0, abs=1e-9)
         assert got.avg_reward == pytest.approx(want.avg_reward, abs=1e-9), method
 

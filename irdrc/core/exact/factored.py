@@ -3,12 +3,10 @@ into the queue (d, the channel level c, the action and the arrivals) and the joi
 Markov factors (c, r, w, v, m, with the radar reaction coupling v and m with the action), so P_a·V
 is computed on V reshaped to [D + 1, F] — the factor chain as an F × F matrix along the last axis,
 the queue as a correlation of each column with the arrival distribution along the first — in
-O(S · (F + K)) per sweep, K the arrivals kept (Poisson mass to 1e-17).
-
-The same expectations as ``irdrc.core.exact.dense.DenseModel``, with the queue-free parts stored
-once per factor configuration; on CPU or GPU. The dense model stays the cross-check for small S
-(tests/test_factored.py holds the two to 1e-9).
-"""
+O(S · (F + K)) per sweep, K the arrivals kept (Poisson mass to 1e-17). The expectations of
+``irdrc.core.exact.dense.DenseModel`` (its cross-check for small S, to 1e-9 in tests), the
+queue-free parts stored once per factor configuration; CPU or GPU. Stationary distributions:
+``irdrc.core.exact.stationary``."""
 
 from __future__ import annotations
 

@@ -348,7 +348,7 @@ def test_banded_stationary_is_exact_across_hundreds_of_orders_of_magnitude():
     lower states cannot be reached from the top (their mass is 0)."""
     import numpy as np
 
-    from irdrc.core.exact.stationary import banded_stationary
+    from irdrc.core.exact.banded import banded_stationary
 
     rng = np.random.default_rng(0)
     n = 60

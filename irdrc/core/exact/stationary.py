@@ -1,6 +1,6 @@
 """Stationary distributions on the factored operator (``irdrc.core.exact.factored``), fast for deep
 queues: power iteration over the queue lengths that hold mass, aggregation-disaggregation over the
-queue length, and GMRES. Every ``model`` here is a factored model
+queue length (its rounds extrapolated), and GMRES. Every ``model`` here is a factored model
 (``irdrc.core.exact.factored.FactoredModel``, which calls in here); ``FactoredChain`` names what
 these solvers read of it.
 """
@@ -77,6 +77,8 @@ the last ones predicts the steps still needed; when they would not fit in ``AUTO
 aggregation takes over at once (power steps before it hardly shorten it)."""
 IAD_MAX_ITER = 5000
 """``method="auto"``: aggregation-disaggregation rounds before plain power iteration takes over."""
+EXTRAPOLATE_EVERY = 5
+"""Aggregation rounds between two extrapolations of their iterates (``_extrapolate``)."""
 
 
 def _start_queue(model: FactoredChain, probs: torch.Tensor) -> int:
@@ -119,13 +121,13 @@ def stationary_distribution_factored(
     full is stepped near D alone); ``iad`` alternates one step (from d = 0) with an exact solve of
     the queue-length chain aggregated over the factors (``_stationary_iad``), so the queue — the
     slow part of a deep buffer — settles in one round and the rounds needed are set by the factors'
-    mixing (``large``: ≈ 150 rounds, 5–8× faster than GMRES); ``gmres`` solves (I − P_πᵀ + 11ᵀ/S)·μ
-    = 1/S (SciPy's restarted GMRES, relative residual ``GMRES_RTOL``, at most ``GMRES_MAX_MATVECS``
-    products; CPU); ``auto`` steps the chain up to ``AUTO_POWER_STEPS`` times — fewer when the
-    change's decay says that would not converge (``SLOW_CHECK``) — then hands the iterate to ``iad``
-    (at most ``IAD_MAX_ITER`` rounds) and goes on stepping if that does not converge. The operator
-    applications returned count one per power step or round; ``progress(step, change)`` is called
-    after each. Assumes one recurrent class."""
+    mixing, cut by extrapolating every ``EXTRAPOLATE_EVERY`` rounds (``large``: 70–120 rounds);
+    ``gmres`` solves (I − P_πᵀ + 11ᵀ/S)·μ = 1/S (SciPy's restarted GMRES, relative residual
+    ``GMRES_RTOL``, at most ``GMRES_MAX_MATVECS`` products; CPU); ``auto`` steps the chain up to
+    ``AUTO_POWER_STEPS`` times — fewer when the change's decay says that would not converge
+    (``SLOW_CHECK``) — then hands the iterate to ``iad`` (at most ``IAD_MAX_ITER`` rounds) and goes
+    on stepping if that does not converge. The operator applications returned count one per power
+    step or round; ``progress(step, change)`` is called after each. Assumes one recurrent class."""
     if method not in ("auto", "gmres", "iad", "power"):
         raise ValueError(f"method={method!r} must be auto, gmres, iad or power")
     probs = as_probs(policy, model.num_states, model.num_actions).to(model.device)
@@ -192,7 +194,8 @@ def _stationary_iad(
     d alone, A[d, d′] = Σ_{a, f} c(f | d)·π(a | d, f)·P(d′ | d, ν(a, f), arrivals of f) — exact for
     the true μ, since the factors' next value does not enter d′ — solved for its stationary α
     exactly (``banded_stationary``: d′ − d lies between −ν and the arrivals kept); then
-    X = α(d)·c(f | d). Both work on the queue lengths from 0 to the top of those that hold mass
+    X = α(d)·c(f | d); every ``EXTRAPOLATE_EVERY`` rounds X is extrapolated from the last three
+    (``_extrapolate``). Both work on the queue lengths from 0 to the top of those that hold mass
     (above ``NEGLIGIBLE_MASS``) plus twice the arrivals' reach (``_window``'s top).
     Returns (μ [S], rounds, converged)."""
     path, rounds, done = _cycle_iad(model, [probs], tol, max_iter, start, progress)
@@ -211,8 +214,9 @@ def _cycle_iad(
     applied in turn). A round steps X₀ through one whole period (X₁ … X_k; stop when X_k is within
     ``tol`` of X₀), aggregates each phase j on its own conditional c_j (c₀ from X_k), and solves the
     product of the phases' aggregated chains, A₀·A₁ ⋯ A_{k−1}, for the queue's marginal α₀ at phase
-    0 — exact for the true measures, since α_{j+1} = α_j·A_j — then X₀ = α₀(d)·c₀(f | d).
-    Returns (the measure [S] at each phase, rounds, converged)."""
+    0 — exact for the true measures, since α_{j+1} = α_j·A_j — then X₀ = α₀(d)·c₀(f | d),
+    extrapolated every ``EXTRAPOLATE_EVERY`` rounds. Returns (the measure [S] at each phase,
+    rounds, converged)."""
     import numpy as np
 
     probs = phases[0]
@@ -220,6 +224,7 @@ def _cycle_iad(
     chain: tuple[int, list[Any], Any, Any] = (0, [], None, None)  # n, and its queue chain
     X = _initial(model, probs, start)
     uniform = torch.full_like(X, 1.0 / nf)
+    recent: list[torch.Tensor] = []  # the last rounds' iterates, for ``_extrapolate``
     for it in range(1, max_iter + 1):
         # from d = 0 up to the window's top: the aggregated solve puts mass below its floor
         n = _window(model, X, len(phases))[1]
@@ -250,7 +255,25 @@ def _cycle_iad(
             alpha = product_stationary(src_all, dst_all, kernels, n)
         X = torch.zeros_like(X)
         X[:n] = torch.from_numpy(alpha).to(X.device)[:, None] * conds[0]
+        recent = [*recent[-2:], X]
+        if it % EXTRAPOLATE_EVERY == 0 and len(recent) == 3:
+            X, recent = _extrapolate(*recent), []
     return [x.reshape(-1) for x in path], max_iter, False
+
+
+def _extrapolate(x0: torch.Tensor, x1: torch.Tensor, x2: torch.Tensor) -> torch.Tensor:
+    """Where three successive iterates head if their error keeps shrinking by one factor r a round
+    (Aitken's extrapolation along the last difference): x2 + r/(1 − r)·(x2 − x1), r fitted by least
+    squares to the last two differences, clipped at 0 and normalised; x2 itself unless 0 < r < 1.
+    The aggregation rounds' error decays geometrically at the factors' mixing rate, so this skips
+    rounds (``large``: a third to three fifths of them); the rounds that follow correct what it
+    misses."""
+    d0, d1 = x1 - x0, x2 - x1
+    r = float((d1 * d0).sum() / (d0 * d0).sum().clamp(min=1e-300))
+    if not 0.0 < r < 1.0:
+        return x2
+    y = (x2 + r / (1.0 - r) * d1).clamp(min=0.0)
+    return y / y.sum()
 
 
 def _window(model: FactoredChain, X: torch.Tensor, steps: int) -> tuple[int, int]:

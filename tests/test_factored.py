@@ -305,6 +305,19 @@ def test_a_periodic_policy_on_a_deep_queue_settles_in_a_few_rounds(monkeypatch, 
         assert got[k] == pytest.approx(want[k], rel=1e-9, abs=1e-11), k
 
 
+def test_a_periodic_policy_goes_on_by_whole_periods_where_aggregation_stops(monkeypatch):
+    """Round robin on large's dynamics (D = 5): with the aggregation rounds cut to one, the power
+    iteration over whole periods finishes from where they stopped, at the dense model's metrics."""
+    import irdrc.core.exact.stationary as fmod
+
+    params = scenario("env=large", "env.queue_capacity=5")
+    want = stationary_metrics(build_model(params), "round_robin")
+    monkeypatch.setattr(fmod, "IAD_MAX_ITER", 1)
+    got = stationary_metrics(build_factored(params), "round_robin")
+    assert got.avg_reward == pytest.approx(want.avg_reward, abs=1e-9)
+    assert got.mean_queue == pytest.approx(want.mean_queue, abs=1e-8)
+
+
 def test_a_queue_that_stays_full_is_stepped_only_near_the_top(stepped_rows):
     """Radar always on the paper's dynamics with a 60-packet queue (S = 1 952): the queue fills
     and stays full, so every power step (``power``, and ``auto``, which converges by them here)

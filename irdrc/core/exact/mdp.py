@@ -10,7 +10,7 @@ fleet's 2^N joint actions (MODEL.md § C).
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import TYPE_CHECKING, Any
 
 import torch
@@ -19,6 +19,27 @@ EXPECTATIONS = ("R", "missed", "false_alarms", "sent", "dropped", "capacity")
 """Per-step expectations of every exact model, each [A, S]: reward, missed events, radar false
 alarms, packets sent, packets dropped, link capacity. ``event`` and ``queue`` are [S], and ``radar``
 [A] (or [A, S]) is the share of each step spent in radar mode."""
+
+
+def power_cycle(
+    step: Callable[[torch.Tensor, torch.Tensor], torch.Tensor],
+    schedule: Sequence[torch.Tensor],
+    mu: torch.Tensor,
+    tol: float,
+    max_iter: int,
+) -> list[torch.Tensor]:
+    """The distribution [S] at each phase of a periodic policy (``schedule``: one [S, A] table per
+    phase, applied in turn by ``step(x, probs)``, x·P_π) by power iteration over whole cycles from
+    ``mu``, until a cycle's L1 change is below ``tol``."""
+    for _ in range(max_iter):
+        start, path = mu, []
+        for probs in schedule:
+            path.append(mu)
+            mu = step(mu, probs)
+            mu = mu / mu.sum()
+        if float((mu - start).abs().sum()) < tol:
+            return path
+    raise RuntimeError(f"the stationary distribution did not converge in {max_iter} cycles")
 
 
 class ExactMDP:
@@ -109,16 +130,7 @@ class ExactMDP:
         """The stationary distribution at each phase of a periodic policy (``schedule``: one
         [S, A] table per phase, applied in turn), by power iteration over whole cycles."""
         mu = torch.full((self.num_states,), 1.0 / self.num_states, dtype=torch.float64)
-        mu = mu.to(self.device)
-        for _ in range(max_iter):
-            start, path = mu, []
-            for probs in schedule:
-                path.append(mu)
-                mu = self.step(mu, probs)
-                mu = mu / mu.sum()
-            if float((mu - start).abs().sum()) < tol:
-                return path
-        raise RuntimeError(f"the stationary distribution did not converge in {max_iter} cycles")
+        return power_cycle(self.step, schedule, mu.to(self.device), tol, max_iter)
 
     def q_values(self, V: torch.Tensor, gamma: float) -> torch.Tensor:
         """[A, S]: R + γ·E[V(s′)]."""

@@ -15,7 +15,7 @@ import torch
 
 from irdrc.core.exact.banded import banded_stationary, product_stationary
 from irdrc.core.exact.krylov import krylov_solve
-from irdrc.core.exact.mdp import as_probs
+from irdrc.core.exact.mdp import as_probs, power_cycle
 
 
 class FactoredChain(Protocol):
@@ -336,16 +336,7 @@ def stationary_cycle_factored(
     path, _, done = _cycle_iad(model, phases, tol, min(max_iter, IAD_MAX_ITER))
     if done:
         return path
-    mu = path[0].reshape(-1, nf)
-    for _ in range(max_iter):
-        start, path = mu, []
-        for p in phases:
-            path.append(mu.reshape(-1))
-            mu = model.step_rows(mu, p)
-            mu = mu / mu.sum()
-        if float((mu - start).abs().sum()) < tol:
-            return path
-    raise RuntimeError(f"the stationary distribution did not converge in {max_iter} cycles")
+    return power_cycle(model.step, [p.reshape(S, A) for p in phases], path[0], tol, max_iter)
 
 
 def _stationary_gmres(model: FactoredChain, probs: torch.Tensor) -> tuple[torch.Tensor | None, int]:

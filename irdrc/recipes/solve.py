@@ -32,12 +32,15 @@ EPISODIC_LIMIT_FLOPS = 2e11
 """Exact episodic metrics step a distribution through ``env.horizon`` matrix-vector products
 (2·S² flops each) unless S is small enough for repeated squaring; above this estimate they are
 refused (minutes on this class of machine)."""
-BYTES_PER_STATE = 300
-"""Peak memory of a factored solve beyond the imports, per state (docs/SCALE.md: 285 MB at 10⁶
-states of ``large``), for the estimate a solve prints before it starts."""
+BYTES_PER_STATE = 750
+"""Peak memory of a factored solve beyond the imports, per state, for the estimate a solve prints
+before it starts and the refusal past free memory: the optimum's value iteration and stationary
+distribution, the baselines' and ``policy.csv`` (``large`` at S = 1 000 080: 948 MB resident, 234
+MB of it the imports)."""
 SWEEPS_GUESS = 550
-"""Operator applications a factored solve takes in all, for its estimate: value iteration's sweeps
-and the stationary solve's steps (docs/SCALE.md: ``large`` takes 104 + 450 at every size)."""
+"""Operator applications' worth of time a factored solve takes in all, for its estimate: value
+iteration's sweeps, then the optimum's and the four baselines' stationary distributions (``large``
+at S = 1 000 080: 450 sweeps' time; a smaller model's fixed costs weigh more: 1 300 at 100 800)."""
 
 
 @dataclass(frozen=True)
